@@ -1,0 +1,10 @@
+// Per-frame uniforms of the stereo ray caster (std140; mirrors render::FrameUniforms).
+layout(std140, set = 0, binding = 0) uniform Frame {
+    mat4 inv_view_proj[2];   // clip -> world, per view
+    mat4 view_proj[2];       // world -> clip, per view
+    mat4 tex_from_world;     // world -> volume texture coordinates [0,1]^3
+    vec4 extent_mm;          // xyz: volume extent in mm along i,j,k; w: step in mm
+    vec4 value_map;          // lut coordinate = value * y + x; z: ambient k, w: diffuse weight
+    vec4 background;         // rgb background, a: 1 = modulate by AO
+    vec4 viewport;           // xy: width, height in pixels
+} frame;

@@ -1,0 +1,29 @@
+// Local Ambient Occlusion of one voxel, exactly as DESIGN.md defines it:
+//   A_k = (1/M) sum_{m=1..M} prod_{i=1..m-1} (1 - a_i),  1 - a_i = (1 - O(p_i))^(D / 1 mm)
+//   A   = (1/K) sum_k A_k
+// dirs[k].xyz is the step D*d_k expressed in index units (mm step / spacing).
+// Stopping once the transmittance is exactly 0 leaves every value unchanged.
+
+float transmittance(float o) {
+    if (o <= 0.0) return 1.0;
+    if (o >= 1.0) return 0.0;
+    return pow(1.0 - o, pc.exponent);
+}
+
+float lao_voxel(ivec3 v) {
+    vec3 x = vec3(v) + 0.5;
+    float total = 0.0;
+    for (uint k = 0u; k < pc.rays; k++) {
+        vec3 s = dirs[k].xyz;
+        float t = 1.0;
+        float sum = 0.0;
+        for (uint m = 1u; m <= pc.steps; m++) {
+            sum += t;
+            if (m == pc.steps) break;
+            t *= transmittance(opacity_at(x + float(m) * s));
+            if (t == 0.0) break;
+        }
+        total += sum;
+    }
+    return total / float(pc.rays * pc.steps);
+}

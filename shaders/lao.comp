@@ -1,0 +1,27 @@
+#version 460
+// Full LAO precompute over a slab of z-slices [z0, z1) of the volume.
+#extension GL_GOOGLE_include_directive : require
+
+layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
+
+layout(std430, binding = 0) readonly buffer Opacity { float opacity[]; };
+layout(std430, binding = 1) readonly buffer Dirs { vec4 dirs[]; };
+layout(std430, binding = 2) writeonly buffer Ao { float ao[]; };
+
+layout(push_constant) uniform Push {
+    ivec4 dims;
+    uint rays;
+    uint steps;
+    float exponent;
+    uint z0;
+    uint z1;
+} pc;
+
+#include "opacity.glsl"
+#include "lao.glsl"
+
+void main() {
+    ivec3 v = ivec3(gl_GlobalInvocationID) + ivec3(0, 0, int(pc.z0));
+    if (any(greaterThanEqual(v, pc.dims.xyz)) || v.z >= int(pc.z1)) return;
+    ao[v.x + pc.dims.x * (v.y + pc.dims.y * v.z)] = lao_voxel(v);
+}

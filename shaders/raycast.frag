@@ -1,0 +1,90 @@
+#version 460
+// Stereo ray caster: front-to-back compositing through the volume with early termination.
+// Colour = C_tf * (k * AO + diffuse * |n.l|), opacity corrected per mm; depth is written where
+// the ray enters visible material, so later geometry (tools, hands) is depth-correct.
+#extension GL_GOOGLE_include_directive : require
+#include "frame.glsl"
+
+layout(set = 0, binding = 1) uniform sampler3D scalars;
+layout(set = 0, binding = 2) uniform sampler3D ambient;
+layout(set = 0, binding = 3) uniform sampler1D tf_lut;
+
+// Which eye (layer of the stereo target) this draw renders.
+layout(push_constant) uniform Eye { uint index; } eye;
+
+layout(location = 0) out vec4 out_color;
+
+const float OPAQUE = 0.99;
+const float DEPTH_ALPHA = 0.05;
+
+vec4 classify(vec3 t) {
+    float s = texture(scalars, t).r;
+    return texture(tf_lut, s * frame.value_map.y + frame.value_map.x);
+}
+
+// Gradient of the scalar field in mm (central differences, one texel apart).
+vec3 gradient_mm(vec3 t) {
+    vec3 texel = 1.0 / vec3(textureSize(scalars, 0));
+    vec3 mm = frame.extent_mm.xyz * texel;
+    float gx = texture(scalars, t + vec3(texel.x, 0, 0)).r - texture(scalars, t - vec3(texel.x, 0, 0)).r;
+    float gy = texture(scalars, t + vec3(0, texel.y, 0)).r - texture(scalars, t - vec3(0, texel.y, 0)).r;
+    float gz = texture(scalars, t + vec3(0, 0, texel.z)).r - texture(scalars, t - vec3(0, 0, texel.z)).r;
+    return vec3(gx, gy, gz) / (2.0 * mm);
+}
+
+// Deterministic per-pixel offset in [0,1) that breaks up wood-grain artefacts.
+float pixel_jitter(vec2 p) {
+    return fract(52.9829189 * fract(dot(p, vec2(0.06711056, 0.00583715))));
+}
+
+void main() {
+    uint v = eye.index;
+    vec2 ndc = gl_FragCoord.xy / frame.viewport.xy * 2.0 - 1.0;
+    vec4 near_w = frame.inv_view_proj[v] * vec4(ndc, 0.0, 1.0);
+    vec4 far_w = frame.inv_view_proj[v] * vec4(ndc, 1.0, 1.0);
+    vec3 a_w = near_w.xyz / near_w.w;
+    vec3 b_w = far_w.xyz / far_w.w;
+    vec3 o = (frame.tex_from_world * vec4(a_w, 1.0)).xyz;
+    vec3 d = (frame.tex_from_world * vec4(b_w, 1.0)).xyz - o;
+
+    // Ray / unit-box intersection in texture space, t in [0,1] along near->far.
+    vec3 inv = 1.0 / d;
+    vec3 t0 = (vec3(0.0) - o) * inv;
+    vec3 t1 = (vec3(1.0) - o) * inv;
+    float tn = max(max(min(t0.x, t1.x), min(t0.y, t1.y)), max(min(t0.z, t1.z), 0.0));
+    float tf = min(min(max(t0.x, t1.x), max(t0.y, t1.y)), min(max(t0.z, t1.z), 1.0));
+
+    vec3 color = vec3(0.0);
+    float alpha = 0.0;
+    float depth = 1.0;
+    if (tn < tf) {
+        float step_mm = frame.extent_mm.w;
+        vec3 d_mm = d * frame.extent_mm.xyz;
+        float dt = step_mm / length(d_mm);
+        vec3 light = -normalize(d_mm);
+        float t = tn + dt * pixel_jitter(gl_FragCoord.xy);
+        for (int i = 0; i < 8192 && t < tf; i++, t += dt) {
+            vec3 p = o + t * d;
+            vec4 c = classify(p);
+            if (c.a > 0.0) {
+                float a = 1.0 - pow(1.0 - min(c.a, 0.9999), step_mm);
+                float occl = frame.background.a > 0.5 ? texture(ambient, p).r : 1.0;
+                float shade = frame.value_map.z * occl;
+                if (frame.value_map.w > 0.0) {
+                    vec3 g = gradient_mm(p);
+                    float gl = length(g);
+                    if (gl > 1e-3) shade += frame.value_map.w * abs(dot(g / gl, light));
+                }
+                color += (1.0 - alpha) * a * c.rgb * shade;
+                alpha += (1.0 - alpha) * a;
+                if (depth == 1.0 && alpha >= DEPTH_ALPHA) {
+                    vec4 clip = frame.view_proj[v] * vec4(a_w + t * (b_w - a_w), 1.0);
+                    depth = clamp(clip.z / clip.w, 0.0, 1.0);
+                }
+                if (alpha >= OPAQUE) break;
+            }
+        }
+    }
+    out_color = vec4(color + (1.0 - alpha) * frame.background.rgb, alpha);
+    gl_FragDepth = depth;
+}

@@ -1,0 +1,6 @@
+//! Ambient occlusion: LAO directions and parameters, the GPU precompute, and a CPU reference.
+
+pub mod cpu;
+pub mod lao;
+
+pub use lao::{directions, LaoGpu, LaoParams};

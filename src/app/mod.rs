@@ -1,0 +1,314 @@
+//! What the subcommands do, as library calls: open a volume, precompute AO, render both eyes,
+//! write the results. The CLI in main.rs only parses arguments and calls these.
+
+pub mod bench;
+
+use crate::ao::lao::{directions, LaoTiming};
+use crate::ao::{LaoGpu, LaoParams};
+use crate::gpu::{Buffer, Gpu, GpuError};
+use crate::render::png_out::PngError;
+use crate::render::{
+    default_stereo_views, world_from_tex, Placement, RenderSettings, Renderer, StereoImage,
+    StereoTarget, VolumeTextures,
+};
+use crate::volume::nrrd::{self, NrrdData};
+use crate::volume::raw::RawSpec;
+use crate::volume::transfer::{TfError, TransferFunction};
+use crate::volume::{ct_head, phantom, Volume, VolumeError};
+use ash::vk;
+use std::path::Path;
+
+#[derive(Debug, thiserror::Error)]
+pub enum AppError {
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+    #[error(transparent)]
+    Volume(#[from] VolumeError),
+    #[error(transparent)]
+    Tf(#[from] TfError),
+    #[error(transparent)]
+    Png(#[from] PngError),
+    #[error("{0}")]
+    Usage(String),
+    #[error("{path}: {msg}")]
+    Output { path: String, msg: String },
+}
+
+pub type Result<T> = std::result::Result<T, AppError>;
+
+/// Default phantom size when no volume is given and the CT head has not been fetched.
+pub const DEFAULT_PHANTOM: usize = 128;
+
+/// Opens a volume: a file path (.nrrd, .nhdr, or raw with `raw`), `phantom[:N]`, `ct-head`, or
+/// nothing (the CT head if `cao-xr fetch-ct` has cached it, else the phantom).
+pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>) -> Result<Volume> {
+    let cached = ct_head::cached_path();
+    match spec {
+        None if cached.exists() => Ok(nrrd::load(&cached)?),
+        None => Ok(phantom::head(DEFAULT_PHANTOM)),
+        Some("ct-head") => {
+            if !cached.exists() {
+                return Err(AppError::Usage(format!(
+                    "the CT head is not in the data cache ({}): run `cao-xr fetch-ct` first",
+                    cached.display()
+                )));
+            }
+            Ok(nrrd::load(&cached)?)
+        }
+        Some(s) if s == "phantom" || s.starts_with("phantom:") => {
+            let n = match s.strip_prefix("phantom:") {
+                None => DEFAULT_PHANTOM,
+                Some(n) => n
+                    .parse::<usize>()
+                    .ok()
+                    .filter(|n| (4..=1024).contains(n))
+                    .ok_or_else(|| {
+                        AppError::Usage(format!(
+                            "'{s}': phantom size must be 4..=1024, e.g. phantom:64"
+                        ))
+                    })?,
+            };
+            Ok(phantom::head(n))
+        }
+        Some(path) => {
+            let p = Path::new(path);
+            if let Some(spec) = raw {
+                return Ok(crate::volume::raw::load(p, spec)?);
+            }
+            let ext = p
+                .extension()
+                .and_then(|e| e.to_str())
+                .unwrap_or("")
+                .to_lowercase();
+            match ext.as_str() {
+                "nrrd" | "nhdr" => Ok(nrrd::load(p)?),
+                "raw" | "dat" | "bin" => Err(AppError::Usage(format!(
+                    "{path}: a raw volume needs --raw-dims X,Y,Z (and --raw-type, --raw-spacing)"
+                ))),
+                _ if !p.exists() => Err(AppError::Usage(format!(
+                    "{path}: no such file (volumes: a .nrrd/.nhdr file, raw with --raw-dims, phantom[:N], ct-head)"
+                ))),
+                _ => Err(AppError::Usage(format!(
+                    "{path}: unknown volume format (supported: .nrrd, .nhdr, raw with --raw-dims)"
+                ))),
+            }
+        }
+    }
+}
+
+/// A volume's classification and LAO, resident on the GPU.
+pub struct AoVolume {
+    /// O of DESIGN.md, on the host.
+    pub opacity: Vec<f32>,
+    pub opacity_buf: Buffer,
+    /// V_PAO: LAO of the unclipped volume (f32, x fastest).
+    pub ao_buf: Buffer,
+    pub timing: LaoTiming,
+}
+
+/// A terminal progress bar (hidden when stderr is not a terminal).
+pub fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(len);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{msg:>12} [{bar:40}] {pos}/{len} slices  {elapsed_precise} (eta {eta})",
+        )
+        .unwrap()
+        .progress_chars("=> "),
+    );
+    bar.set_message(label.to_string());
+    bar
+}
+
+/// Classifies the volume and precomputes its LAO on the GPU, with a progress bar.
+pub fn precompute_ao(
+    gpu: &Gpu,
+    lao: &LaoGpu,
+    vol: &Volume,
+    tf: &TransferFunction,
+    params: &LaoParams,
+    show_progress: bool,
+) -> Result<AoVolume> {
+    params.validate().map_err(AppError::Usage)?;
+    let opacity = tf.opacity_volume(vol);
+    let opacity_buf = Buffer::device_local(
+        gpu,
+        &opacity,
+        vk::BufferUsageFlags::STORAGE_BUFFER,
+        "opacity",
+    )?;
+    let bar = show_progress.then(|| progress_bar(vol.dims[2] as u64, "LAO"));
+    let (ao_buf, timing) = lao.compute(
+        &opacity_buf,
+        vol.dims,
+        vol.spacing,
+        params,
+        &mut |done, _| {
+            if let Some(b) = &bar {
+                b.set_position(done as u64)
+            }
+        },
+    )?;
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    Ok(AoVolume {
+        opacity,
+        opacity_buf,
+        ao_buf,
+        timing,
+    })
+}
+
+/// Everything needed to render a volume from scratch on the GPU.
+pub struct HeadlessRenderer {
+    pub gpu: Gpu,
+    pub lao: LaoGpu,
+    pub renderer: Renderer,
+}
+
+impl HeadlessRenderer {
+    pub fn new(gpu: &Gpu) -> Result<Self> {
+        Ok(HeadlessRenderer {
+            gpu: gpu.clone(),
+            lao: LaoGpu::new(gpu)?,
+            renderer: Renderer::new(gpu)?,
+        })
+    }
+
+    /// Renders both eyes of `views` with the given AO buffer (or no AO) in one command buffer.
+    pub fn render(
+        &mut self,
+        tex: &VolumeTextures,
+        ao: Option<&Buffer>,
+        views: &[crate::render::View; 2],
+        placement: &Placement,
+        vol: &Volume,
+        size: (u32, u32),
+        settings: &RenderSettings,
+    ) -> Result<StereoImage> {
+        let target = StereoTarget::new(&self.gpu, size.0, size.1)?;
+        let model = world_from_tex(vol, placement);
+        let renderer = &mut self.renderer;
+        let mut rec = Ok(());
+        self.gpu.submit_and_wait(|cmd| {
+            if let Some(ao) = ao {
+                tex.cmd_update_ambient(cmd, ao);
+            }
+            rec = renderer.record(cmd, &target, tex, views, model, settings);
+        })?;
+        rec?;
+        Ok(target.read_back(&self.gpu)?)
+    }
+}
+
+/// `cao-xr render`: LAO, then both eyes from the default pair of eye poses, as PNGs in `out`.
+pub fn render_to_dir(
+    gpu: &Gpu,
+    vol: &Volume,
+    tf: &TransferFunction,
+    params: &LaoParams,
+    size: (u32, u32),
+    settings: &RenderSettings,
+    out: &Path,
+) -> Result<StereoImage> {
+    let mut hr = HeadlessRenderer::new(gpu)?;
+    let ao = precompute_ao(gpu, &hr.lao, vol, tf, params, true)?;
+    let tex = VolumeTextures::new(gpu, vol, tf)?;
+    let placement = Placement::default();
+    let views = default_stereo_views(vol, &placement, 0.064);
+    let img = hr.render(
+        &tex,
+        Some(&ao.ao_buf),
+        &views,
+        &placement,
+        vol,
+        size,
+        settings,
+    )?;
+    img.write_pngs(out)?;
+    Ok(img)
+}
+
+/// The JSON sidecar of an AO volume: everything an outside checker needs to recompute it.
+pub fn ao_sidecar(vol: &Volume, tf: &TransferFunction, params: &LaoParams) -> serde_json::Value {
+    let dirs: Vec<[f64; 3]> = directions(params.rays)
+        .iter()
+        .map(|d| d.to_array())
+        .collect();
+    serde_json::json!({
+        "volume": vol.name,
+        "dims": vol.dims,
+        "spacing_mm": vol.spacing,
+        "rays": params.rays,
+        "directions": dirs,
+        "steps": params.steps,
+        "step_mm": params.step_mm,
+        "transfer_function": tf,
+        "value_range": [vol.value_range().0, vol.value_range().1],
+        "definition": "A(v) = 1/(K M) sum_k sum_{m=1..M} prod_{i=1..m-1} (1 - O(p_i))^(D/1mm), \
+    p_i = x + i D d_k in mm, x = (index + 0.5) * spacing, O trilinear at voxel centres, 0 outside",
+    })
+}
+
+fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
+    let text = serde_json::to_string_pretty(value).expect("JSON values serialise");
+    std::fs::write(path, text + "\n").map_err(|e| AppError::Output {
+        path: path.display().to_string(),
+        msg: e.to_string(),
+    })
+}
+
+/// `cao-xr ao`: the AO volume as float32 NRRD, its JSON sidecar, optionally the opacity volume.
+/// With `cpu`, the CPU reference computes it instead of the GPU.
+#[allow(clippy::too_many_arguments)]
+pub fn write_ao(
+    gpu: Option<&Gpu>,
+    vol: &Volume,
+    tf: &TransferFunction,
+    params: &LaoParams,
+    out: &Path,
+    opacity_out: Option<&Path>,
+) -> Result<LaoTiming> {
+    let (ao, opacity, timing) = match gpu {
+        Some(gpu) => {
+            let lao = LaoGpu::new(gpu)?;
+            let r = precompute_ao(gpu, &lao, vol, tf, params, true)?;
+            let bytes = r.ao_buf.read_back()?;
+            (
+                bytemuck::cast_slice::<u8, f32>(&bytes).to_vec(),
+                r.opacity,
+                r.timing,
+            )
+        }
+        None => {
+            params.validate().map_err(AppError::Usage)?;
+            let opacity = tf.opacity_volume(vol);
+            let t0 = std::time::Instant::now();
+            let ao = crate::ao::cpu::lao(&opacity, vol.dims, vol.spacing, params);
+            let timing = LaoTiming {
+                wall_ms: t0.elapsed().as_secs_f64() * 1e3,
+                ..Default::default()
+            };
+            (ao, opacity, timing)
+        }
+    };
+    let write = |path: &Path, data: &[f32]| {
+        nrrd::write(
+            path,
+            vol.dims,
+            vol.spacing,
+            vol.directions,
+            vol.origin,
+            vol.modality,
+            NrrdData::F32(data),
+            false,
+        )
+    };
+    write(out, &ao)?;
+    write_json(&out.with_extension("json"), &ao_sidecar(vol, tf, params))?;
+    if let Some(o) = opacity_out {
+        write(o, &opacity)?;
+    }
+    Ok(timing)
+}

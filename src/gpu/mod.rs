@@ -1,0 +1,382 @@
+//! Vulkan context: instance, validation messenger, device choice, queue, allocator, one-shot
+//! submissions and the small resource types (buffers, images, pipelines, timers) every pass uses.
+
+mod resources;
+mod timer;
+
+pub use resources::{push_set_layout, shader_module, Buffer, ComputePipeline, Image, ImageDesc};
+pub use timer::GpuTimer;
+
+use ash::vk;
+use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
+use std::ffi::{c_void, CStr, CString};
+use std::mem::ManuallyDrop;
+use std::sync::{Arc, Mutex};
+
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    #[error("cannot load the Vulkan library (install libvulkan1 and a driver, e.g. mesa-vulkan-drivers): {0}")]
+    Loader(#[from] ash::LoadingError),
+    #[error("Vulkan call failed: {0}")]
+    Vk(#[from] vk::Result),
+    #[error("GPU memory allocation failed: {0}")]
+    Alloc(#[from] gpu_allocator::AllocationError),
+    #[error("no usable Vulkan 1.3 device: {0}")]
+    NoDevice(String),
+    #[error("Vulkan validation layer VK_LAYER_KHRONOS_validation was asked for but is not installed (apt-get install vulkan-validationlayers)")]
+    NoValidationLayer,
+    #[error("{0}")]
+    Other(String),
+}
+
+pub type Result<T> = std::result::Result<T, GpuError>;
+
+/// How to create the context.
+#[derive(Clone, Debug)]
+pub struct GpuOptions {
+    /// Khronos validation with a messenger that records every warning and error.
+    pub validation: bool,
+    /// Pick the first device whose name contains this (case-insensitive).
+    pub device_name: Option<String>,
+}
+
+impl Default for GpuOptions {
+    fn default() -> Self {
+        let env_on = std::env::var("CAO_XR_VALIDATION").map(|v| v != "0");
+        Self {
+            validation: env_on.unwrap_or(cfg!(debug_assertions)),
+            device_name: std::env::var("CAO_XR_DEVICE").ok(),
+        }
+    }
+}
+
+/// The shared Vulkan context. Cheap to clone; resources keep it alive until they are dropped.
+#[derive(Clone)]
+pub struct Gpu(Arc<Core>);
+
+impl std::ops::Deref for Gpu {
+    type Target = Core;
+    fn deref(&self) -> &Core {
+        &self.0
+    }
+}
+
+pub struct Core {
+    pub entry: ash::Entry,
+    pub instance: ash::Instance,
+    debug: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    log: Arc<ValidationLog>,
+    pub physical: vk::PhysicalDevice,
+    pub device: ash::Device,
+    pub push_descriptor: ash::khr::push_descriptor::Device,
+    pub queue: vk::Queue,
+    pub queue_family: u32,
+    pub allocator: Mutex<ManuallyDrop<Allocator>>,
+    cmd_pool: Mutex<vk::CommandPool>,
+    pub device_name: String,
+    pub device_type: vk::PhysicalDeviceType,
+    /// Nanoseconds per timestamp tick.
+    pub timestamp_period: f32,
+    pub limits: vk::PhysicalDeviceLimits,
+}
+
+/// Every validation warning and error seen by the messenger, in order.
+#[derive(Default)]
+pub struct ValidationLog {
+    messages: Mutex<Vec<String>>,
+}
+
+unsafe extern "system" fn debug_callback(
+    severity: vk::DebugUtilsMessageSeverityFlagsEXT,
+    _types: vk::DebugUtilsMessageTypeFlagsEXT,
+    data: *const vk::DebugUtilsMessengerCallbackDataEXT<'_>,
+    user: *mut c_void,
+) -> vk::Bool32 {
+    let msg = if data.is_null() || (*data).p_message.is_null() {
+        "(no message)".to_string()
+    } else {
+        CStr::from_ptr((*data).p_message)
+            .to_string_lossy()
+            .into_owned()
+    };
+    let line = format!("[{severity:?}] {msg}");
+    eprintln!("vulkan validation: {line}");
+    if !user.is_null() {
+        let log = &*(user as *const ValidationLog);
+        if let Ok(mut m) = log.messages.lock() {
+            m.push(line);
+        }
+    }
+    vk::FALSE
+}
+
+const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
+
+impl Gpu {
+    pub fn new(opts: &GpuOptions) -> Result<Gpu> {
+        unsafe { Self::create(opts) }
+    }
+
+    unsafe fn create(opts: &GpuOptions) -> Result<Gpu> {
+        let entry = ash::Entry::load()?;
+        let log = Arc::new(ValidationLog::default());
+
+        let mut layers: Vec<*const i8> = Vec::new();
+        let mut exts: Vec<*const i8> = Vec::new();
+        if opts.validation {
+            let available = entry.enumerate_instance_layer_properties()?;
+            if !available
+                .iter()
+                .any(|l| l.layer_name_as_c_str() == Ok(VALIDATION_LAYER))
+            {
+                return Err(GpuError::NoValidationLayer);
+            }
+            layers.push(VALIDATION_LAYER.as_ptr());
+            exts.push(ash::ext::debug_utils::NAME.as_ptr());
+        }
+        let severity = vk::DebugUtilsMessageSeverityFlagsEXT::WARNING
+            | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR;
+        let types = vk::DebugUtilsMessageTypeFlagsEXT::GENERAL
+            | vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
+            | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE;
+        let mut messenger_info = vk::DebugUtilsMessengerCreateInfoEXT::default()
+            .message_severity(severity)
+            .message_type(types)
+            .pfn_user_callback(Some(debug_callback))
+            .user_data(Arc::as_ptr(&log) as *mut c_void);
+
+        let app_name = CString::new("cao-xr").unwrap();
+        let app = vk::ApplicationInfo::default()
+            .application_name(&app_name)
+            .engine_name(&app_name)
+            .api_version(vk::API_VERSION_1_3);
+        let mut info = vk::InstanceCreateInfo::default()
+            .application_info(&app)
+            .enabled_layer_names(&layers)
+            .enabled_extension_names(&exts);
+        if opts.validation {
+            // Chained so instance creation and destruction are validated too.
+            info = info.push_next(&mut messenger_info);
+        }
+        let instance = entry.create_instance(&info, None)?;
+        let debug = if opts.validation {
+            let du = ash::ext::debug_utils::Instance::new(&entry, &instance);
+            let m = du.create_debug_utils_messenger(&messenger_info, None)?;
+            Some((du, m))
+        } else {
+            None
+        };
+
+        let (physical, queue_family) = match pick_device(&instance, opts) {
+            Ok(p) => p,
+            Err(e) => {
+                if let Some((du, m)) = &debug {
+                    du.destroy_debug_utils_messenger(*m, None);
+                }
+                instance.destroy_instance(None);
+                return Err(e);
+            }
+        };
+        let props = instance.get_physical_device_properties(physical);
+
+        let priorities = [1.0f32];
+        let queue_info = [vk::DeviceQueueCreateInfo::default()
+            .queue_family_index(queue_family)
+            .queue_priorities(&priorities)];
+        let dev_exts = [ash::khr::push_descriptor::NAME.as_ptr()];
+        let mut f13 = vk::PhysicalDeviceVulkan13Features::default()
+            .dynamic_rendering(true)
+            .synchronization2(true);
+        let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f13);
+        let dinfo = vk::DeviceCreateInfo::default()
+            .queue_create_infos(&queue_info)
+            .enabled_extension_names(&dev_exts)
+            .push_next(&mut f2);
+        let device = instance.create_device(physical, &dinfo, None)?;
+        let queue = device.get_device_queue(queue_family, 0);
+        let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
+
+        let allocator = Allocator::new(&AllocatorCreateDesc {
+            instance: instance.clone(),
+            device: device.clone(),
+            physical_device: physical,
+            debug_settings: Default::default(),
+            buffer_device_address: false,
+            allocation_sizes: Default::default(),
+        })?;
+        let cmd_pool = device.create_command_pool(
+            &vk::CommandPoolCreateInfo::default()
+                .queue_family_index(queue_family)
+                .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER),
+            None,
+        )?;
+        let device_name = props
+            .device_name_as_c_str()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        Ok(Gpu(Arc::new(Core {
+            entry,
+            instance,
+            debug,
+            log,
+            physical,
+            device,
+            push_descriptor,
+            queue,
+            queue_family,
+            allocator: Mutex::new(ManuallyDrop::new(allocator)),
+            cmd_pool: Mutex::new(cmd_pool),
+            device_name,
+            device_type: props.device_type,
+            timestamp_period: props.limits.timestamp_period,
+            limits: props.limits,
+        })))
+    }
+}
+
+/// Prefers a discrete GPU, then integrated, virtual, and finally a CPU device (lavapipe).
+unsafe fn pick_device(
+    instance: &ash::Instance,
+    opts: &GpuOptions,
+) -> Result<(vk::PhysicalDevice, u32)> {
+    let mut best: Option<(u32, vk::PhysicalDevice, u32)> = None;
+    let mut rejected = Vec::new();
+    for pd in instance.enumerate_physical_devices()? {
+        let props = instance.get_physical_device_properties(pd);
+        let name = props
+            .device_name_as_c_str()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        if let Some(want) = &opts.device_name {
+            if !name.to_lowercase().contains(&want.to_lowercase()) {
+                continue;
+            }
+        }
+        if props.api_version < vk::API_VERSION_1_3 {
+            rejected.push(format!("{name}: Vulkan < 1.3"));
+            continue;
+        }
+        let exts = instance.enumerate_device_extension_properties(pd)?;
+        if !exts
+            .iter()
+            .any(|e| e.extension_name_as_c_str() == Ok(ash::khr::push_descriptor::NAME))
+        {
+            rejected.push(format!("{name}: no VK_KHR_push_descriptor"));
+            continue;
+        }
+        let mut f13 = vk::PhysicalDeviceVulkan13Features::default();
+        let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f13);
+        instance.get_physical_device_features2(pd, &mut f2);
+        if f13.dynamic_rendering == 0 || f13.synchronization2 == 0 {
+            rejected.push(format!("{name}: lacks dynamicRendering/synchronization2"));
+            continue;
+        }
+        let want = vk::QueueFlags::GRAPHICS | vk::QueueFlags::COMPUTE;
+        let family = instance
+            .get_physical_device_queue_family_properties(pd)
+            .iter()
+            .position(|q| q.queue_flags.contains(want) && q.timestamp_valid_bits > 0);
+        let Some(family) = family else {
+            rejected.push(format!("{name}: no graphics+compute queue with timestamps"));
+            continue;
+        };
+        let score = match props.device_type {
+            vk::PhysicalDeviceType::DISCRETE_GPU => 4,
+            vk::PhysicalDeviceType::INTEGRATED_GPU => 3,
+            vk::PhysicalDeviceType::VIRTUAL_GPU => 2,
+            vk::PhysicalDeviceType::CPU => 1,
+            _ => 0,
+        };
+        if best.is_none_or(|b| score > b.0) {
+            best = Some((score, pd, family as u32));
+        }
+    }
+    best.map(|(_, pd, f)| (pd, f)).ok_or_else(|| {
+        GpuError::NoDevice(if rejected.is_empty() {
+            "no Vulkan device found (apt-get install mesa-vulkan-drivers for lavapipe)".into()
+        } else {
+            rejected.join("; ")
+        })
+    })
+}
+
+impl Core {
+    /// Validation warnings and errors reported so far (empty when validation is off).
+    pub fn validation_messages(&self) -> Vec<String> {
+        self.log
+            .messages
+            .lock()
+            .map(|m| m.clone())
+            .unwrap_or_default()
+    }
+
+    pub fn validation_enabled(&self) -> bool {
+        self.debug.is_some()
+    }
+
+    pub fn is_cpu(&self) -> bool {
+        self.device_type == vk::PhysicalDeviceType::CPU
+    }
+
+    /// Records commands into a fresh command buffer, submits it and waits for completion.
+    pub fn submit_and_wait<R>(&self, record: impl FnOnce(vk::CommandBuffer) -> R) -> Result<R> {
+        unsafe {
+            let pool = self.cmd_pool.lock().unwrap();
+            let cmd = self.device.allocate_command_buffers(
+                &vk::CommandBufferAllocateInfo::default()
+                    .command_pool(*pool)
+                    .level(vk::CommandBufferLevel::PRIMARY)
+                    .command_buffer_count(1),
+            )?[0];
+            self.device.begin_command_buffer(
+                cmd,
+                &vk::CommandBufferBeginInfo::default()
+                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+            )?;
+            let r = record(cmd);
+            self.device.end_command_buffer(cmd)?;
+            let fence = self
+                .device
+                .create_fence(&vk::FenceCreateInfo::default(), None)?;
+            let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+            let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
+            let res = self
+                .device
+                .queue_submit2(self.queue, &submit, fence)
+                .and_then(|_| self.device.wait_for_fences(&[fence], true, u64::MAX));
+            self.device.destroy_fence(fence, None);
+            self.device.free_command_buffers(*pool, &[cmd]);
+            res?;
+            Ok(r)
+        }
+    }
+
+    /// A full memory barrier between passes (compute/graphics/transfer all read-after-write).
+    pub fn barrier(&self, cmd: vk::CommandBuffer) {
+        let mb = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)];
+        unsafe {
+            self.device
+                .cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&mb));
+        }
+    }
+}
+
+impl Drop for Core {
+    fn drop(&mut self) {
+        unsafe {
+            let _ = self.device.device_wait_idle();
+            self.device
+                .destroy_command_pool(*self.cmd_pool.get_mut().unwrap(), None);
+            ManuallyDrop::drop(self.allocator.get_mut().unwrap());
+            self.device.destroy_device(None);
+            if let Some((du, m)) = &self.debug {
+                du.destroy_debug_utils_messenger(*m, None);
+            }
+            self.instance.destroy_instance(None);
+        }
+    }
+}

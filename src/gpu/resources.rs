@@ -1,0 +1,497 @@
+//! Buffers, images and compute pipelines. Each owns its memory and frees it on drop.
+
+use super::{Gpu, GpuError, Result};
+use ash::vk;
+use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
+use gpu_allocator::MemoryLocation;
+
+pub struct Buffer {
+    gpu: Gpu,
+    pub raw: vk::Buffer,
+    pub size: u64,
+    alloc: Option<Allocation>,
+}
+
+impl Buffer {
+    pub fn new(
+        gpu: &Gpu,
+        size: u64,
+        usage: vk::BufferUsageFlags,
+        location: MemoryLocation,
+        name: &str,
+    ) -> Result<Buffer> {
+        unsafe {
+            let raw = gpu.device.create_buffer(
+                &vk::BufferCreateInfo::default()
+                    .size(size.max(4))
+                    .usage(usage)
+                    .sharing_mode(vk::SharingMode::EXCLUSIVE),
+                None,
+            )?;
+            let requirements = gpu.device.get_buffer_memory_requirements(raw);
+            let alloc = gpu
+                .allocator
+                .lock()
+                .unwrap()
+                .allocate(&AllocationCreateDesc {
+                    name,
+                    requirements,
+                    location,
+                    linear: true,
+                    allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+                });
+            let alloc = match alloc {
+                Ok(a) => a,
+                Err(e) => {
+                    gpu.device.destroy_buffer(raw, None);
+                    return Err(e.into());
+                }
+            };
+            gpu.device
+                .bind_buffer_memory(raw, alloc.memory(), alloc.offset())?;
+            Ok(Buffer {
+                gpu: gpu.clone(),
+                raw,
+                size,
+                alloc: Some(alloc),
+            })
+        }
+    }
+
+    /// A host-visible buffer holding `data`.
+    pub fn from_slice<T: bytemuck::Pod>(
+        gpu: &Gpu,
+        data: &[T],
+        usage: vk::BufferUsageFlags,
+        name: &str,
+    ) -> Result<Buffer> {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        let mut b = Buffer::new(
+            gpu,
+            bytes.len() as u64,
+            usage,
+            MemoryLocation::CpuToGpu,
+            name,
+        )?;
+        b.write(0, bytes)?;
+        Ok(b)
+    }
+
+    /// A device-local buffer filled with `data` through a staging copy.
+    pub fn device_local<T: bytemuck::Pod>(
+        gpu: &Gpu,
+        data: &[T],
+        usage: vk::BufferUsageFlags,
+        name: &str,
+    ) -> Result<Buffer> {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        let staging =
+            Buffer::from_slice(gpu, bytes, vk::BufferUsageFlags::TRANSFER_SRC, "staging")?;
+        let b = Buffer::new(
+            gpu,
+            bytes.len() as u64,
+            usage | vk::BufferUsageFlags::TRANSFER_DST,
+            MemoryLocation::GpuOnly,
+            name,
+        )?;
+        gpu.submit_and_wait(|cmd| unsafe {
+            let region = [vk::BufferCopy::default().size(bytes.len().max(4) as u64)];
+            gpu.device.cmd_copy_buffer(cmd, staging.raw, b.raw, &region);
+        })?;
+        Ok(b)
+    }
+
+    pub fn write(&mut self, offset: usize, bytes: &[u8]) -> Result<()> {
+        let slice = self
+            .alloc
+            .as_mut()
+            .and_then(|a| a.mapped_slice_mut())
+            .ok_or_else(|| GpuError::Other("buffer is not host visible".into()))?;
+        slice[offset..offset + bytes.len()].copy_from_slice(bytes);
+        Ok(())
+    }
+
+    /// The mapped bytes of a host-visible buffer.
+    pub fn mapped(&self) -> Result<&[u8]> {
+        self.alloc
+            .as_ref()
+            .and_then(|a| a.mapped_slice())
+            .map(|s| &s[..self.size as usize])
+            .ok_or_else(|| GpuError::Other("buffer is not host visible".into()))
+    }
+
+    /// Copies the whole buffer back to the host (through a staging buffer).
+    pub fn read_back(&self) -> Result<Vec<u8>> {
+        let staging = Buffer::new(
+            &self.gpu,
+            self.size,
+            vk::BufferUsageFlags::TRANSFER_DST,
+            MemoryLocation::GpuToCpu,
+            "readback",
+        )?;
+        self.gpu.submit_and_wait(|cmd| unsafe {
+            let region = [vk::BufferCopy::default().size(self.size.max(4))];
+            self.gpu
+                .device
+                .cmd_copy_buffer(cmd, self.raw, staging.raw, &region);
+        })?;
+        Ok(staging.mapped()?.to_vec())
+    }
+
+    pub fn descriptor(&self) -> vk::DescriptorBufferInfo {
+        vk::DescriptorBufferInfo::default()
+            .buffer(self.raw)
+            .offset(0)
+            .range(vk::WHOLE_SIZE)
+    }
+}
+
+impl Drop for Buffer {
+    fn drop(&mut self) {
+        unsafe {
+            if let Some(a) = self.alloc.take() {
+                let _ = self.gpu.allocator.lock().unwrap().free(a);
+            }
+            self.gpu.device.destroy_buffer(self.raw, None);
+        }
+    }
+}
+
+#[derive(Clone, Debug)]
+pub struct ImageDesc {
+    pub image_type: vk::ImageType,
+    pub view_type: vk::ImageViewType,
+    pub format: vk::Format,
+    pub extent: vk::Extent3D,
+    pub layers: u32,
+    pub usage: vk::ImageUsageFlags,
+    pub aspect: vk::ImageAspectFlags,
+}
+
+pub struct Image {
+    gpu: Gpu,
+    pub raw: vk::Image,
+    pub view: vk::ImageView,
+    /// One 2D view per array layer (for rendering into a single layer), when layers > 1.
+    pub layer_views: Vec<vk::ImageView>,
+    pub desc: ImageDesc,
+    alloc: Option<Allocation>,
+}
+
+impl Image {
+    pub fn new(gpu: &Gpu, desc: ImageDesc, name: &str) -> Result<Image> {
+        unsafe {
+            let raw = gpu.device.create_image(
+                &vk::ImageCreateInfo::default()
+                    .image_type(desc.image_type)
+                    .format(desc.format)
+                    .extent(desc.extent)
+                    .mip_levels(1)
+                    .array_layers(desc.layers)
+                    .samples(vk::SampleCountFlags::TYPE_1)
+                    .tiling(vk::ImageTiling::OPTIMAL)
+                    .usage(desc.usage)
+                    .sharing_mode(vk::SharingMode::EXCLUSIVE)
+                    .initial_layout(vk::ImageLayout::UNDEFINED),
+                None,
+            )?;
+            let requirements = gpu.device.get_image_memory_requirements(raw);
+            let alloc = match gpu
+                .allocator
+                .lock()
+                .unwrap()
+                .allocate(&AllocationCreateDesc {
+                    name,
+                    requirements,
+                    location: MemoryLocation::GpuOnly,
+                    linear: false,
+                    allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+                }) {
+                Ok(a) => a,
+                Err(e) => {
+                    gpu.device.destroy_image(raw, None);
+                    return Err(e.into());
+                }
+            };
+            gpu.device
+                .bind_image_memory(raw, alloc.memory(), alloc.offset())?;
+            let view = gpu.device.create_image_view(
+                &vk::ImageViewCreateInfo::default()
+                    .image(raw)
+                    .view_type(desc.view_type)
+                    .format(desc.format)
+                    .subresource_range(Self::range_of(&desc)),
+                None,
+            )?;
+            let mut layer_views = Vec::new();
+            if desc.layers > 1 {
+                for layer in 0..desc.layers {
+                    let range = Self::range_of(&desc).base_array_layer(layer).layer_count(1);
+                    layer_views.push(
+                        gpu.device.create_image_view(
+                            &vk::ImageViewCreateInfo::default()
+                                .image(raw)
+                                .view_type(vk::ImageViewType::TYPE_2D)
+                                .format(desc.format)
+                                .subresource_range(range),
+                            None,
+                        )?,
+                    );
+                }
+            }
+            Ok(Image {
+                gpu: gpu.clone(),
+                raw,
+                view,
+                layer_views,
+                desc,
+                alloc: Some(alloc),
+            })
+        }
+    }
+
+    fn range_of(desc: &ImageDesc) -> vk::ImageSubresourceRange {
+        vk::ImageSubresourceRange::default()
+            .aspect_mask(desc.aspect)
+            .base_mip_level(0)
+            .level_count(1)
+            .base_array_layer(0)
+            .layer_count(desc.layers)
+    }
+
+    pub fn subresource_range(&self) -> vk::ImageSubresourceRange {
+        Self::range_of(&self.desc)
+    }
+
+    /// A layout transition of the whole image that also orders all earlier memory writes.
+    pub fn transition(&self, cmd: vk::CommandBuffer, from: vk::ImageLayout, to: vk::ImageLayout) {
+        let b = [vk::ImageMemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
+            .old_layout(from)
+            .new_layout(to)
+            .src_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
+            .dst_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
+            .image(self.raw)
+            .subresource_range(self.subresource_range())];
+        unsafe {
+            self.gpu.device.cmd_pipeline_barrier2(
+                cmd,
+                &vk::DependencyInfo::default().image_memory_barriers(&b),
+            );
+        }
+    }
+
+    fn layers_all(&self) -> vk::ImageSubresourceLayers {
+        vk::ImageSubresourceLayers::default()
+            .aspect_mask(self.desc.aspect)
+            .mip_level(0)
+            .base_array_layer(0)
+            .layer_count(self.desc.layers)
+    }
+
+    /// Records a copy of a tightly packed buffer into the whole image (layout TRANSFER_DST).
+    pub fn cmd_copy_from(&self, cmd: vk::CommandBuffer, src: &Buffer) {
+        let region = [vk::BufferImageCopy::default()
+            .image_subresource(self.layers_all())
+            .image_extent(self.desc.extent)];
+        unsafe {
+            self.gpu.device.cmd_copy_buffer_to_image(
+                cmd,
+                src.raw,
+                self.raw,
+                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                &region,
+            );
+        }
+    }
+
+    /// Records a copy of the whole image (layout TRANSFER_SRC) into a tightly packed buffer.
+    pub fn cmd_copy_to(&self, cmd: vk::CommandBuffer, dst: &Buffer) {
+        let region = [vk::BufferImageCopy::default()
+            .image_subresource(self.layers_all())
+            .image_extent(self.desc.extent)];
+        unsafe {
+            self.gpu.device.cmd_copy_image_to_buffer(
+                cmd,
+                self.raw,
+                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                dst.raw,
+                &region,
+            );
+        }
+    }
+
+    /// Uploads tightly packed texels and leaves the image in `final_layout`.
+    pub fn upload(&self, bytes: &[u8], final_layout: vk::ImageLayout) -> Result<()> {
+        let staging = Buffer::from_slice(
+            &self.gpu,
+            bytes,
+            vk::BufferUsageFlags::TRANSFER_SRC,
+            "staging",
+        )?;
+        self.gpu.submit_and_wait(|cmd| {
+            self.transition(
+                cmd,
+                vk::ImageLayout::UNDEFINED,
+                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+            );
+            self.cmd_copy_from(cmd, &staging);
+            self.transition(cmd, vk::ImageLayout::TRANSFER_DST_OPTIMAL, final_layout);
+        })
+    }
+}
+
+impl Drop for Image {
+    fn drop(&mut self) {
+        unsafe {
+            self.gpu.device.destroy_image_view(self.view, None);
+            for v in self.layer_views.drain(..) {
+                self.gpu.device.destroy_image_view(v, None);
+            }
+            if let Some(a) = self.alloc.take() {
+                let _ = self.gpu.allocator.lock().unwrap().free(a);
+            }
+            self.gpu.device.destroy_image(self.raw, None);
+        }
+    }
+}
+
+/// A compute pipeline whose descriptors are pushed (VK_KHR_push_descriptor), one set, with an
+/// optional push-constant block.
+pub struct ComputePipeline {
+    gpu: Gpu,
+    pub pipeline: vk::Pipeline,
+    pub layout: vk::PipelineLayout,
+    pub set_layout: vk::DescriptorSetLayout,
+}
+
+/// Creates a shader module from SPIR-V bytes (as built by build.rs).
+pub fn shader_module(gpu: &Gpu, spv: &[u8]) -> Result<vk::ShaderModule> {
+    let words = ash::util::read_spv(&mut std::io::Cursor::new(spv))
+        .map_err(|e| GpuError::Other(format!("bad SPIR-V: {e}")))?;
+    Ok(unsafe {
+        gpu.device
+            .create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None)?
+    })
+}
+
+/// A push-descriptor set layout with one descriptor per binding, in order.
+pub fn push_set_layout(
+    gpu: &Gpu,
+    bindings: &[vk::DescriptorType],
+    stages: vk::ShaderStageFlags,
+) -> Result<vk::DescriptorSetLayout> {
+    let b: Vec<_> = bindings
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            vk::DescriptorSetLayoutBinding::default()
+                .binding(i as u32)
+                .descriptor_type(*t)
+                .descriptor_count(1)
+                .stage_flags(stages)
+        })
+        .collect();
+    Ok(unsafe {
+        gpu.device.create_descriptor_set_layout(
+            &vk::DescriptorSetLayoutCreateInfo::default()
+                .flags(vk::DescriptorSetLayoutCreateFlags::PUSH_DESCRIPTOR_KHR)
+                .bindings(&b),
+            None,
+        )?
+    })
+}
+
+impl ComputePipeline {
+    pub fn new(
+        gpu: &Gpu,
+        spv: &[u8],
+        bindings: &[vk::DescriptorType],
+        push_constant_bytes: u32,
+    ) -> Result<ComputePipeline> {
+        unsafe {
+            let set_layout = push_set_layout(gpu, bindings, vk::ShaderStageFlags::COMPUTE)?;
+            let ranges = [vk::PushConstantRange::default()
+                .stage_flags(vk::ShaderStageFlags::COMPUTE)
+                .size(push_constant_bytes)];
+            let set_layouts = [set_layout];
+            let mut li = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
+            if push_constant_bytes > 0 {
+                li = li.push_constant_ranges(&ranges);
+            }
+            let layout = gpu.device.create_pipeline_layout(&li, None)?;
+            let module = shader_module(gpu, spv)?;
+            let stage = vk::PipelineShaderStageCreateInfo::default()
+                .stage(vk::ShaderStageFlags::COMPUTE)
+                .module(module)
+                .name(c"main");
+            let info = [vk::ComputePipelineCreateInfo::default()
+                .stage(stage)
+                .layout(layout)];
+            let res = gpu
+                .device
+                .create_compute_pipelines(vk::PipelineCache::null(), &info, None);
+            gpu.device.destroy_shader_module(module, None);
+            let pipeline = res.map_err(|(_, e)| e)?[0];
+            Ok(ComputePipeline {
+                gpu: gpu.clone(),
+                pipeline,
+                layout,
+                set_layout,
+            })
+        }
+    }
+
+    /// Binds the pipeline, pushes the storage buffers (bindings 0..n) and push constants.
+    pub fn bind(&self, cmd: vk::CommandBuffer, buffers: &[&Buffer], push: &[u8]) {
+        let infos: Vec<[vk::DescriptorBufferInfo; 1]> =
+            buffers.iter().map(|b| [b.descriptor()]).collect();
+        let writes: Vec<_> = infos
+            .iter()
+            .enumerate()
+            .map(|(i, info)| {
+                vk::WriteDescriptorSet::default()
+                    .dst_binding(i as u32)
+                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                    .buffer_info(info)
+            })
+            .collect();
+        unsafe {
+            let d = &self.gpu.device;
+            d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, self.pipeline);
+            self.gpu.push_descriptor.cmd_push_descriptor_set(
+                cmd,
+                vk::PipelineBindPoint::COMPUTE,
+                self.layout,
+                0,
+                &writes,
+            );
+            if !push.is_empty() {
+                d.cmd_push_constants(cmd, self.layout, vk::ShaderStageFlags::COMPUTE, 0, push);
+            }
+        }
+    }
+
+    pub fn dispatch(&self, cmd: vk::CommandBuffer, groups: [u32; 3]) {
+        unsafe {
+            self.gpu
+                .device
+                .cmd_dispatch(cmd, groups[0], groups[1], groups[2])
+        }
+    }
+}
+
+impl Drop for ComputePipeline {
+    fn drop(&mut self) {
+        unsafe {
+            self.gpu.device.destroy_pipeline(self.pipeline, None);
+            self.gpu.device.destroy_pipeline_layout(self.layout, None);
+            self.gpu
+                .device
+                .destroy_descriptor_set_layout(self.set_layout, None);
+        }
+    }
+}

@@ -1,0 +1,88 @@
+//! GPU timestamp queries: named marks in a command buffer, read back as milliseconds per pass.
+
+use super::{Gpu, Result};
+use ash::vk;
+
+pub struct GpuTimer {
+    gpu: Gpu,
+    pool: vk::QueryPool,
+    capacity: u32,
+    names: Vec<&'static str>,
+}
+
+impl GpuTimer {
+    pub fn new(gpu: &Gpu, capacity: u32) -> Result<GpuTimer> {
+        let pool = unsafe {
+            gpu.device.create_query_pool(
+                &vk::QueryPoolCreateInfo::default()
+                    .query_type(vk::QueryType::TIMESTAMP)
+                    .query_count(capacity),
+                None,
+            )?
+        };
+        Ok(GpuTimer {
+            gpu: gpu.clone(),
+            pool,
+            capacity,
+            names: Vec::new(),
+        })
+    }
+
+    /// Resets the pool and writes the first (start) mark.
+    pub fn begin(&mut self, cmd: vk::CommandBuffer) {
+        self.names.clear();
+        unsafe {
+            self.gpu
+                .device
+                .cmd_reset_query_pool(cmd, self.pool, 0, self.capacity)
+        };
+        self.mark(cmd, "start");
+    }
+
+    /// Marks the end of the pass `name` (everything since the previous mark).
+    pub fn mark(&mut self, cmd: vk::CommandBuffer, name: &'static str) {
+        let idx = self.names.len() as u32;
+        if idx >= self.capacity {
+            return;
+        }
+        self.names.push(name);
+        unsafe {
+            self.gpu.device.cmd_write_timestamp2(
+                cmd,
+                vk::PipelineStageFlags2::ALL_COMMANDS,
+                self.pool,
+                idx,
+            )
+        };
+    }
+
+    /// (pass name, milliseconds) for every mark after the first; call after the work finished.
+    pub fn read(&self) -> Result<Vec<(&'static str, f64)>> {
+        let n = self.names.len();
+        if n < 2 {
+            return Ok(Vec::new());
+        }
+        let mut ticks = vec![0u64; n];
+        unsafe {
+            self.gpu.device.get_query_pool_results(
+                self.pool,
+                0,
+                &mut ticks,
+                vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT,
+            )?;
+        }
+        let ns = self.gpu.timestamp_period as f64;
+        Ok((1..n)
+            .map(|i| {
+                let dt = ticks[i].saturating_sub(ticks[i - 1]);
+                (self.names[i], dt as f64 * ns * 1e-6)
+            })
+            .collect())
+    }
+}
+
+impl Drop for GpuTimer {
+    fn drop(&mut self) {
+        unsafe { self.gpu.device.destroy_query_pool(self.pool, None) }
+    }
+}

@@ -1,0 +1,10 @@
+//! cao-xr: stereo CT/MRI volume rendering with (Contextual) Ambient Occlusion on Vulkan.
+//!
+//! The frame as data: input -> scene -> one GPU command buffer (clip + mask, ambient update,
+//! stereo views) -> outputs. See README.md and DESIGN.md.
+
+pub mod ao;
+pub mod app;
+pub mod gpu;
+pub mod render;
+pub mod volume;

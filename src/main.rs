@@ -1,0 +1,332 @@
+//! The cao-xr command line. Every subcommand is a thin call into the library.
+
+use anyhow::{bail, Context, Result};
+use cao_xr::ao::LaoParams;
+use cao_xr::app;
+use cao_xr::gpu::{Gpu, GpuOptions};
+use cao_xr::render::RenderSettings;
+use cao_xr::volume::raw::{RawSpec, RawType};
+use cao_xr::volume::transfer::TransferFunction;
+use cao_xr::volume::{ct_head, phantom};
+use clap::{Args, Parser, Subcommand};
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(
+    name = "cao-xr",
+    version,
+    about = "Stereo CT/MRI volume viewer with (Contextual) Ambient Occlusion"
+)]
+struct Cli {
+    /// Turn Vulkan validation on (default: on in debug builds; env CAO_XR_VALIDATION=0/1).
+    #[arg(long, global = true)]
+    validation: bool,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Render both eyes of a volume (LAO-lit) to DIR/left.png, right.png and stereo.png.
+    Render {
+        #[command(flatten)]
+        vol: VolumeArgs,
+        #[command(flatten)]
+        lao: LaoArgs,
+        /// Output directory.
+        #[arg(long, default_value = "out/render")]
+        out: PathBuf,
+        /// Pixels per eye, WIDTHxHEIGHT.
+        #[arg(long, default_value = "640x640", value_parser = parse_size)]
+        size: (u32, u32),
+        /// Render without ambient occlusion (for comparison).
+        #[arg(long)]
+        no_ao: bool,
+        /// Weight of the gradient diffuse term (0 = AO only).
+        #[arg(long, default_value_t = 0.35)]
+        diffuse: f32,
+    },
+    /// Precompute the LAO volume; write it as float32 NRRD plus a JSON sidecar.
+    Ao {
+        #[command(flatten)]
+        vol: VolumeArgs,
+        #[command(flatten)]
+        lao: LaoArgs,
+        /// Output AO volume (.nrrd); the sidecar goes next to it as .json.
+        #[arg(long)]
+        out: PathBuf,
+        /// Also write the opacity volume O that the AO was computed from.
+        #[arg(long)]
+        opacity_out: Option<PathBuf>,
+        /// Use the CPU reference implementation instead of the GPU.
+        #[arg(long)]
+        cpu: bool,
+    },
+    /// Benchmarks that print tables (medians of several runs).
+    Bench {
+        #[command(subcommand)]
+        what: BenchCmd,
+    },
+    /// Fetch the real CT head (Debian's invesalius-examples) and convert it to NRRD in the cache.
+    FetchCt,
+    /// Write the procedural head phantom as NRRD.
+    Phantom {
+        /// Voxels per axis.
+        #[arg(long, default_value_t = 128)]
+        size: usize,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Print a volume's dimensions, type, spacing, orientation and value range.
+    Info {
+        #[command(flatten)]
+        vol: VolumeArgs,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCmd {
+    /// LAO precompute time and throughput: phantom 64^3 and 128^3 and the CT head (or VOLUME).
+    Lao {
+        /// Volume to measure instead of the default set.
+        volume: Option<String>,
+        /// Runs per row (the median is printed).
+        #[arg(long, default_value_t = 3)]
+        runs: usize,
+        /// Ray counts to measure.
+        #[arg(long, value_delimiter = ',', default_value = "6,14,26")]
+        rays: Vec<u32>,
+        #[arg(long, default_value_t = LaoParams::default().steps)]
+        steps: u32,
+        #[arg(long, default_value_t = LaoParams::default().step_mm)]
+        step_mm: f32,
+        #[arg(long, default_value = "ct-bone")]
+        tf: String,
+    },
+}
+
+#[derive(Args)]
+struct VolumeArgs {
+    /// A .nrrd/.nhdr file, a raw file (with --raw-dims), `phantom[:N]` or `ct-head`.
+    /// Default: the CT head if fetched (cao-xr fetch-ct), else the phantom.
+    volume: Option<String>,
+    /// Transfer function: a preset (ct-bone, ct-skin, mri) or a JSON file.
+    #[arg(long, default_value = "ct-bone")]
+    tf: String,
+    /// Raw volume dimensions X,Y,Z (x fastest).
+    #[arg(long, value_delimiter = ',', num_args = 3)]
+    raw_dims: Option<Vec<usize>>,
+    /// Raw voxel type: u8, u16, i16.
+    #[arg(long, default_value = "i16")]
+    raw_type: String,
+    /// Raw voxel spacing X,Y,Z in mm.
+    #[arg(long, value_delimiter = ',', num_args = 3, default_value = "1,1,1")]
+    raw_spacing: Vec<f64>,
+    /// Raw data is big-endian.
+    #[arg(long)]
+    raw_big_endian: bool,
+    /// Bytes to skip at the start of a raw file.
+    #[arg(long, default_value_t = 0)]
+    raw_header: u64,
+}
+
+#[derive(Args)]
+struct LaoArgs {
+    /// Rays per voxel K (6, 14, 26 use the neighbour directions; others a Fibonacci sphere).
+    #[arg(long, default_value_t = LaoParams::default().rays)]
+    rays: u32,
+    /// Steps per ray M.
+    #[arg(long, default_value_t = LaoParams::default().steps)]
+    steps: u32,
+    /// Step length D in mm.
+    #[arg(long, default_value_t = LaoParams::default().step_mm)]
+    step_mm: f32,
+}
+
+impl LaoArgs {
+    fn params(&self) -> LaoParams {
+        LaoParams {
+            rays: self.rays,
+            steps: self.steps,
+            step_mm: self.step_mm,
+        }
+    }
+}
+
+impl VolumeArgs {
+    fn load(&self) -> Result<(cao_xr::volume::Volume, TransferFunction)> {
+        let raw = match &self.raw_dims {
+            None => None,
+            Some(d) => Some(RawSpec {
+                dims: [d[0], d[1], d[2]],
+                ty: self
+                    .raw_type
+                    .parse::<RawType>()
+                    .map_err(anyhow::Error::msg)?,
+                spacing: [
+                    self.raw_spacing[0],
+                    self.raw_spacing[1],
+                    self.raw_spacing[2],
+                ],
+                big_endian: self.raw_big_endian,
+                header_bytes: self.raw_header,
+            }),
+        };
+        let vol = app::load_volume(self.volume.as_deref(), raw.as_ref())?;
+        let tf = TransferFunction::resolve(&self.tf)?;
+        Ok((vol, tf))
+    }
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once('x')
+        .ok_or("expected WIDTHxHEIGHT, e.g. 640x640")?;
+    let p = |v: &str| v.parse::<u32>().ok().filter(|v| (16..=8192).contains(v));
+    match (p(w), p(h)) {
+        (Some(w), Some(h)) => Ok((w, h)),
+        _ => Err("width and height must be 16..=8192".into()),
+    }
+}
+
+fn gpu(cli_validation: bool) -> Result<Gpu> {
+    let mut opts = GpuOptions::default();
+    opts.validation |= cli_validation;
+    let gpu = Gpu::new(&opts).context("cannot start Vulkan")?;
+    eprintln!(
+        "GPU: {}{}",
+        gpu.device_name,
+        if gpu.validation_enabled() {
+            " (validation on)"
+        } else {
+            ""
+        }
+    );
+    Ok(gpu)
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    match cli.cmd {
+        Cmd::Render {
+            vol,
+            lao,
+            out,
+            size,
+            no_ao,
+            diffuse,
+        } => {
+            let (v, tf) = vol.load()?;
+            eprintln!(
+                "volume {} {:?} spacing {:?} mm, tf {}",
+                v.name, v.dims, v.spacing, tf.name
+            );
+            let gpu = gpu(cli.validation)?;
+            let settings = RenderSettings {
+                use_ao: !no_ao,
+                diffuse,
+                ..Default::default()
+            };
+            let t0 = std::time::Instant::now();
+            app::render_to_dir(&gpu, &v, &tf, &lao.params(), size, &settings, &out)?;
+            println!(
+                "wrote {0}/left.png {0}/right.png {0}/stereo.png in {1:.1} s",
+                out.display(),
+                t0.elapsed().as_secs_f64()
+            );
+        }
+        Cmd::Ao {
+            vol,
+            lao,
+            out,
+            opacity_out,
+            cpu,
+        } => {
+            let (v, tf) = vol.load()?;
+            let gpu = if cpu {
+                None
+            } else {
+                Some(gpu(cli.validation)?)
+            };
+            let t = app::write_ao(
+                gpu.as_ref(),
+                &v,
+                &tf,
+                &lao.params(),
+                &out,
+                opacity_out.as_deref(),
+            )?;
+            println!(
+                "wrote {} and {} ({:.1} ms{})",
+                out.display(),
+                out.with_extension("json").display(),
+                if cpu { t.wall_ms } else { t.gpu_ms },
+                if cpu { " on the CPU" } else { " GPU time" }
+            );
+        }
+        Cmd::Bench {
+            what:
+                BenchCmd::Lao {
+                    volume,
+                    runs,
+                    rays,
+                    steps,
+                    step_mm,
+                    tf,
+                },
+        } => {
+            let tf = TransferFunction::resolve(&tf)?;
+            let volumes = match volume {
+                Some(v) => vec![app::load_volume(Some(&v), None)?],
+                None => {
+                    let mut v = vec![phantom::head(64), phantom::head(128)];
+                    match app::load_volume(Some("ct-head"), None) {
+                        Ok(ct) => v.push(ct),
+                        Err(e) => eprintln!("skipping the CT head: {e}"),
+                    }
+                    v
+                }
+            };
+            let gpu = gpu(cli.validation)?;
+            let base = LaoParams {
+                rays: 6,
+                steps,
+                step_mm,
+            };
+            app::bench::bench_lao(&gpu, &volumes, &tf, &rays, &base, runs)?;
+        }
+        Cmd::FetchCt => {
+            let path = ct_head::fetch(&mut |msg| eprintln!("{msg}"))?;
+            println!("CT head cached at {}", path.display());
+        }
+        Cmd::Phantom { size, out } => {
+            if !(4..=1024).contains(&size) {
+                bail!("--size must be 4..=1024");
+            }
+            let v = phantom::head(size);
+            cao_xr::volume::nrrd::write_volume(&out, &v, true)?;
+            println!("wrote {}", out.display());
+        }
+        Cmd::Info { vol } => {
+            let (v, _) = vol.load()?;
+            let (lo, hi) = v.value_range();
+            let ext = v.extent_mm();
+            println!("name        {}", v.name);
+            println!("dims        {} x {} x {}", v.dims[0], v.dims[1], v.dims[2]);
+            println!("type        {}", v.voxels.type_name());
+            println!(
+                "spacing     {:.4} x {:.4} x {:.4} mm",
+                v.spacing[0], v.spacing[1], v.spacing[2]
+            );
+            let d = v.directions;
+            println!(
+                "directions  i {:?}  j {:?}  k {:?} (LPS)",
+                d.x_axis, d.y_axis, d.z_axis
+            );
+            println!("values      {lo} .. {hi}");
+            println!("modality    {:?}", v.modality);
+            println!("size        {:.1} x {:.1} x {:.1} mm", ext.x, ext.y, ext.z);
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,587 @@
+//! The stereo ray caster: both eyes, one draw each in one command buffer, into a two-layer
+//! colour + depth target (one layer per eye), sampling the scalar volume, the transfer function and the shared AO volume.
+
+pub mod png_out;
+pub mod view;
+
+use crate::gpu::{shader_module, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
+use crate::volume::transfer::TransferFunction;
+use crate::volume::Volume;
+use ash::vk;
+use glam::{Mat4, Vec3};
+use gpu_allocator::MemoryLocation;
+pub use view::{default_stereo_views, world_from_tex, Fov, Placement, Pose, View};
+
+pub const COLOR_FORMAT: vk::Format = vk::Format::R8G8B8A8_UNORM;
+pub const DEPTH_FORMAT: vk::Format = vk::Format::D32_SFLOAT;
+const LUT_SIZE: u32 = 4096;
+
+/// Shading knobs of the ray caster.
+#[derive(Clone, Copy, Debug)]
+pub struct RenderSettings {
+    /// Sampling step along the ray in mm; 0 = half the smallest voxel spacing.
+    pub step_mm: f32,
+    /// k in C = k * AO * C_tf.
+    pub ambient: f32,
+    /// Weight of the gradient (headlight) diffuse term; 0 turns it off.
+    pub diffuse: f32,
+    pub use_ao: bool,
+    pub background: [f32; 3],
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        RenderSettings {
+            step_mm: 0.0,
+            ambient: 1.0,
+            diffuse: 0.35,
+            use_ao: true,
+            background: [0.06, 0.07, 0.09],
+        }
+    }
+}
+
+/// The volume as the ray caster samples it: scalars (full precision, R32F), the AO volume and the
+/// transfer function's lookup table.
+pub struct VolumeTextures {
+    pub scalars: Image,
+    pub ambient: Image,
+    pub lut: Image,
+    pub dims: [usize; 3],
+    pub spacing: [f64; 3],
+    pub value_range: (f32, f32),
+}
+
+fn check_linear_filter(gpu: &Gpu, format: vk::Format) -> Result<()> {
+    let props = unsafe {
+        gpu.instance
+            .get_physical_device_format_properties(gpu.physical, format)
+    };
+    if !props
+        .optimal_tiling_features
+        .contains(vk::FormatFeatureFlags::SAMPLED_IMAGE_FILTER_LINEAR)
+    {
+        return Err(GpuError::Other(format!(
+            "{}: {format:?} cannot be filtered linearly",
+            gpu.device_name
+        )));
+    }
+    Ok(())
+}
+
+fn volume_image(gpu: &Gpu, dims: [usize; 3], name: &str) -> Result<Image> {
+    let max = gpu.limits.max_image_dimension3_d as usize;
+    if dims.iter().any(|&d| d > max) {
+        return Err(GpuError::Other(format!(
+            "volume {dims:?} exceeds the device's 3D image limit of {max} per axis"
+        )));
+    }
+    Image::new(
+        gpu,
+        ImageDesc {
+            image_type: vk::ImageType::TYPE_3D,
+            view_type: vk::ImageViewType::TYPE_3D,
+            format: vk::Format::R32_SFLOAT,
+            extent: vk::Extent3D {
+                width: dims[0] as u32,
+                height: dims[1] as u32,
+                depth: dims[2] as u32,
+            },
+            layers: 1,
+            usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+            aspect: vk::ImageAspectFlags::COLOR,
+        },
+        name,
+    )
+}
+
+impl VolumeTextures {
+    /// Uploads the scalars and the transfer function; the AO volume starts at 1 (unoccluded).
+    pub fn new(gpu: &Gpu, vol: &Volume, tf: &TransferFunction) -> Result<VolumeTextures> {
+        check_linear_filter(gpu, vk::Format::R32_SFLOAT)?;
+        check_linear_filter(gpu, vk::Format::R32G32B32A32_SFLOAT)?;
+        let n = vol.voxel_count();
+        let scalars = volume_image(gpu, vol.dims, "scalars")?;
+        let values: Vec<f32> = (0..n).map(|i| vol.voxels.get(i)).collect();
+        scalars.upload(
+            bytemuck::cast_slice(&values),
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        )?;
+        let ambient = volume_image(gpu, vol.dims, "ao")?;
+        ambient.upload(
+            bytemuck::cast_slice(&vec![1.0f32; n]),
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        )?;
+        let lut = Image::new(
+            gpu,
+            ImageDesc {
+                image_type: vk::ImageType::TYPE_1D,
+                view_type: vk::ImageViewType::TYPE_1D,
+                format: vk::Format::R32G32B32A32_SFLOAT,
+                extent: vk::Extent3D {
+                    width: LUT_SIZE,
+                    height: 1,
+                    depth: 1,
+                },
+                layers: 1,
+                usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+                aspect: vk::ImageAspectFlags::COLOR,
+            },
+            "tf-lut",
+        )?;
+        let t = VolumeTextures {
+            scalars,
+            ambient,
+            lut,
+            dims: vol.dims,
+            spacing: vol.spacing,
+            value_range: vol.value_range(),
+        };
+        t.set_transfer_function(tf)?;
+        Ok(t)
+    }
+
+    pub fn set_transfer_function(&self, tf: &TransferFunction) -> Result<()> {
+        let lut = tf.lut(self.value_range, LUT_SIZE as usize);
+        self.lut.upload(
+            bytemuck::cast_slice(&lut),
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        )
+    }
+
+    /// Records a copy of an AO buffer (f32, x fastest) into the AO texture.
+    pub fn cmd_update_ambient(&self, cmd: vk::CommandBuffer, ao: &Buffer) {
+        let img = &self.ambient;
+        img.transition(
+            cmd,
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        );
+        img.cmd_copy_from(cmd, ao);
+        img.transition(
+            cmd,
+            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        );
+    }
+
+    /// Lookup-table coordinate = value * scale + offset, hitting the first and last texel centres
+    /// at the ends of the value range.
+    fn lut_map(&self) -> (f32, f32) {
+        let (lo, hi) = self.value_range;
+        let n = LUT_SIZE as f32;
+        let scale = (n - 1.0) / (n * (hi - lo).max(1e-6));
+        (0.5 / n - lo * scale, scale)
+    }
+
+    fn extent_mm(&self) -> Vec3 {
+        Vec3::new(
+            (self.dims[0] as f64 * self.spacing[0]) as f32,
+            (self.dims[1] as f64 * self.spacing[1]) as f32,
+            (self.dims[2] as f64 * self.spacing[2]) as f32,
+        )
+    }
+}
+
+/// A two-layer colour + depth render target (layer 0 = left eye, 1 = right eye).
+pub struct StereoTarget {
+    pub color: Image,
+    pub depth: Image,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl StereoTarget {
+    pub fn new(gpu: &Gpu, width: u32, height: u32) -> Result<StereoTarget> {
+        let desc = |format, usage, aspect| ImageDesc {
+            image_type: vk::ImageType::TYPE_2D,
+            view_type: vk::ImageViewType::TYPE_2D_ARRAY,
+            format,
+            extent: vk::Extent3D {
+                width,
+                height,
+                depth: 1,
+            },
+            layers: 2,
+            usage: usage | vk::ImageUsageFlags::TRANSFER_SRC,
+            aspect,
+        };
+        Ok(StereoTarget {
+            color: Image::new(
+                gpu,
+                desc(
+                    COLOR_FORMAT,
+                    vk::ImageUsageFlags::COLOR_ATTACHMENT,
+                    vk::ImageAspectFlags::COLOR,
+                ),
+                "stereo-color",
+            )?,
+            depth: Image::new(
+                gpu,
+                desc(
+                    DEPTH_FORMAT,
+                    vk::ImageUsageFlags::DEPTH_STENCIL_ATTACHMENT,
+                    vk::ImageAspectFlags::DEPTH,
+                ),
+                "stereo-depth",
+            )?,
+            width,
+            height,
+        })
+    }
+
+    /// Copies both layers back (call after a frame recorded by [`Renderer::record`] finished).
+    pub fn read_back(&self, gpu: &Gpu) -> Result<StereoImage> {
+        let texels = (self.width * self.height * 2) as u64;
+        let usage = vk::BufferUsageFlags::TRANSFER_DST;
+        let cbuf = Buffer::new(
+            gpu,
+            texels * 4,
+            usage,
+            MemoryLocation::GpuToCpu,
+            "color-readback",
+        )?;
+        let dbuf = Buffer::new(
+            gpu,
+            texels * 4,
+            usage,
+            MemoryLocation::GpuToCpu,
+            "depth-readback",
+        )?;
+        gpu.submit_and_wait(|cmd| {
+            self.color.cmd_copy_to(cmd, &cbuf);
+            self.depth.cmd_copy_to(cmd, &dbuf);
+        })?;
+        let per = (self.width * self.height) as usize;
+        let c = cbuf.mapped()?;
+        let d: &[f32] = bytemuck::cast_slice(dbuf.mapped()?);
+        Ok(StereoImage {
+            width: self.width,
+            height: self.height,
+            rgba: [c[..per * 4].to_vec(), c[per * 4..].to_vec()],
+            depth: [d[..per].to_vec(), d[per..].to_vec()],
+        })
+    }
+}
+
+/// Both eyes on the host: RGBA8 (alpha = accumulated opacity) and depth in [0,1], rows top-down.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StereoImage {
+    pub width: u32,
+    pub height: u32,
+    pub rgba: [Vec<u8>; 2],
+    pub depth: [Vec<f32>; 2],
+}
+
+/// std140 mirror of shaders/include/frame.glsl.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct FrameUniforms {
+    inv_view_proj: [[f32; 16]; 2],
+    view_proj: [[f32; 16]; 2],
+    tex_from_world: [f32; 16],
+    extent_mm: [f32; 4],
+    value_map: [f32; 4],
+    background: [f32; 4],
+    viewport: [f32; 4],
+}
+
+pub struct Renderer {
+    gpu: Gpu,
+    pipeline: vk::Pipeline,
+    layout: vk::PipelineLayout,
+    set_layout: vk::DescriptorSetLayout,
+    sampler: vk::Sampler,
+    uniforms: Buffer,
+}
+
+impl Renderer {
+    pub fn new(gpu: &Gpu) -> Result<Renderer> {
+        unsafe {
+            let d = &gpu.device;
+            let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
+            let set_layout = crate::gpu::push_set_layout(
+                gpu,
+                &[
+                    vk::DescriptorType::UNIFORM_BUFFER,
+                    sampled,
+                    sampled,
+                    sampled,
+                ],
+                vk::ShaderStageFlags::FRAGMENT,
+            )?;
+            let eye_push = [vk::PushConstantRange::default()
+                .stage_flags(vk::ShaderStageFlags::FRAGMENT)
+                .size(4)];
+            let layout = d.create_pipeline_layout(
+                &vk::PipelineLayoutCreateInfo::default()
+                    .set_layouts(&[set_layout])
+                    .push_constant_ranges(&eye_push),
+                None,
+            )?;
+            let vs = shader_module(
+                gpu,
+                include_bytes!(concat!(env!("OUT_DIR"), "/raycast.vert.spv")),
+            )?;
+            let fs = shader_module(
+                gpu,
+                include_bytes!(concat!(env!("OUT_DIR"), "/raycast.frag.spv")),
+            )?;
+            let stages = [
+                vk::PipelineShaderStageCreateInfo::default()
+                    .stage(vk::ShaderStageFlags::VERTEX)
+                    .module(vs)
+                    .name(c"main"),
+                vk::PipelineShaderStageCreateInfo::default()
+                    .stage(vk::ShaderStageFlags::FRAGMENT)
+                    .module(fs)
+                    .name(c"main"),
+            ];
+            let vertex_input = vk::PipelineVertexInputStateCreateInfo::default();
+            let input_assembly = vk::PipelineInputAssemblyStateCreateInfo::default()
+                .topology(vk::PrimitiveTopology::TRIANGLE_LIST);
+            let viewport = vk::PipelineViewportStateCreateInfo::default()
+                .viewport_count(1)
+                .scissor_count(1);
+            let raster = vk::PipelineRasterizationStateCreateInfo::default()
+                .polygon_mode(vk::PolygonMode::FILL)
+                .cull_mode(vk::CullModeFlags::NONE)
+                .line_width(1.0);
+            let multisample = vk::PipelineMultisampleStateCreateInfo::default()
+                .rasterization_samples(vk::SampleCountFlags::TYPE_1);
+            let depth = vk::PipelineDepthStencilStateCreateInfo::default()
+                .depth_test_enable(true)
+                .depth_write_enable(true)
+                .depth_compare_op(vk::CompareOp::ALWAYS);
+            let blend_att = [vk::PipelineColorBlendAttachmentState::default()
+                .color_write_mask(vk::ColorComponentFlags::RGBA)];
+            let blend = vk::PipelineColorBlendStateCreateInfo::default().attachments(&blend_att);
+            let dyn_states = [vk::DynamicState::VIEWPORT, vk::DynamicState::SCISSOR];
+            let dynamic = vk::PipelineDynamicStateCreateInfo::default().dynamic_states(&dyn_states);
+            let formats = [COLOR_FORMAT];
+            // One draw per eye rather than multiview: lavapipe (Mesa 22.3) renders only the first
+            // layer of a multiview pass with dynamic rendering.
+            let mut rendering = vk::PipelineRenderingCreateInfo::default()
+                .color_attachment_formats(&formats)
+                .depth_attachment_format(DEPTH_FORMAT);
+            let info = [vk::GraphicsPipelineCreateInfo::default()
+                .stages(&stages)
+                .vertex_input_state(&vertex_input)
+                .input_assembly_state(&input_assembly)
+                .viewport_state(&viewport)
+                .rasterization_state(&raster)
+                .multisample_state(&multisample)
+                .depth_stencil_state(&depth)
+                .color_blend_state(&blend)
+                .dynamic_state(&dynamic)
+                .layout(layout)
+                .push_next(&mut rendering)];
+            let res = d.create_graphics_pipelines(vk::PipelineCache::null(), &info, None);
+            d.destroy_shader_module(vs, None);
+            d.destroy_shader_module(fs, None);
+            let pipeline = res.map_err(|(_, e)| e)?[0];
+            let sampler = d.create_sampler(
+                &vk::SamplerCreateInfo::default()
+                    .mag_filter(vk::Filter::LINEAR)
+                    .min_filter(vk::Filter::LINEAR)
+                    .mipmap_mode(vk::SamplerMipmapMode::NEAREST)
+                    .address_mode_u(vk::SamplerAddressMode::CLAMP_TO_EDGE)
+                    .address_mode_v(vk::SamplerAddressMode::CLAMP_TO_EDGE)
+                    .address_mode_w(vk::SamplerAddressMode::CLAMP_TO_EDGE)
+                    .max_lod(0.0),
+                None,
+            )?;
+            let uniforms = Buffer::new(
+                gpu,
+                std::mem::size_of::<FrameUniforms>() as u64,
+                vk::BufferUsageFlags::UNIFORM_BUFFER,
+                MemoryLocation::CpuToGpu,
+                "frame-uniforms",
+            )?;
+            Ok(Renderer {
+                gpu: gpu.clone(),
+                pipeline,
+                layout,
+                set_layout,
+                sampler,
+                uniforms,
+            })
+        }
+    }
+
+    /// Records the stereo ray cast of `views` into `target`, leaving both images ready to copy
+    /// (TRANSFER_SRC_OPTIMAL). The uniform buffer is rewritten: one frame in flight at a time.
+    pub fn record(
+        &mut self,
+        cmd: vk::CommandBuffer,
+        target: &StereoTarget,
+        tex: &VolumeTextures,
+        views: &[View; 2],
+        world_from_tex: Mat4,
+        settings: &RenderSettings,
+    ) -> Result<()> {
+        let ext = tex.extent_mm();
+        let min_spacing = tex.spacing.iter().cloned().fold(f64::MAX, f64::min) as f32;
+        let step = if settings.step_mm > 0.0 {
+            settings.step_mm
+        } else {
+            0.5 * min_spacing
+        };
+        let (offset, scale) = tex.lut_map();
+        let vp = views.map(|v| v.view_proj());
+        let u = FrameUniforms {
+            inv_view_proj: vp.map(|m| m.inverse().to_cols_array()),
+            view_proj: vp.map(|m| m.to_cols_array()),
+            tex_from_world: world_from_tex.inverse().to_cols_array(),
+            extent_mm: [ext.x, ext.y, ext.z, step],
+            value_map: [offset, scale, settings.ambient, settings.diffuse],
+            background: [
+                settings.background[0],
+                settings.background[1],
+                settings.background[2],
+                if settings.use_ao { 1.0 } else { 0.0 },
+            ],
+            viewport: [target.width as f32, target.height as f32, 0.0, 0.0],
+        };
+        self.uniforms.write(0, bytemuck::bytes_of(&u))?;
+
+        let d = &self.gpu.device;
+        target.color.transition(
+            cmd,
+            vk::ImageLayout::UNDEFINED,
+            vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+        );
+        target.depth.transition(
+            cmd,
+            vk::ImageLayout::UNDEFINED,
+            vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
+        );
+        let bg = settings.background;
+        let area = vk::Rect2D {
+            offset: vk::Offset2D::default(),
+            extent: vk::Extent2D {
+                width: target.width,
+                height: target.height,
+            },
+        };
+        let ubo = [self
+            .uniforms
+            .descriptor()
+            .range(std::mem::size_of::<FrameUniforms>() as u64)];
+        let img = |view| {
+            [vk::DescriptorImageInfo::default()
+                .sampler(self.sampler)
+                .image_view(view)
+                .image_layout(vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)]
+        };
+        let (i1, i2, i3) = (
+            img(tex.scalars.view),
+            img(tex.ambient.view),
+            img(tex.lut.view),
+        );
+        let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
+        let writes = [
+            vk::WriteDescriptorSet::default()
+                .dst_binding(0)
+                .descriptor_type(vk::DescriptorType::UNIFORM_BUFFER)
+                .buffer_info(&ubo),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(1)
+                .descriptor_type(sampled)
+                .image_info(&i1),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(2)
+                .descriptor_type(sampled)
+                .image_info(&i2),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(3)
+                .descriptor_type(sampled)
+                .image_info(&i3),
+        ];
+        for eye in 0..2u32 {
+            let color_att = [vk::RenderingAttachmentInfo::default()
+                .image_view(target.color.layer_views[eye as usize])
+                .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+                .load_op(vk::AttachmentLoadOp::CLEAR)
+                .store_op(vk::AttachmentStoreOp::STORE)
+                .clear_value(vk::ClearValue {
+                    color: vk::ClearColorValue {
+                        float32: [bg[0], bg[1], bg[2], 0.0],
+                    },
+                })];
+            let depth_att = vk::RenderingAttachmentInfo::default()
+                .image_view(target.depth.layer_views[eye as usize])
+                .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
+                .load_op(vk::AttachmentLoadOp::CLEAR)
+                .store_op(vk::AttachmentStoreOp::STORE)
+                .clear_value(vk::ClearValue {
+                    depth_stencil: vk::ClearDepthStencilValue {
+                        depth: 1.0,
+                        stencil: 0,
+                    },
+                });
+            let info = vk::RenderingInfo::default()
+                .render_area(area)
+                .layer_count(1)
+                .color_attachments(&color_att)
+                .depth_attachment(&depth_att);
+            unsafe {
+                d.cmd_begin_rendering(cmd, &info);
+                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.pipeline);
+                self.gpu.push_descriptor.cmd_push_descriptor_set(
+                    cmd,
+                    vk::PipelineBindPoint::GRAPHICS,
+                    self.layout,
+                    0,
+                    &writes,
+                );
+                d.cmd_push_constants(
+                    cmd,
+                    self.layout,
+                    vk::ShaderStageFlags::FRAGMENT,
+                    0,
+                    &eye.to_ne_bytes(),
+                );
+                d.cmd_set_viewport(
+                    cmd,
+                    0,
+                    &[vk::Viewport {
+                        x: 0.0,
+                        y: 0.0,
+                        width: target.width as f32,
+                        height: target.height as f32,
+                        min_depth: 0.0,
+                        max_depth: 1.0,
+                    }],
+                );
+                d.cmd_set_scissor(cmd, 0, &[area]);
+                d.cmd_draw(cmd, 3, 1, 0, 0);
+                d.cmd_end_rendering(cmd);
+            }
+        }
+        target.color.transition(
+            cmd,
+            vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+            vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+        );
+        target.depth.transition(
+            cmd,
+            vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
+            vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+        );
+        Ok(())
+    }
+}
+
+impl Drop for Renderer {
+    fn drop(&mut self) {
+        unsafe {
+            let d = &self.gpu.device;
+            let _ = d.device_wait_idle();
+            d.destroy_sampler(self.sampler, None);
+            d.destroy_pipeline(self.pipeline, None);
+            d.destroy_pipeline_layout(self.layout, None);
+            d.destroy_descriptor_set_layout(self.set_layout, None);
+        }
+    }
+}

@@ -1,0 +1,72 @@
+//! PNG output of rendered views.
+
+use super::StereoImage;
+use std::path::Path;
+
+#[derive(Debug, thiserror::Error)]
+#[error("{path}: {msg}")]
+pub struct PngError {
+    pub path: String,
+    pub msg: String,
+}
+
+/// Writes an RGB8 image (rows top-down) as PNG, through a temporary file so that a failed write
+/// never leaves a truncated picture behind.
+pub fn write_rgb(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<(), PngError> {
+    let err = |msg: String| PngError {
+        path: path.display().to_string(),
+        msg,
+    };
+    let tmp = path.with_extension("png.tmp");
+    let file = std::fs::File::create(&tmp).map_err(|e| err(e.to_string()))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), width, height);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().map_err(|e| err(e.to_string()))?;
+    w.write_image_data(rgb).map_err(|e| err(e.to_string()))?;
+    w.finish().map_err(|e| err(e.to_string()))?;
+    std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
+}
+
+impl StereoImage {
+    /// RGB of one eye (alpha dropped: the background is already composited).
+    pub fn rgb(&self, eye: usize) -> Vec<u8> {
+        self.rgba[eye]
+            .chunks_exact(4)
+            .flat_map(|p| [p[0], p[1], p[2]])
+            .collect()
+    }
+
+    /// Left and right side by side.
+    pub fn side_by_side_rgb(&self) -> Vec<u8> {
+        let w = self.width as usize;
+        let (l, r) = (self.rgb(0), self.rgb(1));
+        let mut out = Vec::with_capacity(l.len() * 2);
+        for y in 0..self.height as usize {
+            out.extend_from_slice(&l[y * w * 3..(y + 1) * w * 3]);
+            out.extend_from_slice(&r[y * w * 3..(y + 1) * w * 3]);
+        }
+        out
+    }
+
+    /// DIR/left.png, DIR/right.png and DIR/stereo.png (side by side).
+    pub fn write_pngs(&self, dir: &Path) -> Result<(), PngError> {
+        std::fs::create_dir_all(dir).map_err(|e| PngError {
+            path: dir.display().to_string(),
+            msg: e.to_string(),
+        })?;
+        write_rgb(&dir.join("left.png"), self.width, self.height, &self.rgb(0))?;
+        write_rgb(
+            &dir.join("right.png"),
+            self.width,
+            self.height,
+            &self.rgb(1),
+        )?;
+        write_rgb(
+            &dir.join("stereo.png"),
+            self.width * 2,
+            self.height,
+            &self.side_by_side_rgb(),
+        )
+    }
+}

@@ -1,0 +1,167 @@
+//! Views (pose + asymmetric field of view, as OpenXR reports them) and volume placement.
+
+use crate::volume::Volume;
+use glam::{DMat4, DVec3, Mat3, Mat4, Quat, Vec3};
+use serde::{Deserialize, Serialize};
+
+pub const NEAR: f32 = 0.05;
+pub const FAR: f32 = 100.0;
+
+/// A rigid pose in the world (OpenXR STAGE space: metres, +Y up, right-handed).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    pub position: Vec3,
+    pub orientation: Quat,
+}
+
+impl Pose {
+    pub const IDENTITY: Pose = Pose {
+        position: Vec3::ZERO,
+        orientation: Quat::IDENTITY,
+    };
+
+    pub fn matrix(&self) -> Mat4 {
+        Mat4::from_rotation_translation(self.orientation, self.position)
+    }
+}
+
+/// Field-of-view half-angles in radians, OpenXR style (left and down are negative).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Fov {
+    pub angle_left: f32,
+    pub angle_right: f32,
+    pub angle_up: f32,
+    pub angle_down: f32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct View {
+    pub pose: Pose,
+    pub fov: Fov,
+}
+
+impl View {
+    /// Vulkan projection (depth 0..1, y down) of this view's frustum.
+    pub fn projection(&self) -> Mat4 {
+        let f = &self.fov;
+        glam::camera::rh::proj::vulkan::frustum(
+            NEAR * f.angle_left.tan(),
+            NEAR * f.angle_right.tan(),
+            NEAR * f.angle_down.tan(),
+            NEAR * f.angle_up.tan(),
+            NEAR,
+            FAR,
+        )
+    }
+
+    pub fn view_proj(&self) -> Mat4 {
+        self.projection() * self.pose.matrix().inverse()
+    }
+}
+
+/// Patient LPS axes in the world: patient left -> +X, posterior -> -Z, superior -> +Y, so a
+/// head stands upright facing a viewer who looks down -Z.
+pub fn world_from_lps() -> Mat3 {
+    Mat3::from_cols(Vec3::X, Vec3::NEG_Z, Vec3::Y)
+}
+
+/// Where the volume sits in the world: its centre, a rotation and a uniform scale (1 = true size).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Placement {
+    pub center: Vec3,
+    pub rotation: Quat,
+    pub scale: f32,
+}
+
+impl Default for Placement {
+    /// At chest height, 0.6 m in front of a standing user at the stage origin.
+    fn default() -> Self {
+        Placement {
+            center: Vec3::new(0.0, 1.4, -0.6),
+            rotation: Quat::IDENTITY,
+            scale: 1.0,
+        }
+    }
+}
+
+/// The model matrix taking volume texture coordinates [0,1]^3 (tex = index / dims) to the world.
+pub fn world_from_tex(vol: &Volume, placement: &Placement) -> Mat4 {
+    let ext = vol.extent_mm();
+    let axes_from_tex = DMat4::from_scale(ext) * DMat4::from_translation(DVec3::splat(-0.5));
+    let lps_from_axes = DMat4::from_mat3(vol.directions);
+    let world_from_lps = DMat4::from_mat3(world_from_lps().as_dmat3());
+    let place = DMat4::from_scale_rotation_translation(
+        DVec3::splat(placement.scale as f64 * 1e-3),
+        placement.rotation.as_dquat(),
+        placement.center.as_dvec3(),
+    );
+    (place * world_from_lps * lps_from_axes * axes_from_tex).as_mat4()
+}
+
+/// Radius (m) of the sphere around the placed volume.
+pub fn bounding_radius(vol: &Volume, placement: &Placement) -> f32 {
+    (vol.extent_mm().length() * 0.5e-3) as f32 * placement.scale
+}
+
+/// Two parallel eyes `ipd` metres apart, looking down -Z at the volume, each with the
+/// asymmetric frustum that frames the volume's bounding sphere (as a headset's views would).
+pub fn default_stereo_views(vol: &Volume, placement: &Placement, ipd: f32) -> [View; 2] {
+    let r = bounding_radius(vol, placement) * 1.02;
+    let dist = (2.6 * r).max(0.3);
+    let head = placement.center + Vec3::new(0.0, 0.0, dist);
+    [-0.5f32, 0.5].map(|side| {
+        let x = side * ipd;
+        View {
+            pose: Pose {
+                position: head + Vec3::new(x, 0.0, 0.0),
+                orientation: Quat::IDENTITY,
+            },
+            fov: Fov {
+                angle_left: ((-r - x) / dist).atan(),
+                angle_right: ((r - x) / dist).atan(),
+                angle_up: (r / dist).atan(),
+                angle_down: (-r / dist).atan(),
+            },
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lps_maps_upright_and_facing_the_viewer() {
+        let m = world_from_lps();
+        assert_eq!(m * Vec3::Z, Vec3::Y, "superior is up");
+        assert_eq!(
+            m * -Vec3::Y,
+            Vec3::Z,
+            "anterior faces +Z, towards the viewer"
+        );
+        assert!(
+            (m.determinant() - 1.0).abs() < 1e-6,
+            "a rotation, not a mirror"
+        );
+    }
+
+    #[test]
+    fn projection_maps_fov_edges_to_ndc_edges() {
+        let v = View {
+            pose: Pose::IDENTITY,
+            fov: Fov {
+                angle_left: -0.5,
+                angle_right: 0.3,
+                angle_up: 0.4,
+                angle_down: -0.2,
+            },
+        };
+        let p = v.view_proj();
+        let right_edge = Vec3::new(0.3f32.tan(), 0.0, -1.0);
+        let c = p * right_edge.extend(1.0);
+        assert!((c.x / c.w - 1.0).abs() < 1e-5);
+        let top = Vec3::new(0.0, 0.4f32.tan(), -1.0);
+        let c = p * top.extend(1.0);
+        assert!((c.y / c.w + 1.0).abs() < 1e-5, "Vulkan NDC y is down");
+    }
+}

@@ -1,0 +1,1249 @@
+//! NRRD reader and writer (teem's "nearly raw raster data", magic NRRD0001..NRRD0005).
+//!
+//! Reads 3-D scalar volumes of 8- and 16-bit integers, attached (`.nrrd`) or detached
+//! (`.nhdr` + `data file:`), raw or gzip encoded, with `space directions`/`spacings`, and
+//! converts the geometry into LPS. Writes NRRD0004 in LPS, raw or gzip.
+
+use super::{checked_size, decode_i16, decode_u16, Modality, Volume, VolumeError, Voxels};
+use flate2::read::MultiGzDecoder;
+use flate2::write::GzEncoder;
+use flate2::Compression;
+use glam::{DMat3, DVec3};
+use std::fs::File;
+use std::io::{BufRead, BufReader, Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+/// Longest accepted header (a malformed file must not make us read gigabytes of "lines").
+const MAX_HEADER_BYTES: u64 = 1 << 20;
+/// Key of the modality key/value pair written by [`write`] (`modality:=CT`).
+const MODALITY_KEY: &str = "modality";
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum SampleType {
+    I8,
+    U8,
+    I16,
+    U16,
+}
+
+impl SampleType {
+    fn bytes(self) -> u64 {
+        match self {
+            SampleType::I8 | SampleType::U8 => 1,
+            SampleType::I16 | SampleType::U16 => 2,
+        }
+    }
+}
+
+/// Maps every NRRD spelling of a supported type; `Err` carries the kind of type for the message.
+fn parse_type(s: &str) -> Result<SampleType, &'static str> {
+    let s = s.trim().to_ascii_lowercase();
+    let s = s.split_whitespace().collect::<Vec<_>>().join(" ");
+    Ok(match s.as_str() {
+        "signed char" | "int8" | "int8_t" | "char" => SampleType::I8,
+        "uchar" | "unsigned char" | "uint8" | "uint8_t" => SampleType::U8,
+        "short" | "short int" | "signed short" | "signed short int" | "int16" | "int16_t" => {
+            SampleType::I16
+        }
+        "ushort" | "unsigned short" | "unsigned short int" | "uint16" | "uint16_t" => {
+            SampleType::U16
+        }
+        "int"
+        | "signed int"
+        | "int32"
+        | "int32_t"
+        | "uint"
+        | "unsigned int"
+        | "uint32"
+        | "uint32_t"
+        | "longlong"
+        | "long long"
+        | "long long int"
+        | "signed long long"
+        | "signed long long int"
+        | "int64"
+        | "int64_t"
+        | "ulonglong"
+        | "unsigned long long"
+        | "unsigned long long int"
+        | "uint64"
+        | "uint64_t" => return Err("integer"),
+        "float" | "double" => return Err("floating-point"),
+        "block" => return Err("block"),
+        _ => return Err("unknown"),
+    })
+}
+
+/// How the `space` field maps its axes onto LPS (a sign per x/y/z axis).
+fn space_signs(path: &Path, space: &str) -> Result<[f64; 3], VolumeError> {
+    Ok(match space.trim().to_ascii_lowercase().as_str() {
+        "left-posterior-superior" | "lps" => [1.0, 1.0, 1.0],
+        "right-anterior-superior" | "ras" => [-1.0, -1.0, 1.0],
+        "left-anterior-superior" | "las" => [1.0, -1.0, 1.0],
+        // Scanner coordinates are DICOM's patient LPS; the generic 3-D spaces are taken as is.
+        "scanner-xyz" | "3d-right-handed" | "3d-left-handed" => [1.0, 1.0, 1.0],
+        s @ ("right-anterior-superior-time"
+        | "left-anterior-superior-time"
+        | "left-posterior-superior-time"
+        | "scanner-xyz-time"
+        | "3d-right-handed-time"
+        | "3d-left-handed-time") => {
+            return Err(VolumeError::unsupported(
+                path,
+                format!("space {s:?} (time-varying spaces are not supported)"),
+            ))
+        }
+        s => return Err(VolumeError::format(path, format!("unknown space {s:?}"))),
+    })
+}
+
+/// Parses a vector like `(0.9,0,0)`; `None` when malformed.
+fn parse_vector(s: &str) -> Option<DVec3> {
+    let inner = s.trim().strip_prefix('(')?.strip_suffix(')')?;
+    let parts: Vec<f64> = inner
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .ok()?;
+    if parts.len() != 3 || parts.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    Some(DVec3::new(parts[0], parts[1], parts[2]))
+}
+
+/// Splits `(a,b,c) (d,e,f) none` into its items (a parenthesised vector or a bare word).
+fn split_vectors(s: &str) -> Option<Vec<String>> {
+    let mut out = Vec::new();
+    let mut rest = s.trim();
+    while !rest.is_empty() {
+        if rest.starts_with('(') {
+            let end = rest.find(')')?;
+            out.push(rest[..=end].to_string());
+            rest = rest[end + 1..].trim_start();
+        } else {
+            let end = rest.find(char::is_whitespace).unwrap_or(rest.len());
+            out.push(rest[..end].to_string());
+            rest = rest[end..].trim_start();
+        }
+    }
+    Some(out)
+}
+
+/// The fields of a header that matter here, as written.
+#[derive(Default)]
+struct Header {
+    ty: Option<String>,
+    dimension: Option<String>,
+    sizes: Option<String>,
+    endian: Option<String>,
+    encoding: Option<String>,
+    space: Option<String>,
+    space_dimension: Option<String>,
+    space_directions: Option<String>,
+    spacings: Option<String>,
+    space_origin: Option<String>,
+    byte_skip: Option<String>,
+    line_skip: Option<String>,
+    data_file: Option<String>,
+    modality: Option<String>,
+}
+
+/// Reads the header lines up to the first empty line (or end of file). Returns the header and
+/// whether it was terminated by an empty line (data may follow).
+fn read_header<R: BufRead>(path: &Path, r: &mut R) -> Result<(Header, bool), VolumeError> {
+    let mut h = Header::default();
+    let mut line = Vec::new();
+    let mut total = 0u64;
+    let mut first = true;
+    loop {
+        line.clear();
+        let n = (&mut *r)
+            .take(MAX_HEADER_BYTES + 1 - total.min(MAX_HEADER_BYTES))
+            .read_until(b'\n', &mut line)
+            .map_err(|e| VolumeError::io(path, e))?;
+        total += n as u64;
+        if n == 0 {
+            if first {
+                return Err(VolumeError::format(
+                    path,
+                    "empty file, not a NRRD (no NRRD000x magic)",
+                ));
+            }
+            return Ok((h, false));
+        }
+        if total > MAX_HEADER_BYTES {
+            return Err(VolumeError::format(
+                path,
+                format!("header longer than {MAX_HEADER_BYTES} bytes without an empty line"),
+            ));
+        }
+        let text = String::from_utf8_lossy(&line);
+        let text = text.trim_end_matches(['\n', '\r']);
+        if first {
+            first = false;
+            let ok = text.len() == 8
+                && text.starts_with("NRRD000")
+                && matches!(text.as_bytes()[7], b'1'..=b'5');
+            if !ok {
+                return Err(VolumeError::format(
+                    path,
+                    "not a NRRD file: missing NRRD0001..NRRD0005 magic on the first line",
+                ));
+            }
+            continue;
+        }
+        if text.trim().is_empty() {
+            return Ok((h, true));
+        }
+        if text.starts_with('#') {
+            continue;
+        }
+        let Some(colon) = text.find(':') else {
+            return Err(VolumeError::format(
+                path,
+                format!("header line {text:?} is neither a field nor a key/value pair"),
+            ));
+        };
+        let (name, rest) = (text[..colon].trim(), &text[colon + 1..]);
+        if let Some(value) = rest.strip_prefix('=') {
+            // key:=value pair
+            let key = name.to_ascii_lowercase();
+            if key == MODALITY_KEY || key == "cao-xr modality" {
+                h.modality = Some(value.trim().to_string());
+            }
+            continue;
+        }
+        let value = Some(rest.trim().to_string());
+        match name.to_ascii_lowercase().as_str() {
+            "type" => h.ty = value,
+            "dimension" => h.dimension = value,
+            "sizes" => h.sizes = value,
+            "endian" => h.endian = value,
+            "encoding" => h.encoding = value,
+            "space" => h.space = value,
+            "space dimension" => h.space_dimension = value,
+            "space directions" => h.space_directions = value,
+            "spacings" => h.spacings = value,
+            "space origin" => h.space_origin = value,
+            "byte skip" | "byteskip" => h.byte_skip = value,
+            "line skip" | "lineskip" => h.line_skip = value,
+            "data file" | "datafile" => {
+                // `data file: LIST` ends the header; the file names follow, one per line.
+                let list = rest.trim().split_whitespace().next() == Some("LIST");
+                h.data_file = value;
+                if list {
+                    return Ok((h, false));
+                }
+            }
+            "cao-xr modality" => h.modality = value,
+            // kinds, content, centers, units, min/max, measurement frame, ...: not needed.
+            _ => {}
+        }
+    }
+}
+
+/// Loads a 3-D NRRD (`.nrrd` with attached data or `.nhdr` with a detached data file).
+pub fn load(path: &Path) -> Result<Volume, VolumeError> {
+    let file = File::open(path).map_err(|e| VolumeError::io(path, e))?;
+    let mut reader = BufReader::new(file);
+    let (h, terminated) = read_header(path, &mut reader)?;
+    let fmt = |m: String| VolumeError::format(path, m);
+    let required = |v: &Option<String>, name: &str| {
+        v.clone()
+            .ok_or_else(|| fmt(format!("missing required field `{name}`")))
+    };
+
+    // type
+    let ty_s = required(&h.ty, "type")?;
+    let ty = parse_type(&ty_s).map_err(|kind| {
+        VolumeError::unsupported(
+            path,
+            format!(
+                "sample type {ty_s:?} ({kind}); supported are 8- and 16-bit integers \
+                 (uchar/uint8, int8, short/int16, ushort/uint16)"
+            ),
+        )
+    })?;
+
+    // dimension, sizes
+    let dim_s = required(&h.dimension, "dimension")?;
+    let dim: u64 = dim_s
+        .parse()
+        .map_err(|_| fmt(format!("invalid dimension {dim_s:?}")))?;
+    if dim != 3 {
+        return Err(VolumeError::unsupported(
+            path,
+            format!("dimension {dim}: only 3-dimensional volumes are supported"),
+        ));
+    }
+    let sizes_s = required(&h.sizes, "sizes")?;
+    let sizes: Vec<u64> = sizes_s
+        .split_whitespace()
+        .map(|s| s.parse::<u64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| fmt(format!("invalid sizes {sizes_s:?}")))?;
+    if sizes.len() != 3 {
+        return Err(fmt(format!(
+            "sizes {sizes_s:?} must have 3 entries (dimension 3)"
+        )));
+    }
+    let dims = [sizes[0], sizes[1], sizes[2]];
+    let (count, data_bytes) = checked_size(path, dims, ty.bytes())?;
+
+    // encoding, endian
+    let enc_s = required(&h.encoding, "encoding")?;
+    let gzip = match enc_s.to_ascii_lowercase().as_str() {
+        "raw" => false,
+        "gzip" | "gz" => true,
+        "bzip2" | "bz2" | "ascii" | "text" | "txt" | "hex" | "zrl" => {
+            return Err(VolumeError::unsupported(
+                path,
+                format!("encoding {enc_s:?} (only raw and gzip are supported)"),
+            ))
+        }
+        _ => return Err(fmt(format!("unknown encoding {enc_s:?}"))),
+    };
+    let big_endian = match h.endian.as_deref().map(str::to_ascii_lowercase).as_deref() {
+        Some("little") => false,
+        Some("big") => true,
+        Some(other) => return Err(fmt(format!("invalid endian {other:?} (little or big)"))),
+        None if ty.bytes() > 1 => {
+            return Err(fmt(format!(
+                "missing required field `endian` for type {ty_s:?}"
+            )))
+        }
+        None => false,
+    };
+
+    // geometry
+    let signs = match &h.space {
+        Some(s) => space_signs(path, s)?,
+        None => [1.0; 3],
+    };
+    if let Some(sd) = &h.space_dimension {
+        if sd.trim() != "3" {
+            return Err(VolumeError::unsupported(
+                path,
+                format!("space dimension {sd:?} (only 3 is supported)"),
+            ));
+        }
+    }
+    let flip = DVec3::from_array(signs);
+    let mut spacing = [1.0f64; 3];
+    let mut directions = DMat3::IDENTITY;
+    if let Some(sd) = &h.space_directions {
+        let items = split_vectors(sd)
+            .filter(|v| v.len() == 3)
+            .ok_or_else(|| fmt(format!("space directions {sd:?} must be three vectors")))?;
+        let mut cols = [DVec3::ZERO; 3];
+        for (a, item) in items.iter().enumerate() {
+            let v = parse_vector(item).ok_or_else(|| {
+                fmt(format!(
+                    "space directions: axis {a} has {item:?}, expected (x,y,z)"
+                ))
+            })?;
+            let len = v.length();
+            if len <= 0.0 || !len.is_finite() {
+                return Err(fmt(format!("space directions: axis {a} has a zero vector")));
+            }
+            spacing[a] = len;
+            cols[a] = v / len * flip;
+        }
+        directions = DMat3::from_cols(cols[0], cols[1], cols[2]);
+        if directions.determinant().abs() < 1e-6 {
+            return Err(fmt(format!(
+                "space directions {sd:?} are degenerate (not independent)"
+            )));
+        }
+    } else if let Some(sp) = &h.spacings {
+        let vals: Vec<f64> = sp
+            .split_whitespace()
+            .map(|s| s.parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| fmt(format!("invalid spacings {sp:?}")))?;
+        if vals.len() != 3 {
+            return Err(fmt(format!("spacings {sp:?} must have 3 entries")));
+        }
+        for (a, &v) in vals.iter().enumerate() {
+            if v.is_nan() {
+                continue; // "nan": no spacing known, keep 1 mm
+            }
+            if !(v.is_finite() && v != 0.0) {
+                return Err(fmt(format!("spacings: axis {a} has invalid spacing {v}")));
+            }
+            spacing[a] = v.abs();
+        }
+    }
+    let origin = match &h.space_origin {
+        Some(o) => {
+            parse_vector(o).ok_or_else(|| fmt(format!("invalid space origin {o:?}")))? * flip
+        }
+        None => DVec3::ZERO,
+    };
+    let modality = match h.modality.as_deref().map(str::trim) {
+        Some(m) if m.eq_ignore_ascii_case("ct") => Modality::Ct,
+        Some(m) if m.eq_ignore_ascii_case("mr") || m.eq_ignore_ascii_case("mri") => Modality::Mr,
+        _ => Modality::Unknown,
+    };
+
+    // skips
+    let line_skip: u64 = match &h.line_skip {
+        Some(s) => s
+            .parse()
+            .map_err(|_| fmt(format!("invalid line skip {s:?}")))?,
+        None => 0,
+    };
+    let byte_skip: i64 = match &h.byte_skip {
+        Some(s) => s
+            .parse()
+            .map_err(|_| fmt(format!("invalid byte skip {s:?}")))?,
+        None => 0,
+    };
+    if byte_skip < -1 {
+        return Err(fmt(format!(
+            "invalid byte skip {byte_skip} (must be >= -1)"
+        )));
+    }
+    if byte_skip == -1 && gzip {
+        return Err(VolumeError::unsupported(
+            path,
+            "byte skip -1 with gzip encoding",
+        ));
+    }
+    if gzip && byte_skip as u64 > super::MAX_DATA_BYTES {
+        return Err(fmt(format!("byte skip {byte_skip} is too large")));
+    }
+
+    // data source
+    let (data_path, mut data): (PathBuf, BufReader<File>) = match &h.data_file {
+        Some(df) => {
+            let tokens: Vec<&str> = df.split_whitespace().collect();
+            if tokens.first() == Some(&"LIST") || (tokens.len() >= 4 && tokens[0].contains('%')) {
+                return Err(VolumeError::unsupported(
+                    path,
+                    format!("multi-file data (`data file: {df}`); only a single data file works"),
+                ));
+            }
+            let dp = Path::new(df);
+            let dp = if dp.is_absolute() {
+                dp.to_path_buf()
+            } else {
+                path.parent().unwrap_or(Path::new(".")).join(dp)
+            };
+            let f = File::open(&dp).map_err(|e| {
+                fmt(format!(
+                    "cannot open detached data file {}: {e}",
+                    dp.display()
+                ))
+            })?;
+            (dp, BufReader::new(f))
+        }
+        None => {
+            if !terminated {
+                return Err(fmt(
+                    "header ends without an empty line and no `data file`; \
+                                no data follows"
+                        .into(),
+                ));
+            }
+            (path.to_path_buf(), reader)
+        }
+    };
+    // Error for the data, naming the data file and (if different) the header.
+    let dfmt = |m: String| {
+        if data_path == path {
+            VolumeError::format(path, m)
+        } else {
+            VolumeError::format(path, format!("data file {}: {m}", data_path.display()))
+        }
+    };
+    let dio = |e: std::io::Error| dfmt(format!("read error: {e}"));
+
+    let mut line = Vec::new();
+    for n in 0..line_skip {
+        line.clear();
+        let got = (&mut data)
+            .take(1 << 20)
+            .read_until(b'\n', &mut line)
+            .map_err(dio)?;
+        if got == 0 {
+            return Err(dfmt(format!(
+                "end of file while skipping line {} of {line_skip}",
+                n + 1
+            )));
+        }
+    }
+
+    let bytes = if gzip {
+        let mut dec = MultiGzDecoder::new(data);
+        let skip = byte_skip as u64;
+        let want = skip + data_bytes;
+        let mut buf = Vec::with_capacity((want as usize).min(64 << 20));
+        (&mut dec)
+            .take(want)
+            .read_to_end(&mut buf)
+            .map_err(|e| dfmt(format!("gzip data are corrupt: {e}")))?;
+        if (buf.len() as u64) < want {
+            return Err(dfmt(format!(
+                "truncated data: expected {data_bytes} bytes after decompression{}, found {}",
+                if skip > 0 {
+                    format!(" (plus {skip} skipped)")
+                } else {
+                    String::new()
+                },
+                (buf.len() as u64).saturating_sub(skip)
+            )));
+        }
+        buf.drain(..skip as usize);
+        buf
+    } else {
+        let pos = data.stream_position().map_err(dio)?;
+        let len = data.get_ref().metadata().map_err(dio)?.len();
+        let start = if byte_skip == -1 {
+            if len < pos.saturating_add(data_bytes) {
+                return Err(dfmt(format!(
+                    "truncated data: expected {data_bytes} bytes at the end of the file, found {}",
+                    len.saturating_sub(pos)
+                )));
+            }
+            len - data_bytes
+        } else {
+            pos.saturating_add(byte_skip as u64)
+        };
+        let avail = len.saturating_sub(start);
+        if avail < data_bytes {
+            return Err(dfmt(format!(
+                "truncated data: expected {data_bytes} bytes, found {avail}"
+            )));
+        }
+        data.seek(SeekFrom::Start(start)).map_err(dio)?;
+        let mut buf = vec![0u8; data_bytes as usize];
+        data.read_exact(&mut buf).map_err(dio)?;
+        buf
+    };
+
+    let voxels = match ty {
+        SampleType::U8 => Voxels::U8(bytes),
+        SampleType::I8 => Voxels::I16(bytes.iter().map(|&b| b as i8 as i16).collect()),
+        SampleType::U16 => Voxels::U16(decode_u16(&bytes, big_endian)),
+        SampleType::I16 => Voxels::I16(decode_i16(&bytes, big_endian)),
+    };
+    debug_assert_eq!(voxels.len(), count);
+    let name = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "volume".into());
+    Ok(Volume {
+        name,
+        dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize],
+        spacing,
+        directions,
+        origin,
+        modality,
+        voxels,
+    })
+}
+
+/// Samples to write; `F32` exists for derived data (e.g. precomputed fields) that the loader
+/// itself does not read back.
+#[derive(Clone, Copy, Debug)]
+pub enum NrrdData<'a> {
+    U8(&'a [u8]),
+    U16(&'a [u16]),
+    I16(&'a [i16]),
+    F32(&'a [f32]),
+}
+
+impl NrrdData<'_> {
+    fn len(&self) -> usize {
+        match self {
+            NrrdData::U8(v) => v.len(),
+            NrrdData::U16(v) => v.len(),
+            NrrdData::I16(v) => v.len(),
+            NrrdData::F32(v) => v.len(),
+        }
+    }
+    fn type_name(&self) -> &'static str {
+        match self {
+            NrrdData::U8(_) => "uint8",
+            NrrdData::U16(_) => "uint16",
+            NrrdData::I16(_) => "int16",
+            NrrdData::F32(_) => "float",
+        }
+    }
+    /// Writes the samples little-endian, in chunks.
+    fn write_le(&self, w: &mut dyn Write) -> std::io::Result<()> {
+        const CHUNK: usize = 1 << 16;
+        fn chunks<T: Copy, const N: usize>(
+            v: &[T],
+            w: &mut dyn Write,
+            f: fn(T) -> [u8; N],
+        ) -> std::io::Result<()> {
+            let mut buf = Vec::with_capacity(CHUNK * N);
+            for c in v.chunks(CHUNK) {
+                buf.clear();
+                for &x in c {
+                    buf.extend_from_slice(&f(x));
+                }
+                w.write_all(&buf)?;
+            }
+            Ok(())
+        }
+        match self {
+            NrrdData::U8(v) => w.write_all(v),
+            NrrdData::U16(v) => chunks(v, w, u16::to_le_bytes),
+            NrrdData::I16(v) => chunks(v, w, i16::to_le_bytes),
+            NrrdData::F32(v) => chunks(v, w, f32::to_le_bytes),
+        }
+    }
+}
+
+fn fmt_vec(v: DVec3) -> String {
+    // `+ 0.0` turns -0 into 0.
+    format!("({},{},{})", v.x + 0.0, v.y + 0.0, v.z + 0.0)
+}
+
+/// Deletes the temporary file unless the write was committed.
+struct TempFile {
+    path: PathBuf,
+    keep: bool,
+}
+
+impl Drop for TempFile {
+    fn drop(&mut self) {
+        if !self.keep {
+            let _ = std::fs::remove_file(&self.path);
+        }
+    }
+}
+
+/// Writes a 3-D NRRD0004 file in LPS space: `directions` columns are the unit vectors of the
+/// i, j, k axes, `spacing` their lengths (mm), `origin` the centre of voxel (0,0,0).
+/// The file is written next to `path` under a temporary name and renamed when complete.
+#[allow(clippy::too_many_arguments)]
+pub fn write(
+    path: &Path,
+    dims: [usize; 3],
+    spacing: [f64; 3],
+    directions: DMat3,
+    origin: DVec3,
+    modality: Modality,
+    data: NrrdData,
+    gzip: bool,
+) -> Result<(), VolumeError> {
+    let expected = dims.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+    if dims.contains(&0) || expected != Some(data.len()) {
+        return Err(VolumeError::format(
+            path,
+            format!(
+                "cannot write: sizes {} x {} x {} do not match {} samples",
+                dims[0],
+                dims[1],
+                dims[2],
+                data.len()
+            ),
+        ));
+    }
+    if spacing.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+        return Err(VolumeError::format(
+            path,
+            format!("cannot write: invalid spacing {spacing:?}"),
+        ));
+    }
+    let cols = [directions.x_axis, directions.y_axis, directions.z_axis];
+    if cols.iter().any(|c| !c.is_finite() || c.length() == 0.0) || !origin.is_finite() {
+        return Err(VolumeError::format(
+            path,
+            "cannot write: directions or origin are not finite / zero",
+        ));
+    }
+
+    let mut header = String::from("NRRD0004\n");
+    header.push_str("# Complete NRRD file format specification at:\n");
+    header.push_str("# http://teem.sourceforge.net/nrrd/format.html\n");
+    header.push_str(&format!("type: {}\n", data.type_name()));
+    header.push_str("dimension: 3\n");
+    header.push_str("space: left-posterior-superior\n");
+    header.push_str(&format!("sizes: {} {} {}\n", dims[0], dims[1], dims[2]));
+    header.push_str(&format!(
+        "space directions: {} {} {}\n",
+        fmt_vec(cols[0] * spacing[0]),
+        fmt_vec(cols[1] * spacing[1]),
+        fmt_vec(cols[2] * spacing[2])
+    ));
+    header.push_str("kinds: domain domain domain\n");
+    header.push_str("endian: little\n");
+    header.push_str(&format!(
+        "encoding: {}\n",
+        if gzip { "gzip" } else { "raw" }
+    ));
+    header.push_str(&format!("space origin: {}\n", fmt_vec(origin)));
+    match modality {
+        Modality::Ct => header.push_str(&format!("{MODALITY_KEY}:=CT\n")),
+        Modality::Mr => header.push_str(&format!("{MODALITY_KEY}:=MR\n")),
+        Modality::Unknown => {}
+    }
+    header.push('\n');
+
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let file_name = path
+        .file_name()
+        .ok_or_else(|| VolumeError::format(path, "cannot write: not a file path"))?;
+    let stamp = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.subsec_nanos())
+        .unwrap_or(0);
+    let mut tmp = TempFile {
+        path: dir.join(format!(
+            ".{}.tmp-{}-{stamp}",
+            file_name.to_string_lossy(),
+            std::process::id()
+        )),
+        keep: false,
+    };
+    let io = |e: std::io::Error| VolumeError::io(path, e);
+    let file = File::create(&tmp.path).map_err(|e| VolumeError::io(&tmp.path, e))?;
+    let mut w = std::io::BufWriter::with_capacity(1 << 20, file);
+    w.write_all(header.as_bytes()).map_err(io)?;
+    if gzip {
+        let mut enc = GzEncoder::new(w, Compression::default());
+        data.write_le(&mut enc).map_err(io)?;
+        w = enc.finish().map_err(io)?;
+    } else {
+        data.write_le(&mut w).map_err(io)?;
+    }
+    let file = w.into_inner().map_err(|e| io(e.into_error()))?;
+    file.sync_all().map_err(io)?;
+    drop(file);
+    std::fs::rename(&tmp.path, path).map_err(io)?;
+    tmp.keep = true;
+    Ok(())
+}
+
+/// Writes `vol` with [`write`].
+pub fn write_volume(path: &Path, vol: &Volume, gzip: bool) -> Result<(), VolumeError> {
+    let data = match &vol.voxels {
+        Voxels::U8(v) => NrrdData::U8(v),
+        Voxels::U16(v) => NrrdData::U16(v),
+        Voxels::I16(v) => NrrdData::I16(v),
+    };
+    write(
+        path,
+        vol.dims,
+        vol.spacing,
+        vol.directions,
+        vol.origin,
+        vol.modality,
+        data,
+        gzip,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    static COUNTER: AtomicUsize = AtomicUsize::new(0);
+
+    /// A unique scratch directory, removed on drop.
+    struct Scratch(PathBuf);
+    impl Scratch {
+        fn new(tag: &str) -> Self {
+            let n = COUNTER.fetch_add(1, Ordering::SeqCst);
+            let p = std::env::temp_dir()
+                .join(format!("volcrate-nrrd-{tag}-{}-{n}", std::process::id()));
+            let _ = std::fs::remove_dir_all(&p);
+            std::fs::create_dir_all(&p).unwrap();
+            Scratch(p)
+        }
+        fn file(&self, name: &str) -> PathBuf {
+            self.0.join(name)
+        }
+    }
+    impl Drop for Scratch {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+
+    fn rotation() -> DMat3 {
+        DMat3::from_rotation_z(0.3) * DMat3::from_rotation_x(-0.7)
+    }
+
+    fn assert_geometry(v: &Volume, dims: [usize; 3], spacing: [f64; 3], dirs: DMat3, o: DVec3) {
+        assert_eq!(v.dims, dims);
+        for a in 0..3 {
+            assert!(
+                (v.spacing[a] - spacing[a]).abs() < 1e-9,
+                "{:?} {:?}",
+                v.spacing,
+                spacing
+            );
+        }
+        assert!(
+            v.directions.abs_diff_eq(dirs, 1e-9),
+            "{:?} vs {:?}",
+            v.directions,
+            dirs
+        );
+        assert!(v.origin.abs_diff_eq(o, 1e-9), "{:?} vs {:?}", v.origin, o);
+    }
+
+    fn write_file(path: &Path, header: &str, data: &[u8]) {
+        let mut bytes = header.as_bytes().to_vec();
+        bytes.extend_from_slice(data);
+        std::fs::write(path, bytes).unwrap();
+    }
+
+    fn err_of(path: &Path) -> String {
+        let e = load(path).expect_err("load should fail").to_string();
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        assert!(e.contains(&name), "error {e:?} does not name {name}");
+        e
+    }
+
+    #[test]
+    fn round_trip_all_types() {
+        let s = Scratch::new("rt");
+        let dims = [5, 4, 3];
+        let n = 60;
+        let spacing = [0.7, 1.25, 3.0];
+        let dirs = rotation();
+        let origin = DVec3::new(-12.5, 30.25, 7.0);
+        let u8s: Vec<u8> = (0..n).map(|i| (i * 37 % 256) as u8).collect();
+        let u16s: Vec<u16> = (0..n).map(|i| (i * 1103 % 65536) as u16).collect();
+        let i16s: Vec<i16> = (0..n).map(|i| (i as i32 * 977 - 30000) as i16).collect();
+        for gzip in [false, true] {
+            let cases = [
+                (
+                    NrrdData::U8(&u8s),
+                    Voxels::U8(u8s.clone()),
+                    Modality::Unknown,
+                ),
+                (
+                    NrrdData::U16(&u16s),
+                    Voxels::U16(u16s.clone()),
+                    Modality::Mr,
+                ),
+                (
+                    NrrdData::I16(&i16s),
+                    Voxels::I16(i16s.clone()),
+                    Modality::Ct,
+                ),
+            ];
+            for (data, want, modality) in cases {
+                let p = s.file(&format!("v-{}-{gzip}.nrrd", want.type_name()));
+                write(&p, dims, spacing, dirs, origin, modality, data, gzip).unwrap();
+                let v = load(&p).unwrap();
+                assert_geometry(&v, dims, spacing, dirs, origin);
+                assert_eq!(v.voxels, want);
+                assert_eq!(v.modality, modality);
+                // write_volume reproduces the same file
+                let p2 = s.file(&format!("w-{}-{gzip}.nrrd", want.type_name()));
+                write_volume(&p2, &v, gzip).unwrap();
+                let v2 = load(&p2).unwrap();
+                assert_geometry(&v2, dims, spacing, dirs, origin);
+                assert_eq!(v2.voxels, want);
+            }
+        }
+        // No temporary files left behind.
+        let names: Vec<_> = std::fs::read_dir(&s.0)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert!(
+            names.iter().all(|n| !n.to_string_lossy().starts_with('.')),
+            "{names:?}"
+        );
+    }
+
+    #[test]
+    fn f32_header_and_payload() {
+        let s = Scratch::new("f32");
+        let dims = [3, 2, 2];
+        let vals: Vec<f32> = (0..12).map(|i| i as f32 * 0.5 - 2.0).collect();
+        let dirs = DMat3::from_cols(-DVec3::X, DVec3::Z, DVec3::Y);
+        for gzip in [false, true] {
+            let p = s.file(&format!("f-{gzip}.nrrd"));
+            write(
+                &p,
+                dims,
+                [0.5, 2.0, 1.5],
+                dirs,
+                DVec3::ZERO,
+                Modality::Ct,
+                NrrdData::F32(&vals),
+                gzip,
+            )
+            .unwrap();
+            let bytes = std::fs::read(&p).unwrap();
+            let end = bytes.windows(2).position(|w| w == b"\n\n").unwrap() + 2;
+            let header = std::str::from_utf8(&bytes[..end]).unwrap();
+            assert!(header.starts_with("NRRD0004\n"));
+            for line in [
+                "type: float\n",
+                "dimension: 3\n",
+                "space: left-posterior-superior\n",
+                "sizes: 3 2 2\n",
+                "space directions: (-0.5,0,0) (0,0,2) (0,1.5,0)\n",
+                "kinds: domain domain domain\n",
+                "endian: little\n",
+                "space origin: (0,0,0)\n",
+                "modality:=CT\n",
+            ] {
+                assert!(header.contains(line), "{line:?} missing in {header}");
+            }
+            assert!(header.contains(if gzip {
+                "encoding: gzip\n"
+            } else {
+                "encoding: raw\n"
+            }));
+            let mut payload = bytes[end..].to_vec();
+            if gzip {
+                let mut out = Vec::new();
+                MultiGzDecoder::new(&payload[..])
+                    .read_to_end(&mut out)
+                    .unwrap();
+                payload = out;
+            }
+            let back: Vec<f32> = payload
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+                .collect();
+            assert_eq!(back, vals);
+            let e = err_of(&p);
+            assert!(e.contains("float") && e.contains("unsupported"), "{e}");
+        }
+    }
+
+    #[test]
+    fn write_refuses_mismatched_data() {
+        let s = Scratch::new("mismatch");
+        let p = s.file("bad.nrrd");
+        let e = write(
+            &p,
+            [2, 2, 2],
+            [1.0; 3],
+            DMat3::IDENTITY,
+            DVec3::ZERO,
+            Modality::Ct,
+            NrrdData::U8(&[1, 2, 3]),
+            false,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("bad.nrrd") && e.contains("3 samples"), "{e}");
+        assert!(!p.exists());
+    }
+
+    #[test]
+    fn big_endian_and_spellings() {
+        let s = Scratch::new("be");
+        let p = s.file("be.nrrd");
+        let vals: [i16; 8] = [-1000, -1, 0, 1, 255, 256, 3000, -32768];
+        let data: Vec<u8> = vals.iter().flat_map(|v| v.to_be_bytes()).collect();
+        write_file(
+            &p,
+            "NRRD0005\n# comment\ncontent: test\ntype: signed short int\ndimension: 3\n\
+             sizes: 2 2 2\nendian: big\nencoding: raw\nspacings: 0.5 0.25 2\n\
+             kinds: domain domain domain\ncao-xr modality:=MR\n\n",
+            &data,
+        );
+        let v = load(&p).unwrap();
+        assert_eq!(v.voxels, Voxels::I16(vals.to_vec()));
+        assert_geometry(
+            &v,
+            [2, 2, 2],
+            [0.5, 0.25, 2.0],
+            DMat3::IDENTITY,
+            DVec3::ZERO,
+        );
+        assert_eq!(v.modality, Modality::Mr);
+        assert_eq!(v.name, "be");
+
+        let p = s.file("be16.nrrd");
+        let vals: [u16; 8] = [0, 1, 256, 65535, 4095, 2, 3, 4];
+        let data: Vec<u8> = vals.iter().flat_map(|v| v.to_be_bytes()).collect();
+        write_file(
+            &p,
+            "NRRD0001\ntype: unsigned short\ndimension: 3\nsizes: 2 2 2\nendian: big\n\
+             encoding: raw\n\n",
+            &data,
+        );
+        assert_eq!(load(&p).unwrap().voxels, Voxels::U16(vals.to_vec()));
+
+        // int8 is widened to int16; CRLF line ends; no endian needed for one byte.
+        let p = s.file("i8.nrrd");
+        write_file(
+            &p,
+            "NRRD0004\r\ntype: int8\r\ndimension: 3\r\nsizes: 2 1 1\r\nencoding: raw\r\n\r\n",
+            &[0x80, 0x7f],
+        );
+        assert_eq!(load(&p).unwrap().voxels, Voxels::I16(vec![-128, 127]));
+    }
+
+    #[test]
+    fn detached_header_and_skips() {
+        let s = Scratch::new("nhdr");
+        let sub = s.file("data");
+        std::fs::create_dir_all(&sub).unwrap();
+        let mut payload = b"junk line one\nline two\nXYZ".to_vec();
+        payload.extend_from_slice(&[1, 2, 3, 4, 5, 6, 7, 8]);
+        std::fs::write(sub.join("vol.raw"), &payload).unwrap();
+        let p = s.file("vol.nhdr");
+        write_file(
+            &p,
+            "NRRD0004\ntype: uchar\ndimension: 3\nsizes: 2 2 2\nencoding: raw\n\
+             data file: data/vol.raw\nline skip: 2\nbyte skip: 3\n",
+            &[],
+        );
+        let v = load(&p).unwrap();
+        assert_eq!(v.voxels, Voxels::U8(vec![1, 2, 3, 4, 5, 6, 7, 8]));
+        assert_eq!(v.name, "vol");
+
+        // byte skip -1: the data are the last bytes of the file.
+        let p = s.file("tail.nhdr");
+        write_file(
+            &p,
+            "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 1\nencoding: raw\n\
+             datafile: data/vol.raw\nbyte skip: -1\n",
+            &[],
+        );
+        assert_eq!(load(&p).unwrap().voxels, Voxels::U8(vec![5, 6, 7, 8]));
+
+        // gzip detached with byte skip after decompression.
+        let mut raw = vec![9u8, 9, 9];
+        raw.extend(10u16.to_le_bytes());
+        raw.extend(500u16.to_le_bytes());
+        let mut enc = GzEncoder::new(Vec::new(), Compression::fast());
+        enc.write_all(&raw).unwrap();
+        std::fs::write(s.file("g.raw.gz"), enc.finish().unwrap()).unwrap();
+        let p = s.file("g.nhdr");
+        write_file(
+            &p,
+            "NRRD0004\ntype: uint16\ndimension: 3\nsizes: 1 1 2\nencoding: gz\n\
+             endian: little\nbyte skip: 3\ndata file: g.raw.gz\n",
+            &[],
+        );
+        assert_eq!(load(&p).unwrap().voxels, Voxels::U16(vec![10, 500]));
+
+        // missing data file: message names header and data file.
+        let p = s.file("missing.nhdr");
+        write_file(
+            &p,
+            "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: raw\n\
+             data file: nowhere.raw\n",
+            &[],
+        );
+        let e = err_of(&p);
+        assert!(e.contains("nowhere.raw"), "{e}");
+
+        let p = s.file("list.nhdr");
+        write_file(
+            &p,
+            "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: raw\n\
+             data file: LIST\na.raw\nb.raw\n",
+            &[],
+        );
+        let e = err_of(&p);
+        assert!(e.contains("unsupported") && e.contains("LIST"), "{e}");
+    }
+
+    #[test]
+    fn ras_and_las_become_lps() {
+        let s = Scratch::new("ras");
+        let p = s.file("ras.nrrd");
+        write_file(
+            &p,
+            "NRRD0004\ntype: uint8\ndimension: 3\nspace: right-anterior-superior\nsizes: 1 1 2\n\
+             space directions: (0.9,0,0) (0,0.8,0) (0,0.6,1.2)\nencoding: raw\n\
+             space origin: (10,-20,30)\n\n",
+            &[7, 8],
+        );
+        let v = load(&p).unwrap();
+        let len_k = (0.36f64 + 1.44).sqrt();
+        let dirs = DMat3::from_cols(
+            DVec3::new(-1.0, 0.0, 0.0),
+            DVec3::new(0.0, -1.0, 0.0),
+            DVec3::new(0.0, -0.6 / len_k, 1.2 / len_k),
+        );
+        assert_geometry(
+            &v,
+            [1, 1, 2],
+            [0.9, 0.8, len_k],
+            dirs,
+            DVec3::new(-10.0, 20.0, 30.0),
+        );
+
+        let p = s.file("las.nrrd");
+        write_file(
+            &p,
+            "NRRD0004\ntype: uint8\ndimension: 3\nspace: LAS\nsizes: 1 1 2\n\
+             space directions: (2,0,0) (0,2,0) (0,0,2)\nencoding: raw\n\
+             space origin: (1,2,3)\n\n",
+            &[7, 8],
+        );
+        let v = load(&p).unwrap();
+        let dirs = DMat3::from_cols(DVec3::X, -DVec3::Y, DVec3::Z);
+        assert_geometry(&v, [1, 1, 2], [2.0; 3], dirs, DVec3::new(1.0, -2.0, 3.0));
+    }
+
+    #[test]
+    fn bad_inputs() {
+        let s = Scratch::new("bad");
+        let good = "NRRD0004\ntype: uint16\ndimension: 3\nsizes: 2 2 2\nendian: little\n\
+                    encoding: raw\n\n";
+
+        let p = s.file("truncated.nrrd");
+        write_file(&p, good, &[0u8; 15]);
+        let e = err_of(&p);
+        assert!(
+            e.contains("truncated") && e.contains("16") && e.contains("15"),
+            "{e}"
+        );
+
+        let p = s.file("truncated_gz.nrrd");
+        let mut enc = GzEncoder::new(Vec::new(), Compression::fast());
+        enc.write_all(&[0u8; 10]).unwrap();
+        write_file(&p, &good.replace("raw", "gzip"), &enc.finish().unwrap());
+        let e = err_of(&p);
+        assert!(
+            e.contains("truncated") && e.contains("16") && e.contains("10"),
+            "{e}"
+        );
+
+        let p = s.file("corrupt_gz.nrrd");
+        write_file(
+            &p,
+            &good.replace("raw", "gzip"),
+            b"this is not gzip data at all",
+        );
+        let e = err_of(&p);
+        assert!(e.contains("gzip"), "{e}");
+
+        let p = s.file("nomagic.nrrd");
+        write_file(&p, &good.replace("NRRD0004", "NRRD0009"), &[0u8; 16]);
+        assert!(err_of(&p).contains("magic"));
+        let p = s.file("binary.nrrd");
+        std::fs::write(&p, [0u8, 1, 2, 255, 254]).unwrap();
+        assert!(err_of(&p).contains("magic"));
+        let p = s.file("empty.nrrd");
+        std::fs::write(&p, []).unwrap();
+        assert!(err_of(&p).contains("magic"));
+
+        let p = s.file("dim2.nrrd");
+        write_file(
+            &p,
+            &good
+                .replace("dimension: 3", "dimension: 2")
+                .replace("2 2 2", "4 2"),
+            &[0u8; 16],
+        );
+        assert!(err_of(&p).contains("dimension"));
+
+        let p = s.file("absurd.nrrd");
+        write_file(
+            &p,
+            &good.replace("2 2 2", "100000 100000 100000"),
+            &[0u8; 16],
+        );
+        assert!(err_of(&p).contains("too large"));
+        let p = s.file("overflow.nrrd");
+        write_file(
+            &p,
+            &good.replace("2 2 2", "18446744073709551615 2 2"),
+            &[0u8; 16],
+        );
+        assert!(err_of(&p).contains("too large"));
+        let p = s.file("zero.nrrd");
+        write_file(&p, &good.replace("2 2 2", "2 0 2"), &[]);
+        assert!(err_of(&p).contains("zero"));
+
+        let p = s.file("bzip.nrrd");
+        write_file(&p, &good.replace("raw", "bzip2"), &[0u8; 16]);
+        let e = err_of(&p);
+        assert!(e.contains("unsupported") && e.contains("encoding"), "{e}");
+
+        let p = s.file("double.nrrd");
+        write_file(&p, &good.replace("uint16", "double"), &[0u8; 64]);
+        let e = err_of(&p);
+        assert!(e.contains("unsupported") && e.contains("double"), "{e}");
+        let p = s.file("int32.nrrd");
+        write_file(&p, &good.replace("uint16", "int32"), &[0u8; 32]);
+        assert!(err_of(&p).contains("int32"));
+
+        let p = s.file("noendian.nrrd");
+        write_file(&p, &good.replace("endian: little\n", ""), &[0u8; 16]);
+        assert!(err_of(&p).contains("endian"));
+        let p = s.file("nosizes.nrrd");
+        write_file(&p, &good.replace("sizes: 2 2 2\n", ""), &[0u8; 16]);
+        assert!(err_of(&p).contains("sizes"));
+        let p = s.file("badsizes.nrrd");
+        write_file(&p, &good.replace("2 2 2", "2 x 2"), &[0u8; 16]);
+        assert!(err_of(&p).contains("sizes"));
+        let p = s.file("badvec.nrrd");
+        write_file(
+            &p,
+            &good.replace(
+                "encoding",
+                "space directions: (1,0,0) (0,1) (0,0,1)\nencoding",
+            ),
+            &[0u8; 16],
+        );
+        assert!(err_of(&p).contains("space directions"));
+        let p = s.file("flat.nrrd");
+        write_file(
+            &p,
+            &good.replace(
+                "encoding",
+                "space directions: (1,0,0) (2,0,0) (0,0,1)\nencoding",
+            ),
+            &[0u8; 16],
+        );
+        assert!(err_of(&p).contains("degenerate"));
+        let p = s.file("unterminated.nrrd");
+        write_file(&p, good.trim_end(), &[]);
+        assert!(err_of(&p).contains("empty line"));
+        let p = s.file("garbage_line.nrrd");
+        write_file(
+            &p,
+            &good.replace("encoding", "what is this\nencoding"),
+            &[0u8; 16],
+        );
+        assert!(err_of(&p).contains("what is this"));
+
+        let p = s.file("does-not-exist.nrrd");
+        assert!(err_of(&p).contains("No such file"));
+    }
+
+    #[test]
+    fn never_panics_on_mangled_headers() {
+        let s = Scratch::new("fuzz");
+        let base = "NRRD0004\ntype: int16\ndimension: 3\nsizes: 3 2 2\nendian: little\n\
+                    encoding: raw\nspace: RAS\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n\
+                    space origin: (1,2,3)\nbyte skip: 0\nline skip: 0\n\n";
+        let data = [0u8; 24];
+        let mut file = Vec::from(base.as_bytes());
+        file.extend_from_slice(&data);
+        let p = s.file("fuzz.nrrd");
+        // Truncate at every length and flip every header byte: must return, never panic.
+        for cut in 0..file.len() {
+            std::fs::write(&p, &file[..cut]).unwrap();
+            let _ = load(&p);
+        }
+        for i in 0..base.len() {
+            for b in [b'\n', b'-', b'9', b' ', b'(', 0xff] {
+                let mut m = file.clone();
+                m[i] = b;
+                std::fs::write(&p, &m).unwrap();
+                let _ = load(&p);
+            }
+        }
+        std::fs::write(&p, &file).unwrap();
+        assert!(load(&p).is_ok());
+    }
+}

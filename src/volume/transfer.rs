@@ -1,0 +1,266 @@
+//! 1D RGBA transfer functions from control points, defined on the data's own values (Hounsfield
+//! units for CT) or on the normalised value range. Alpha is opacity per 1 mm of path.
+
+use super::Volume;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Domain {
+    /// Control-point values are data values (HU for CT).
+    #[default]
+    Data,
+    /// Control-point values are fractions of the volume's value range, 0 = min, 1 = max.
+    Normalized,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ControlPoint {
+    pub value: f32,
+    /// Linear RGB in [0,1].
+    pub color: [f32; 3],
+    /// Opacity per 1 mm of path, in [0,1].
+    pub alpha: f32,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TransferFunction {
+    pub name: String,
+    #[serde(default)]
+    pub domain: Domain,
+    pub points: Vec<ControlPoint>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum TfError {
+    #[error("{path}: {msg}")]
+    File { path: String, msg: String },
+    #[error("unknown transfer function '{0}': not a preset ({presets}) nor an existing file", presets = PRESETS.join(", "))]
+    Unknown(String),
+}
+
+pub const PRESETS: &[&str] = &["ct-bone", "ct-skin", "mri"];
+
+fn cp(value: f32, color: [f32; 3], alpha: f32) -> ControlPoint {
+    ControlPoint {
+        value,
+        color,
+        alpha,
+    }
+}
+
+impl TransferFunction {
+    pub fn preset(name: &str) -> Option<TransferFunction> {
+        let bone = [0.93, 0.89, 0.80];
+        let marrow = [0.80, 0.55, 0.40];
+        let skin = [0.90, 0.65, 0.55];
+        let (domain, points) = match name {
+            // Cortical bone opaque and ivory; everything below ~150 HU transparent.
+            "ct-bone" => (
+                Domain::Data,
+                vec![
+                    cp(-1024.0, [0.0; 3], 0.0),
+                    cp(150.0, marrow, 0.0),
+                    cp(350.0, marrow, 0.25),
+                    cp(700.0, bone, 0.8),
+                    cp(1500.0, [1.0, 0.98, 0.94], 0.95),
+                    cp(4000.0, [1.0; 3], 1.0),
+                ],
+            ),
+            // A thin translucent skin surface (fat and skin) over opaque bone.
+            "ct-skin" => (
+                Domain::Data,
+                vec![
+                    cp(-1024.0, [0.0; 3], 0.0),
+                    cp(-400.0, skin, 0.0),
+                    cp(-150.0, skin, 0.06),
+                    cp(100.0, skin, 0.06),
+                    cp(180.0, marrow, 0.0),
+                    cp(300.0, marrow, 0.2),
+                    cp(700.0, bone, 0.8),
+                    cp(4000.0, [1.0; 3], 1.0),
+                ],
+            ),
+            // MR intensities have no absolute scale: defined on the normalised range.
+            "mri" => (
+                Domain::Normalized,
+                vec![
+                    cp(0.0, [0.0; 3], 0.0),
+                    cp(0.08, [0.6, 0.45, 0.4], 0.0),
+                    cp(0.2, [0.85, 0.7, 0.6], 0.15),
+                    cp(0.5, [0.95, 0.9, 0.85], 0.5),
+                    cp(1.0, [1.0; 3], 0.8),
+                ],
+            ),
+            _ => return None,
+        };
+        Some(TransferFunction {
+            name: name.into(),
+            domain,
+            points,
+        })
+    }
+
+    /// A preset name or the path of a JSON file.
+    pub fn resolve(spec: &str) -> Result<TransferFunction, TfError> {
+        if let Some(tf) = Self::preset(spec) {
+            return Ok(tf);
+        }
+        let path = Path::new(spec);
+        if path.exists() {
+            return Self::load(path);
+        }
+        Err(TfError::Unknown(spec.into()))
+    }
+
+    pub fn load(path: &Path) -> Result<TransferFunction, TfError> {
+        let err = |msg: String| TfError::File {
+            path: path.display().to_string(),
+            msg,
+        };
+        let text = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
+        let tf: TransferFunction = serde_json::from_str(&text)
+            .map_err(|e| err(format!("not a transfer function: {e}")))?;
+        tf.validate().map_err(err)?;
+        Ok(tf)
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        if self.points.len() < 2 {
+            return Err("needs at least two control points".into());
+        }
+        for (i, p) in self.points.iter().enumerate() {
+            let in01 = |x: f32| (0.0..=1.0).contains(&x);
+            if !p.value.is_finite() || !in01(p.alpha) || !p.color.iter().all(|&c| in01(c)) {
+                return Err(format!(
+                    "control point {i}: value must be finite, colour and alpha within [0,1]"
+                ));
+            }
+            if i > 0 && p.value <= self.points[i - 1].value {
+                return Err(format!("control point {i}: values must increase strictly"));
+            }
+        }
+        Ok(())
+    }
+
+    /// The control-point axis mapped to data values for a volume whose values span `range`.
+    fn data_value(&self, v: f32, range: (f32, f32)) -> f64 {
+        match self.domain {
+            Domain::Data => v as f64,
+            Domain::Normalized => range.0 as f64 + v as f64 * (range.1 as f64 - range.0 as f64),
+        }
+    }
+
+    /// RGBA at data value `value` (piecewise linear, clamped at the ends).
+    pub fn eval(&self, value: f32, range: (f32, f32)) -> [f32; 4] {
+        let x = value as f64;
+        let pts = &self.points;
+        let rgba = |p: &ControlPoint| [p.color[0], p.color[1], p.color[2], p.alpha];
+        if x <= self.data_value(pts[0].value, range) {
+            return rgba(&pts[0]);
+        }
+        for w in pts.windows(2) {
+            let (a, b) = (
+                self.data_value(w[0].value, range),
+                self.data_value(w[1].value, range),
+            );
+            if x <= b {
+                let t = if b > a { (x - a) / (b - a) } else { 1.0 };
+                let (ca, cb) = (rgba(&w[0]), rgba(&w[1]));
+                return std::array::from_fn(|i| {
+                    (ca[i] as f64 + t * (cb[i] as f64 - ca[i] as f64)) as f32
+                });
+            }
+        }
+        rgba(pts.last().unwrap())
+    }
+
+    /// The opacity volume O of DESIGN.md (before clipping): tf alpha of every voxel's value.
+    pub fn opacity_volume(&self, vol: &Volume) -> Vec<f32> {
+        let range = vol.value_range();
+        (0..vol.voxel_count())
+            .into_par_iter()
+            .map(|i| self.eval(vol.voxels.get(i), range)[3])
+            .collect()
+    }
+
+    /// `n` RGBA entries sampled uniformly over `range` (for the ray caster's 1D texture).
+    pub fn lut(&self, range: (f32, f32), n: usize) -> Vec<[f32; 4]> {
+        (0..n)
+            .map(|i| {
+                let t = i as f64 / (n - 1) as f64;
+                let v = range.0 as f64 + t * (range.1 as f64 - range.0 as f64);
+                self.eval(v as f32, range)
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_are_valid_and_bone_is_opaque_air_transparent() {
+        for name in PRESETS {
+            let tf = TransferFunction::preset(name).unwrap();
+            tf.validate().unwrap();
+        }
+        let bone = TransferFunction::preset("ct-bone").unwrap();
+        let r = (-1024.0, 3071.0);
+        assert_eq!(bone.eval(-1000.0, r)[3], 0.0);
+        assert!(bone.eval(1200.0, r)[3] > 0.8);
+        let skin = TransferFunction::preset("ct-skin").unwrap();
+        assert!(skin.eval(0.0, r)[3] > 0.0 && skin.eval(0.0, r)[3] < 0.2);
+    }
+
+    #[test]
+    fn interpolates_linearly_and_clamps() {
+        let tf = TransferFunction {
+            name: "t".into(),
+            domain: Domain::Data,
+            points: vec![cp(0.0, [0.0; 3], 0.0), cp(100.0, [1.0; 3], 1.0)],
+        };
+        assert_eq!(tf.eval(25.0, (0.0, 1.0))[3], 0.25);
+        assert_eq!(tf.eval(-5.0, (0.0, 1.0))[3], 0.0);
+        assert_eq!(tf.eval(500.0, (0.0, 1.0))[3], 1.0);
+        let n = TransferFunction {
+            domain: Domain::Normalized,
+            ..tf.clone()
+        };
+        // Normalised 0..1 maps onto the volume's range 0..200: 50 is a quarter.
+        assert_eq!(n.eval(50.0, (0.0, 200.0))[3], 0.25);
+    }
+
+    #[test]
+    fn json_round_trip_and_bad_files_name_the_file() {
+        let dir = std::env::temp_dir().join(format!("cao-tf-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let good = dir.join("good.json");
+        let tf = TransferFunction::preset("ct-skin").unwrap();
+        std::fs::write(&good, serde_json::to_string_pretty(&tf).unwrap()).unwrap();
+        assert_eq!(
+            TransferFunction::resolve(good.to_str().unwrap()).unwrap(),
+            tf
+        );
+        let bad = dir.join("bad.json");
+        std::fs::write(
+            &bad,
+            r#"{"name":"x","points":[{"value":5,"color":[1,1,1],"alpha":2}]}"#,
+        )
+        .unwrap();
+        let e = TransferFunction::resolve(bad.to_str().unwrap())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("bad.json") && e.contains("two control points"),
+            "{e}"
+        );
+        let e = TransferFunction::resolve("no-such-preset")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("ct-bone"), "{e}");
+    }
+}
