@@ -68,7 +68,11 @@ enum Cmd {
         what: BenchCmd,
     },
     /// Fetch the real CT head (Debian's invesalius-examples) and convert it to NRRD in the cache.
-    FetchCt,
+    FetchCt {
+        /// Fetch again even if the cache already holds it.
+        #[arg(long)]
+        force: bool,
+    },
     /// Write the procedural head phantom as NRRD.
     Phantom {
         /// Voxels per axis.
@@ -295,7 +299,12 @@ fn main() -> Result<()> {
             };
             app::bench::bench_lao(&gpu, &volumes, &tf, &rays, &base, runs)?;
         }
-        Cmd::FetchCt => {
+        Cmd::FetchCt { force } => {
+            let cached = ct_head::cached_path();
+            if cached.exists() && !force {
+                println!("CT head already cached at {} (--force fetches it again)", cached.display());
+                return Ok(());
+            }
             let path = ct_head::fetch(&mut |msg| eprintln!("{msg}"))?;
             println!("CT head cached at {}", path.display());
         }

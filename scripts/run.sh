@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# The main job: installs what is missing, fetches the real CT head once (falls back to the
+# built-in phantom if that is not possible), and renders both eyes to out/render/*.png.
+# Any arguments go to `cao-xr render` instead of the defaults, e.g. scripts/run.sh phantom:96.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+source scripts/setup.sh
+cargo build --release --quiet
+bin=target/release/cao-xr
+# cao-xr picks a discrete GPU if there is one, else lavapipe (no variable needed).
+if [ $# -eq 0 ]; then
+  $bin fetch-ct || echo "could not fetch the CT head; rendering the built-in phantom" >&2
+  exec $bin render --out out/render
+fi
+exec $bin render "$@"

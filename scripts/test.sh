@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# Runs every test: installs what is missing, then `cargo test` on Mesa lavapipe with the Khronos
+# validation layers on (a validation warning or error fails the test that caused it).
+# Set CAO_XR_TEST_DEVICE=native to test on the machine's own GPU driver instead.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+source scripts/setup.sh
+if [ "${CAO_XR_TEST_DEVICE:-lavapipe}" = "lavapipe" ]; then
+  [ -n "$LVP_ICD" ] || { echo "lavapipe (mesa-vulkan-drivers) is not installed" >&2; exit 1; }
+  export VK_DRIVER_FILES="$LVP_ICD"
+fi
+export CAO_XR_VALIDATION=1
+cargo test "$@"
