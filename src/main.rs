@@ -302,7 +302,10 @@ fn main() -> Result<()> {
         Cmd::FetchCt { force } => {
             let cached = ct_head::cached_path();
             if cached.exists() && !force {
-                println!("CT head already cached at {} (--force fetches it again)", cached.display());
+                println!(
+                    "CT head already cached at {} (--force fetches it again)",
+                    cached.display()
+                );
                 return Ok(());
             }
             let path = ct_head::fetch(&mut |msg| eprintln!("{msg}"))?;

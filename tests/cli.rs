@@ -12,7 +12,10 @@ fn cao(args: &[&str]) -> Output {
         .expect("run cao-xr");
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!stderr.contains("panicked"), "cao-xr panicked:\n{stderr}");
-    assert!(!stderr.contains("vulkan validation"), "validation messages:\n{stderr}");
+    assert!(
+        !stderr.contains("vulkan validation"),
+        "validation messages:\n{stderr}"
+    );
     out
 }
 
@@ -36,15 +39,22 @@ fn read_nrrd_f32(path: &Path) -> (Vec<usize>, Vec<f64>, Vec<f32>) {
     };
     assert_eq!(field("type"), "float");
     assert_eq!(field("encoding"), "raw");
-    let dims: Vec<usize> = field("sizes").split_whitespace().map(|s| s.parse().unwrap()).collect();
+    let dims: Vec<usize> = field("sizes")
+        .split_whitespace()
+        .map(|s| s.parse().unwrap())
+        .collect();
     // Spacing = lengths of the space direction vectors.
     let dirs = field("space directions");
     let spacing: Vec<f64> = dirs
         .split(')')
         .filter(|v| v.contains('('))
         .map(|v| {
-            let c: Vec<f64> =
-                v.trim().trim_start_matches('(').split(',').map(|x| x.trim().parse().unwrap()).collect();
+            let c: Vec<f64> = v
+                .trim()
+                .trim_start_matches('(')
+                .split(',')
+                .map(|x| x.trim().parse().unwrap())
+                .collect();
             (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt()
         })
         .collect();
@@ -56,7 +66,14 @@ fn read_nrrd_f32(path: &Path) -> (Vec<usize>, Vec<f64>, Vec<f32>) {
 }
 
 /// LAO written straight from DESIGN.md, in mm, sharing no code with cao-xr.
-fn independent_lao(o: &[f32], n: &[usize], s: &[f64], dirs: &[[f64; 3]], m: usize, d: f64) -> Vec<f64> {
+fn independent_lao(
+    o: &[f32],
+    n: &[usize],
+    s: &[f64],
+    dirs: &[[f64; 3]],
+    m: usize,
+    d: f64,
+) -> Vec<f64> {
     let at = |q: [i64; 3]| -> f64 {
         if (0..3).any(|a| q[a] < 0 || q[a] >= n[a] as i64) {
             0.0
@@ -72,7 +89,9 @@ fn independent_lao(o: &[f32], n: &[usize], s: &[f64], dirs: &[[f64; 3]], m: usiz
         let mut acc = 0.0;
         for corner in 0..8 {
             let b = [corner & 1, (corner >> 1) & 1, (corner >> 2) & 1];
-            let w: f64 = (0..3).map(|a| if b[a] == 1 { f[a] } else { 1.0 - f[a] }).product();
+            let w: f64 = (0..3)
+                .map(|a| if b[a] == 1 { f[a] } else { 1.0 - f[a] })
+                .product();
             acc += w * at([q[0] + b[0] as i64, q[1] + b[1] as i64, q[2] + b[2] as i64]);
         }
         acc
@@ -81,7 +100,11 @@ fn independent_lao(o: &[f32], n: &[usize], s: &[f64], dirs: &[[f64; 3]], m: usiz
     for k in 0..n[2] {
         for j in 0..n[1] {
             for i in 0..n[0] {
-                let x = [(i as f64 + 0.5) * s[0], (j as f64 + 0.5) * s[1], (k as f64 + 0.5) * s[2]];
+                let x = [
+                    (i as f64 + 0.5) * s[0],
+                    (j as f64 + 0.5) * s[1],
+                    (k as f64 + 0.5) * s[2],
+                ];
                 let mut a = 0.0;
                 for dk in dirs {
                     let alphas: Vec<f64> = (1..m)
@@ -107,17 +130,44 @@ fn independent_lao(o: &[f32], n: &[usize], s: &[f64], dirs: &[[f64; 3]], m: usiz
 fn ao_command_agrees_with_an_independent_implementation() {
     let dir = tmp("ao");
     let vol = dir.join("head.nrrd");
-    assert!(cao(&["phantom", "--size", "24", "--out", vol.to_str().unwrap()]).status.success());
+    assert!(
+        cao(&["phantom", "--size", "24", "--out", vol.to_str().unwrap()])
+            .status
+            .success()
+    );
     let ao = dir.join("ao.nrrd");
     let op = dir.join("opacity.nrrd");
     let out = cao(&[
-        "ao", vol.to_str().unwrap(), "--tf", "ct-skin", "--rays", "14", "--steps", "6",
-        "--step-mm", "4.5", "--out", ao.to_str().unwrap(), "--opacity-out", op.to_str().unwrap(),
+        "ao",
+        vol.to_str().unwrap(),
+        "--tf",
+        "ct-skin",
+        "--rays",
+        "14",
+        "--steps",
+        "6",
+        "--step-mm",
+        "4.5",
+        "--out",
+        ao.to_str().unwrap(),
+        "--opacity-out",
+        op.to_str().unwrap(),
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let side: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("ao.json")).unwrap()).unwrap();
-    for key in ["directions", "steps", "step_mm", "spacing_mm", "dims", "transfer_function"] {
+    for key in [
+        "directions",
+        "steps",
+        "step_mm",
+        "spacing_mm",
+        "dims",
+        "transfer_function",
+    ] {
         assert!(side.get(key).is_some(), "sidecar lacks {key}");
     }
     let dirs: Vec<[f64; 3]> = serde_json::from_value(side["directions"].clone()).unwrap();
@@ -128,8 +178,15 @@ fn ao_command_agrees_with_an_independent_implementation() {
     assert_eq!(odims, dims);
     assert!(o.iter().any(|&x| x > 0.0));
     let want = independent_lao(&o, &dims, &spacing, &dirs, 6, 4.5);
-    let worst = a.iter().zip(&want).map(|(x, y)| (*x as f64 - y).abs()).fold(0.0, f64::max);
-    assert!(worst < 1e-4, "cao-xr ao differs from the independent LAO by {worst}");
+    let worst = a
+        .iter()
+        .zip(&want)
+        .map(|(x, y)| (*x as f64 - y).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        worst < 1e-4,
+        "cao-xr ao differs from the independent LAO by {worst}"
+    );
     assert!(a.iter().any(|&x| x < 0.7), "expected some occlusion");
 }
 
@@ -137,12 +194,26 @@ fn ao_command_agrees_with_an_independent_implementation() {
 fn render_writes_three_pngs() {
     let dir = tmp("render");
     let out = cao(&[
-        "render", "phantom:32", "--size", "48x40", "--rays", "6", "--steps", "4", "--out",
+        "render",
+        "phantom:32",
+        "--size",
+        "48x40",
+        "--rays",
+        "6",
+        "--steps",
+        "4",
+        "--out",
         dir.to_str().unwrap(),
     ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     for (name, w) in [("left.png", 48), ("right.png", 48), ("stereo.png", 96)] {
-        let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(dir.join(name)).unwrap()));
+        let dec = png::Decoder::new(std::io::BufReader::new(
+            std::fs::File::open(dir.join(name)).unwrap(),
+        ));
         let info = dec.read_info().unwrap().info().clone();
         assert_eq!((info.width, info.height), (w, 40), "{name}");
     }
@@ -150,11 +221,26 @@ fn render_writes_three_pngs() {
 
 #[test]
 fn bench_lao_prints_a_table() {
-    let out = cao(&["bench", "lao", "phantom:16", "--runs", "2", "--rays", "6,14"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = cao(&[
+        "bench",
+        "lao",
+        "phantom:16",
+        "--runs",
+        "2",
+        "--rays",
+        "6,14",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(text.contains("Msamples/s"), "{text}");
-    let rows: Vec<&str> = text.lines().filter(|l| l.starts_with("phantom-16")).collect();
+    let rows: Vec<&str> = text
+        .lines()
+        .filter(|l| l.starts_with("phantom-16"))
+        .collect();
     assert_eq!(rows.len(), 2, "{text}");
 }
 
@@ -162,7 +248,12 @@ fn bench_lao_prints_a_table() {
 fn bad_input_is_refused_with_the_file_named() {
     let dir = tmp("bad");
     let missing = dir.join("nope.nrrd");
-    let out = cao(&["render", missing.to_str().unwrap(), "--out", dir.to_str().unwrap()]);
+    let out = cao(&[
+        "render",
+        missing.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("nope.nrrd"));
     let broken = dir.join("broken.nrrd");
@@ -171,6 +262,13 @@ fn bad_input_is_refused_with_the_file_named() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("broken.nrrd"), "{err}");
-    let out = cao(&["render", "phantom:16", "--tf", "no-such-tf", "--out", dir.to_str().unwrap()]);
+    let out = cao(&[
+        "render",
+        "phantom:16",
+        "--tf",
+        "no-such-tf",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("no-such-tf"));
 }

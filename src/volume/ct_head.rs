@@ -15,7 +15,7 @@
 //! series), +i runs right -> left. Hence `directions` has the columns +i = (1,0,0) (left),
 //! +j = (0,-1,0) (anterior), +k = (0,0,1) (superior); note its determinant is -1.
 
-use super::{nrrd, Modality, Volume, VolumeError, Voxels};
+use super::{nrrd, Modality, Volume, VolumeError};
 use glam::{DMat3, DVec3};
 use std::ffi::OsStr;
 use std::fs;
@@ -258,9 +258,21 @@ pub fn convert_inv3_dir(dir: &Path) -> Result<Volume, VolumeError> {
             ),
         ));
     }
-    let raw = fs::read(&data_path).map_err(|e| VolumeError::io(&data_path, e))?;
-    let data = super::decode_i16(&raw, false);
-    debug_assert_eq!(data.len(), count);
+    let file = fs::File::open(&data_path).map_err(|e| VolumeError::io(&data_path, e))?;
+    let (voxels, got) = super::read_samples(
+        &mut std::io::BufReader::new(file),
+        super::SampleFormat::I16,
+        count,
+        false,
+        true,
+    )
+    .map_err(|e| VolumeError::io(&data_path, e))?;
+    if got != bytes {
+        return Err(VolumeError::format(
+            &data_path,
+            format!("file shrank while reading: expected {bytes} bytes, read {got}"),
+        ));
+    }
     Ok(Volume {
         name: "ct-head".into(),
         dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize],
@@ -269,7 +281,7 @@ pub fn convert_inv3_dir(dir: &Path) -> Result<Volume, VolumeError> {
         directions: CT_HEAD_DIRECTIONS,
         origin: DVec3::ZERO,
         modality,
-        voxels: Voxels::I16(data),
+        voxels,
     })
 }
 

@@ -191,22 +191,100 @@ pub(crate) fn checked_size(
     Ok((voxels, bytes))
 }
 
-/// Decodes 2-byte samples (`bytes.len()` must be even).
-pub(crate) fn decode_u16(bytes: &[u8], big_endian: bool) -> Vec<u16> {
-    let conv = if big_endian {
-        u16::from_be_bytes
-    } else {
-        u16::from_le_bytes
-    };
-    bytes.chunks_exact(2).map(|c| conv([c[0], c[1]])).collect()
+/// Sample encodings the loaders read (int8 is widened to int16).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum SampleFormat {
+    U8,
+    I8,
+    U16,
+    I16,
 }
 
-/// Decodes 2-byte signed samples (`bytes.len()` must be even).
-pub(crate) fn decode_i16(bytes: &[u8], big_endian: bool) -> Vec<i16> {
-    let conv = if big_endian {
-        i16::from_be_bytes
-    } else {
-        i16::from_le_bytes
-    };
-    bytes.chunks_exact(2).map(|c| conv([c[0], c[1]])).collect()
+impl SampleFormat {
+    pub(crate) fn bytes(self) -> u64 {
+        match self {
+            SampleFormat::U8 | SampleFormat::I8 => 1,
+            SampleFormat::U16 | SampleFormat::I16 => 2,
+        }
+    }
+}
+
+/// Reads up to `count` samples from `r` in chunks (no second full-size byte buffer). Returns the
+/// voxels (fewer than `count` when the input ends early) and the number of bytes consumed.
+/// `exact` reserves all of `count` up front (use it when the input is known to be long
+/// enough); otherwise the storage grows with the data, so a short compressed stream claiming a
+/// huge volume does not allocate the full size.
+pub(crate) fn read_samples(
+    r: &mut dyn std::io::Read,
+    format: SampleFormat,
+    count: usize,
+    big_endian: bool,
+    exact: bool,
+) -> std::io::Result<(Voxels, u64)> {
+    fn run<T: Copy, const N: usize>(
+        r: &mut dyn std::io::Read,
+        count: usize,
+        exact: bool,
+        conv: fn([u8; N]) -> T,
+    ) -> std::io::Result<(Vec<T>, u64)> {
+        const CHUNK: usize = 1 << 20;
+        let mut out: Vec<T> = Vec::with_capacity(if exact { count } else { count.min(CHUNK) });
+        let mut buf = vec![0u8; CHUNK * N];
+        let mut total = 0u64;
+        while out.len() < count {
+            let want = (count - out.len()).min(CHUNK) * N;
+            let mut filled = 0;
+            while filled < want {
+                match r.read(&mut buf[filled..want]) {
+                    Ok(0) => break,
+                    Ok(n) => filled += n,
+                    Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                    Err(e) => return Err(e),
+                }
+            }
+            total += filled as u64;
+            if out.capacity() - out.len() < filled / N {
+                // grow geometrically, never beyond `count`
+                let extra = out.capacity().max(filled / N).min(count - out.len());
+                out.reserve_exact(extra);
+            }
+            out.extend(buf[..filled - filled % N].chunks_exact(N).map(|c| {
+                let mut a = [0u8; N];
+                a.copy_from_slice(c);
+                conv(a)
+            }));
+            if filled < want {
+                break;
+            }
+        }
+        Ok((out, total))
+    }
+    Ok(match format {
+        SampleFormat::U8 => {
+            let (v, n) = run(r, count, exact, |b: [u8; 1]| b[0])?;
+            (Voxels::U8(v), n)
+        }
+        SampleFormat::I8 => {
+            let (v, n) = run(r, count, exact, |b: [u8; 1]| b[0] as i8 as i16)?;
+            (Voxels::I16(v), n)
+        }
+        SampleFormat::U16 => {
+            let conv = if big_endian {
+                u16::from_be_bytes
+            } else {
+                u16::from_le_bytes
+            };
+            let (v, n) = run(r, count, exact, conv)?;
+            (Voxels::U16(v), n)
+        }
+        SampleFormat::I16 => {
+            let conv = if big_endian {
+                i16::from_be_bytes
+            } else {
+                i16::from_le_bytes
+            };
+            let (v, n) = run(r, count, exact, conv)?;
+            (Voxels::I16(v), n)
+        }
+    })
 }

@@ -4,7 +4,7 @@
 //! (`.nhdr` + `data file:`), raw or gzip encoded, with `space directions`/`spacings`, and
 //! converts the geometry into LPS. Writes NRRD0004 in LPS, raw or gzip.
 
-use super::{checked_size, decode_i16, decode_u16, Modality, Volume, VolumeError, Voxels};
+use super::{checked_size, read_samples, Modality, SampleFormat, Volume, VolumeError, Voxels};
 use flate2::read::MultiGzDecoder;
 use flate2::write::GzEncoder;
 use flate2::Compression;
@@ -18,35 +18,18 @@ const MAX_HEADER_BYTES: u64 = 1 << 20;
 /// Key of the modality key/value pair written by [`write`] (`modality:=CT`).
 const MODALITY_KEY: &str = "modality";
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum SampleType {
-    I8,
-    U8,
-    I16,
-    U16,
-}
-
-impl SampleType {
-    fn bytes(self) -> u64 {
-        match self {
-            SampleType::I8 | SampleType::U8 => 1,
-            SampleType::I16 | SampleType::U16 => 2,
-        }
-    }
-}
-
 /// Maps every NRRD spelling of a supported type; `Err` carries the kind of type for the message.
-fn parse_type(s: &str) -> Result<SampleType, &'static str> {
+fn parse_type(s: &str) -> Result<SampleFormat, &'static str> {
     let s = s.trim().to_ascii_lowercase();
     let s = s.split_whitespace().collect::<Vec<_>>().join(" ");
     Ok(match s.as_str() {
-        "signed char" | "int8" | "int8_t" | "char" => SampleType::I8,
-        "uchar" | "unsigned char" | "uint8" | "uint8_t" => SampleType::U8,
+        "signed char" | "int8" | "int8_t" | "char" => SampleFormat::I8,
+        "uchar" | "unsigned char" | "uint8" | "uint8_t" => SampleFormat::U8,
         "short" | "short int" | "signed short" | "signed short int" | "int16" | "int16_t" => {
-            SampleType::I16
+            SampleFormat::I16
         }
         "ushort" | "unsigned short" | "unsigned short int" | "uint16" | "uint16_t" => {
-            SampleType::U16
+            SampleFormat::U16
         }
         "int"
         | "signed int"
@@ -198,6 +181,18 @@ fn read_header<R: BufRead>(path: &Path, r: &mut R) -> Result<(Header, bool), Vol
         if text.starts_with('#') {
             continue;
         }
+        // A key/value pair `key:=value` (keys may hold single colons), unless a field's
+        // `: ` comes first.
+        let kv = text
+            .find(":=")
+            .filter(|&p| text.find(": ").map_or(true, |f| p < f));
+        if let Some(p) = kv {
+            let key = text[..p].trim().to_ascii_lowercase();
+            if key == MODALITY_KEY || key == "cao-xr modality" {
+                h.modality = Some(text[p + 2..].trim().to_string());
+            }
+            continue;
+        }
         let Some(colon) = text.find(':') else {
             return Err(VolumeError::format(
                 path,
@@ -205,14 +200,6 @@ fn read_header<R: BufRead>(path: &Path, r: &mut R) -> Result<(Header, bool), Vol
             ));
         };
         let (name, rest) = (text[..colon].trim(), &text[colon + 1..]);
-        if let Some(value) = rest.strip_prefix('=') {
-            // key:=value pair
-            let key = name.to_ascii_lowercase();
-            if key == MODALITY_KEY || key == "cao-xr modality" {
-                h.modality = Some(value.trim().to_string());
-            }
-            continue;
-        }
         let value = Some(rest.trim().to_string());
         match name.to_ascii_lowercase().as_str() {
             "type" => h.ty = value,
@@ -229,7 +216,7 @@ fn read_header<R: BufRead>(path: &Path, r: &mut R) -> Result<(Header, bool), Vol
             "line skip" | "lineskip" => h.line_skip = value,
             "data file" | "datafile" => {
                 // `data file: LIST` ends the header; the file names follow, one per line.
-                let list = rest.trim().split_whitespace().next() == Some("LIST");
+                let list = rest.split_whitespace().next() == Some("LIST");
                 h.data_file = value;
                 if list {
                     return Ok((h, false));
@@ -474,28 +461,18 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         }
     }
 
-    let bytes = if gzip {
+    let (voxels, got) = if gzip {
         let mut dec = MultiGzDecoder::new(data);
+        let gz_err = |e: std::io::Error| dfmt(format!("gzip data are corrupt: {e}"));
         let skip = byte_skip as u64;
-        let want = skip + data_bytes;
-        let mut buf = Vec::with_capacity((want as usize).min(64 << 20));
-        (&mut dec)
-            .take(want)
-            .read_to_end(&mut buf)
-            .map_err(|e| dfmt(format!("gzip data are corrupt: {e}")))?;
-        if (buf.len() as u64) < want {
+        let skipped =
+            std::io::copy(&mut (&mut dec).take(skip), &mut std::io::sink()).map_err(gz_err)?;
+        if skipped < skip {
             return Err(dfmt(format!(
-                "truncated data: expected {data_bytes} bytes after decompression{}, found {}",
-                if skip > 0 {
-                    format!(" (plus {skip} skipped)")
-                } else {
-                    String::new()
-                },
-                (buf.len() as u64).saturating_sub(skip)
+                "truncated data: decompressed data end after {skipped} of {skip} bytes to skip"
             )));
         }
-        buf.drain(..skip as usize);
-        buf
+        read_samples(&mut dec, ty, count, big_endian, false).map_err(gz_err)?
     } else {
         let pos = data.stream_position().map_err(dio)?;
         let len = data.get_ref().metadata().map_err(dio)?.len();
@@ -517,18 +494,14 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
             )));
         }
         data.seek(SeekFrom::Start(start)).map_err(dio)?;
-        let mut buf = vec![0u8; data_bytes as usize];
-        data.read_exact(&mut buf).map_err(dio)?;
-        buf
+        read_samples(&mut data, ty, count, big_endian, true).map_err(dio)?
     };
-
-    let voxels = match ty {
-        SampleType::U8 => Voxels::U8(bytes),
-        SampleType::I8 => Voxels::I16(bytes.iter().map(|&b| b as i8 as i16).collect()),
-        SampleType::U16 => Voxels::U16(decode_u16(&bytes, big_endian)),
-        SampleType::I16 => Voxels::I16(decode_i16(&bytes, big_endian)),
-    };
-    debug_assert_eq!(voxels.len(), count);
+    if got < data_bytes || voxels.len() != count {
+        return Err(dfmt(format!(
+            "truncated data: expected {data_bytes} bytes{}, found {got}",
+            if gzip { " after decompression" } else { "" }
+        )));
+    }
     let name = path
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
@@ -816,7 +789,7 @@ mod tests {
         let origin = DVec3::new(-12.5, 30.25, 7.0);
         let u8s: Vec<u8> = (0..n).map(|i| (i * 37 % 256) as u8).collect();
         let u16s: Vec<u16> = (0..n).map(|i| (i * 1103 % 65536) as u16).collect();
-        let i16s: Vec<i16> = (0..n).map(|i| (i as i32 * 977 - 30000) as i16).collect();
+        let i16s: Vec<i16> = (0..n).map(|i| (i * 977 - 30000) as i16).collect();
         for gzip in [false, true] {
             let cases = [
                 (
@@ -1061,10 +1034,11 @@ mod tests {
             &p,
             "NRRD0004\ntype: uint8\ndimension: 3\nspace: right-anterior-superior\nsizes: 1 1 2\n\
              space directions: (0.9,0,0) (0,0.8,0) (0,0.6,1.2)\nencoding: raw\n\
-             space origin: (10,-20,30)\n\n",
+             space origin: (10,-20,30)\ncao-xr modality: CT\nDICOM:tag:=a: b\n\n",
             &[7, 8],
         );
         let v = load(&p).unwrap();
+        assert_eq!(v.modality, Modality::Ct);
         let len_k = (0.36f64 + 1.44).sqrt();
         let dirs = DMat3::from_cols(
             DVec3::new(-1.0, 0.0, 0.0),
@@ -1218,6 +1192,54 @@ mod tests {
 
         let p = s.file("does-not-exist.nrrd");
         assert!(err_of(&p).contains("No such file"));
+    }
+
+    #[test]
+    fn multi_chunk_data() {
+        // More samples than one read chunk (1 Mi samples), raw and gzip.
+        let s = Scratch::new("chunks");
+        let dims = [130, 100, 90];
+        let vals: Vec<i16> = (0..130 * 100 * 90)
+            .map(|i: i32| ((i % 4001) * 7 % 4001 - 2000) as i16)
+            .collect();
+        for gzip in [false, true] {
+            let p = s.file(&format!("big-{gzip}.nrrd"));
+            let dirs = DMat3::from_cols(DVec3::X, -DVec3::Y, DVec3::Z);
+            write(
+                &p,
+                dims,
+                [0.8, 0.8, 2.5],
+                dirs,
+                DVec3::ZERO,
+                Modality::Ct,
+                NrrdData::I16(&vals),
+                gzip,
+            )
+            .unwrap();
+            let v = load(&p).unwrap();
+            assert_eq!(v.voxels, Voxels::I16(vals.clone()));
+            assert_geometry(&v, dims, [0.8, 0.8, 2.5], dirs, DVec3::ZERO);
+        }
+    }
+
+    #[test]
+    fn gzip_claiming_a_huge_volume_fails_cheaply() {
+        // 2^31 one-byte voxels are within the limits, but the stream holds 100 bytes: the
+        // loader must report truncation without allocating gigabytes first.
+        let s = Scratch::new("claim");
+        let p = s.file("claim.nrrd");
+        let mut enc = GzEncoder::new(Vec::new(), Compression::fast());
+        enc.write_all(&[1u8; 100]).unwrap();
+        write_file(
+            &p,
+            "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2048 1024 1024\nencoding: gzip\n\n",
+            &enc.finish().unwrap(),
+        );
+        let e = err_of(&p);
+        assert!(
+            e.contains("truncated") && e.contains("2147483648") && e.contains("100"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -1,9 +1,9 @@
 //! Headerless raw volumes: the caller supplies sizes, sample type, spacing and byte order.
 
-use super::{checked_size, decode_i16, decode_u16, Modality, Volume, VolumeError, Voxels};
+use super::{checked_size, read_samples, Modality, SampleFormat, Volume, VolumeError};
 use glam::{DMat3, DVec3};
 use std::fs::File;
-use std::io::{Read, Seek, SeekFrom};
+use std::io::{BufReader, Seek, SeekFrom};
 use std::path::Path;
 
 /// Sample type of a raw file.
@@ -98,14 +98,28 @@ pub fn load(path: &Path, spec: &RawSpec) -> Result<Volume, VolumeError> {
     }
     file.seek(SeekFrom::Start(spec.header_bytes))
         .map_err(|e| VolumeError::io(path, e))?;
-    let mut bytes = vec![0u8; data_bytes as usize];
-    file.read_exact(&mut bytes)
-        .map_err(|e| VolumeError::io(path, e))?;
-    let voxels = match spec.ty {
-        RawType::U8 => Voxels::U8(bytes),
-        RawType::U16 => Voxels::U16(decode_u16(&bytes, spec.big_endian)),
-        RawType::I16 => Voxels::I16(decode_i16(&bytes, spec.big_endian)),
+    let format = match spec.ty {
+        RawType::U8 => SampleFormat::U8,
+        RawType::U16 => SampleFormat::U16,
+        RawType::I16 => SampleFormat::I16,
     };
+    let count = spec.dims.iter().product();
+    let (voxels, got) = read_samples(
+        &mut BufReader::new(file),
+        format,
+        count,
+        spec.big_endian,
+        true,
+    )
+    .map_err(|e| VolumeError::io(path, e))?;
+    if got != data_bytes {
+        return Err(VolumeError::format(
+            path,
+            format!(
+                "file shrank while reading: expected {data_bytes} bytes of samples, read {got}"
+            ),
+        ));
+    }
     let name = path
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
@@ -124,6 +138,7 @@ pub fn load(path: &Path, spec: &RawSpec) -> Result<Volume, VolumeError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::volume::Voxels;
     use std::path::PathBuf;
 
     fn temp(name: &str) -> PathBuf {

@@ -228,6 +228,7 @@ mod tests {
         assert_eq!(tf.eval(500.0, (0.0, 1.0))[3], 1.0);
         let n = TransferFunction {
             domain: Domain::Normalized,
+            points: vec![cp(0.0, [0.0; 3], 0.0), cp(1.0, [1.0; 3], 1.0)],
             ..tf.clone()
         };
         // Normalised 0..1 maps onto the volume's range 0..200: 50 is a quarter.
