@@ -18,7 +18,10 @@ fn gpu_lao(
     let lao = LaoGpu::new(gpu).unwrap();
     let buf =
         Buffer::device_local(gpu, opacity, vk::BufferUsageFlags::STORAGE_BUFFER, "o").unwrap();
-    let (out, timing) = lao.compute(&buf, dims, spacing, p, &mut |_, _| {}).unwrap();
+    let skip = lao.skip_buffers(opacity, dims, spacing, p).unwrap();
+    let (out, timing) = lao
+        .compute(&buf, &skip, dims, spacing, p, &mut |_, _| {})
+        .unwrap();
     assert!(timing.gpu_ms > 0.0, "timestamps measured the pass");
     bytemuck::cast_slice(&out.read_back().unwrap()).to_vec()
 }

@@ -10,9 +10,21 @@ float transmittance(float o) {
     return pow(1.0 - o, pc.exponent);
 }
 
+// Bricks of 4^3 voxels (BRICK in src/ao/lao.rs); brick_occupied[b] = 0 means the brick and one voxel beyond its upper
+// faces hold only O = 0, so a sample whose footprint starts there has O = 0 and transmittance 1.
+const int BRICK_SHIFT = 2;
+
+bool footprint_empty(vec3 p, ivec3 bricks) {
+    ivec3 q = ivec3(floor(p - 0.5));
+    if (any(lessThan(q, ivec3(0))) || any(greaterThanEqual(q, pc.dims.xyz))) return false;
+    ivec3 b = q >> BRICK_SHIFT;
+    return brick_occupied[b.x + bricks.x * (b.y + bricks.y * b.z)] == 0u;
+}
+
 float lao_voxel(ivec3 v) {
     vec3 x = vec3(v) + 0.5;
     float total = 0.0;
+    ivec3 bricks = (pc.dims.xyz + (1 << BRICK_SHIFT) - 1) >> BRICK_SHIFT;
     for (uint k = 0u; k < pc.rays; k++) {
         vec3 s = dirs[k].xyz;
         float t = 1.0;
@@ -20,7 +32,9 @@ float lao_voxel(ivec3 v) {
         for (uint m = 1u; m <= pc.steps; m++) {
             sum += t;
             if (m == pc.steps) break;
-            t *= transmittance(opacity_at(x + float(m) * s));
+            vec3 p = x + float(m) * s;
+            if (footprint_empty(p, bricks)) continue;
+            t *= transmittance(opacity_at(p));
             if (t == 0.0) break;
         }
         total += sum;

@@ -3,6 +3,7 @@
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Result};
 use ash::vk;
 use glam::DVec3;
+use rayon::prelude::*;
 use serde::Serialize;
 
 /// K rays of M steps of D mm.
@@ -87,6 +88,72 @@ pub fn index_steps(params: &LaoParams, spacing: [f64; 3]) -> Vec<DVec3> {
         .collect()
 }
 
+/// Per-axis half-width, in voxels, of the box a voxel's rays can reach: (M-1) steps of D mm plus
+/// the one-voxel trilinear footprint.
+pub fn reach_voxels(params: &LaoParams, spacing: [f64; 3]) -> [usize; 3] {
+    let len = params.steps.saturating_sub(1) as f64 * params.step_mm as f64;
+    spacing.map(|s| (len / s).ceil() as usize + 1)
+}
+
+/// Marks voxels whose reach box (half-widths `h`) holds no voxel with O > 0, one bit per voxel
+/// (x fastest, 32 per word). Their LAO is exactly 1, so the kernel can skip them unchanged.
+pub fn clear_mask(opacity: &[f32], dims: [usize; 3], h: [usize; 3]) -> Vec<u32> {
+    let occupied: Vec<u8> = opacity.par_iter().map(|&o| (o > 0.0) as u8).collect();
+    let strides = [1, dims[0], dims[0] * dims[1]];
+    // Separable box dilation: OR over [-h, h] along each axis in turn.
+    let dilated = (0..3).fold(occupied, |src, axis| {
+        let mut out = vec![0u8; src.len()];
+        out.par_chunks_mut(dims[0])
+            .enumerate()
+            .for_each(|(row, line)| {
+                let (j, k) = (row % dims[1], row / dims[1]);
+                for (i, o) in line.iter_mut().enumerate() {
+                    let pos = [i, j, k][axis];
+                    let lo = pos.saturating_sub(h[axis]);
+                    let hi = (pos + h[axis]).min(dims[axis] - 1);
+                    let base = i + dims[0] * (j + dims[1] * k) - pos * strides[axis];
+                    *o = (lo..=hi).any(|p| src[base + p * strides[axis]] != 0) as u8;
+                }
+            });
+        out
+    });
+    dilated
+        .par_chunks(32)
+        .map(|c| {
+            c.iter()
+                .enumerate()
+                .fold(0u32, |w, (b, &d)| w | (((d == 0) as u32) << b))
+        })
+        .collect()
+}
+
+/// Edge of the occupancy bricks, in voxels (shaders/include/lao.glsl has the same constant).
+pub const BRICK: usize = 4;
+
+/// One word per BRICK^3 brick (x fastest): 1 when any voxel in the brick or one voxel beyond its
+/// upper faces has O > 0. A sample whose trilinear footprint starts in an unoccupied brick reads
+/// only zeros, so the kernel skips its eight loads and multiplies by nothing: values unchanged.
+pub fn brick_occupancy(opacity: &[f32], dims: [usize; 3]) -> Vec<u32> {
+    let bd = dims.map(|d| d.div_ceil(BRICK));
+    (0..bd[0] * bd[1] * bd[2])
+        .into_par_iter()
+        .map(|b| {
+            let c = [b % bd[0], (b / bd[0]) % bd[1], b / (bd[0] * bd[1])];
+            let lo = c.map(|x| x * BRICK);
+            let hi = [0, 1, 2].map(|a| (lo[a] + BRICK).min(dims[a] - 1));
+            for k in lo[2]..=hi[2] {
+                for j in lo[1]..=hi[1] {
+                    let row = dims[0] * (j + dims[1] * k);
+                    if opacity[row + lo[0]..=row + hi[0]].iter().any(|&o| o > 0.0) {
+                        return 1;
+                    }
+                }
+            }
+            0
+        })
+        .collect()
+}
+
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct Push {
@@ -96,6 +163,12 @@ struct Push {
     exponent: f32,
     z0: u32,
     z1: u32,
+}
+
+/// Exact empty-space skipping data for one opacity volume and LAO setting.
+pub struct SkipBuffers {
+    pub clear: Buffer,
+    pub bricks: Buffer,
 }
 
 /// The LAO compute pipeline.
@@ -118,20 +191,44 @@ impl LaoGpu {
     pub fn new(gpu: &Gpu) -> Result<LaoGpu> {
         let spv = include_bytes!(concat!(env!("OUT_DIR"), "/lao.comp.spv"));
         let b = vk::DescriptorType::STORAGE_BUFFER;
-        let pipeline =
-            ComputePipeline::new(gpu, spv, &[b, b, b], std::mem::size_of::<Push>() as u32)?;
+        let pipeline = ComputePipeline::new(
+            gpu,
+            spv,
+            &[b, b, b, b, b],
+            std::mem::size_of::<Push>() as u32,
+        )?;
         Ok(LaoGpu {
             gpu: gpu.clone(),
             pipeline,
         })
     }
 
-    /// Full LAO of the opacity volume (device buffer, x fastest) into a new device buffer.
+    /// Full LAO of the opacity volume (device buffer, x fastest) into a new device buffer;
+    /// `skip` is its [`LaoGpu::skip_buffers`].
     /// Works slab by slab so a large volume never stalls a GPU for long and progress can be
     /// reported through `progress(done_slices, total_slices)`.
+    /// The [`clear_mask`] and [`brick_occupancy`] of a host opacity volume, uploaded for
+    /// [`LaoGpu::compute`].
+    pub fn skip_buffers(
+        &self,
+        opacity: &[f32],
+        dims: [usize; 3],
+        spacing: [f64; 3],
+        params: &LaoParams,
+    ) -> Result<SkipBuffers> {
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        let bits = clear_mask(opacity, dims, reach_voxels(params, spacing));
+        let bricks = brick_occupancy(opacity, dims);
+        Ok(SkipBuffers {
+            clear: Buffer::device_local(&self.gpu, &bits, usage, "lao-clear")?,
+            bricks: Buffer::device_local(&self.gpu, &bricks, usage, "lao-bricks")?,
+        })
+    }
+
     pub fn compute(
         &self,
         opacity: &Buffer,
+        skip: &SkipBuffers,
         dims: [usize; 3],
         spacing: [f64; 3],
         params: &LaoParams,
@@ -178,8 +275,11 @@ impl LaoGpu {
             };
             self.gpu.submit_and_wait(|cmd| {
                 timer.begin(cmd);
-                self.pipeline
-                    .bind(cmd, &[opacity, &dir_buf, &out], bytemuck::bytes_of(&push));
+                self.pipeline.bind(
+                    cmd,
+                    &[opacity, &dir_buf, &out, &skip.clear, &skip.bricks],
+                    bytemuck::bytes_of(&push),
+                );
                 self.pipeline.dispatch(
                     cmd,
                     [
@@ -219,5 +319,56 @@ mod tests {
         assert!(directions(14)
             .iter()
             .any(|v| (v.x - 1.0 / 3f64.sqrt()).abs() < 1e-12));
+    }
+
+    #[test]
+    fn skip_structures_match_brute_force() {
+        let dims = [13, 9, 11];
+        let n = dims[0] * dims[1] * dims[2];
+        // A few occupied voxels, including at the borders.
+        let mut o = vec![0.0f32; n];
+        for &(i, j, k) in &[(0, 0, 0), (6, 4, 5), (12, 8, 10), (3, 8, 2)] {
+            o[i + dims[0] * (j + dims[1] * k)] = 0.5;
+        }
+        let at = |i: usize, j: usize, k: usize| o[i + dims[0] * (j + dims[1] * k)] > 0.0;
+        let h = [2, 1, 3];
+        let mask = clear_mask(&o, dims, h);
+        let bricks = brick_occupancy(&o, dims);
+        let bd = dims.map(|d| d.div_ceil(BRICK));
+        for k in 0..dims[2] {
+            for j in 0..dims[1] {
+                for i in 0..dims[0] {
+                    let idx = i + dims[0] * (j + dims[1] * k);
+                    let mut near = false;
+                    for z in k.saturating_sub(h[2])..=(k + h[2]).min(dims[2] - 1) {
+                        for y in j.saturating_sub(h[1])..=(j + h[1]).min(dims[1] - 1) {
+                            for x in i.saturating_sub(h[0])..=(i + h[0]).min(dims[0] - 1) {
+                                near |= at(x, y, z);
+                            }
+                        }
+                    }
+                    assert_eq!(
+                        (mask[idx / 32] >> (idx % 32)) & 1 == 1,
+                        !near,
+                        "voxel {i},{j},{k}"
+                    );
+                    // A voxel's brick, and the brick of the voxel one step below on each axis,
+                    // must be marked occupied when the voxel is.
+                    if at(i, j, k) {
+                        for (di, dj, dk) in [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 1)]
+                        {
+                            let (x, y, z) = (
+                                i.saturating_sub(di),
+                                j.saturating_sub(dj),
+                                k.saturating_sub(dk),
+                            );
+                            let b = x / BRICK + bd[0] * (y / BRICK + bd[1] * (z / BRICK));
+                            assert_eq!(bricks[b], 1, "brick of {x},{y},{z}");
+                        }
+                    }
+                }
+            }
+        }
+        assert!(bricks.contains(&0) && mask.iter().any(|&w| w != 0));
     }
 }

@@ -138,8 +138,10 @@ pub fn precompute_ao(
         "opacity",
     )?;
     let bar = show_progress.then(|| progress_bar(vol.dims[2] as u64, "LAO"));
+    let skip = lao.skip_buffers(&opacity, vol.dims, vol.spacing, params)?;
     let (ao_buf, timing) = lao.compute(
         &opacity_buf,
+        &skip,
         vol.dims,
         vol.spacing,
         params,
