@@ -6,5 +6,6 @@
 pub mod ao;
 pub mod app;
 pub mod gpu;
+pub mod input;
 pub mod render;
 pub mod volume;

@@ -1,0 +1,1286 @@
+//! Pose streams: [`FrameInput`]s recorded as JSON Lines, so that a session (headset, desktop or
+//! script) can be replayed headless, bit for bit, and diffed and edited by hand.
+//!
+//! The first line is a header object (the reader also accepts comments before it), every
+//! further non-empty line one frame; lines whose first non-blank character is `#` are
+//! comments. The format is documented for people in
+//! `controllers/scripts/README.md`; in short:
+//!
+//! (each object is on one line in a file; wrapped here)
+//!
+//! ```text
+//! {"format":"cao-xr-pose-stream","version":1,"units":"m","reference_space":"STAGE",
+//!  "view_configuration":"PRIMARY_STEREO","source":"script:tremor","description":"..."}
+//! {"t":0.0,"views":[{"pose":{"p":[x,y,z],"q":[x,y,z,w]},"fov":[l,r,u,d]},{..}],
+//!  "hands":[{"tracked":true,"grip":{"p":..,"q":..},"aim":{..},"grip_value":0.0,"trigger":1.0,
+//!            "primary":false,"secondary":false,"menu":false,"stick":[0.0,0.0]},{..}]}
+//! ```
+//!
+//! The wire format is private serde structs mapped to and from [`FrameInput`], so the in-memory
+//! type stays free of wire details and the wire stays compact (short keys, arrays for vectors).
+//!
+//! Numbers are written in their shortest round-tripping form (serde_json uses ryu), so writing
+//! and reading give back the identical `FrameInput`. `t` is re-parsed from its text with Rust's
+//! correctly rounded parser because serde_json, without its `float_roundtrip` feature, is often
+//! one ulp off for 17-digit f64s (even `t = 1/90`). f32s (at most 9 digits) go through
+//! serde_json exactly: 20 million random f32 bit patterns were checked once, and a test keeps
+//! checking a sample.
+//!
+//! The writer refuses what the reader would refuse, so a recording can always be replayed.
+
+use super::{Buttons, FrameInput, HandInput};
+use crate::render::view::{Fov, Pose, View};
+use glam::{Quat, Vec2, Vec3};
+use serde::{Deserialize, Serialize};
+use std::fs::File;
+use std::io::{self, BufRead, BufReader, BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// The header's `format` string: what makes a file a pose stream.
+pub const FORMAT: &str = "cao-xr-pose-stream";
+/// The stream version this build writes and the newest it reads.
+pub const VERSION: u64 = 1;
+/// Positions are in metres (OpenXR's unit).
+pub const UNITS: &str = "m";
+/// Poses are in OpenXR's STAGE space: floor-level origin, +Y up.
+pub const REFERENCE_SPACE: &str = "STAGE";
+/// Two views, left eye then right eye.
+pub const VIEW_CONFIGURATION: &str = "PRIMARY_STEREO";
+
+/// How far a quaternion's length may be from 1 and still be accepted (it is then normalised).
+/// Anything further off is a corrupt or hand-mangled file, not rounding.
+pub const UNIT_TOLERANCE: f32 = 1e-3;
+/// Lengths this close to 1 are f32 rounding of a unit quaternion and are kept bit for bit, so
+/// that a round trip is exact.
+const UNIT_EXACT: f32 = 1e-6;
+
+/// The first line of a pose stream. For version 1 only `source` and `description` are free;
+/// [`StreamHeader::new`] fills in the rest.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StreamHeader {
+    /// Always [`FORMAT`].
+    pub format: String,
+    /// Always [`VERSION`] when written by this build.
+    pub version: u64,
+    /// Always [`UNITS`].
+    pub units: String,
+    /// Always [`REFERENCE_SPACE`].
+    pub reference_space: String,
+    /// Always [`VIEW_CONFIGURATION`].
+    pub view_configuration: String,
+    /// Who produced the frames: `xr`, `desktop` or `script:NAME`.
+    pub source: String,
+    /// Free text for people.
+    pub description: String,
+}
+
+impl StreamHeader {
+    /// A current-version header with the given source (`xr`, `desktop`, `script:NAME`) and
+    /// description.
+    pub fn new(source: impl Into<String>, description: impl Into<String>) -> Self {
+        StreamHeader {
+            format: FORMAT.into(),
+            version: VERSION,
+            units: UNITS.into(),
+            reference_space: REFERENCE_SPACE.into(),
+            view_configuration: VIEW_CONFIGURATION.into(),
+            source: source.into(),
+            description: description.into(),
+        }
+    }
+}
+
+impl Default for StreamHeader {
+    fn default() -> Self {
+        StreamHeader::new("", "")
+    }
+}
+
+/// What is wrong with one line of a stream (the file and line are in [`StreamError::Line`]).
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum LineError {
+    #[error("not valid JSON: {0}")]
+    Syntax(String),
+    /// Valid JSON, but not the expected shape: a missing or unknown field, a wrong type or
+    /// array length.
+    #[error("{0}")]
+    Schema(String),
+    #[error(
+        "the line ends in the middle of an object; the recording was probably interrupted here \
+         (delete this line to replay the frames before it)"
+    )]
+    Truncated,
+    #[error(
+        "not a cao-xr pose stream: the header's \"format\" is {found}, expected \"{}\" \
+         (the first line must be the header)",
+        FORMAT
+    )]
+    WrongFormat { found: String },
+    #[error(
+        "the header has no \"version\"; this build reads version {} streams \
+         (add \"version\":1 if the file follows that format)",
+        VERSION
+    )]
+    MissingVersion,
+    #[error(
+        "version 0 is not a stream version (versions start at 1); this build reads version {}",
+        VERSION
+    )]
+    VersionZero,
+    #[error(
+        "stream version {found} is newer than this build reads (version {}); \
+         use a newer cao-xr or re-record the stream",
+        VERSION
+    )]
+    NewerVersion { found: u64 },
+    #[error("the header's \"{field}\" is {found}; this build reads only \"{expected}\"")]
+    Unsupported {
+        field: &'static str,
+        found: String,
+        expected: &'static str,
+    },
+    #[error("{what} is not a finite number")]
+    NonFinite { what: String },
+    #[error("{what} = {value} is outside {lo}..={hi}")]
+    OutOfRange {
+        what: String,
+        value: f64,
+        lo: f64,
+        hi: f64,
+    },
+    #[error(
+        "{what} is not a unit quaternion (length {length}); lengths within {} of 1 are \
+         normalised, this one is too far off (quaternions are written [x,y,z,w])",
+        UNIT_TOLERANCE
+    )]
+    NotUnit { what: String, length: f32 },
+    #[error("{what} is not a field of view: {reason}")]
+    BadFov { what: String, reason: &'static str },
+    #[error("t = {t} is negative; t counts seconds from the start of the stream")]
+    NegativeTime { t: f64 },
+    #[error("time goes backwards: t = {t} after t = {previous}")]
+    TimeBackwards { t: f64, previous: f64 },
+}
+
+/// Reading a pose stream failed. Every message names the file, and the 1-based line where one
+/// is to blame.
+#[derive(Debug, thiserror::Error)]
+pub enum StreamError {
+    #[error("{path}: cannot open: {source}")]
+    Open {
+        path: PathBuf,
+        #[source]
+        source: io::Error,
+    },
+    #[error("{path}, line {line}: cannot read: {source}")]
+    Read {
+        path: PathBuf,
+        line: usize,
+        #[source]
+        source: io::Error,
+    },
+    #[error("{path}: cannot write: {source}")]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: io::Error,
+    },
+    #[error(
+        "{path}: empty stream: expected a header line such as \
+         {{\"format\":\"{}\",\"version\":{},...}}",
+        FORMAT,
+        VERSION
+    )]
+    NoHeader { path: PathBuf },
+    #[error("{path}, line {line}: {problem}")]
+    Line {
+        path: PathBuf,
+        line: usize,
+        problem: LineError,
+    },
+}
+
+impl StreamError {
+    /// The 1-based line the error is about, if any.
+    pub fn line(&self) -> Option<usize> {
+        match self {
+            StreamError::Read { line, .. } | StreamError::Line { line, .. } => Some(*line),
+            _ => None,
+        }
+    }
+
+    /// What is wrong with the line, for errors about a line's content.
+    pub fn problem(&self) -> Option<&LineError> {
+        match self {
+            StreamError::Line { problem, .. } => Some(problem),
+            _ => None,
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Wire structs
+
+/// The header as read: everything optional so that a missing field gets a precise message
+/// rather than serde's. Unknown header fields are ignored (free metadata may grow without a
+/// version bump); frames, in contrast, deny unknown fields so a typo is caught.
+#[derive(Deserialize)]
+#[serde(expecting = "a header object {\"format\":\"cao-xr-pose-stream\",\"version\":1,...}")]
+struct WireHeader {
+    format: Option<String>,
+    version: Option<u64>,
+    units: Option<String>,
+    reference_space: Option<String>,
+    view_configuration: Option<String>,
+    #[serde(default)]
+    source: String,
+    #[serde(default)]
+    description: String,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(
+    deny_unknown_fields,
+    expecting = "a frame object {\"t\":..,\"views\":[..],\"hands\":[..]}"
+)]
+struct WireFrame {
+    t: f64,
+    views: [WireView; 2],
+    hands: [WireHand; 2],
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(
+    deny_unknown_fields,
+    expecting = "a view {\"pose\":..,\"fov\":[l,r,u,d]}"
+)]
+struct WireView {
+    pose: WirePose,
+    /// [angle_left, angle_right, angle_up, angle_down], radians.
+    fov: [f32; 4],
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(
+    deny_unknown_fields,
+    expecting = "a pose {\"p\":[x,y,z],\"q\":[x,y,z,w]}"
+)]
+struct WirePose {
+    p: [f32; 3],
+    /// [x, y, z, w], as glam and OpenXR store it.
+    q: [f32; 4],
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(
+    deny_unknown_fields,
+    expecting = "a hand object {\"tracked\":..,\"grip\":..,..}"
+)]
+struct WireHand {
+    tracked: bool,
+    grip: WirePose,
+    aim: WirePose,
+    grip_value: f32,
+    trigger: f32,
+    primary: bool,
+    secondary: bool,
+    menu: bool,
+    stick: [f32; 2],
+}
+
+impl From<&Pose> for WirePose {
+    fn from(p: &Pose) -> Self {
+        WirePose {
+            p: p.position.to_array(),
+            q: p.orientation.to_array(),
+        }
+    }
+}
+
+impl From<&WirePose> for Pose {
+    fn from(w: &WirePose) -> Self {
+        Pose {
+            position: Vec3::from_array(w.p),
+            orientation: Quat::from_array(w.q),
+        }
+    }
+}
+
+impl From<&FrameInput> for WireFrame {
+    fn from(f: &FrameInput) -> Self {
+        WireFrame {
+            t: f.time,
+            views: f.views.each_ref().map(|v| WireView {
+                pose: (&v.pose).into(),
+                fov: [
+                    v.fov.angle_left,
+                    v.fov.angle_right,
+                    v.fov.angle_up,
+                    v.fov.angle_down,
+                ],
+            }),
+            hands: f.hands.each_ref().map(|h| WireHand {
+                tracked: h.tracked,
+                grip: (&h.grip).into(),
+                aim: (&h.aim).into(),
+                grip_value: h.buttons.grip,
+                trigger: h.buttons.trigger,
+                primary: h.buttons.primary,
+                secondary: h.buttons.secondary,
+                menu: h.buttons.menu,
+                stick: h.buttons.thumbstick.to_array(),
+            }),
+        }
+    }
+}
+
+impl From<&WireFrame> for FrameInput {
+    fn from(w: &WireFrame) -> Self {
+        FrameInput {
+            time: w.t,
+            views: w.views.each_ref().map(|v| View {
+                pose: (&v.pose).into(),
+                fov: Fov {
+                    angle_left: v.fov[0],
+                    angle_right: v.fov[1],
+                    angle_up: v.fov[2],
+                    angle_down: v.fov[3],
+                },
+            }),
+            hands: w.hands.each_ref().map(|h| HandInput {
+                tracked: h.tracked,
+                grip: (&h.grip).into(),
+                aim: (&h.aim).into(),
+                buttons: Buttons {
+                    grip: h.grip_value,
+                    trigger: h.trigger,
+                    primary: h.primary,
+                    secondary: h.secondary,
+                    menu: h.menu,
+                    thumbstick: Vec2::from_array(h.stick),
+                },
+            }),
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Validation, shared by reader and writer
+
+fn check_header(h: WireHeader) -> Result<StreamHeader, LineError> {
+    match h.format.as_deref() {
+        Some(FORMAT) => {}
+        found => {
+            return Err(LineError::WrongFormat {
+                found: found.map_or("missing".into(), |s| format!("{s:?}")),
+            })
+        }
+    }
+    let version = match h.version {
+        None => return Err(LineError::MissingVersion),
+        Some(0) => return Err(LineError::VersionZero),
+        Some(v) if v > VERSION => return Err(LineError::NewerVersion { found: v }),
+        Some(v) => v,
+    };
+    let fixed = |field: &'static str, found: Option<String>, expected: &'static str| match found {
+        Some(s) if s == expected => Ok(s),
+        found => Err(LineError::Unsupported {
+            field,
+            found: found.map_or("missing".into(), |s| format!("{s:?}")),
+            expected,
+        }),
+    };
+    Ok(StreamHeader {
+        format: FORMAT.into(),
+        version,
+        units: fixed("units", h.units, UNITS)?,
+        reference_space: fixed("reference_space", h.reference_space, REFERENCE_SPACE)?,
+        view_configuration: fixed(
+            "view_configuration",
+            h.view_configuration,
+            VIEW_CONFIGURATION,
+        )?,
+        source: h.source,
+        description: h.description,
+    })
+}
+
+fn finite(what: impl Fn() -> String, v: &[f32]) -> Result<(), LineError> {
+    if v.iter().all(|x| x.is_finite()) {
+        Ok(())
+    } else {
+        Err(LineError::NonFinite { what: what() })
+    }
+}
+
+fn in_range(what: impl Fn() -> String, v: f32, lo: f32, hi: f32) -> Result<(), LineError> {
+    finite(&what, &[v])?;
+    if (lo..=hi).contains(&v) {
+        Ok(())
+    } else {
+        Err(LineError::OutOfRange {
+            what: what(),
+            value: v as f64,
+            lo: lo as f64,
+            hi: hi as f64,
+        })
+    }
+}
+
+/// A unit quaternion as it is, one within [`UNIT_TOLERANCE`] normalised, anything else refused.
+fn unit_quat(what: impl Fn() -> String, q: Quat) -> Result<Quat, LineError> {
+    finite(&what, &q.to_array())?;
+    let length = q.length();
+    if (length - 1.0).abs() <= UNIT_EXACT {
+        Ok(q)
+    } else if (length - 1.0).abs() <= UNIT_TOLERANCE {
+        Ok(q / length)
+    } else {
+        Err(LineError::NotUnit {
+            what: what(),
+            length,
+        })
+    }
+}
+
+fn check_pose(what: &str, p: Pose) -> Result<Pose, LineError> {
+    finite(|| format!("{what}.p"), &p.position.to_array())?;
+    Ok(Pose {
+        position: p.position,
+        orientation: unit_quat(|| format!("{what}.q"), p.orientation)?,
+    })
+}
+
+fn check_fov(what: &str, f: &Fov) -> Result<(), LineError> {
+    let a = [f.angle_left, f.angle_right, f.angle_up, f.angle_down];
+    finite(|| what.to_string(), &a)?;
+    let bad = |reason| {
+        Err(LineError::BadFov {
+            what: what.to_string(),
+            reason,
+        })
+    };
+    let half_pi = std::f32::consts::FRAC_PI_2;
+    if a.iter().any(|x| x.abs() >= half_pi) {
+        return bad("every angle must be within (-pi/2, pi/2)");
+    }
+    if f.angle_left >= f.angle_right {
+        return bad("angle_left must be less than angle_right");
+    }
+    if f.angle_down >= f.angle_up {
+        return bad("angle_down must be less than angle_up");
+    }
+    Ok(())
+}
+
+/// Checks one frame the way the reader does, normalising nearly-unit quaternions; names the
+/// offending value by its wire path (`hands[1].grip.q`).
+pub(super) fn check_frame(
+    mut f: FrameInput,
+    previous: Option<f64>,
+) -> Result<FrameInput, LineError> {
+    let t = f.time;
+    if !t.is_finite() {
+        return Err(LineError::NonFinite { what: "t".into() });
+    }
+    if t < 0.0 {
+        return Err(LineError::NegativeTime { t });
+    }
+    if let Some(previous) = previous {
+        if t < previous {
+            return Err(LineError::TimeBackwards { t, previous });
+        }
+    }
+    for (i, v) in f.views.iter_mut().enumerate() {
+        v.pose = check_pose(&format!("views[{i}].pose"), v.pose)?;
+        check_fov(&format!("views[{i}].fov"), &v.fov)?;
+    }
+    for (i, h) in f.hands.iter_mut().enumerate() {
+        h.grip = check_pose(&format!("hands[{i}].grip"), h.grip)?;
+        h.aim = check_pose(&format!("hands[{i}].aim"), h.aim)?;
+        let b = &h.buttons;
+        in_range(|| format!("hands[{i}].grip_value"), b.grip, 0.0, 1.0)?;
+        in_range(|| format!("hands[{i}].trigger"), b.trigger, 0.0, 1.0)?;
+        in_range(|| format!("hands[{i}].stick[0]"), b.thumbstick.x, -1.0, 1.0)?;
+        in_range(|| format!("hands[{i}].stick[1]"), b.thumbstick.y, -1.0, 1.0)?;
+    }
+    Ok(f)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writer
+
+/// Writes a pose stream: the header on construction, then one line per frame.
+///
+/// Crash policy: every frame is flushed to the OS as soon as it is written, straight into the
+/// target file, so a crash or a killed process keeps every frame recorded so far (at worst the
+/// last line is cut short, and the reader says so: [`LineError::Truncated`]). The alternative,
+/// a temp file renamed on `finish`, would keep an older recording intact but lose the whole of
+/// a take that crashed, which for a surgeon's session is the worse loss. There is no fsync:
+/// a power cut may still lose what the OS had not written.
+///
+/// It refuses (`io::ErrorKind::InvalidInput`) any header or frame the reader would refuse, so
+/// every stream it writes replays.
+pub struct PoseStreamWriter<W: Write> {
+    out: W,
+    /// For messages, when the writer was made by [`PoseStreamWriter::create`].
+    path: Option<PathBuf>,
+    frames: usize,
+    last_t: Option<f64>,
+    line: Vec<u8>,
+}
+
+impl<W: Write> PoseStreamWriter<W> {
+    /// Writes the header line to `out`.
+    pub fn new(out: W, header: &StreamHeader) -> io::Result<Self> {
+        Self::with_path(out, header, None)
+    }
+
+    fn with_path(mut out: W, header: &StreamHeader, path: Option<PathBuf>) -> io::Result<Self> {
+        let wire = WireHeader {
+            format: Some(header.format.clone()),
+            version: Some(header.version),
+            units: Some(header.units.clone()),
+            reference_space: Some(header.reference_space.clone()),
+            view_configuration: Some(header.view_configuration.clone()),
+            source: header.source.clone(),
+            description: header.description.clone(),
+        };
+        let invalid = |e: LineError| invalid_input(path.as_deref(), &format!("header: {e}"));
+        let header = check_header(wire).map_err(invalid)?;
+        let mut line = serde_json::to_vec(&header).map_err(io::Error::other)?;
+        line.push(b'\n');
+        out.write_all(&line)
+            .and_then(|_| out.flush())
+            .map_err(|e| with_path(path.as_deref(), e))?;
+        Ok(PoseStreamWriter {
+            out,
+            path,
+            frames: 0,
+            last_t: None,
+            line,
+        })
+    }
+
+    /// Appends one frame and flushes it. Quaternions within [`UNIT_TOLERANCE`] of unit length
+    /// are written normalised.
+    pub fn write_frame(&mut self, frame: &FrameInput) -> io::Result<()> {
+        let frame = check_frame(*frame, self.last_t).map_err(|e| {
+            let n = self.frames;
+            invalid_input(
+                self.path.as_deref(),
+                &format!("frame {n} (line {}): {e}", n + 2),
+            )
+        })?;
+        self.line.clear();
+        serde_json::to_writer(&mut self.line, &WireFrame::from(&frame))
+            .map_err(io::Error::other)?;
+        self.line.push(b'\n');
+        let res = self
+            .out
+            .write_all(&self.line)
+            .and_then(|_| self.out.flush());
+        res.map_err(|e| with_path(self.path.as_deref(), e))?;
+        self.frames += 1;
+        self.last_t = Some(frame.time);
+        Ok(())
+    }
+
+    /// How many frames have been written.
+    pub fn frames_written(&self) -> usize {
+        self.frames
+    }
+
+    /// Flushes and hands back the underlying writer.
+    pub fn finish(mut self) -> io::Result<W> {
+        self.out
+            .flush()
+            .map_err(|e| with_path(self.path.as_deref(), e))?;
+        Ok(self.out)
+    }
+}
+
+impl PoseStreamWriter<BufWriter<File>> {
+    /// Creates (or truncates) `path` and writes the header. See the type's docs for what
+    /// survives a crash. Error messages name the file.
+    pub fn create(path: &Path, header: &StreamHeader) -> io::Result<Self> {
+        let file = File::create(path).map_err(|e| with_path(Some(path), e))?;
+        Self::with_path(BufWriter::new(file), header, Some(path.to_path_buf()))
+    }
+}
+
+fn with_path(path: Option<&Path>, e: io::Error) -> io::Error {
+    match path {
+        Some(p) => io::Error::new(e.kind(), format!("{}: {e}", p.display())),
+        None => e,
+    }
+}
+
+fn invalid_input(path: Option<&Path>, msg: &str) -> io::Error {
+    with_path(path, io::Error::new(io::ErrorKind::InvalidInput, msg))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reader
+
+/// Reads a pose stream frame by frame; the header is read and checked on construction.
+///
+/// Yields `Err` at the first bad line and then ends: a stream with a bad line in the middle is
+/// not replayed past it, since the frames after it would be taken out of context.
+pub struct PoseStreamReader<R> {
+    input: R,
+    path: PathBuf,
+    header: StreamHeader,
+    line_no: usize,
+    last_t: Option<f64>,
+    buf: String,
+    done: bool,
+}
+
+impl PoseStreamReader<BufReader<File>> {
+    /// Opens `path` and reads its header.
+    pub fn open(path: &Path) -> Result<Self, StreamError> {
+        let file = File::open(path).map_err(|source| StreamError::Open {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::new(BufReader::new(file), path)
+    }
+}
+
+impl<R: BufRead> PoseStreamReader<R> {
+    /// Reads the header from `input`; `name` stands for the file in messages.
+    pub fn new(input: R, name: impl Into<PathBuf>) -> Result<Self, StreamError> {
+        let mut reader = PoseStreamReader {
+            input,
+            path: name.into(),
+            header: StreamHeader::default(),
+            line_no: 0,
+            last_t: None,
+            buf: String::new(),
+            done: false,
+        };
+        let Some(terminated) = reader.next_content_line()? else {
+            return Err(StreamError::NoHeader { path: reader.path });
+        };
+        let header = serde_json::from_str::<WireHeader>(reader.buf.trim())
+            .map_err(|e| json_error(&e, terminated))
+            .and_then(check_header)
+            .map_err(|problem| reader.line_error(problem))?;
+        reader.header = header;
+        Ok(reader)
+    }
+
+    pub fn header(&self) -> &StreamHeader {
+        &self.header
+    }
+
+    /// The file name used in messages.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    fn line_error(&self, problem: LineError) -> StreamError {
+        StreamError::Line {
+            path: self.path.clone(),
+            line: self.line_no,
+            problem,
+        }
+    }
+
+    /// Reads up to the next line that is neither blank nor a comment into `buf`. Returns
+    /// whether it ended with a newline (a last line without one may be a cut-off recording),
+    /// or None at the end.
+    fn next_content_line(&mut self) -> Result<Option<bool>, StreamError> {
+        loop {
+            self.buf.clear();
+            let n = self
+                .input
+                .read_line(&mut self.buf)
+                .map_err(|source| StreamError::Read {
+                    path: self.path.clone(),
+                    line: self.line_no + 1,
+                    source,
+                })?;
+            if n == 0 {
+                return Ok(None);
+            }
+            self.line_no += 1;
+            let text = self.buf.trim();
+            if text.is_empty() || text.starts_with('#') {
+                continue;
+            }
+            return Ok(Some(self.buf.ends_with('\n')));
+        }
+    }
+
+    fn next_frame(&mut self) -> Result<Option<FrameInput>, StreamError> {
+        let Some(terminated) = self.next_content_line()? else {
+            return Ok(None);
+        };
+        let frame = parse_frame(self.buf.trim(), terminated, self.last_t)
+            .map_err(|problem| self.line_error(problem))?;
+        self.last_t = Some(frame.time);
+        Ok(Some(frame))
+    }
+}
+
+impl<R: BufRead> Iterator for PoseStreamReader<R> {
+    type Item = Result<FrameInput, StreamError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.done {
+            return None;
+        }
+        match self.next_frame() {
+            Ok(Some(frame)) => Some(Ok(frame)),
+            Ok(None) => {
+                self.done = true;
+                None
+            }
+            Err(e) => {
+                self.done = true;
+                Some(Err(e))
+            }
+        }
+    }
+}
+
+/// Reads a whole stream: its header and every frame, or the first error.
+pub fn read_stream(path: &Path) -> Result<(StreamHeader, Vec<FrameInput>), StreamError> {
+    let reader = PoseStreamReader::open(path)?;
+    let header = reader.header().clone();
+    let frames = reader.collect::<Result<Vec<_>, _>>()?;
+    Ok((header, frames))
+}
+
+fn parse_frame(
+    text: &str,
+    terminated: bool,
+    previous: Option<f64>,
+) -> Result<FrameInput, LineError> {
+    let wire: WireFrame = serde_json::from_str(text).map_err(|e| json_error(&e, terminated))?;
+    let mut frame = FrameInput::from(&wire);
+    if let Some(t) = top_level_number(text, "t").and_then(|s| s.parse::<f64>().ok()) {
+        frame.time = t;
+    }
+    check_frame(frame, previous)
+}
+
+/// serde_json's message without its position (always "line 1" here, which would contradict
+/// the stream's line number), keeping the column.
+fn json_error(e: &serde_json::Error, terminated: bool) -> LineError {
+    use serde_json::error::Category;
+    let full = e.to_string();
+    let suffix = format!(" at line {} column {}", e.line(), e.column());
+    let msg = match full.strip_suffix(&suffix) {
+        Some(m) if e.column() > 0 => format!("{m} (column {})", e.column()),
+        Some(m) => m.to_string(),
+        None => full.clone(),
+    };
+    match e.classify() {
+        Category::Eof if !terminated => LineError::Truncated,
+        Category::Data => LineError::Schema(msg),
+        _ => LineError::Syntax(msg),
+    }
+}
+
+/// The text of the number that is the value of the top-level member `key` of the JSON object
+/// `json` (which serde has already accepted), so that it can be parsed exactly. None if it is
+/// not found as plain text (e.g. a key written with escapes); the caller then keeps serde's
+/// value.
+fn top_level_number<'a>(json: &'a str, key: &str) -> Option<&'a str> {
+    let b = json.as_bytes();
+    let mut depth = 0usize;
+    let mut expect_key = false;
+    let mut i = 0;
+    while i < b.len() {
+        match b[i] {
+            b'"' => {
+                let start = i + 1;
+                i += 1;
+                while i < b.len() && b[i] != b'"' {
+                    if b[i] == b'\\' {
+                        i += 1;
+                    }
+                    i += 1;
+                }
+                if depth == 1 && expect_key {
+                    expect_key = false;
+                    if json.get(start..i)? == key {
+                        let rest = json.get(i + 1..)?.trim_start();
+                        let rest = rest.strip_prefix(':')?.trim_start();
+                        let len = rest
+                            .find(|c: char| !matches!(c, '0'..='9' | '-' | '+' | '.' | 'e' | 'E'))
+                            .unwrap_or(rest.len());
+                        return (len > 0).then(|| &rest[..len]);
+                    }
+                }
+            }
+            b'{' | b'[' => {
+                depth += 1;
+                expect_key = depth == 1 && b[i] == b'{';
+            }
+            b'}' | b']' => depth = depth.saturating_sub(1),
+            b',' if depth == 1 => expect_key = true,
+            _ => {}
+        }
+        i += 1;
+    }
+    None
+}
+
+// ---------------------------------------------------------------------------------------------
+// Replay timing
+
+/// When to present each frame of a replay: `(index, due)` where `due` is the offset from the
+/// start of the replay (frame 0 is due at zero), or None when replaying as fast as possible.
+///
+/// It does not sleep, so it is testable and the caller chooses the clock:
+///
+/// ```no_run
+/// # use cao_xr::input::{replay_schedule, FrameInput};
+/// # let frames: Vec<FrameInput> = vec![];
+/// use std::time::Instant;
+/// let start = Instant::now();
+/// for (i, due) in replay_schedule(&frames, true) {
+///     if let Some(wait) = due.and_then(|d| (start + d).checked_duration_since(Instant::now())) {
+///         std::thread::sleep(wait);
+///     }
+///     // render frames[i]
+/// }
+/// ```
+///
+/// No frame is skipped: a caller running late just does not sleep until it has caught up.
+pub fn replay_schedule(
+    frames: &[FrameInput],
+    realtime: bool,
+) -> impl Iterator<Item = (usize, Option<Duration>)> + '_ {
+    let t0 = frames.first().map_or(0.0, |f| f.time);
+    frames.iter().enumerate().map(move |(i, f)| {
+        let due = realtime
+            .then(|| Duration::try_from_secs_f64((f.time - t0).max(0.0)).unwrap_or_default());
+        (i, due)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::input::script::SplitMix64;
+    use crate::input::{symmetric_fov, DEFAULT_IPD, LEFT, RIGHT};
+    use std::io::Cursor;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    /// Test data from the scripts' SplitMix64.
+    struct Rng(SplitMix64);
+    impl Rng {
+        fn next(&mut self) -> u64 {
+            self.0.next_u64()
+        }
+        fn unit(&mut self) -> f32 {
+            (self.next() >> 40) as f32 / (1u64 << 24) as f32
+        }
+        fn range(&mut self, lo: f32, hi: f32) -> f32 {
+            lo + (hi - lo) * self.unit()
+        }
+        fn vec3(&mut self, r: f32) -> Vec3 {
+            Vec3::new(self.range(-r, r), self.range(-r, r), self.range(-r, r))
+        }
+        fn quat(&mut self) -> Quat {
+            let axis = (self.vec3(1.0) + Vec3::splat(1e-3)).normalize();
+            let q = Quat::from_axis_angle(axis, self.range(-3.0, 3.0));
+            unit_quat(String::new, q).unwrap()
+        }
+        fn pose(&mut self) -> Pose {
+            Pose {
+                position: self.vec3(2.0),
+                orientation: self.quat(),
+            }
+        }
+    }
+
+    fn temp_path(name: &str) -> PathBuf {
+        static N: AtomicUsize = AtomicUsize::new(0);
+        let n = N.fetch_add(1, Ordering::Relaxed);
+        std::env::temp_dir().join(format!("cao-xr-stream-{}-{n}-{name}", std::process::id()))
+    }
+
+    fn random_frames(n: usize, seed: u64) -> Vec<FrameInput> {
+        let mut rng = Rng(SplitMix64(seed));
+        let mut t = 0.0f64;
+        (0..n)
+            .map(|i| {
+                // Mix "nice" times (i/90) and arbitrary 17-digit ones.
+                t = if i % 2 == 0 {
+                    i as f64 / 90.0
+                } else {
+                    t + (rng.next() >> 11) as f64 / (1u64 << 53) as f64 * 0.02
+                };
+                let head = rng.pose();
+                let hand = |rng: &mut Rng, tracked| HandInput {
+                    tracked,
+                    grip: rng.pose(),
+                    aim: rng.pose(),
+                    buttons: Buttons {
+                        grip: rng.unit(),
+                        trigger: rng.unit(),
+                        primary: rng.next() & 1 == 1,
+                        secondary: rng.next() & 1 == 1,
+                        menu: rng.next() & 1 == 1,
+                        thumbstick: Vec2::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)),
+                    },
+                };
+                FrameInput {
+                    time: t,
+                    views: FrameInput::head_views(
+                        head,
+                        DEFAULT_IPD,
+                        symmetric_fov(rng.range(0.3, 0.9)),
+                    ),
+                    hands: [hand(&mut rng, i % 3 != 0), hand(&mut rng, true)],
+                }
+            })
+            .collect()
+    }
+
+    fn header_line() -> String {
+        serde_json::to_string(&StreamHeader::new("test", "unit test")).unwrap()
+    }
+
+    fn frame_line(f: &FrameInput) -> String {
+        serde_json::to_string(&WireFrame::from(f)).unwrap()
+    }
+
+    fn read_str(text: &str) -> Result<(StreamHeader, Vec<FrameInput>), StreamError> {
+        let r = PoseStreamReader::new(Cursor::new(text.as_bytes()), "mem.jsonl")?;
+        let h = r.header().clone();
+        Ok((h, r.collect::<Result<Vec<_>, _>>()?))
+    }
+
+    fn err_str(text: &str) -> StreamError {
+        read_str(text).expect_err("should be refused")
+    }
+
+    #[test]
+    fn round_trip_is_exact_in_memory_and_on_disk() {
+        let frames = random_frames(200, 7);
+        let header = StreamHeader::new("desktop", "round trip, with \"quotes\" and ünïcode");
+        let mut w = PoseStreamWriter::new(Vec::new(), &header).unwrap();
+        for f in &frames {
+            w.write_frame(f).unwrap();
+        }
+        assert_eq!(w.frames_written(), frames.len());
+        let bytes = w.finish().unwrap();
+        let r = PoseStreamReader::new(Cursor::new(&bytes), "mem").unwrap();
+        assert_eq!(r.header(), &header);
+        let back: Vec<FrameInput> = r.map(Result::unwrap).collect();
+        assert_eq!(back, frames);
+
+        let path = temp_path("round-trip.jsonl");
+        let mut w = PoseStreamWriter::create(&path, &header).unwrap();
+        for f in &frames {
+            w.write_frame(f).unwrap();
+        }
+        w.finish().unwrap();
+        let (h, back) = read_stream(&path).unwrap();
+        let _ = std::fs::remove_file(&path);
+        assert_eq!(h, header);
+        assert_eq!(back, frames);
+    }
+
+    #[test]
+    fn floats_survive_the_text_bit_for_bit() {
+        // f32 fields go through serde_json (decimal -> f64 -> f32); t through str::parse.
+        let mut rng = Rng(SplitMix64(99));
+        let zero_frame = random_frames(1, 1)[0];
+        for i in 0..20_000 {
+            let bits = rng.next();
+            // Any finite f32 with a sane exponent (about 1e-12 .. 1e12).
+            let x = f32::from_bits(
+                (bits as u32 & 0x807f_ffff) | (((bits >> 32) as u32 % 80 + 87) << 23),
+            );
+            let s = serde_json::to_string(&x).unwrap();
+            let y: f32 = serde_json::from_str(&s).unwrap();
+            assert_eq!(x.to_bits(), y.to_bits(), "{x:e} written as {s}");
+            let t = f64::from_bits((bits >> 12) | (((i % 40) as u64 + 1003) << 52));
+            let mut f = zero_frame;
+            f.time = t;
+            let back = parse_frame(&frame_line(&f), true, None).unwrap();
+            assert_eq!(back.time.to_bits(), t.to_bits(), "{t:e}");
+        }
+    }
+
+    #[test]
+    fn top_level_number_finds_t_only_at_the_top() {
+        let j = r#"{ "views" : [{"t": 5}], "x":"\"t\"", "t" :  1.25e-3 , "hands":[]}"#;
+        assert_eq!(top_level_number(j, "t"), Some("1.25e-3"));
+        assert_eq!(top_level_number(r#"{"a":{"t":1}}"#, "t"), None);
+        assert_eq!(top_level_number(r#"{"t":"#, "t"), None);
+    }
+
+    #[test]
+    fn comments_and_blank_lines_are_skipped() {
+        let frames = random_frames(3, 3);
+        let text = format!(
+            "# recorded by hand\n\n{}\n  # a comment\n{}\r\n\n   \n{}\n# end\n{}",
+            header_line(),
+            frame_line(&frames[0]),
+            frame_line(&frames[1]),
+            frame_line(&frames[2]),
+        );
+        let (_, back) = read_str(&text).unwrap();
+        assert_eq!(back, frames);
+    }
+
+    #[test]
+    fn a_bad_line_is_named_by_file_and_line() {
+        let frames = random_frames(3, 4);
+        let path = temp_path("malformed.jsonl");
+        let text = format!(
+            "{}\n{}\n# comment\n{{\"t\": 1.0, \"views\": [}}\n{}\n",
+            header_line(),
+            frame_line(&frames[0]),
+            frame_line(&frames[1]),
+        );
+        std::fs::write(&path, text).unwrap();
+        let err = read_stream(&path).unwrap_err();
+        let msg = err.to_string();
+        let _ = std::fs::remove_file(&path);
+        assert!(msg.contains(&path.display().to_string()), "{msg}");
+        assert!(msg.contains("line 4"), "{msg}");
+        assert!(matches!(err.problem(), Some(LineError::Syntax(_))), "{msg}");
+        assert_eq!(err.line(), Some(4));
+
+        // The streaming reader gives the good frame first, then the error, then ends.
+        std::fs::write(
+            &path,
+            format!("{}\n{}\nnot json\n", header_line(), frame_line(&frames[0])),
+        )
+        .unwrap();
+        let mut r = PoseStreamReader::open(&path).unwrap();
+        assert!(r.next().unwrap().is_ok());
+        let e = r.next().unwrap().unwrap_err();
+        assert!(e.to_string().contains("line 3"), "{e}");
+        assert!(r.next().is_none());
+        let _ = std::fs::remove_file(&path);
+    }
+
+    #[test]
+    fn missing_and_unknown_fields_are_named() {
+        let f = random_frames(1, 5)[0];
+        let mut v: serde_json::Value = serde_json::from_str(&frame_line(&f)).unwrap();
+        v["hands"][1].as_object_mut().unwrap().remove("trigger");
+        let msg = err_str(&format!("{}\n{v}\n", header_line())).to_string();
+        assert!(msg.contains("mem.jsonl, line 2"), "{msg}");
+        assert!(msg.contains("missing field `trigger`"), "{msg}");
+
+        let mut v: serde_json::Value = serde_json::from_str(&frame_line(&f)).unwrap();
+        v["hands"][0]["trigger_value"] = 0.5.into();
+        let msg = err_str(&format!("{}\n{v}\n", header_line())).to_string();
+        assert!(msg.contains("unknown field `trigger_value`"), "{msg}");
+
+        let mut v: serde_json::Value = serde_json::from_str(&frame_line(&f)).unwrap();
+        v["views"].as_array_mut().unwrap().pop();
+        let msg = err_str(&format!("{}\n{v}\n", header_line())).to_string();
+        assert!(msg.contains("line 2") && msg.contains("length"), "{msg}");
+    }
+
+    #[test]
+    fn versions_other_than_1_are_refused_clearly() {
+        let frame = frame_line(&random_frames(1, 6)[0]);
+        let with = |version: &str| {
+            let mut h: serde_json::Value = serde_json::from_str(&header_line()).unwrap();
+            match version {
+                "none" => {
+                    h.as_object_mut().unwrap().remove("version");
+                }
+                v => h["version"] = serde_json::from_str(v).unwrap(),
+            }
+            err_str(&format!("{h}\n{frame}\n"))
+        };
+        let e = with("2");
+        assert_eq!(e.problem(), Some(&LineError::NewerVersion { found: 2 }));
+        let msg = e.to_string();
+        assert!(msg.contains("line 1"), "{msg}");
+        assert!(
+            msg.contains("version 2") && msg.contains("version 1"),
+            "{msg}"
+        );
+        assert_eq!(with("none").problem(), Some(&LineError::MissingVersion));
+        assert!(with("none").to_string().contains("no \"version\""));
+        assert_eq!(with("0").problem(), Some(&LineError::VersionZero));
+
+        // And the writer will not produce one either.
+        let mut h = StreamHeader::new("x", "");
+        h.version = 2;
+        let e = PoseStreamWriter::new(Vec::new(), &h).err().unwrap();
+        assert_eq!(e.kind(), io::ErrorKind::InvalidInput);
+    }
+
+    #[test]
+    fn wrong_format_or_space_is_refused() {
+        let frame = frame_line(&random_frames(1, 8)[0]);
+        // A file of frames without a header.
+        let e = err_str(&format!("{frame}\n"));
+        assert!(
+            matches!(e.problem(), Some(LineError::WrongFormat { .. })),
+            "{e}"
+        );
+        assert!(e.to_string().contains("format"), "{e}");
+        let h = header_line().replace(FORMAT, "cao-xr-pose-steam");
+        let e = err_str(&format!("{h}\n{frame}\n"));
+        assert!(e.to_string().contains("\"cao-xr-pose-steam\""), "{e}");
+        let h = header_line().replace("STAGE", "LOCAL");
+        let e = err_str(&format!("{h}\n{frame}\n"));
+        assert!(e.to_string().contains("reference_space"), "{e}");
+        let e = err_str("# only comments\n\n");
+        assert!(matches!(e, StreamError::NoHeader { .. }), "{e}");
+        assert!(e.to_string().starts_with("mem.jsonl: empty stream"), "{e}");
+    }
+
+    #[test]
+    fn time_going_backwards_is_refused() {
+        let mut frames = random_frames(3, 9);
+        frames[0].time = 1.0;
+        frames[1].time = 1.0; // equal is fine (a repeated display time)
+        frames[2].time = 0.5;
+        let text = format!(
+            "{}\n{}\n{}\n{}\n",
+            header_line(),
+            frame_line(&frames[0]),
+            frame_line(&frames[1]),
+            frame_line(&frames[2])
+        );
+        let e = err_str(&text);
+        assert_eq!(
+            e.problem(),
+            Some(&LineError::TimeBackwards {
+                t: 0.5,
+                previous: 1.0
+            })
+        );
+        assert!(e.to_string().contains("line 4: time goes backwards"), "{e}");
+
+        let mut w = PoseStreamWriter::new(Vec::new(), &StreamHeader::new("x", "")).unwrap();
+        w.write_frame(&frames[0]).unwrap();
+        w.write_frame(&frames[1]).unwrap();
+        let e = w.write_frame(&frames[2]).unwrap_err();
+        assert!(e.to_string().contains("frame 2 (line 4)"), "{e}");
+    }
+
+    #[test]
+    fn quaternions_are_normalised_only_when_nearly_unit() {
+        let mut f = random_frames(1, 10)[0];
+        f.hands[RIGHT].grip.orientation = Quat::from_xyzw(0.0, 0.0, 0.0, 1.0005);
+        let (_, back) = read_str(&format!("{}\n{}\n", header_line(), frame_line(&f))).unwrap();
+        assert_eq!(back[0].hands[RIGHT].grip.orientation, Quat::IDENTITY);
+
+        f.hands[RIGHT].grip.orientation = Quat::from_xyzw(0.0, 0.0, 0.0, 1.01);
+        let e = err_str(&format!("{}\n{}\n", header_line(), frame_line(&f)));
+        let msg = e.to_string();
+        assert!(
+            msg.contains("hands[1].grip.q is not a unit quaternion"),
+            "{msg}"
+        );
+
+        // Zero quaternion (what an untracked OpenXR pose may hold).
+        f.hands[RIGHT].grip.orientation = Quat::from_xyzw(0.0, 0.0, 0.0, 0.0);
+        assert!(read_str(&format!("{}\n{}\n", header_line(), frame_line(&f))).is_err());
+    }
+
+    #[test]
+    fn non_finite_and_out_of_range_values_are_refused() {
+        let f = random_frames(1, 11)[0];
+        let text = |v: &serde_json::Value| format!("{}\n{v}\n", header_line());
+        // 1e39 is a finite JSON number but overflows f32.
+        let mut v: serde_json::Value = serde_json::from_str(&frame_line(&f)).unwrap();
+        v["views"][0]["pose"]["p"][1] = serde_json::from_str("1e39").unwrap();
+        let msg = err_str(&text(&v)).to_string();
+        assert!(
+            msg.contains("views[0].pose.p is not a finite number"),
+            "{msg}"
+        );
+        // NaN is not JSON at all.
+        let line = frame_line(&f).replacen("\"t\":", "\"t\":NaN,\"x\":", 1);
+        let e = err_str(&format!("{}\n{line}\n", header_line()));
+        assert!(matches!(e.problem(), Some(LineError::Syntax(_))), "{e}");
+
+        let mut v: serde_json::Value = serde_json::from_str(&frame_line(&f)).unwrap();
+        v["hands"][0]["trigger"] = 1.5.into();
+        let msg = err_str(&text(&v)).to_string();
+        assert!(
+            msg.contains("hands[0].trigger = 1.5 is outside 0..=1"),
+            "{msg}"
+        );
+
+        let mut v: serde_json::Value = serde_json::from_str(&frame_line(&f)).unwrap();
+        v["views"][1]["fov"] = serde_json::json!([0.5, -0.5, 0.5, -0.5]);
+        let msg = err_str(&text(&v)).to_string();
+        assert!(msg.contains("views[1].fov is not a field of view"), "{msg}");
+
+        let mut w = PoseStreamWriter::new(Vec::new(), &StreamHeader::new("x", "")).unwrap();
+        let mut bad = f;
+        bad.hands[LEFT].aim.position.x = f32::NAN;
+        let e = w.write_frame(&bad).unwrap_err();
+        assert!(e.to_string().contains("hands[0].aim.p"), "{e}");
+        assert_eq!(w.frames_written(), 0);
+    }
+
+    #[test]
+    fn a_cut_off_last_line_says_so() {
+        let frames = random_frames(2, 12);
+        let last = frame_line(&frames[1]);
+        let text = format!(
+            "{}\n{}\n{}",
+            header_line(),
+            frame_line(&frames[0]),
+            &last[..last.len() / 2]
+        );
+        let e = err_str(&text);
+        assert_eq!(e.problem(), Some(&LineError::Truncated), "{e}");
+        assert!(e.to_string().contains("line 3"), "{e}");
+    }
+
+    #[test]
+    fn every_frame_is_on_disk_as_soon_as_it_is_written() {
+        let frames = random_frames(3, 13);
+        let path = temp_path("flush.jsonl");
+        let mut w = PoseStreamWriter::create(&path, &StreamHeader::new("xr", "")).unwrap();
+        w.write_frame(&frames[0]).unwrap();
+        w.write_frame(&frames[1]).unwrap();
+        // Read while the writer is still open (as after a crash, before any finish/drop).
+        let (_, back) = read_stream(&path).unwrap();
+        assert_eq!(back, &frames[..2]);
+        drop(w);
+        let _ = std::fs::remove_file(&path);
+
+        let missing = temp_path("no-such-dir").join("x.jsonl");
+        let e = PoseStreamWriter::create(&missing, &StreamHeader::new("xr", ""))
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("no-such-dir"), "{e}");
+        let e = read_stream(&missing).unwrap_err();
+        assert!(matches!(e, StreamError::Open { .. }), "{e}");
+        assert!(e.to_string().contains("x.jsonl"), "{e}");
+    }
+
+    #[test]
+    fn replay_schedule_follows_recorded_time() {
+        let mut frames = random_frames(4, 14);
+        for (f, t) in frames.iter_mut().zip([10.0, 10.5, 10.5, 12.25]) {
+            f.time = t;
+        }
+        let fast: Vec<_> = replay_schedule(&frames, false).collect();
+        assert_eq!(fast, vec![(0, None), (1, None), (2, None), (3, None)]);
+        let real: Vec<_> = replay_schedule(&frames, true)
+            .map(|(_, d)| d.unwrap())
+            .collect();
+        assert_eq!(
+            real,
+            [0.0, 0.5, 0.5, 2.25].map(Duration::from_secs_f64).to_vec()
+        );
+        assert_eq!(replay_schedule(&[], true).count(), 0);
+    }
+}
