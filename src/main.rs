@@ -4,6 +4,7 @@ use anyhow::{bail, Context, Result};
 use cao_xr::ao::LaoParams;
 use cao_xr::app;
 use cao_xr::gpu::{Gpu, GpuOptions};
+use cao_xr::input::{write_script, ScriptKind, ScriptParams};
 use cao_xr::render::RenderSettings;
 use cao_xr::volume::raw::{RawSpec, RawType};
 use cao_xr::volume::transfer::TransferFunction;
@@ -80,6 +81,23 @@ enum Cmd {
         size: usize,
         #[arg(long)]
         out: PathBuf,
+    },
+    /// Generate a scripted pose stream (JSON Lines) for replay and tests.
+    Script {
+        /// sphere-sweep, box-push-pull, torus-pass, two-tools, grab-scale or tremor.
+        kind: String,
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, default_value_t = ScriptParams::default().frames)]
+        frames: usize,
+        #[arg(long, default_value_t = ScriptParams::default().fps)]
+        fps: f64,
+        /// How far the motion reaches from the volume centre, in metres.
+        #[arg(long, default_value_t = ScriptParams::default().radius_m)]
+        radius: f32,
+        /// Seed of the tremor.
+        #[arg(long, default_value_t = ScriptParams::default().seed)]
+        seed: u64,
     },
     /// Print a volume's dimensions, type, spacing, orientation and value range.
     Info {
@@ -209,8 +227,26 @@ fn gpu(cli_validation: bool) -> Result<Gpu> {
     Ok(gpu)
 }
 
-fn main() -> Result<()> {
-    let cli = Cli::parse();
+fn main() -> std::process::ExitCode {
+    match run(Cli::parse()) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            // The cause chain on one line, without a backtrace, skipping causes that the message
+            // before them already quotes.
+            let mut line = e.to_string();
+            for cause in e.chain().skip(1) {
+                let c = cause.to_string();
+                if !line.contains(&c) {
+                    line = format!("{line}: {c}");
+                }
+            }
+            eprintln!("error: {line}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
         Cmd::Render {
             vol,
@@ -318,6 +354,25 @@ fn main() -> Result<()> {
             let v = phantom::head(size);
             cao_xr::volume::nrrd::write_volume(&out, &v, true)?;
             println!("wrote {}", out.display());
+        }
+        Cmd::Script {
+            kind,
+            out,
+            frames,
+            fps,
+            radius,
+            seed,
+        } => {
+            let kind: ScriptKind = kind.parse()?;
+            let params = ScriptParams {
+                frames,
+                fps,
+                radius_m: radius,
+                seed,
+                ..Default::default()
+            };
+            write_script(kind, &params, &out)?;
+            println!("wrote {} ({frames} frames of {kind})", out.display());
         }
         Cmd::Info { vol } => {
             let (v, _) = vol.load()?;

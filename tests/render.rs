@@ -63,7 +63,14 @@ fn render(vol: &Volume, settings: &RenderSettings) -> (StereoImage, [View; 2]) {
     let placement = Placement::default();
     let v = views(&placement);
     let img = hr
-        .render(&tex, None, &v, &placement, vol, (W, W), settings)
+        .render(
+            &tex,
+            None,
+            &v,
+            cao_xr::render::world_from_tex(vol, &placement),
+            (W, W),
+            settings,
+        )
         .unwrap();
     drop((tex, hr));
     common::assert_no_validation_messages(&gpu);

@@ -178,19 +178,18 @@ impl HeadlessRenderer {
         })
     }
 
-    /// Renders both eyes of `views` with the given AO buffer (or no AO) in one command buffer.
+    /// Renders both eyes of `views` with the given AO buffer (or no AO) in one command buffer;
+    /// `model` is the volume's [`world_from_tex`].
     pub fn render(
         &mut self,
         tex: &VolumeTextures,
         ao: Option<&Buffer>,
         views: &[crate::render::View; 2],
-        placement: &Placement,
-        vol: &Volume,
+        model: glam::Mat4,
         size: (u32, u32),
         settings: &RenderSettings,
     ) -> Result<StereoImage> {
         let target = StereoTarget::new(&self.gpu, size.0, size.1)?;
-        let model = world_from_tex(vol, placement);
         let renderer = &mut self.renderer;
         let mut rec = Ok(());
         self.gpu.submit_and_wait(|cmd| {
@@ -219,15 +218,8 @@ pub fn render_to_dir(
     let tex = VolumeTextures::new(gpu, vol, tf)?;
     let placement = Placement::default();
     let views = default_stereo_views(vol, &placement, 0.064);
-    let img = hr.render(
-        &tex,
-        Some(&ao.ao_buf),
-        &views,
-        &placement,
-        vol,
-        size,
-        settings,
-    )?;
+    let model = world_from_tex(vol, &placement);
+    let img = hr.render(&tex, Some(&ao.ao_buf), &views, model, size, settings)?;
     img.write_pngs(out)?;
     Ok(img)
 }

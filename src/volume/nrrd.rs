@@ -185,7 +185,7 @@ fn read_header<R: BufRead>(path: &Path, r: &mut R) -> Result<(Header, bool), Vol
         // `: ` comes first.
         let kv = text
             .find(":=")
-            .filter(|&p| text.find(": ").map_or(true, |f| p < f));
+            .filter(|&p| text.find(": ").is_none_or(|f| p < f));
         if let Some(p) = kv {
             let key = text[..p].trim().to_ascii_lowercase();
             if key == MODALITY_KEY || key == "cao-xr modality" {

@@ -163,7 +163,9 @@ fn skull_base_z(y: f32) -> f32 {
 pub fn head(n: usize) -> Volume {
     let n = n.max(1);
     let s = FOV_MM / n as f32;
-    let w = s; // anti-aliasing width: one voxel
+    // Partial-volume width: a fixed 3.5 mm blur like a scanner's (at least one voxel); sharper
+    // edges leave voxel terraces that show as contour rings under gradient shading.
+    let w = s.max(3.5);
     let half = FOV_MM * 0.5;
     // coverage of "inside" for signed distance d
     let cov = |d: f32| (0.5 - d / w).clamp(0.0, 1.0);
