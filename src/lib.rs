@@ -8,4 +8,5 @@ pub mod app;
 pub mod gpu;
 pub mod input;
 pub mod render;
+pub mod scene;
 pub mod volume;
