@@ -5,6 +5,7 @@
 
 pub mod ao;
 pub mod app;
+pub mod clip;
 pub mod gpu;
 pub mod input;
 pub mod render;

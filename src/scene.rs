@@ -56,6 +56,10 @@ pub struct Scene {
 
 impl Default for Scene {
     fn default() -> Self {
-        Scene { volume: Placement::default(), tools: Vec::new(), tf_index: 0 }
+        Scene {
+            volume: Placement::default(),
+            tools: Vec::new(),
+            tf_index: 0,
+        }
     }
 }
