@@ -1,5 +1,6 @@
 //! Ambient occlusion: LAO directions and parameters, the GPU precompute, and a CPU reference.
 
+pub mod cao;
 pub mod cpu;
 pub mod lao;
 

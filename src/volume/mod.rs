@@ -136,6 +136,19 @@ impl Volume {
             Voxels::I16(v) => mm(v),
         }
     }
+    /// The same geometry (dims, spacing, orientation, name) with no voxels.
+    pub fn clone_geometry(&self) -> Volume {
+        Volume {
+            name: self.name.clone(),
+            dims: self.dims,
+            spacing: self.spacing,
+            directions: self.directions,
+            origin: self.origin,
+            modality: self.modality,
+            voxels: Voxels::U8(Vec::new()),
+        }
+    }
+
     /// Physical extent in mm along i, j, k.
     pub fn extent_mm(&self) -> DVec3 {
         DVec3::new(

@@ -1,0 +1,68 @@
+#version 460
+// CAO per frame, step 1: shadow-test clipping of every voxel of a box with 9 samples (centre and
+// corners), 32 more where they disagree. Writes the anti-aliased opacity O_c, the category mask
+// (0 = a: clipped away, 1 = b: AO affected by the cut, 2 = c: unaffected) and category counts.
+#extension GL_GOOGLE_include_directive : require
+layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
+
+layout(std430, binding = 0) readonly buffer Opacity { float opacity[]; };
+layout(std430, binding = 1) writeonly buffer Clipped { float clipped[]; };
+layout(std430, binding = 2) writeonly buffer Mask { uint mask[]; };
+layout(std430, binding = 5) buffer Counts { uint counts[]; };
+
+layout(push_constant) uniform Push {
+    ivec4 dims;
+    ivec4 box_min;   // w: tool count
+    ivec4 box_max;   // exclusive
+} pc;
+
+#define CLIP_SET 0
+#define CLIP_TOOLS_BINDING 3
+#define CLIP_MAPS_BINDING 4
+#define CLIP_TOOL_COUNT pc.box_min.w
+#include "clip.glsl"
+
+// 32 fixed anti-aliasing offsets in the voxel's [-1,1]^3 neighbourhood (a scrambled 3D Halton set).
+const vec3 AA[32] = vec3[32](
+    vec3(-0.875, -0.333, -0.600), vec3(0.125, 0.333, -0.200), vec3(-0.375, -0.778, 0.200),
+    vec3(0.625, -0.111, 0.600), vec3(-0.625, 0.556, -0.920), vec3(0.375, -0.556, -0.520),
+    vec3(-0.125, 0.111, -0.120), vec3(0.875, 0.778, 0.280), vec3(-0.938, -0.926, 0.680),
+    vec3(0.063, -0.259, -0.840), vec3(-0.438, 0.407, -0.440), vec3(0.563, -0.704, -0.040),
+    vec3(-0.688, -0.037, 0.360), vec3(0.313, 0.630, 0.760), vec3(-0.188, -0.481, -0.680),
+    vec3(0.813, 0.185, -0.280), vec3(-0.813, 0.852, 0.120), vec3(0.188, -0.852, 0.520),
+    vec3(-0.313, -0.185, 0.920), vec3(0.688, 0.481, -0.968), vec3(-0.563, -0.630, -0.568),
+    vec3(0.438, 0.037, -0.168), vec3(-0.063, 0.704, 0.232), vec3(0.938, -0.407, 0.632),
+    vec3(-0.969, 0.259, -0.888), vec3(0.031, 0.926, -0.488), vec3(-0.469, -0.975, -0.088),
+    vec3(0.531, -0.309, 0.312), vec3(-0.719, 0.358, 0.712), vec3(0.281, -0.642, -0.728),
+    vec3(-0.219, 0.025, -0.328), vec3(0.781, 0.691, 0.072));
+
+void main() {
+    ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
+    if (any(greaterThanEqual(v, pc.box_max.xyz))) return;
+    int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
+    vec3 c = vec3(v) + 0.5;
+    uint visible = 0u;
+    uint affected = 0u;
+    for (int s = 0; s < 9; s++) {
+        vec3 off = s == 0 ? vec3(0.0) : vec3(((s - 1) & 1) != 0 ? 0.5 : -0.5,
+                                             ((s - 1) & 2) != 0 ? 0.5 : -0.5,
+                                             ((s - 1) & 4) != 0 ? 0.5 : -0.5);
+        uint r = clip_test_index(c + off);
+        visible += r & 1u;
+        affected += (r >> 1) & 1u;
+    }
+    float o = opacity[i];
+    float oc = visible == 9u ? o : 0.0;
+    if (visible != 0u && visible != 9u) {
+        for (int s = 0; s < 32; s++) {
+            uint r = clip_test_index(c + AA[s]);
+            visible += r & 1u;
+            affected += (r >> 1) & 1u;
+        }
+        oc = o * (float(visible) / 41.0);
+    }
+    clipped[i] = oc;
+    uint category = affected == 0u ? 2u : (visible > 0u ? 1u : 0u);
+    mask[i] = category;
+    atomicAdd(counts[category], 1u);
+}

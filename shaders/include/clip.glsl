@@ -1,0 +1,56 @@
+// Shadow-test clipping against the tools' clip-camera maps (src/clip, src/ao/cao.rs ClipToolGpu).
+// Define before inclusion: CLIP_SET, CLIP_TOOLS_BINDING, CLIP_MAPS_BINDING, and CLIP_TOOL_COUNT
+// (an expression giving the number of tools). Tool modes: 0 = carve (inside removed), 1 = probe
+// (only the inside kept).
+
+struct ClipTool {
+    mat4 local_from_index;   // volume index space -> tool-local units
+    mat4 local_from_world;   // world -> tool-local units
+    vec4 map;                // x: extent, y: texels per local unit, z: resolution, w: mode
+    uvec4 offsets;           // x: clip map, y: dilation map (vec4 units into clip_maps)
+};
+
+layout(std430, set = CLIP_SET, binding = CLIP_TOOLS_BINDING) readonly buffer ClipTools {
+    ClipTool tools[];
+};
+layout(std430, set = CLIP_SET, binding = CLIP_MAPS_BINDING) readonly buffer ClipMaps {
+    vec4 clip_maps[];
+};
+
+// bit 0: inside the tool's shape; bit 1: inside its dilated shape.
+uint tool_test(uint t, vec3 local) {
+    ClipTool tool = tools[t];
+    ivec2 px = ivec2(floor((local.xy + tool.map.x) * tool.map.y));
+    int res = int(tool.map.z);
+    if (any(lessThan(px, ivec2(0))) || any(greaterThanEqual(px, ivec2(res)))) return 0u;
+    uint texel = uint(px.y * res + px.x);
+    vec4 c = clip_maps[tool.offsets.x + texel];
+    vec4 d = clip_maps[tool.offsets.y + texel];
+    uint r = 0u;
+    if ((local.z >= c.x && local.z <= c.y) || (local.z >= c.z && local.z <= c.w)) r |= 1u;
+    if (local.z >= d.x && local.z <= d.y) r |= 2u;
+    return r;
+}
+
+// bit 0: visible after all tools; bit 1: within the reach of any tool's cut.
+uint clip_test_index(vec3 p) {
+    bool visible = true;
+    bool affected = false;
+    for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
+        uint r = tool_test(t, (tools[t].local_from_index * vec4(p, 1.0)).xyz);
+        bool probe = tools[t].map.w > 0.5;
+        bool inside = (r & 1u) != 0u;
+        if (probe ? !inside : inside) visible = false;
+        // A probe changes everything outside its shape: every voxel is affected.
+        if (probe || (r & 2u) != 0u) affected = true;
+    }
+    return (visible ? 1u : 0u) | (affected ? 2u : 0u);
+}
+
+bool clipped_world(vec3 w) {
+    for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
+        bool inside = (tool_test(t, (tools[t].local_from_world * vec4(w, 1.0)).xyz) & 1u) != 0u;
+        if (tools[t].map.w > 0.5 ? !inside : inside) return true;
+    }
+    return false;
+}

@@ -1,0 +1,536 @@
+//! Contextual Ambient Occlusion: per frame, the tools clip the volume (shadow test against their
+//! clip-camera maps, anti-aliased), a mask sorts voxels into clipped (a), affected (b) and
+//! unaffected (c), and LAO is recomputed for b only; c keeps V_PAO, a gets 1.
+//!
+//! Beyond the paper, the clip and update passes run only over the voxel boxes the dilated tools
+//! can reach, and the previous frame's boxes are restored first, so the per-frame cost follows
+//! the tools, not the volume. The result equals the naive full recompute ([`Mode::Naive`]) bit
+//! for bit: both use the same kernels on the same clipped opacity.
+
+use super::lao::{index_steps, LaoParams, SkipBuffers};
+use crate::clip::{shape_mesh, ClipMap, TriMesh};
+use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Result};
+use crate::render::{world_from_tex, Placement};
+use crate::scene::{Shape, Tool, ToolMode};
+use crate::volume::Volume;
+use ash::vk;
+use glam::{Mat4, Vec3};
+use gpu_allocator::MemoryLocation;
+use std::collections::HashMap;
+
+/// At most this many tools clip at once.
+pub const MAX_TOOLS: usize = 8;
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Mode {
+    /// Recompute only where the tools changed the AO (and only inside their boxes).
+    #[default]
+    Contextual,
+    /// Recompute LAO for every voxel every frame (the paper's "LAO" column).
+    Naive,
+}
+
+/// What one frame did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FrameMetrics {
+    /// Voxels clipped away (a), affected and recomputed (b), unaffected (c).
+    pub clipped: u64,
+    pub recomputed: u64,
+    pub unaffected: u64,
+    /// Voxels the clip pass visited (the tools' boxes, or the whole volume).
+    pub visited: u64,
+    pub restore_ms: f64,
+    pub clip_ms: f64,
+    pub update_ms: f64,
+}
+
+impl FrameMetrics {
+    pub fn percent_recomputed(&self) -> f64 {
+        let total = self.clipped + self.recomputed + self.unaffected;
+        100.0 * self.recomputed as f64 / total.max(1) as f64
+    }
+    pub fn gpu_ms(&self) -> f64 {
+        self.restore_ms + self.clip_ms + self.update_ms
+    }
+}
+
+/// std430 mirror of ClipTool in shaders/include/clip.glsl.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct ClipToolGpu {
+    pub local_from_index: [f32; 16],
+    pub local_from_world: [f32; 16],
+    pub map: [f32; 4],
+    pub offsets: [u32; 4],
+}
+
+/// A voxel box [min, max).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct VoxelBox {
+    pub min: [i32; 3],
+    pub max: [i32; 3],
+}
+
+impl VoxelBox {
+    pub fn voxels(&self) -> u64 {
+        (0..3)
+            .map(|a| (self.max[a] - self.min[a]).max(0) as u64)
+            .product()
+    }
+    fn overlaps(&self, o: &VoxelBox) -> bool {
+        (0..3).all(|a| self.min[a] < o.max[a] && o.min[a] < self.max[a])
+    }
+    fn union(&self, o: &VoxelBox) -> VoxelBox {
+        VoxelBox {
+            min: [0, 1, 2].map(|a| self.min[a].min(o.min[a])),
+            max: [0, 1, 2].map(|a| self.max[a].max(o.max[a])),
+        }
+    }
+}
+
+/// Merges overlapping boxes so that no voxel is visited (or counted) twice.
+fn merge_boxes(mut boxes: Vec<VoxelBox>) -> Vec<VoxelBox> {
+    let mut merged = true;
+    while merged {
+        merged = false;
+        'outer: for i in 0..boxes.len() {
+            for j in i + 1..boxes.len() {
+                if boxes[i].overlaps(&boxes[j]) {
+                    boxes[i] = boxes[i].union(&boxes[j]);
+                    boxes.swap_remove(j);
+                    merged = true;
+                    break 'outer;
+                }
+            }
+        }
+    }
+    boxes
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct BoxPush {
+    dims: [i32; 4],
+    box_min: [i32; 4],
+    box_max: [i32; 4],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct UpdatePush {
+    dims: [i32; 4],
+    rays: u32,
+    steps: u32,
+    exponent: f32,
+    naive: u32,
+    box_min: [i32; 4],
+    box_max: [i32; 4],
+}
+
+/// The volume's CAO state on the GPU and the passes that update it every frame.
+pub struct Cao {
+    gpu: Gpu,
+    restore: ComputePipeline,
+    clip: ComputePipeline,
+    update: ComputePipeline,
+    pub dims: [usize; 3],
+    pub spacing: [f64; 3],
+    /// The volume's geometry (no voxels), for its model matrix.
+    geometry: Volume,
+    pub params: LaoParams,
+    max_spacing_mm: f64,
+    opacity: Buffer,
+    /// O_c: the anti-aliased clipped opacity.
+    pub clipped: Buffer,
+    mask: Buffer,
+    pao: Buffer,
+    /// V_AO: this frame's ambient occlusion.
+    pub ao: Buffer,
+    dirs: Buffer,
+    skip: SkipBuffers,
+    counts: Buffer,
+    tools: Buffer,
+    maps: Option<Buffer>,
+    map_cache: HashMap<(Shape, u32, usize), ClipMap>,
+    /// Loaded OBJ/PLY meshes, for Shape::Mesh.
+    pub meshes: Vec<TriMesh>,
+    pub clip_resolution: usize,
+    prev_boxes: Vec<VoxelBox>,
+    timer: GpuTimer,
+}
+
+impl Cao {
+    /// `opacity` is O (device buffer), `pao` its LAO (V_PAO), `skip` its skipping data.
+    pub fn new(
+        gpu: &Gpu,
+        vol: &Volume,
+        opacity: Buffer,
+        pao: Buffer,
+        skip: SkipBuffers,
+        params: LaoParams,
+    ) -> Result<Cao> {
+        let (dims, spacing) = (vol.dims, vol.spacing);
+        let geometry = vol.clone_geometry();
+        let b = vk::DescriptorType::STORAGE_BUFFER;
+        let spv = |bytes: &[u8]| bytes.to_vec();
+        let restore = ComputePipeline::new(
+            gpu,
+            &spv(include_bytes!(concat!(
+                env!("OUT_DIR"),
+                "/cao_restore.comp.spv"
+            ))),
+            &[b; 5],
+            std::mem::size_of::<BoxPush>() as u32,
+        )?;
+        let clip = ComputePipeline::new(
+            gpu,
+            &spv(include_bytes!(concat!(
+                env!("OUT_DIR"),
+                "/clip_mask.comp.spv"
+            ))),
+            &[b; 6],
+            std::mem::size_of::<BoxPush>() as u32,
+        )?;
+        let update = ComputePipeline::new(
+            gpu,
+            &spv(include_bytes!(concat!(
+                env!("OUT_DIR"),
+                "/cao_update.comp.spv"
+            ))),
+            &[b; 7],
+            std::mem::size_of::<UpdatePush>() as u32,
+        )?;
+        let n = (dims[0] * dims[1] * dims[2]) as u64;
+        let storage = vk::BufferUsageFlags::STORAGE_BUFFER
+            | vk::BufferUsageFlags::TRANSFER_SRC
+            | vk::BufferUsageFlags::TRANSFER_DST;
+        let dev = |name| Buffer::new(gpu, n * 4, storage, MemoryLocation::GpuOnly, name);
+        let (clipped, mask, ao) = (dev("cao-clipped")?, dev("cao-mask")?, dev("cao-ao")?);
+        let dirs: Vec<[f32; 4]> = index_steps(&params, spacing)
+            .iter()
+            .map(|s| [s.x as f32, s.y as f32, s.z as f32, 0.0])
+            .collect();
+        let dirs =
+            Buffer::from_slice(gpu, &dirs, vk::BufferUsageFlags::STORAGE_BUFFER, "cao-dirs")?;
+        let counts = Buffer::new(
+            gpu,
+            16,
+            vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST,
+            MemoryLocation::GpuToCpu,
+            "cao-counts",
+        )?;
+        let tools = Buffer::new(
+            gpu,
+            (MAX_TOOLS.max(1) * std::mem::size_of::<ClipToolGpu>()) as u64,
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            MemoryLocation::CpuToGpu,
+            "cao-tools",
+        )?;
+        let cao = Cao {
+            gpu: gpu.clone(),
+            restore,
+            clip,
+            update,
+            dims,
+            spacing,
+            geometry,
+            params,
+            max_spacing_mm: spacing.iter().cloned().fold(0.0, f64::max),
+            opacity,
+            clipped,
+            mask,
+            pao,
+            ao,
+            dirs,
+            skip,
+            counts,
+            tools,
+            maps: None,
+            map_cache: HashMap::new(),
+            meshes: Vec::new(),
+            clip_resolution: crate::clip::DEFAULT_RESOLUTION,
+            prev_boxes: Vec::new(),
+            timer: GpuTimer::new(gpu, 8)?,
+        };
+        // Start unclipped: O_c = O, V_AO = V_PAO everywhere.
+        let all = cao.whole();
+        cao.gpu
+            .submit_and_wait(|cmd| cao.record_restore(cmd, &[all]))?;
+        Ok(cao)
+    }
+
+    fn whole(&self) -> VoxelBox {
+        VoxelBox {
+            min: [0; 3],
+            max: self.dims.map(|d| d as i32),
+        }
+    }
+
+    /// The dilation radius in mm: the farthest LAO sample, the trilinear footprint around it and
+    /// the anti-aliasing spread around the clipped voxel (a voxel diagonal each), plus 1 %.
+    pub fn dilation_radius_mm(&self) -> f64 {
+        let diag = 3f64.sqrt() * self.max_spacing_mm;
+        (self.params.steps.saturating_sub(1) as f64 * self.params.step_mm as f64 + 2.0 * diag)
+            * 1.01
+    }
+
+    fn map_for(&mut self, tool: &Tool, placement: &Placement) -> Result<ClipMap> {
+        // Radius in tool units, rounded up to 1/256 so the cache stays small and stays conservative.
+        let r_world = self.dilation_radius_mm() * 1e-3 * placement.scale as f64;
+        let r_local = r_world / tool.size.max(1e-6) as f64;
+        let q = (r_local * 256.0).ceil() as u32;
+        let key = (tool.shape, q, self.clip_resolution);
+        if let Some(m) = self.map_cache.get(&key) {
+            return Ok(m.clone());
+        }
+        let mesh = shape_mesh(tool.shape, &self.meshes).ok_or_else(|| {
+            GpuError::Other(format!("tool shape {:?} has no mesh loaded", tool.shape))
+        })?;
+        let map = ClipMap::build(&mesh, self.clip_resolution, q as f32 / 256.0);
+        self.map_cache.insert(key, map.clone());
+        Ok(map)
+    }
+
+    /// Uploads the active tools' maps and transforms; returns their voxel boxes.
+    fn prepare_tools(
+        &mut self,
+        tools: &[Tool],
+        placement: &Placement,
+    ) -> Result<(u32, Vec<VoxelBox>)> {
+        let active: Vec<&Tool> = tools.iter().filter(|t| t.active).take(MAX_TOOLS).collect();
+        let world_from_index = world_from_tex(&self.geometry, placement)
+            * Mat4::from_scale(Vec3::new(
+                1.0 / self.dims[0] as f32,
+                1.0 / self.dims[1] as f32,
+                1.0 / self.dims[2] as f32,
+            ));
+        let mut gpu_tools = Vec::new();
+        let mut texels: Vec<[f32; 4]> = Vec::new();
+        let mut boxes = Vec::new();
+        for tool in active {
+            let map = self.map_for(tool, placement)?;
+            let world_from_local = tool.pose.matrix() * Mat4::from_scale(Vec3::splat(tool.size));
+            let local_from_world = world_from_local.inverse();
+            let local_from_index = local_from_world * world_from_index;
+            let clip_off = texels.len() as u32;
+            texels.extend_from_slice(&map.clip);
+            let dil_off = texels.len() as u32;
+            texels.extend_from_slice(&map.dilated);
+            gpu_tools.push(ClipToolGpu {
+                local_from_index: local_from_index.to_cols_array(),
+                local_from_world: local_from_world.to_cols_array(),
+                map: [
+                    map.extent,
+                    map.res as f32 / (2.0 * map.extent),
+                    map.res as f32,
+                    if tool.mode == ToolMode::Probe {
+                        1.0
+                    } else {
+                        0.0
+                    },
+                ],
+                offsets: [clip_off, dil_off, 0, 0],
+            });
+            boxes.push(match tool.mode {
+                ToolMode::Probe => self.whole(),
+                ToolMode::Carve => self.box_of(&map, local_from_index.inverse()),
+            });
+        }
+        if !gpu_tools.is_empty() {
+            self.tools.write(0, bytemuck::cast_slice(&gpu_tools))?;
+            let bytes: &[u8] = bytemuck::cast_slice(&texels);
+            if self
+                .maps
+                .as_ref()
+                .is_none_or(|m| m.size < bytes.len() as u64)
+            {
+                self.maps = Some(Buffer::new(
+                    &self.gpu,
+                    bytes.len() as u64,
+                    vk::BufferUsageFlags::STORAGE_BUFFER,
+                    MemoryLocation::CpuToGpu,
+                    "cao-maps",
+                )?);
+            }
+            self.maps.as_mut().unwrap().write(0, bytes)?;
+        }
+        let boxes = boxes.into_iter().filter(|b| b.voxels() > 0).collect();
+        Ok((gpu_tools.len() as u32, merge_boxes(boxes)))
+    }
+
+    /// Voxel box (index space, padded by one voxel) around the dilated shape.
+    fn box_of(&self, map: &ClipMap, index_from_local: Mat4) -> VoxelBox {
+        let (e, (z0, z1)) = (map.extent, map.z_range);
+        let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+        for c in 0..8 {
+            let p = Vec3::new(
+                if c & 1 == 0 { -e } else { e },
+                if c & 2 == 0 { -e } else { e },
+                if c & 4 == 0 { z0 } else { z1 },
+            );
+            let q = index_from_local.transform_point3(p);
+            lo = lo.min(q);
+            hi = hi.max(q);
+        }
+        let clamp = |v: f32, a: usize| (v as i32).clamp(0, self.dims[a] as i32);
+        VoxelBox {
+            min: [0, 1, 2].map(|a| clamp(lo[a].floor() - 1.0, a)),
+            max: [0, 1, 2].map(|a| clamp(hi[a].ceil() + 1.0, a)),
+        }
+    }
+
+    fn dispatch_box(&self, pipe: &ComputePipeline, cmd: vk::CommandBuffer, b: &VoxelBox) {
+        pipe.dispatch(
+            cmd,
+            [0, 1, 2].map(|a| ((b.max[a] - b.min[a]).max(0) as u32).div_ceil(4)),
+        );
+    }
+
+    fn dims4(&self) -> [i32; 4] {
+        [
+            self.dims[0] as i32,
+            self.dims[1] as i32,
+            self.dims[2] as i32,
+            0,
+        ]
+    }
+
+    fn record_restore(&self, cmd: vk::CommandBuffer, boxes: &[VoxelBox]) {
+        for b in boxes {
+            let push = BoxPush {
+                dims: self.dims4(),
+                box_min: [b.min[0], b.min[1], b.min[2], 0],
+                box_max: [b.max[0], b.max[1], b.max[2], 0],
+            };
+            let bufs = [
+                &self.opacity,
+                &self.clipped,
+                &self.mask,
+                &self.pao,
+                &self.ao,
+            ];
+            self.restore.bind(cmd, &bufs, bytemuck::bytes_of(&push));
+            self.dispatch_box(&self.restore, cmd, b);
+        }
+    }
+
+    /// Records one frame's AO update (restore, clip + mask, update) into `cmd`; read the
+    /// metrics with [`Cao::read_metrics`] once it has executed. V_AO is then in [`Cao::ao`].
+    pub fn record_frame(
+        &mut self,
+        cmd: vk::CommandBuffer,
+        tools: &[Tool],
+        placement: &Placement,
+        mode: Mode,
+    ) -> Result<PendingFrame> {
+        let (count, mut boxes) = self.prepare_tools(tools, placement)?;
+        if mode == Mode::Naive {
+            boxes = vec![self.whole()];
+        }
+        let restore: Vec<VoxelBox> = std::mem::take(&mut self.prev_boxes);
+        unsafe {
+            self.gpu
+                .device
+                .cmd_fill_buffer(cmd, self.counts.raw, 0, 16, 0);
+        }
+        self.timer.begin(cmd);
+        self.record_restore(cmd, &restore);
+        self.gpu.barrier(cmd);
+        self.timer.mark(cmd, "restore");
+        let maps = self.maps.as_ref().unwrap_or(&self.tools);
+        for b in &boxes {
+            let push = BoxPush {
+                dims: self.dims4(),
+                box_min: [b.min[0], b.min[1], b.min[2], count as i32],
+                box_max: [b.max[0], b.max[1], b.max[2], 0],
+            };
+            let bufs = [
+                &self.opacity,
+                &self.clipped,
+                &self.mask,
+                &self.tools,
+                maps,
+                &self.counts,
+            ];
+            self.clip.bind(cmd, &bufs, bytemuck::bytes_of(&push));
+            self.dispatch_box(&self.clip, cmd, b);
+        }
+        self.gpu.barrier(cmd);
+        self.timer.mark(cmd, "clip");
+        for b in &boxes {
+            let push = UpdatePush {
+                dims: self.dims4(),
+                rays: self.params.rays,
+                steps: self.params.steps,
+                exponent: self.params.step_mm,
+                naive: (mode == Mode::Naive) as u32,
+                box_min: [b.min[0], b.min[1], b.min[2], 0],
+                box_max: [b.max[0], b.max[1], b.max[2], 0],
+            };
+            let bufs = [
+                &self.clipped,
+                &self.dirs,
+                &self.ao,
+                &self.skip.clear,
+                &self.skip.bricks,
+                &self.mask,
+                &self.pao,
+            ];
+            self.update.bind(cmd, &bufs, bytemuck::bytes_of(&push));
+            self.dispatch_box(&self.update, cmd, b);
+        }
+        self.gpu.barrier(cmd);
+        self.timer.mark(cmd, "update");
+        let visited = boxes.iter().map(|b| b.voxels()).sum();
+        self.prev_boxes = boxes;
+        Ok(PendingFrame { visited, mode })
+    }
+
+    /// Metrics of the frame recorded last, after its command buffer finished.
+    pub fn read_metrics(&self, pending: PendingFrame) -> Result<FrameMetrics> {
+        let c: &[u32] = bytemuck::cast_slice(&self.counts.mapped()?[..12]);
+        let total = (self.dims[0] * self.dims[1] * self.dims[2]) as u64;
+        let times = self.timer.read()?;
+        let ms = |name: &str| times.iter().find(|t| t.0 == name).map_or(0.0, |t| t.1);
+        let (clipped, affected) = (c[0] as u64, c[1] as u64);
+        // The naive baseline recomputes every voxel that is not clipped away.
+        let recomputed = match pending.mode {
+            Mode::Contextual => affected,
+            Mode::Naive => total - clipped,
+        };
+        Ok(FrameMetrics {
+            clipped,
+            recomputed,
+            unaffected: total - clipped - recomputed,
+            visited: pending.visited,
+            restore_ms: ms("restore"),
+            clip_ms: ms("clip"),
+            update_ms: ms("update"),
+        })
+    }
+
+    /// Records, submits and waits for one frame's AO update.
+    pub fn run_frame(
+        &mut self,
+        tools: &[Tool],
+        placement: &Placement,
+        mode: Mode,
+    ) -> Result<FrameMetrics> {
+        let gpu = self.gpu.clone();
+        let mut pending = Ok(PendingFrame { visited: 0, mode });
+        gpu.submit_and_wait(|cmd| pending = self.record_frame(cmd, tools, placement, mode))?;
+        self.read_metrics(pending?)
+    }
+
+    /// The tools (as uploaded for the last frame) and their maps, for the ray caster's clipping.
+    pub fn clip_buffers(&self) -> (&Buffer, &Buffer) {
+        (&self.tools, self.maps.as_ref().unwrap_or(&self.tools))
+    }
+}
+
+/// A recorded frame whose metrics are not read yet.
+#[derive(Clone, Copy, Debug)]
+pub struct PendingFrame {
+    visited: u64,
+    mode: Mode,
+}
