@@ -46,20 +46,10 @@ pub struct Tool {
     pub active: bool,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Scene {
     pub volume: Placement,
     pub tools: Vec<Tool>,
     /// Index of the transfer-function preset in use.
     pub tf_index: usize,
-}
-
-impl Default for Scene {
-    fn default() -> Self {
-        Scene {
-            volume: Placement::default(),
-            tools: Vec::new(),
-            tf_index: 0,
-        }
-    }
 }
