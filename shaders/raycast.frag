@@ -9,6 +9,12 @@ layout(set = 0, binding = 1) uniform sampler3D scalars;
 layout(set = 0, binding = 2) uniform sampler3D ambient;
 layout(set = 0, binding = 3) uniform sampler1D tf_lut;
 
+#define CLIP_SET 0
+#define CLIP_TOOLS_BINDING 4
+#define CLIP_MAPS_BINDING 5
+#define CLIP_TOOL_COUNT frame.viewport.z
+#include "clip.glsl"
+
 // Which eye (layer of the stereo target) this draw renders.
 layout(push_constant) uniform Eye { uint index; } eye;
 
@@ -65,6 +71,8 @@ void main() {
         float t = tn + dt * pixel_jitter(gl_FragCoord.xy);
         for (int i = 0; i < 8192 && t < tf; i++, t += dt) {
             vec3 p = o + t * d;
+            // Shadow-test clipping: the same maps the AO update used.
+            if (frame.viewport.z > 0.0 && clipped_world(a_w + t * (b_w - a_w))) continue;
             vec4 c = classify(p);
             if (c.a > 0.0) {
                 float a = 1.0 - pow(1.0 - min(c.a, 0.9999), step_mm);

@@ -46,6 +46,11 @@ enum Cmd {
         /// Weight of the gradient diffuse term (0 = AO only).
         #[arg(long, default_value_t = 0.35)]
         diffuse: f32,
+        /// A clipping tool, SHAPE[:SIZE_MM[:X,Y,Z]] (sphere, box, cylinder, torus; prefix probe-
+        /// to keep only its inside; offset in mm from the volume centre, x right, y up, z towards
+        /// the viewer). Repeatable. The AO around the cut is CAO.
+        #[arg(long)]
+        tool: Vec<String>,
     },
     /// Precompute the LAO volume; write it as float32 NRRD plus a JSON sidecar.
     Ao {
@@ -255,6 +260,7 @@ fn run(cli: Cli) -> Result<()> {
             size,
             no_ao,
             diffuse,
+            tool,
         } => {
             let (v, tf) = vol.load()?;
             eprintln!(
@@ -267,8 +273,25 @@ fn run(cli: Cli) -> Result<()> {
                 diffuse,
                 ..Default::default()
             };
+            let placement = cao_xr::render::Placement::default();
+            let tools = tool
+                .iter()
+                .map(|t| app::parse_tool(t, &placement))
+                .collect::<Result<Vec<_>, _>>()?;
             let t0 = std::time::Instant::now();
-            app::render_to_dir(&gpu, &v, &tf, &lao.params(), size, &settings, &out)?;
+            let m =
+                app::render_to_dir(&gpu, &v, &tf, &lao.params(), &tools, size, &settings, &out)?;
+            if let Some(m) = m {
+                println!(
+                    "CAO: {} clipped, {} recomputed ({:.2} %), GPU restore {:.1} ms, clip {:.1} ms, update {:.1} ms",
+                    m.clipped,
+                    m.recomputed,
+                    m.percent_recomputed(),
+                    m.restore_ms,
+                    m.clip_ms,
+                    m.update_ms
+                );
+            }
             println!(
                 "wrote {0}/left.png {0}/right.png {0}/stereo.png in {1:.1} s",
                 out.display(),

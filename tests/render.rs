@@ -70,6 +70,7 @@ fn render(vol: &Volume, settings: &RenderSettings) -> (StereoImage, [View; 2]) {
             cao_xr::render::world_from_tex(vol, &placement),
             (W, W),
             settings,
+            None,
         )
         .unwrap();
     drop((tex, hr));

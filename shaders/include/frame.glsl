@@ -6,5 +6,5 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     vec4 extent_mm;          // xyz: volume extent in mm along i,j,k; w: step in mm
     vec4 value_map;          // lut coordinate = value * y + x; z: ambient k, w: diffuse weight
     vec4 background;         // rgb background, a: 1 = modulate by AO
-    vec4 viewport;           // xy: width, height in pixels
+    vec4 viewport;           // xy: width, height in pixels; z: number of clipping tools
 } frame;

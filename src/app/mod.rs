@@ -3,14 +3,16 @@
 
 pub mod bench;
 
-use crate::ao::lao::{directions, LaoTiming};
+use crate::ao::cao::{Cao, FrameMetrics, Mode};
+use crate::ao::lao::{directions, LaoTiming, SkipBuffers};
 use crate::ao::{LaoGpu, LaoParams};
 use crate::gpu::{Buffer, Gpu, GpuError};
 use crate::render::png_out::PngError;
 use crate::render::{
-    default_stereo_views, world_from_tex, Placement, RenderSettings, Renderer, StereoImage,
-    StereoTarget, VolumeTextures,
+    default_stereo_views, world_from_tex, ClipBinding, Placement, RenderSettings, Renderer,
+    StereoImage, StereoTarget, VolumeTextures,
 };
+use crate::scene::Tool;
 use crate::volume::nrrd::{self, NrrdData};
 use crate::volume::raw::RawSpec;
 use crate::volume::transfer::{TfError, TransferFunction};
@@ -103,7 +105,23 @@ pub struct AoVolume {
     pub opacity_buf: Buffer,
     /// V_PAO: LAO of the unclipped volume (f32, x fastest).
     pub ao_buf: Buffer,
+    /// Exact empty-space skipping data of O (valid for every clipped O too).
+    pub skip: SkipBuffers,
     pub timing: LaoTiming,
+}
+
+impl AoVolume {
+    /// Hands O, V_PAO and the skipping data to a CAO state for per-frame clipping.
+    pub fn into_cao(self, gpu: &Gpu, vol: &Volume, params: LaoParams) -> Result<Cao> {
+        Ok(Cao::new(
+            gpu,
+            vol,
+            self.opacity_buf,
+            self.ao_buf,
+            self.skip,
+            params,
+        )?)
+    }
 }
 
 /// A terminal progress bar (hidden when stderr is not a terminal).
@@ -158,6 +176,7 @@ pub fn precompute_ao(
         opacity,
         opacity_buf,
         ao_buf,
+        skip,
         timing,
     })
 }
@@ -188,6 +207,7 @@ impl HeadlessRenderer {
         model: glam::Mat4,
         size: (u32, u32),
         settings: &RenderSettings,
+        clip: Option<ClipBinding>,
     ) -> Result<StereoImage> {
         let target = StereoTarget::new(&self.gpu, size.0, size.1)?;
         let renderer = &mut self.renderer;
@@ -196,32 +216,107 @@ impl HeadlessRenderer {
             if let Some(ao) = ao {
                 tex.cmd_update_ambient(cmd, ao);
             }
-            rec = renderer.record(cmd, &target, tex, views, model, settings);
+            rec = renderer.record(cmd, &target, tex, views, model, settings, clip);
         })?;
         rec?;
         Ok(target.read_back(&self.gpu)?)
     }
 }
 
-/// `cao-xr render`: LAO, then both eyes from the default pair of eye poses, as PNGs in `out`.
+/// `cao-xr render`: LAO, then (with tools) one CAO frame, then both eyes from the default pair
+/// of eye poses, as PNGs in `out`. Returns the CAO metrics when tools clipped.
+#[allow(clippy::too_many_arguments)]
 pub fn render_to_dir(
     gpu: &Gpu,
     vol: &Volume,
     tf: &TransferFunction,
     params: &LaoParams,
+    tools: &[Tool],
     size: (u32, u32),
     settings: &RenderSettings,
     out: &Path,
-) -> Result<StereoImage> {
+) -> Result<Option<FrameMetrics>> {
     let mut hr = HeadlessRenderer::new(gpu)?;
     let ao = precompute_ao(gpu, &hr.lao, vol, tf, params, true)?;
     let tex = VolumeTextures::new(gpu, vol, tf)?;
     let placement = Placement::default();
     let views = default_stereo_views(vol, &placement, 0.064);
     let model = world_from_tex(vol, &placement);
-    let img = hr.render(&tex, Some(&ao.ao_buf), &views, model, size, settings)?;
+    let (img, metrics) = if tools.is_empty() {
+        let img = hr.render(&tex, Some(&ao.ao_buf), &views, model, size, settings, None)?;
+        (img, None)
+    } else {
+        let mut cao = ao.into_cao(gpu, vol, *params)?;
+        let m = cao.run_frame(tools, &placement, Mode::Contextual)?;
+        let (t, maps) = cao.clip_buffers();
+        let count = tools.iter().filter(|t| t.active).count() as u32;
+        let clip = ClipBinding {
+            tools: t,
+            maps,
+            count,
+        };
+        let img = hr.render(
+            &tex,
+            Some(&cao.ao),
+            &views,
+            model,
+            size,
+            settings,
+            Some(clip),
+        )?;
+        (img, Some(m))
+    };
     img.write_pngs(out)?;
-    Ok(img)
+    Ok(metrics)
+}
+
+/// Parses `SHAPE[:SIZE_MM[:X,Y,Z]]` (offset in mm from the volume centre: x right, y up, z
+/// towards the viewer; default a cut into the front) into a carving tool, or a probe with a
+/// `probe-` prefix (`probe-sphere:60`).
+pub fn parse_tool(spec: &str, placement: &Placement) -> Result<Tool> {
+    use crate::scene::{Shape, ToolMode};
+    let bad = |why: &str| AppError::Usage(format!("--tool '{spec}': {why}"));
+    let mut parts = spec.split(':');
+    let name = parts.next().unwrap_or("");
+    let (mode, name) = match name.strip_prefix("probe-") {
+        Some(n) => (ToolMode::Probe, n),
+        None => (ToolMode::Carve, name),
+    };
+    let shape = match name {
+        "sphere" => Shape::Sphere,
+        "box" => Shape::Box,
+        "cylinder" => Shape::Cylinder,
+        "torus" => Shape::Torus,
+        _ => return Err(bad("shape must be sphere, box, cylinder or torus")),
+    };
+    let size_mm: f32 = match parts.next() {
+        Some(s) => s
+            .parse()
+            .ok()
+            .filter(|v: &f32| *v > 0.0 && *v < 1000.0)
+            .ok_or_else(|| bad("size must be 0..1000 mm"))?,
+        None => 30.0,
+    };
+    let offset = match parts.next() {
+        Some(s) => {
+            let v: Vec<f32> = s.split(',').filter_map(|x| x.parse().ok()).collect();
+            if v.len() != 3 {
+                return Err(bad("offset must be X,Y,Z in mm"));
+            }
+            glam::Vec3::new(v[0], v[1], v[2])
+        }
+        None => glam::Vec3::new(0.0, 30.0, 70.0),
+    };
+    Ok(Tool {
+        shape,
+        pose: crate::render::Pose {
+            position: placement.center + offset * 1e-3 * placement.scale,
+            orientation: glam::Quat::IDENTITY,
+        },
+        size: size_mm * 1e-3 * placement.scale,
+        mode,
+        active: true,
+    })
 }
 
 /// The JSON sidecar of an AO volume: everything an outside checker needs to recompute it.

@@ -293,6 +293,16 @@ pub struct Renderer {
     set_layout: vk::DescriptorSetLayout,
     sampler: vk::Sampler,
     uniforms: Buffer,
+    no_clip: Buffer,
+}
+
+/// The tools that clip the rendered volume: CAO's tool table and clip maps (see
+/// shaders/include/clip.glsl), so the views cut exactly where the AO was cut.
+#[derive(Clone, Copy)]
+pub struct ClipBinding<'a> {
+    pub tools: &'a Buffer,
+    pub maps: &'a Buffer,
+    pub count: u32,
 }
 
 impl Renderer {
@@ -307,6 +317,8 @@ impl Renderer {
                     sampled,
                     sampled,
                     sampled,
+                    vk::DescriptorType::STORAGE_BUFFER,
+                    vk::DescriptorType::STORAGE_BUFFER,
                 ],
                 vk::ShaderStageFlags::FRAGMENT,
             )?;
@@ -398,6 +410,14 @@ impl Renderer {
                 MemoryLocation::CpuToGpu,
                 "frame-uniforms",
             )?;
+            // Bound in place of the clip buffers when no tool clips (the shader reads none).
+            let no_clip = Buffer::new(
+                gpu,
+                16,
+                vk::BufferUsageFlags::STORAGE_BUFFER,
+                MemoryLocation::GpuOnly,
+                "no-clip",
+            )?;
             Ok(Renderer {
                 gpu: gpu.clone(),
                 pipeline,
@@ -405,6 +425,7 @@ impl Renderer {
                 set_layout,
                 sampler,
                 uniforms,
+                no_clip,
             })
         }
     }
@@ -419,6 +440,7 @@ impl Renderer {
         views: &[View; 2],
         world_from_tex: Mat4,
         settings: &RenderSettings,
+        clip: Option<ClipBinding>,
     ) -> Result<()> {
         let ext = tex.extent_mm();
         let min_spacing = tex.spacing.iter().cloned().fold(f64::MAX, f64::min) as f32;
@@ -441,7 +463,12 @@ impl Renderer {
                 settings.background[2],
                 if settings.use_ao { 1.0 } else { 0.0 },
             ],
-            viewport: [target.width as f32, target.height as f32, 0.0, 0.0],
+            viewport: [
+                target.width as f32,
+                target.height as f32,
+                clip.map_or(0, |c| c.count) as f32,
+                0.0,
+            ],
         };
         self.uniforms.write(0, bytemuck::bytes_of(&u))?;
 
@@ -480,6 +507,8 @@ impl Renderer {
             img(tex.lut.view),
         );
         let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
+        let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
+        let clip_maps = [clip.map_or(&self.no_clip, |c| c.maps).descriptor()];
         let writes = [
             vk::WriteDescriptorSet::default()
                 .dst_binding(0)
@@ -497,6 +526,14 @@ impl Renderer {
                 .dst_binding(3)
                 .descriptor_type(sampled)
                 .image_info(&i3),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(4)
+                .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                .buffer_info(&clip_tools),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(5)
+                .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                .buffer_info(&clip_maps),
         ];
         for eye in 0..2u32 {
             let color_att = [vk::RenderingAttachmentInfo::default()
