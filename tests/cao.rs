@@ -9,7 +9,7 @@ use cao_xr::ao::{LaoGpu, LaoParams};
 use cao_xr::app::HeadlessRenderer;
 use cao_xr::gpu::{Buffer, Gpu};
 use cao_xr::render::{
-    default_stereo_views, world_from_tex, ClipBinding, Placement, Pose, RenderSettings,
+    default_stereo_views, world_from_tex, ClipBinding, FrameViews, Placement, Pose, RenderSettings,
     StereoImage, VolumeTextures,
 };
 use cao_xr::scene::{Shape, Tool, ToolMode};
@@ -62,14 +62,17 @@ fn render(
     };
     let views = default_stereo_views(vol, placement, 0.064);
     let model = world_from_tex(vol, placement);
+    let frame = FrameViews {
+        views: &views,
+        model,
+        clip: Some(clip),
+    };
     hr.render(
         &tex,
         Some(&cao.ao),
-        &views,
-        model,
+        &frame,
         (64, 64),
         &RenderSettings::default(),
-        Some(clip),
     )
     .unwrap()
 }

@@ -62,17 +62,12 @@ fn render(vol: &Volume, settings: &RenderSettings) -> (StereoImage, [View; 2]) {
     let tex = VolumeTextures::new(&gpu, vol, &tf).unwrap();
     let placement = Placement::default();
     let v = views(&placement);
-    let img = hr
-        .render(
-            &tex,
-            None,
-            &v,
-            cao_xr::render::world_from_tex(vol, &placement),
-            (W, W),
-            settings,
-            None,
-        )
-        .unwrap();
+    let frame = cao_xr::render::FrameViews {
+        views: &v,
+        model: cao_xr::render::world_from_tex(vol, &placement),
+        clip: None,
+    };
+    let img = hr.render(&tex, None, &frame, (W, W), settings).unwrap();
     drop((tex, hr));
     common::assert_no_validation_messages(&gpu);
     (img, v)

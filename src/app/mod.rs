@@ -9,8 +9,8 @@ use crate::ao::{LaoGpu, LaoParams};
 use crate::gpu::{Buffer, Gpu, GpuError};
 use crate::render::png_out::PngError;
 use crate::render::{
-    default_stereo_views, world_from_tex, ClipBinding, Placement, RenderSettings, Renderer,
-    StereoImage, StereoTarget, VolumeTextures,
+    default_stereo_views, world_from_tex, ClipBinding, FrameViews, Placement, RenderSettings,
+    Renderer, StereoImage, StereoTarget, VolumeTextures,
 };
 use crate::scene::Tool;
 use crate::volume::nrrd::{self, NrrdData};
@@ -197,17 +197,14 @@ impl HeadlessRenderer {
         })
     }
 
-    /// Renders both eyes of `views` with the given AO buffer (or no AO) in one command buffer;
-    /// `model` is the volume's [`world_from_tex`].
+    /// Renders both eyes of `frame` with the given AO buffer (or no AO) in one command buffer.
     pub fn render(
         &mut self,
         tex: &VolumeTextures,
         ao: Option<&Buffer>,
-        views: &[crate::render::View; 2],
-        model: glam::Mat4,
+        frame: &FrameViews,
         size: (u32, u32),
         settings: &RenderSettings,
-        clip: Option<ClipBinding>,
     ) -> Result<StereoImage> {
         let target = StereoTarget::new(&self.gpu, size.0, size.1)?;
         let renderer = &mut self.renderer;
@@ -216,7 +213,7 @@ impl HeadlessRenderer {
             if let Some(ao) = ao {
                 tex.cmd_update_ambient(cmd, ao);
             }
-            rec = renderer.record(cmd, &target, tex, views, model, settings, clip);
+            rec = renderer.record(cmd, &target, tex, frame, settings);
         })?;
         rec?;
         Ok(target.read_back(&self.gpu)?)
@@ -243,7 +240,12 @@ pub fn render_to_dir(
     let views = default_stereo_views(vol, &placement, 0.064);
     let model = world_from_tex(vol, &placement);
     let (img, metrics) = if tools.is_empty() {
-        let img = hr.render(&tex, Some(&ao.ao_buf), &views, model, size, settings, None)?;
+        let frame = FrameViews {
+            views: &views,
+            model,
+            clip: None,
+        };
+        let img = hr.render(&tex, Some(&ao.ao_buf), &frame, size, settings)?;
         (img, None)
     } else {
         let mut cao = ao.into_cao(gpu, vol, *params)?;
@@ -255,15 +257,12 @@ pub fn render_to_dir(
             maps,
             count,
         };
-        let img = hr.render(
-            &tex,
-            Some(&cao.ao),
-            &views,
+        let frame = FrameViews {
+            views: &views,
             model,
-            size,
-            settings,
-            Some(clip),
-        )?;
+            clip: Some(clip),
+        };
+        let img = hr.render(&tex, Some(&cao.ao), &frame, size, settings)?;
         (img, Some(m))
     };
     img.write_pngs(out)?;

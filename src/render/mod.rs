@@ -296,6 +296,15 @@ pub struct Renderer {
     no_clip: Buffer,
 }
 
+/// What one stereo frame looks at: both views, the volume's model matrix ([`world_from_tex`])
+/// and the tools that clip it.
+#[derive(Clone, Copy)]
+pub struct FrameViews<'a> {
+    pub views: &'a [View; 2],
+    pub model: Mat4,
+    pub clip: Option<ClipBinding<'a>>,
+}
+
 /// The tools that clip the rendered volume: CAO's tool table and clip maps (see
 /// shaders/include/clip.glsl), so the views cut exactly where the AO was cut.
 #[derive(Clone, Copy)]
@@ -437,11 +446,10 @@ impl Renderer {
         cmd: vk::CommandBuffer,
         target: &StereoTarget,
         tex: &VolumeTextures,
-        views: &[View; 2],
-        world_from_tex: Mat4,
+        frame: &FrameViews,
         settings: &RenderSettings,
-        clip: Option<ClipBinding>,
     ) -> Result<()> {
+        let (views, world_from_tex, clip) = (frame.views, frame.model, frame.clip);
         let ext = tex.extent_mm();
         let min_spacing = tex.spacing.iter().cloned().fold(f64::MAX, f64::min) as f32;
         let step = if settings.step_mm > 0.0 {
