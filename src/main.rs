@@ -113,6 +113,28 @@ enum Cmd {
 
 #[derive(Subcommand)]
 enum BenchCmd {
+    /// CAO vs the naive full LAO recompute per frame, a 25 mm sphere sweeping through the
+    /// phantom at 64^3 and 128^3 and the CT head (or VOLUME).
+    Cao {
+        volume: Option<String>,
+        #[arg(long, value_delimiter = ',', default_value = "6,14,26,54")]
+        rays: Vec<u32>,
+        /// Frames of the sweep.
+        #[arg(long, default_value_t = 8)]
+        frames: usize,
+        /// Runs per row (the median is printed).
+        #[arg(long, default_value_t = 3)]
+        runs: usize,
+        #[arg(long, default_value_t = LaoParams::default().steps)]
+        steps: u32,
+        #[arg(long, default_value_t = LaoParams::default().step_mm)]
+        step_mm: f32,
+        #[arg(long, default_value = "ct-bone")]
+        tf: String,
+        /// Compare every naive frame with CAO bit for bit; exit non-zero on a difference.
+        #[arg(long)]
+        verify: bool,
+    },
     /// LAO precompute time and throughput: phantom 64^3 and 128^3 and the CT head (or VOLUME).
     Lao {
         /// Volume to measure instead of the default set.
@@ -214,6 +236,21 @@ fn parse_size(s: &str) -> Result<(u32, u32), String> {
         (Some(w), Some(h)) => Ok((w, h)),
         _ => Err("width and height must be 16..=8192".into()),
     }
+}
+
+/// VOLUME if given, else the phantom at 64^3 and 128^3 and the CT head if fetched.
+fn bench_volumes(volume: Option<String>) -> Result<Vec<cao_xr::volume::Volume>> {
+    Ok(match volume {
+        Some(v) => vec![app::load_volume(Some(&v), None)?],
+        None => {
+            let mut v = vec![phantom::head(64), phantom::head(128)];
+            match app::load_volume(Some("ct-head"), None) {
+                Ok(ct) => v.push(ct),
+                Err(e) => eprintln!("skipping the CT head: {e}"),
+            }
+            v
+        }
+    })
 }
 
 fn gpu(cli_validation: bool) -> Result<Gpu> {
@@ -339,17 +376,7 @@ fn run(cli: Cli) -> Result<()> {
                 },
         } => {
             let tf = TransferFunction::resolve(&tf)?;
-            let volumes = match volume {
-                Some(v) => vec![app::load_volume(Some(&v), None)?],
-                None => {
-                    let mut v = vec![phantom::head(64), phantom::head(128)];
-                    match app::load_volume(Some("ct-head"), None) {
-                        Ok(ct) => v.push(ct),
-                        Err(e) => eprintln!("skipping the CT head: {e}"),
-                    }
-                    v
-                }
-            };
+            let volumes = bench_volumes(volume)?;
             let gpu = gpu(cli.validation)?;
             let base = LaoParams {
                 rays: 6,
@@ -357,6 +384,38 @@ fn run(cli: Cli) -> Result<()> {
                 step_mm,
             };
             app::bench::bench_lao(&gpu, &volumes, &tf, &rays, &base, runs)?;
+        }
+        Cmd::Bench {
+            what:
+                BenchCmd::Cao {
+                    volume,
+                    rays,
+                    frames,
+                    runs,
+                    steps,
+                    step_mm,
+                    tf,
+                    verify,
+                },
+        } => {
+            let tf = TransferFunction::resolve(&tf)?;
+            let volumes = bench_volumes(volume)?;
+            let gpu = gpu(cli.validation)?;
+            let base = LaoParams {
+                rays: 6,
+                steps,
+                step_mm,
+            };
+            app::bench::bench_cao(
+                &gpu,
+                &volumes,
+                &tf,
+                &rays,
+                &base,
+                frames.max(1),
+                runs,
+                verify,
+            )?;
         }
         Cmd::FetchCt { force } => {
             let cached = ct_head::cached_path();

@@ -427,7 +427,13 @@ impl Cao {
         if mode == Mode::Naive {
             boxes = vec![self.whole()];
         }
+        // The naive pass rewrites every voxel, so it needs no restore.
         let restore: Vec<VoxelBox> = std::mem::take(&mut self.prev_boxes);
+        let restore = if mode == Mode::Naive {
+            Vec::new()
+        } else {
+            restore
+        };
         unsafe {
             self.gpu
                 .device

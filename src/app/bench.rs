@@ -88,3 +88,155 @@ pub fn bench_lao(
     }
     Ok(rows)
 }
+
+#[derive(Clone, Debug)]
+pub struct CaoBenchRow {
+    pub volume: String,
+    pub dims: [usize; 3],
+    pub rays: u32,
+    pub frames: usize,
+    pub naive_frames: usize,
+    pub naive_ms: f64,
+    pub cao_ms: f64,
+    pub percent_recomputed: f64,
+}
+
+/// A sphere tool of `radius_mm` sweeping left to right through the front half of the volume.
+pub fn sweep_tools(vol: &Volume, radius_mm: f32, frames: usize) -> Vec<Vec<crate::scene::Tool>> {
+    use crate::render::{Placement, Pose};
+    use crate::scene::{Shape, Tool, ToolMode};
+    let p = Placement::default();
+    let ext = vol.extent_mm();
+    let half = (ext.max_element() * 0.5) as f32 * 1e-3;
+    (0..frames)
+        .map(|f| {
+            let t = if frames > 1 {
+                f as f32 / (frames - 1) as f32
+            } else {
+                0.5
+            };
+            let x = (-0.6 + 1.2 * t) * half;
+            vec![Tool {
+                shape: Shape::Sphere,
+                pose: Pose {
+                    position: p.center + glam::Vec3::new(x, 0.15 * half, 0.45 * half),
+                    orientation: glam::Quat::IDENTITY,
+                },
+                size: radius_mm * 1e-3,
+                mode: ToolMode::Carve,
+                active: true,
+            }]
+        })
+        .collect()
+}
+
+/// Mean GPU ms per frame of CAO and of the naive full recompute over a sphere sweep, medians of
+/// `runs` runs, both measured in the same run. With `verify`, every naive frame is compared with
+/// the CAO frame bit for bit; the first difference is an error naming the frame and voxel.
+#[allow(clippy::too_many_arguments)]
+pub fn bench_cao(
+    gpu: &Gpu,
+    volumes: &[Volume],
+    tf: &TransferFunction,
+    ks: &[u32],
+    base: &LaoParams,
+    frames: usize,
+    runs: usize,
+    verify: bool,
+) -> Result<Vec<CaoBenchRow>> {
+    use crate::ao::cao::Mode;
+    let lao = LaoGpu::new(gpu)?;
+    let placement = crate::render::Placement::default();
+    println!(
+        "CAO vs naive LAO per frame on {} (sphere of 25 mm radius sweeping; GPU ms, mean over the \
+         frames, median of {runs} run(s))",
+        gpu.device_name
+    );
+    println!(
+        "{:<14} {:>13} {:>4} {:>7} {:>12} {:>10} {:>8} {:>12}",
+        "volume", "dims", "K", "frames", "naive ms", "CAO ms", "speedup", "% recomputed"
+    );
+    let mut rows = Vec::new();
+    for vol in volumes {
+        // A naive frame of a large volume takes a minute on a CPU device: time fewer of them.
+        let large = gpu.is_cpu() && vol.voxel_count() > 2_000_000;
+        let naive_frames = if large { frames.min(2) } else { frames };
+        for &k in ks {
+            let params = LaoParams { rays: k, ..*base };
+            let new_cao = || -> Result<crate::ao::cao::Cao> {
+                precompute_ao(gpu, &lao, vol, tf, &params, false)?.into_cao(gpu, vol, params)
+            };
+            let (mut cao, mut naive) = (new_cao()?, new_cao()?);
+            let sweep = sweep_tools(vol, 25.0, frames);
+            let (mut c_runs, mut n_runs, mut pct) = (Vec::new(), Vec::new(), 0.0);
+            for _ in 0..runs.max(1) {
+                let (mut c_ms, mut n_ms) = (0.0, 0.0);
+                for (f, tools) in sweep.iter().enumerate() {
+                    let m = cao.run_frame(tools, &placement, Mode::Contextual)?;
+                    c_ms += m.gpu_ms();
+                    pct += m.percent_recomputed();
+                    // Naive frames spread evenly over the sweep when only a few are timed.
+                    let stride = frames.div_ceil(naive_frames.max(1)).max(1);
+                    if f % stride == stride / 2 || naive_frames == frames {
+                        n_ms += naive.run_frame(tools, &placement, Mode::Naive)?.gpu_ms();
+                        if verify {
+                            let (a, b) = (cao.ao.read_back()?, naive.ao.read_back()?);
+                            let (a, b): (&[f32], &[f32]) =
+                                (bytemuck::cast_slice(&a), bytemuck::cast_slice(&b));
+                            if let Some(v) = a
+                                .iter()
+                                .zip(b)
+                                .position(|(x, y)| x.to_bits() != y.to_bits())
+                            {
+                                return Err(super::AppError::Usage(format!(
+                                    "verify: {} K={k} frame {f}: voxel {v} ({}, {}, {}) has CAO {} but naive LAO {}",
+                                    vol.name,
+                                    v % vol.dims[0],
+                                    (v / vol.dims[0]) % vol.dims[1],
+                                    v / (vol.dims[0] * vol.dims[1]),
+                                    a[v],
+                                    b[v]
+                                )));
+                            }
+                        }
+                    }
+                }
+                c_runs.push(c_ms / frames as f64);
+                n_runs.push(n_ms / naive_frames.min(frames).max(1) as f64);
+            }
+            let row = CaoBenchRow {
+                volume: vol.name.clone(),
+                dims: vol.dims,
+                rays: k,
+                frames,
+                naive_frames,
+                naive_ms: median(&mut n_runs),
+                cao_ms: median(&mut c_runs),
+                percent_recomputed: pct / (frames * runs.max(1)) as f64,
+            };
+            println!(
+                "{:<14} {:>13} {:>4} {:>7} {:>12.1} {:>10.1} {:>7.1}x {:>12.2}",
+                row.volume,
+                format!("{}x{}x{}", row.dims[0], row.dims[1], row.dims[2]),
+                row.rays,
+                if naive_frames < frames {
+                    format!("{frames}/{naive_frames}")
+                } else {
+                    frames.to_string()
+                },
+                row.naive_ms,
+                row.cao_ms,
+                row.naive_ms / row.cao_ms,
+                row.percent_recomputed
+            );
+            rows.push(row);
+        }
+    }
+    if rows.iter().any(|r| r.naive_frames < r.frames) {
+        println!("(frames a/b: CAO timed on a frames, naive LAO on b of them, on this CPU device)");
+    }
+    if verify {
+        println!("verify: every naive frame equals the CAO frame bit for bit");
+    }
+    Ok(rows)
+}
