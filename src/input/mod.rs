@@ -8,9 +8,13 @@
 //! Everything is in the OpenXR STAGE space: metres, +Y up, right-handed, a user standing at the
 //! origin looking down -Z.
 
+pub mod interaction;
 pub mod script;
 pub mod stream;
 
+pub use interaction::{
+    GrabMode, Interaction, InteractionSettings, LEFT_TOOL, RIGHT_TOOL, SUGGESTED_SMOOTHING_HZ,
+};
 pub use script::{generate, script_header, write_script, ScriptError, ScriptKind, ScriptParams};
 pub use stream::{
     read_stream, replay_schedule, LineError, PoseStreamReader, PoseStreamWriter, StreamError,
