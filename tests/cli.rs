@@ -272,3 +272,82 @@ fn bad_input_is_refused_with_the_file_named() {
     ]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("no-such-tf"));
 }
+
+#[test]
+fn bench_cao_verifies_and_prints_the_speedup() {
+    let out = cao(&[
+        "bench",
+        "cao",
+        "phantom:32",
+        "--rays",
+        "6",
+        "--frames",
+        "3",
+        "--runs",
+        "1",
+        "--steps",
+        "4",
+        "--verify",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("speedup") && text.contains("bit for bit"),
+        "{text}"
+    );
+    let row = text
+        .lines()
+        .find(|l| l.starts_with("phantom-32"))
+        .expect("a phantom-32 row");
+    let speedup: f64 = row
+        .split_whitespace()
+        .nth(6)
+        .unwrap()
+        .trim_end_matches('x')
+        .parse()
+        .unwrap();
+    assert!(speedup > 0.0, "{row}");
+}
+
+#[test]
+fn render_with_a_tool_reports_the_cut() {
+    let dir = tmp("carve");
+    let out = cao(&[
+        "render",
+        "phantom:32",
+        "--size",
+        "32x32",
+        "--rays",
+        "6",
+        "--steps",
+        "4",
+        "--tool",
+        "sphere:40",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("CAO:") && text.contains("recomputed"),
+        "{text}"
+    );
+    let bad = cao(&[
+        "render",
+        "phantom:16",
+        "--tool",
+        "blob",
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--tool 'blob'"));
+}

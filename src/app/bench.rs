@@ -163,10 +163,9 @@ pub fn bench_cao(
         let naive_frames = if large { frames.min(2) } else { frames };
         for &k in ks {
             let params = LaoParams { rays: k, ..*base };
-            let new_cao = || -> Result<crate::ao::cao::Cao> {
-                precompute_ao(gpu, &lao, vol, tf, &params, false)?.into_cao(gpu, vol, params)
-            };
-            let (mut cao, mut naive) = (new_cao()?, new_cao()?);
+            let ao = precompute_ao(gpu, &lao, vol, tf, &params, false)?;
+            let mut naive = ao.duplicate()?.into_cao(gpu, vol, params)?;
+            let mut cao = ao.into_cao(gpu, vol, params)?;
             let sweep = sweep_tools(vol, 25.0, frames);
             let (mut c_runs, mut n_runs, mut pct) = (Vec::new(), Vec::new(), 0.0);
             for _ in 0..runs.max(1) {

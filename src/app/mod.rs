@@ -111,6 +111,21 @@ pub struct AoVolume {
 }
 
 impl AoVolume {
+    /// A second, independent copy on the GPU (to run two CAO states side by side).
+    pub fn duplicate(&self) -> Result<AoVolume> {
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
+        Ok(AoVolume {
+            opacity: self.opacity.clone(),
+            opacity_buf: self.opacity_buf.duplicate(usage, "opacity")?,
+            ao_buf: self.ao_buf.duplicate(usage, "pao")?,
+            skip: SkipBuffers {
+                clear: self.skip.clear.duplicate(usage, "lao-clear")?,
+                bricks: self.skip.bricks.duplicate(usage, "lao-bricks")?,
+            },
+            timing: self.timing.clone(),
+        })
+    }
+
     /// Hands O, V_PAO and the skipping data to a CAO state for per-frame clipping.
     pub fn into_cao(self, gpu: &Gpu, vol: &Volume, params: LaoParams) -> Result<Cao> {
         Ok(Cao::new(

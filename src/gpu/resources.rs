@@ -90,13 +90,32 @@ impl Buffer {
         let b = Buffer::new(
             gpu,
             bytes.len() as u64,
-            usage | vk::BufferUsageFlags::TRANSFER_DST,
+            // Copyable both ways, so it can be read back or duplicated.
+            usage | vk::BufferUsageFlags::TRANSFER_DST | vk::BufferUsageFlags::TRANSFER_SRC,
             MemoryLocation::GpuOnly,
             name,
         )?;
         gpu.submit_and_wait(|cmd| unsafe {
             let region = [vk::BufferCopy::default().size(bytes.len().max(4) as u64)];
             gpu.device.cmd_copy_buffer(cmd, staging.raw, b.raw, &region);
+        })?;
+        Ok(b)
+    }
+
+    /// A device-local copy of this buffer (same size and usage).
+    pub fn duplicate(&self, usage: vk::BufferUsageFlags, name: &str) -> Result<Buffer> {
+        let b = Buffer::new(
+            &self.gpu,
+            self.size,
+            usage | vk::BufferUsageFlags::TRANSFER_DST,
+            MemoryLocation::GpuOnly,
+            name,
+        )?;
+        self.gpu.submit_and_wait(|cmd| unsafe {
+            let region = [vk::BufferCopy::default().size(self.size.max(4))];
+            self.gpu
+                .device
+                .cmd_copy_buffer(cmd, self.raw, b.raw, &region);
         })?;
         Ok(b)
     }
