@@ -116,42 +116,66 @@ enum BenchCmd {
     /// CAO vs the naive full LAO recompute per frame, a 25 mm sphere sweeping through the
     /// phantom at 64^3 and 128^3 and the CT head (or VOLUME).
     Cao {
-        volume: Option<String>,
+        #[command(flatten)]
+        common: BenchArgs,
         #[arg(long, value_delimiter = ',', default_value = "6,14,26,54")]
         rays: Vec<u32>,
         /// Frames of the sweep.
         #[arg(long, default_value_t = 8)]
         frames: usize,
-        /// Runs per row (the median is printed).
-        #[arg(long, default_value_t = 3)]
-        runs: usize,
-        #[arg(long, default_value_t = LaoParams::default().steps)]
-        steps: u32,
-        #[arg(long, default_value_t = LaoParams::default().step_mm)]
-        step_mm: f32,
-        #[arg(long, default_value = "ct-bone")]
-        tf: String,
         /// Compare every naive frame with CAO bit for bit; exit non-zero on a difference.
         #[arg(long)]
         verify: bool,
     },
     /// LAO precompute time and throughput: phantom 64^3 and 128^3 and the CT head (or VOLUME).
     Lao {
-        /// Volume to measure instead of the default set.
-        volume: Option<String>,
-        /// Runs per row (the median is printed).
-        #[arg(long, default_value_t = 3)]
-        runs: usize,
+        #[command(flatten)]
+        common: BenchArgs,
         /// Ray counts to measure.
         #[arg(long, value_delimiter = ',', default_value = "6,14,26")]
         rays: Vec<u32>,
-        #[arg(long, default_value_t = LaoParams::default().steps)]
-        steps: u32,
-        #[arg(long, default_value_t = LaoParams::default().step_mm)]
-        step_mm: f32,
-        #[arg(long, default_value = "ct-bone")]
-        tf: String,
     },
+}
+
+#[derive(Args)]
+struct BenchArgs {
+    /// Volume to measure instead of the default set.
+    volume: Option<String>,
+    /// Runs per row (the median is printed).
+    #[arg(long, default_value_t = 3)]
+    runs: usize,
+    #[arg(long, default_value_t = LaoParams::default().steps)]
+    steps: u32,
+    #[arg(long, default_value_t = LaoParams::default().step_mm)]
+    step_mm: f32,
+    #[arg(long, default_value = "ct-bone")]
+    tf: String,
+}
+
+/// What both benchmarks start from: the transfer function, the volumes, the GPU, base LAO
+/// parameters (K is set per row).
+struct BenchSetup {
+    tf: TransferFunction,
+    volumes: Vec<cao_xr::volume::Volume>,
+    gpu: Gpu,
+    base: LaoParams,
+    runs: usize,
+}
+
+impl BenchArgs {
+    fn setup(self, validation: bool) -> Result<BenchSetup> {
+        Ok(BenchSetup {
+            tf: TransferFunction::resolve(&self.tf)?,
+            volumes: bench_volumes(self.volume)?,
+            gpu: gpu(validation)?,
+            base: LaoParams {
+                rays: 6,
+                steps: self.steps,
+                step_mm: self.step_mm,
+            },
+            runs: self.runs,
+        })
+    }
 }
 
 #[derive(Args)]
@@ -365,56 +389,24 @@ fn run(cli: Cli) -> Result<()> {
             );
         }
         Cmd::Bench {
-            what:
-                BenchCmd::Lao {
-                    volume,
-                    runs,
-                    rays,
-                    steps,
-                    step_mm,
-                    tf,
-                },
+            what: BenchCmd::Lao { common, rays },
         } => {
-            let tf = TransferFunction::resolve(&tf)?;
-            let volumes = bench_volumes(volume)?;
-            let gpu = gpu(cli.validation)?;
-            let base = LaoParams {
-                rays: 6,
-                steps,
-                step_mm,
-            };
-            app::bench::bench_lao(&gpu, &volumes, &tf, &rays, &base, runs)?;
+            let b = common.setup(cli.validation)?;
+            app::bench::bench_lao(&b.gpu, &b.volumes, &b.tf, &rays, &b.base, b.runs)?;
         }
         Cmd::Bench {
             what:
                 BenchCmd::Cao {
-                    volume,
+                    common,
                     rays,
                     frames,
-                    runs,
-                    steps,
-                    step_mm,
-                    tf,
                     verify,
                 },
         } => {
-            let tf = TransferFunction::resolve(&tf)?;
-            let volumes = bench_volumes(volume)?;
-            let gpu = gpu(cli.validation)?;
-            let base = LaoParams {
-                rays: 6,
-                steps,
-                step_mm,
-            };
+            let b = common.setup(cli.validation)?;
+            let frames = frames.max(1);
             app::bench::bench_cao(
-                &gpu,
-                &volumes,
-                &tf,
-                &rays,
-                &base,
-                frames.max(1),
-                runs,
-                verify,
+                &b.gpu, &b.volumes, &b.tf, &rays, &b.base, frames, b.runs, verify,
             )?;
         }
         Cmd::FetchCt { force } => {
