@@ -87,6 +87,36 @@ enum Cmd {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Render every frame of a pose stream headless (both eyes side by side) with per-frame
+    /// metrics: DIR/frame-00000.png ..., DIR/metrics.csv, optionally an animated PNG.
+    Replay {
+        /// The pose stream (.jsonl), e.g. controllers/scripts/sphere-sweep.jsonl.
+        script: PathBuf,
+        #[command(flatten)]
+        vol: VolumeArgs,
+        #[command(flatten)]
+        lao: LaoArgs,
+        #[arg(long, default_value = "out/replay")]
+        out: PathBuf,
+        /// Keep one frame in N as PNG.
+        #[arg(long, default_value_t = 1)]
+        every: usize,
+        /// Write an animated PNG (APNG) of the kept frames.
+        #[arg(long)]
+        preview: Option<PathBuf>,
+        /// Pixels per eye, WIDTHxHEIGHT.
+        #[arg(long, default_value = "320x320", value_parser = parse_size)]
+        size: (u32, u32),
+        /// Recompute LAO for every voxel every frame (the baseline) instead of CAO.
+        #[arg(long)]
+        naive: bool,
+        /// Play at the recorded timing instead of as fast as possible.
+        #[arg(long)]
+        realtime: bool,
+        /// The right hand's tool: sphere, box, cylinder, torus (default: from the stream).
+        #[arg(long)]
+        shape: Option<String>,
+    },
     /// Generate a scripted pose stream (JSON Lines) for replay and tests.
     Script {
         /// sphere-sweep, box-push-pull, torus-pass, two-tools, grab-scale or tremor.
@@ -428,6 +458,46 @@ fn run(cli: Cli) -> Result<()> {
             let v = phantom::head(size);
             cao_xr::volume::nrrd::write_volume(&out, &v, true)?;
             println!("wrote {}", out.display());
+        }
+        Cmd::Replay {
+            script,
+            vol,
+            lao,
+            out,
+            every,
+            preview,
+            size,
+            naive,
+            realtime,
+            shape,
+        } => {
+            let (v, tf) = vol.load()?;
+            let gpu = gpu(cli.validation)?;
+            let shape = match shape.as_deref() {
+                None => None,
+                Some(s) => Some(app::parse_tool(s, &Default::default())?.shape),
+            };
+            let opts = app::replay::ReplayOptions {
+                every,
+                preview,
+                size,
+                mode: if naive {
+                    cao_xr::ao::cao::Mode::Naive
+                } else {
+                    Default::default()
+                },
+                realtime,
+                shape,
+            };
+            let s = app::replay::replay(&gpu, &script, &v, &tf, lao.params(), &out, &opts)?;
+            println!(
+                "replayed {} frames into {} ({} PNGs, metrics.csv): mean AO update {:.1} ms, {:.2} % recomputed",
+                s.frames,
+                out.display(),
+                s.pngs,
+                s.mean_ao_ms,
+                s.mean_percent_recomputed
+            );
         }
         Cmd::Script {
             kind,

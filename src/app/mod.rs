@@ -2,6 +2,8 @@
 //! write the results. The CLI in main.rs only parses arguments and calls these.
 
 pub mod bench;
+pub mod frame_loop;
+pub mod replay;
 
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
 use crate::ao::lao::{directions, LaoTiming, SkipBuffers};

@@ -1,0 +1,205 @@
+//! `cao-xr replay`: renders every frame of a pose stream headless through the one frame loop,
+//! writing side-by-side PNGs, per-frame metrics (CSV) and an optional animated PNG preview.
+
+use super::frame_loop::FrameLoop;
+use super::{AppError, Result};
+use crate::ao::cao::Mode;
+use crate::ao::LaoParams;
+use crate::gpu::Gpu;
+use crate::input::{read_stream, replay_schedule, InteractionSettings, StreamHeader};
+use crate::render::png_out::write_rgb;
+use crate::scene::{Shape, Tool, ToolMode};
+use crate::volume::transfer::TransferFunction;
+use crate::volume::Volume;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+#[derive(Clone, Debug)]
+pub struct ReplayOptions {
+    /// Keep one frame in `every` as PNG (and in the preview).
+    pub every: usize,
+    /// Also write an animated PNG of the kept frames here.
+    pub preview: Option<PathBuf>,
+    /// Pixels per eye.
+    pub size: (u32, u32),
+    pub mode: Mode,
+    /// Wait for each frame's recorded time instead of running as fast as possible.
+    pub realtime: bool,
+    /// The right hand's tool shape; by default from the stream's description ("box tool: ...").
+    pub shape: Option<Shape>,
+}
+
+impl Default for ReplayOptions {
+    fn default() -> Self {
+        ReplayOptions {
+            every: 1,
+            preview: None,
+            size: (320, 320),
+            mode: Mode::Contextual,
+            realtime: false,
+            shape: None,
+        }
+    }
+}
+
+/// What the replay did, for the caller's summary line.
+#[derive(Clone, Debug, Default)]
+pub struct ReplaySummary {
+    pub frames: usize,
+    pub pngs: usize,
+    pub mean_ao_ms: f64,
+    pub mean_percent_recomputed: f64,
+}
+
+/// The shape a scripted stream names at the start of its description, e.g. "torus tool: ...".
+pub fn shape_from_header(header: &StreamHeader) -> Option<Shape> {
+    let first = header.description.split_whitespace().next()?;
+    Some(match first {
+        "sphere" => Shape::Sphere,
+        "box" => Shape::Box,
+        "cylinder" => Shape::Cylinder,
+        "torus" => Shape::Torus,
+        _ => return None,
+    })
+}
+
+fn out_err(path: &Path, e: impl std::fmt::Display) -> AppError {
+    AppError::Output {
+        path: path.display().to_string(),
+        msg: e.to_string(),
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+pub fn replay(
+    gpu: &Gpu,
+    script: &Path,
+    vol: &Volume,
+    tf: &TransferFunction,
+    params: LaoParams,
+    out: &Path,
+    opts: &ReplayOptions,
+) -> Result<ReplaySummary> {
+    let (header, frames) = read_stream(script).map_err(|e| AppError::Usage(e.to_string()))?;
+    if frames.is_empty() {
+        return Err(AppError::Usage(format!(
+            "{}: the stream has no frames",
+            script.display()
+        )));
+    }
+    std::fs::create_dir_all(out).map_err(|e| out_err(out, e))?;
+    // Scripts describe where the tool goes, so their grip is the tool: no offset in the hand.
+    let mut interaction = InteractionSettings::default();
+    if header.source.starts_with("script:") {
+        interaction.tool_offset = glam::Vec3::ZERO;
+    }
+    let mut fl = FrameLoop::new(gpu, vol, tf, params, opts.size, interaction, true)?;
+    fl.mode = opts.mode;
+    fl.scene.tools.push(Tool {
+        shape: opts
+            .shape
+            .or_else(|| shape_from_header(&header))
+            .unwrap_or(Shape::Sphere),
+        pose: crate::render::Pose::IDENTITY,
+        size: fl.interaction.settings().tool_size,
+        mode: ToolMode::Carve,
+        active: false,
+    });
+
+    let csv_path = out.join("metrics.csv");
+    let mut csv = std::io::BufWriter::new(
+        std::fs::File::create(&csv_path).map_err(|e| out_err(&csv_path, e))?,
+    );
+    writeln!(
+        csv,
+        "frame,time_s,frame_ms,ao_update_ms,restore_ms,clip_ms,update_ms,render_ms,clipped,recomputed,percent_recomputed"
+    )
+    .map_err(|e| out_err(&csv_path, e))?;
+    let every = opts.every.max(1);
+    let mut kept: Vec<Vec<u8>> = Vec::new();
+    let mut summary = ReplaySummary {
+        frames: frames.len(),
+        ..Default::default()
+    };
+    let start = std::time::Instant::now();
+    for (i, due) in replay_schedule(&frames, opts.realtime) {
+        if let Some(due) = due {
+            if let Some(wait) = due.checked_sub(start.elapsed()) {
+                std::thread::sleep(wait);
+            }
+        }
+        let f = fl.frame(&frames[i])?;
+        let m = &f.metrics;
+        writeln!(
+            csv,
+            "{i},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{:.4}",
+            frames[i].time,
+            f.frame_ms,
+            m.gpu_ms(),
+            m.restore_ms,
+            m.clip_ms,
+            m.update_ms,
+            f.render_ms,
+            m.clipped,
+            m.recomputed,
+            m.percent_recomputed()
+        )
+        .map_err(|e| out_err(&csv_path, e))?;
+        eprintln!(
+            "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {:>8.1} ms  render {:>8.1} ms  recomputed {:>6.2} %",
+            frames.len(),
+            frames[i].time,
+            f.frame_ms,
+            m.gpu_ms(),
+            f.render_ms,
+            m.percent_recomputed()
+        );
+        summary.mean_ao_ms += m.gpu_ms() / frames.len() as f64;
+        summary.mean_percent_recomputed += m.percent_recomputed() / frames.len() as f64;
+        if i % every == 0 {
+            let rgb = f.image.side_by_side_rgb();
+            let path = out.join(format!("frame-{i:05}.png"));
+            write_rgb(&path, f.image.width * 2, f.image.height, &rgb)?;
+            summary.pngs += 1;
+            if opts.preview.is_some() {
+                kept.push(rgb);
+            }
+        }
+    }
+    csv.flush().map_err(|e| out_err(&csv_path, e))?;
+    if let Some(p) = &opts.preview {
+        let fps = frames.len() as f64 / (frames.last().unwrap().time - frames[0].time).max(1e-3);
+        write_apng(
+            p,
+            opts.size.0 * 2,
+            opts.size.1,
+            &kept,
+            (fps / every as f64).max(1.0),
+        )?;
+    }
+    Ok(summary)
+}
+
+/// An animated PNG (APNG) of equally sized RGB frames, looping forever.
+pub fn write_apng(
+    path: &Path,
+    width: u32,
+    height: u32,
+    frames: &[Vec<u8>],
+    fps: f64,
+) -> Result<()> {
+    let err = |e: png::EncodingError| out_err(path, e);
+    let file = std::fs::File::create(path).map_err(|e| out_err(path, e))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), width, height);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.set_animated(frames.len().max(1) as u32, 0)
+        .map_err(err)?;
+    enc.set_frame_delay(1000, (fps * 1000.0).round().clamp(1.0, 65535.0) as u16)
+        .map_err(err)?;
+    let mut w = enc.write_header().map_err(err)?;
+    for f in frames {
+        w.write_image_data(f).map_err(err)?;
+    }
+    w.finish().map_err(err)
+}
