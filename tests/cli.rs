@@ -351,3 +351,110 @@ fn render_with_a_tool_reports_the_cut() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--tool 'blob'"));
 }
+
+#[test]
+fn replay_writes_frames_metrics_and_preview() {
+    let dir = tmp("replay");
+    let script = dir.join("sweep.jsonl");
+    let out = cao(&[
+        "script",
+        "sphere-sweep",
+        "--frames",
+        "6",
+        "--out",
+        script.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let frames = dir.join("frames");
+    let preview = dir.join("preview.png");
+    let out = cao(&[
+        "replay",
+        script.to_str().unwrap(),
+        "phantom:24",
+        "--rays",
+        "6",
+        "--steps",
+        "3",
+        "--size",
+        "32x32",
+        "--every",
+        "2",
+        "--out",
+        frames.to_str().unwrap(),
+        "--preview",
+        preview.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for i in [0, 2, 4] {
+        assert!(
+            frames.join(format!("frame-{i:05}.png")).exists(),
+            "frame {i}"
+        );
+    }
+    assert!(
+        !frames.join("frame-00001.png").exists(),
+        "--every 2 keeps one frame in two"
+    );
+    let csv = std::fs::read_to_string(frames.join("metrics.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 7, "{csv}");
+    assert!(csv.starts_with("frame,time_s,frame_ms,ao_update_ms"));
+    let stats = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(
+        stats.lines().filter(|l| l.starts_with("frame ")).count(),
+        6,
+        "a stats line per frame"
+    );
+    let apng = std::fs::read(&preview).unwrap();
+    assert!(
+        apng.windows(4).any(|w| w == b"acTL"),
+        "the preview is animated"
+    );
+}
+
+#[test]
+fn every_committed_script_replays_without_validation_messages() {
+    let scripts = Path::new(env!("CARGO_MANIFEST_DIR")).join("controllers/scripts");
+    let mut n = 0;
+    for e in std::fs::read_dir(&scripts).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().and_then(|x| x.to_str()) != Some("jsonl") {
+            continue;
+        }
+        let dir = tmp(&format!(
+            "script-{}",
+            p.file_stem().unwrap().to_string_lossy()
+        ));
+        // cao() fails the test on any validation message or panic.
+        let out = cao(&[
+            "replay",
+            p.to_str().unwrap(),
+            "phantom:16",
+            "--rays",
+            "6",
+            "--steps",
+            "3",
+            "--size",
+            "16x16",
+            "--every",
+            "1000",
+            "--out",
+            dir.to_str().unwrap(),
+        ]);
+        assert!(
+            out.status.success(),
+            "{}: {}",
+            p.display(),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        n += 1;
+    }
+    assert!(n >= 6, "expected the six scripts, found {n}");
+}
