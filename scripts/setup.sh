@@ -6,7 +6,7 @@ set -euo pipefail
 
 need=()
 have_pkg() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }
-for p in libvulkan1 mesa-vulkan-drivers vulkan-validationlayers glslc; do
+for p in libvulkan1 mesa-vulkan-drivers vulkan-validationlayers glslc ${CAO_XR_EXTRA_PACKAGES:-}; do
   have_pkg "$p" || need+=("$p")
 done
 if [ ${#need[@]} -gt 0 ]; then

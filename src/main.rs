@@ -117,6 +117,31 @@ enum Cmd {
         #[arg(long)]
         shape: Option<String>,
     },
+    /// Open a desktop window: the mouse and keys are the head and the right hand (see README).
+    View {
+        #[command(flatten)]
+        vol: VolumeArgs,
+        #[command(flatten)]
+        lao: LaoArgs,
+        /// Pixels per eye, WIDTHxHEIGHT (the window shows both eyes side by side).
+        #[arg(long, default_value = "480x480", value_parser = parse_size)]
+        size: (u32, u32),
+        /// Close after this many frames.
+        #[arg(long)]
+        frames: Option<usize>,
+        /// Record the session as a pose stream (JSON Lines) that `cao-xr replay` plays back.
+        #[arg(long)]
+        record: Option<PathBuf>,
+        /// Move head and tool automatically (an orbit and a carving sweep).
+        #[arg(long)]
+        demo: bool,
+        /// Save the last frame the window showed as PNG.
+        #[arg(long)]
+        screenshot: Option<PathBuf>,
+        /// Write every frame shown (both eyes side by side) as DIR/frame-00000.png, ...
+        #[arg(long)]
+        dump: Option<PathBuf>,
+    },
     /// Generate a scripted pose stream (JSON Lines) for replay and tests.
     Script {
         /// sphere-sweep, box-push-pull, torus-pass, two-tools, grab-scale or tremor.
@@ -498,6 +523,28 @@ fn run(cli: Cli) -> Result<()> {
                 s.mean_ao_ms,
                 s.mean_percent_recomputed
             );
+        }
+        Cmd::View {
+            vol,
+            lao,
+            size,
+            frames,
+            record,
+            demo,
+            screenshot,
+            dump,
+        } => {
+            let (v, tf) = vol.load()?;
+            let opts = app::desktop::ViewOptions {
+                size,
+                frames,
+                record,
+                demo,
+                screenshot,
+                dump,
+            };
+            let n = app::desktop::run(&v, &tf, lao.params(), opts)?;
+            println!("closed after {n} frames");
         }
         Cmd::Script {
             kind,

@@ -25,6 +25,13 @@ pub struct FrameOutput {
     pub frame_ms: f64,
 }
 
+/// What one frame cost, without its pictures.
+pub struct FrameStats {
+    pub metrics: FrameMetrics,
+    pub render_ms: f64,
+    pub frame_ms: f64,
+}
+
 pub struct FrameLoop {
     pub gpu: Gpu,
     geometry: Volume,
@@ -68,8 +75,27 @@ impl FrameLoop {
         })
     }
 
-    /// Runs one frame: interaction, then AO update and both eyes in one command buffer.
+    /// Runs one frame and reads both eyes back to the host.
     pub fn frame(&mut self, input: &FrameInput) -> Result<FrameOutput> {
+        let t0 = std::time::Instant::now();
+        let stats = self.render(input)?;
+        let image = self.target.read_back(&self.gpu)?;
+        Ok(FrameOutput {
+            image,
+            metrics: stats.metrics,
+            render_ms: stats.render_ms,
+            frame_ms: t0.elapsed().as_secs_f64() * 1e3,
+        })
+    }
+
+    /// The stereo target the last frame was rendered into (both layers in TRANSFER_SRC layout).
+    pub fn target(&self) -> &StereoTarget {
+        &self.target
+    }
+
+    /// Runs one frame on the GPU: interaction, then AO update and both eyes in one command
+    /// buffer, leaving the images in [`FrameLoop::target`].
+    pub fn render(&mut self, input: &FrameInput) -> Result<FrameStats> {
         let t0 = std::time::Instant::now();
         self.interaction.update(input, &mut self.scene);
         let FrameLoop {
@@ -107,9 +133,7 @@ impl FrameLoop {
         let pending = recorded?.expect("recorded");
         let metrics = cao.read_metrics(pending)?;
         let render_ms = timer.read()?.first().map_or(0.0, |t| t.1);
-        let image = target.read_back(gpu)?;
-        Ok(FrameOutput {
-            image,
+        Ok(FrameStats {
             metrics,
             render_ms,
             frame_ms: t0.elapsed().as_secs_f64() * 1e3,

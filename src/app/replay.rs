@@ -88,11 +88,13 @@ pub fn replay(
         )));
     }
     std::fs::create_dir_all(out).map_err(|e| out_err(out, e))?;
-    // Scripts describe where the tool goes, so their grip is the tool: no offset in the hand.
-    let mut interaction = InteractionSettings::default();
-    if header.source.starts_with("script:") {
-        interaction.tool_offset = glam::Vec3::ZERO;
-    }
+    // Scripts and desktop sessions describe where the tool goes, so their grip is the tool:
+    // no offset in the hand (as the desktop window ran it).
+    let interaction = if header.source.starts_with("script:") || header.source == "desktop" {
+        super::desktop::desktop_interaction()
+    } else {
+        InteractionSettings::default()
+    };
     let mut fl = FrameLoop::new(gpu, vol, tf, params, opts.size, interaction, true)?;
     fl.mode = opts.mode;
     fl.scene.tools.push(Tool {

@@ -38,6 +38,8 @@ pub struct GpuOptions {
     pub validation: bool,
     /// Pick the first device whose name contains this (case-insensitive).
     pub device_name: Option<String>,
+    /// Enable presenting to X11 windows (VK_KHR_surface, xlib surface, swapchain).
+    pub present: bool,
 }
 
 impl Default for GpuOptions {
@@ -46,6 +48,7 @@ impl Default for GpuOptions {
         Self {
             validation: env_on.unwrap_or(cfg!(debug_assertions)),
             device_name: std::env::var("CAO_XR_DEVICE").ok(),
+            present: false,
         }
     }
 }
@@ -75,6 +78,8 @@ pub struct Core {
     cmd_pool: Mutex<vk::CommandPool>,
     pub device_name: String,
     pub device_type: vk::PhysicalDeviceType,
+    /// Whether the context can present to windows (GpuOptions::present).
+    pub present: bool,
     /// Nanoseconds per timestamp tick.
     pub timestamp_period: f32,
     pub limits: vk::PhysicalDeviceLimits,
@@ -134,6 +139,10 @@ impl Gpu {
             layers.push(VALIDATION_LAYER.as_ptr());
             exts.push(ash::ext::debug_utils::NAME.as_ptr());
         }
+        if opts.present {
+            exts.push(ash::khr::surface::NAME.as_ptr());
+            exts.push(ash::khr::xlib_surface::NAME.as_ptr());
+        }
         let severity = vk::DebugUtilsMessageSeverityFlagsEXT::WARNING
             | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR;
         let types = vk::DebugUtilsMessageTypeFlagsEXT::GENERAL
@@ -183,7 +192,10 @@ impl Gpu {
         let queue_info = [vk::DeviceQueueCreateInfo::default()
             .queue_family_index(queue_family)
             .queue_priorities(&priorities)];
-        let dev_exts = [ash::khr::push_descriptor::NAME.as_ptr()];
+        let mut dev_exts = vec![ash::khr::push_descriptor::NAME.as_ptr()];
+        if opts.present {
+            dev_exts.push(ash::khr::swapchain::NAME.as_ptr());
+        }
         let mut f13 = vk::PhysicalDeviceVulkan13Features::default()
             .dynamic_rendering(true)
             .synchronization2(true);
@@ -228,6 +240,7 @@ impl Gpu {
             cmd_pool: Mutex::new(cmd_pool),
             device_name,
             device_type: props.device_type,
+            present: opts.present,
             timestamp_period: props.limits.timestamp_period,
             limits: props.limits,
         })))

@@ -8,6 +8,7 @@
 //! Everything is in the OpenXR STAGE space: metres, +Y up, right-handed, a user standing at the
 //! origin looking down -Z.
 
+pub mod desktop;
 pub mod interaction;
 pub mod script;
 pub mod stream;

@@ -6,6 +6,7 @@ use cao_xr::gpu::{Gpu, GpuOptions};
 /// A Vulkan context with the Khronos validation layer on (required: a missing layer fails).
 pub fn gpu() -> Gpu {
     let opts = GpuOptions {
+        present: false,
         validation: true,
         device_name: None,
     };
