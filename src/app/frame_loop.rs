@@ -7,6 +7,7 @@ use crate::ao::cao::{Cao, FrameMetrics, Mode};
 use crate::ao::{LaoGpu, LaoParams};
 use crate::gpu::{Gpu, GpuTimer};
 use crate::input::{FrameInput, Interaction, InteractionSettings};
+use crate::render::{scene_overlay, OverlayRenderer};
 use crate::render::{
     world_from_tex, ClipBinding, FrameViews, RenderSettings, Renderer, StereoImage, StereoTarget,
     VolumeTextures,
@@ -38,6 +39,7 @@ pub struct FrameLoop {
     pub cao: Cao,
     pub tex: VolumeTextures,
     renderer: Renderer,
+    overlay: OverlayRenderer,
     target: StereoTarget,
     pub interaction: Interaction,
     pub scene: Scene,
@@ -66,6 +68,7 @@ impl FrameLoop {
             cao: ao.into_cao(gpu, vol, params)?,
             tex: VolumeTextures::new(gpu, vol, tf)?,
             renderer: Renderer::new(gpu)?,
+            overlay: OverlayRenderer::new(gpu)?,
             target: StereoTarget::new(gpu, size.0, size.1)?,
             interaction: Interaction::new(interaction),
             scene: Scene::default(),
@@ -104,6 +107,8 @@ impl FrameLoop {
             cao,
             tex,
             renderer,
+            overlay,
+            interaction,
             target,
             scene,
             mode,
@@ -127,6 +132,15 @@ impl FrameLoop {
                 timer.begin(cmd);
                 renderer.record(cmd, target, tex, &frame, settings)?;
                 timer.mark(cmd, "render");
+                // Tools and tracked hands over the volume, depth-tested against it.
+                let hands = [0, 1].map(|h| {
+                    interaction
+                        .hand_pose(h)
+                        .filter(|_| interaction.is_tracked(h))
+                });
+                let items = scene_overlay(scene, &hands, interaction.settings().tool_offset);
+                overlay.record(cmd, target, &input.views, &items)?;
+                target.cmd_finish(cmd);
                 Ok::<_, crate::gpu::GpuError>(Some(pending))
             })();
         })?;

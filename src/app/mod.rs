@@ -231,7 +231,9 @@ impl HeadlessRenderer {
             if let Some(ao) = ao {
                 tex.cmd_update_ambient(cmd, ao);
             }
-            rec = renderer.record(cmd, &target, tex, frame, settings);
+            rec = renderer
+                .record(cmd, &target, tex, frame, settings)
+                .map(|()| target.cmd_finish(cmd));
         })?;
         rec?;
         Ok(target.read_back(&self.gpu)?)

@@ -1,6 +1,7 @@
 //! The stereo ray caster: both eyes, one draw each in one command buffer, into a two-layer
 //! colour + depth target (one layer per eye), sampling the scalar volume, the transfer function and the shared AO volume.
 
+pub mod overlay;
 pub mod png_out;
 pub mod view;
 
@@ -10,6 +11,7 @@ use crate::volume::Volume;
 use ash::vk;
 use glam::{Mat4, Vec3};
 use gpu_allocator::MemoryLocation;
+pub use overlay::{scene_overlay, OverlayItem, OverlayMesh, OverlayRenderer};
 pub use view::{default_stereo_views, world_from_tex, Fov, Placement, Pose, View};
 
 pub const COLOR_FORMAT: vk::Format = vk::Format::R8G8B8A8_UNORM;
@@ -230,7 +232,24 @@ impl StereoTarget {
         })
     }
 
-    /// Copies both layers back (call after a frame recorded by [`Renderer::record`] finished).
+    /// Records the end of a frame's drawing: both images from attachments (as
+    /// [`Renderer::record`] and [`OverlayRenderer::record`] leave them) to TRANSFER_SRC_OPTIMAL,
+    /// ready to copy. Separate from the passes so that any number of them can draw in between.
+    pub fn cmd_finish(&self, cmd: vk::CommandBuffer) {
+        self.color.transition(
+            cmd,
+            vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+            vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+        );
+        self.depth.transition(
+            cmd,
+            vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
+            vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+        );
+    }
+
+    /// Copies both layers back (call after a frame recorded by [`Renderer::record`], any
+    /// overlay and [`StereoTarget::cmd_finish`] finished).
     pub fn read_back(&self, gpu: &Gpu) -> Result<StereoImage> {
         let texels = (self.width * self.height * 2) as u64;
         let usage = vk::BufferUsageFlags::TRANSFER_DST;
@@ -439,8 +458,11 @@ impl Renderer {
         }
     }
 
-    /// Records the stereo ray cast of `views` into `target`, leaving both images ready to copy
-    /// (TRANSFER_SRC_OPTIMAL). The uniform buffer is rewritten: one frame in flight at a time.
+    /// Records the stereo ray cast of `views` into `target`, leaving both images attachments
+    /// (COLOR_ATTACHMENT_OPTIMAL, DEPTH_ATTACHMENT_OPTIMAL) so that later passes (the
+    /// [`OverlayRenderer`]) can draw over the volume, depth-tested against it; end the frame with
+    /// [`StereoTarget::cmd_finish`]. The uniform buffer is rewritten: one frame in flight at a
+    /// time.
     pub fn record(
         &mut self,
         cmd: vk::CommandBuffer,
@@ -604,16 +626,6 @@ impl Renderer {
                 d.cmd_end_rendering(cmd);
             }
         }
-        target.color.transition(
-            cmd,
-            vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
-            vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-        );
-        target.depth.transition(
-            cmd,
-            vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
-            vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-        );
         Ok(())
     }
 }

@@ -1,0 +1,593 @@
+//! Tools and hands drawn over the volume, so the surgeon sees where a cut will be before carving.
+//!
+//! The overlay runs after [`super::Renderer::record`] in the same command buffer and draws into
+//! the same stereo target: colour and depth are loaded, not cleared, and the depth test (LESS,
+//! no depth writes) runs against the depth the ray caster wrote where the volume became visible
+//! (5 % accumulated opacity). A tool behind bone is therefore hidden by it, a tool in front of it
+//! tints it, and translucent items never hide one another. [`StereoTarget::cmd_finish`] then
+//! readies the images for copying.
+//!
+//! Every item is a closed mesh in its own local units placed by one model matrix: the built-in
+//! tool shapes of [`crate::clip::mesh`], loaded OBJ/PLY meshes ([`OverlayRenderer::set_meshes`]),
+//! a small cone for a controller and a thin rod for the right hand's tool offset. All meshes
+//! are uploaded once; per draw only 96 bytes of push constants change.
+
+use super::{StereoTarget, View, COLOR_FORMAT, DEPTH_FORMAT};
+use crate::clip::TriMesh;
+use crate::gpu::{shader_module, Buffer, Gpu, Result};
+use crate::input::{LEFT, RIGHT};
+use crate::render::Pose;
+use crate::scene::{Scene, Shape, Tool, ToolMode};
+use ash::vk;
+use glam::{Mat4, Quat, Vec3};
+use std::collections::HashMap;
+use std::f32::consts::PI;
+
+/// Straight-alpha colours of the overlay (see [`OverlayItem::color`]).
+pub mod colors {
+    /// A carving tool that cuts this frame: red, the colour of "this removes tissue".
+    pub const CARVING: [f32; 4] = [0.95, 0.28, 0.22, 0.3];
+    /// A carving tool that is switched off: a cool blue that does not read as a cut.
+    pub const IDLE: [f32; 4] = [0.35, 0.6, 1.0, 0.2];
+    /// A probe (keeps only its inside) that is on.
+    pub const PROBING: [f32; 4] = [0.3, 0.9, 0.4, 0.3];
+    /// A probe that is off: green fading to the idle blue.
+    pub const PROBE_IDLE: [f32; 4] = [0.3, 0.8, 0.75, 0.2];
+    /// A tracked controller.
+    pub const HAND: [f32; 4] = [0.92, 0.92, 0.88, 0.6];
+    /// The rod from the right grip to the centre of its tool.
+    pub const OFFSET: [f32; 4] = [1.0, 0.85, 0.3, 0.6];
+}
+
+/// Length (m) of the controller marker: a cone pointing down the grip's -Z, 1.5 cm long.
+pub const MARKER_SIZE: f32 = 0.01;
+/// Radius (m) of the rod that shows the right hand's tool offset.
+pub const OFFSET_ROD_RADIUS: f32 = 0.0012;
+
+/// What an [`OverlayItem`] draws, in its local units.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum OverlayMesh {
+    /// A tool shape as [`Tool::size`] scales it (the unit sphere, the cube of half-edge 1, ...).
+    Tool(Shape),
+    /// A controller: a cone with its tip at local (0, 0, -1) and its base (radius 0.5) at
+    /// z = 0.5, so the way the hand points reads at a glance.
+    Marker,
+    /// A rod from local (0, 0, -1) to (0, 0, 1) of radius 1 (the unit cylinder), for segments.
+    Rod,
+}
+
+/// One mesh to draw over the volume.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OverlayItem {
+    pub mesh: OverlayMesh,
+    /// Local -> world. Shading is exact for rigid transforms with a uniform scale; a
+    /// non-uniform scale (the thin [`OverlayMesh::Rod`]) only skews the headlight term.
+    pub model: Mat4,
+    /// Straight (not premultiplied) RGBA: `rgb` the surface colour, `a` its opacity where the
+    /// surface faces the eye (it grows towards the silhouette).
+    pub color: [f32; 4],
+}
+
+/// The colour of a tool by what it does: carving red, probing green, idle (not cutting) blue.
+pub fn tool_color(tool: &Tool) -> [f32; 4] {
+    match (tool.mode, tool.active) {
+        (ToolMode::Carve, true) => colors::CARVING,
+        (ToolMode::Carve, false) => colors::IDLE,
+        (ToolMode::Probe, true) => colors::PROBING,
+        (ToolMode::Probe, false) => colors::PROBE_IDLE,
+    }
+}
+
+/// The overlay of a scene: every tool at its pose; for each tracked hand (`Some` grip pose,
+/// [`LEFT`] then [`RIGHT`]) a marker at the grip; for a tracked right hand also a rod from the
+/// grip to the centre of the tool it holds, `tool_offset` ahead in the grip's own axes (as the
+/// interaction places it). No rod when the offset is under a millimetre: there is nothing to show.
+pub fn scene_overlay(
+    scene: &Scene,
+    hands: &[Option<Pose>; 2],
+    tool_offset: Vec3,
+) -> Vec<OverlayItem> {
+    let mut items: Vec<OverlayItem> = scene
+        .tools
+        .iter()
+        .map(|t| OverlayItem {
+            mesh: OverlayMesh::Tool(t.shape),
+            model: t.pose.matrix() * Mat4::from_scale(Vec3::splat(t.size)),
+            color: tool_color(t),
+        })
+        .collect();
+    for side in [LEFT, RIGHT] {
+        let Some(grip) = hands[side] else { continue };
+        items.push(OverlayItem {
+            mesh: OverlayMesh::Marker,
+            model: grip.matrix() * Mat4::from_scale(Vec3::splat(MARKER_SIZE)),
+            color: colors::HAND,
+        });
+        let offset = grip.orientation * tool_offset;
+        if side == RIGHT && offset.length() > 1e-3 {
+            let half = 0.5 * offset.length();
+            items.push(OverlayItem {
+                mesh: OverlayMesh::Rod,
+                model: Mat4::from_scale_rotation_translation(
+                    Vec3::new(OFFSET_ROD_RADIUS, OFFSET_ROD_RADIUS, half),
+                    Quat::from_rotation_arc(Vec3::Z, offset / (2.0 * half)),
+                    grip.position + 0.5 * offset,
+                ),
+                color: colors::OFFSET,
+            });
+        }
+    }
+    items
+}
+
+/// The controller marker's mesh (see [`OverlayMesh::Marker`]).
+pub fn marker_mesh() -> TriMesh {
+    let n = 24u32;
+    let mut m = TriMesh::default();
+    m.vertices.push(Vec3::new(0.0, 0.0, -1.0));
+    m.vertices.push(Vec3::new(0.0, 0.0, 0.5));
+    for i in 0..n {
+        let a = i as f32 / n as f32 * 2.0 * PI;
+        m.vertices
+            .push(Vec3::new(0.5 * a.cos(), 0.5 * a.sin(), 0.5));
+    }
+    for i in 0..n {
+        let (a, b) = (2 + i, 2 + (i + 1) % n);
+        m.triangles.push([0, a, b]);
+        m.triangles.push([1, b, a]);
+    }
+    m
+}
+
+/// Adjacent faces that meet at less than this angle share a smooth normal; sharper edges
+/// (the cube's, the cylinder's rims) stay crisp.
+const CREASE_COS: f32 = 0.766; // cos 40 degrees
+
+/// A mesh as the overlay draws it: interleaved position + normal, triangles counter-clockwise
+/// seen from outside (flipped if the mesh encloses a negative volume), (nearly) zero-area
+/// triangles dropped, and normals smoothed across edges flatter than 40 degrees.
+pub fn shaded_vertices(mesh: &TriMesh) -> (Vec<[f32; 6]>, Vec<u32>) {
+    let pos = |i: u32| mesh.vertices[i as usize];
+    let signed_volume: f32 = mesh
+        .triangles
+        .iter()
+        .map(|t| pos(t[0]).dot(pos(t[1]).cross(pos(t[2]))))
+        .sum();
+    let tris: Vec<[Vec3; 3]> = mesh
+        .triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.map(pos);
+            if signed_volume < 0.0 {
+                [a, c, b]
+            } else {
+                [a, b, c]
+            }
+        })
+        .filter(|[a, b, c]| {
+            // Relative to the edges: the sphere's pole "triangles" are slivers of rounding error.
+            let longest = (*b - *a).length_squared().max((*c - *a).length_squared());
+            (*b - *a).cross(*c - *a).length() > 1e-5 * longest
+        })
+        .collect();
+    // Area-weighted face normals, and the faces at each (welded) position.
+    let normals: Vec<Vec3> = tris
+        .iter()
+        .map(|[a, b, c]| (*b - *a).cross(*c - *a))
+        .collect();
+    let key = |p: Vec3| (p * 1e4).round().to_array().map(|c| c as i32);
+    let mut at: HashMap<[i32; 3], Vec<usize>> = HashMap::new();
+    for (f, t) in tris.iter().enumerate() {
+        for p in t {
+            at.entry(key(*p)).or_default().push(f);
+        }
+    }
+    let mut vertices = Vec::new();
+    let mut indices = Vec::with_capacity(tris.len() * 3);
+    let mut seen: HashMap<[u32; 6], u32> = HashMap::new();
+    for (f, t) in tris.iter().enumerate() {
+        let nf = normals[f].normalize();
+        for p in t {
+            let n = at[&key(*p)]
+                .iter()
+                .map(|&g| normals[g])
+                .filter(|ng| ng.normalize().dot(nf) > CREASE_COS)
+                .sum::<Vec3>()
+                .normalize_or(nf);
+            let v = [p.x, p.y, p.z, n.x, n.y, n.z];
+            let index = *seen.entry(v.map(f32::to_bits)).or_insert_with(|| {
+                vertices.push(v);
+                (vertices.len() - 1) as u32
+            });
+            indices.push(index);
+        }
+    }
+    (vertices, indices)
+}
+
+/// One mesh on the GPU.
+struct GpuMesh {
+    vertices: Buffer,
+    indices: Buffer,
+    index_count: u32,
+}
+
+impl GpuMesh {
+    fn new(gpu: &Gpu, mesh: &TriMesh, name: &str) -> Result<GpuMesh> {
+        let (v, i) = shaded_vertices(mesh);
+        Ok(GpuMesh {
+            vertices: Buffer::device_local(gpu, &v, vk::BufferUsageFlags::VERTEX_BUFFER, name)?,
+            indices: Buffer::device_local(gpu, &i, vk::BufferUsageFlags::INDEX_BUFFER, name)?,
+            index_count: i.len() as u32,
+        })
+    }
+}
+
+/// std430 mirror of the push-constant block in shaders/include/overlay.glsl.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ItemPush {
+    mvp: [f32; 16],
+    color: [f32; 4],
+    eye_local: [f32; 4],
+}
+
+/// Draws [`OverlayItem`]s into a [`StereoTarget`] the volume was just rendered into.
+pub struct OverlayRenderer {
+    gpu: Gpu,
+    /// Back faces first, then front faces: for each (convex) item, the far side blends under
+    /// the near side, whatever order the mesh lists its triangles in.
+    back: vk::Pipeline,
+    front: vk::Pipeline,
+    layout: vk::PipelineLayout,
+    /// Sphere, box, cylinder (also the rod), torus, marker.
+    builtin: Vec<GpuMesh>,
+    /// The loaded meshes, by [`Shape::Mesh`] index.
+    loaded: Vec<GpuMesh>,
+}
+
+impl OverlayRenderer {
+    pub fn new(gpu: &Gpu) -> Result<OverlayRenderer> {
+        let builtin = [
+            (TriMesh::sphere(), "overlay-sphere"),
+            (TriMesh::cube(), "overlay-box"),
+            (TriMesh::cylinder(), "overlay-cylinder"),
+            (TriMesh::torus(), "overlay-torus"),
+            (marker_mesh(), "overlay-marker"),
+        ]
+        .iter()
+        .map(|(m, name)| GpuMesh::new(gpu, m, name))
+        .collect::<Result<Vec<_>>>()?;
+        unsafe {
+            let d = &gpu.device;
+            let push = [vk::PushConstantRange::default()
+                .stage_flags(vk::ShaderStageFlags::VERTEX | vk::ShaderStageFlags::FRAGMENT)
+                .size(std::mem::size_of::<ItemPush>() as u32)];
+            let layout = d.create_pipeline_layout(
+                &vk::PipelineLayoutCreateInfo::default().push_constant_ranges(&push),
+                None,
+            )?;
+            let vs = shader_module(
+                gpu,
+                include_bytes!(concat!(env!("OUT_DIR"), "/overlay.vert.spv")),
+            )?;
+            let fs = shader_module(
+                gpu,
+                include_bytes!(concat!(env!("OUT_DIR"), "/overlay.frag.spv")),
+            )?;
+            let stages = [
+                vk::PipelineShaderStageCreateInfo::default()
+                    .stage(vk::ShaderStageFlags::VERTEX)
+                    .module(vs)
+                    .name(c"main"),
+                vk::PipelineShaderStageCreateInfo::default()
+                    .stage(vk::ShaderStageFlags::FRAGMENT)
+                    .module(fs)
+                    .name(c"main"),
+            ];
+            let bindings = [vk::VertexInputBindingDescription::default()
+                .binding(0)
+                .stride(std::mem::size_of::<[f32; 6]>() as u32)
+                .input_rate(vk::VertexInputRate::VERTEX)];
+            let attributes = [
+                vk::VertexInputAttributeDescription::default()
+                    .location(0)
+                    .binding(0)
+                    .format(vk::Format::R32G32B32_SFLOAT)
+                    .offset(0),
+                vk::VertexInputAttributeDescription::default()
+                    .location(1)
+                    .binding(0)
+                    .format(vk::Format::R32G32B32_SFLOAT)
+                    .offset(12),
+            ];
+            let vertex_input = vk::PipelineVertexInputStateCreateInfo::default()
+                .vertex_binding_descriptions(&bindings)
+                .vertex_attribute_descriptions(&attributes);
+            let input_assembly = vk::PipelineInputAssemblyStateCreateInfo::default()
+                .topology(vk::PrimitiveTopology::TRIANGLE_LIST);
+            let viewport = vk::PipelineViewportStateCreateInfo::default()
+                .viewport_count(1)
+                .scissor_count(1);
+            // The projection flips y (Vulkan NDC is y down), so a triangle that is
+            // counter-clockwise seen from outside stays counter-clockwise in the framebuffer.
+            let raster = |cull| {
+                vk::PipelineRasterizationStateCreateInfo::default()
+                    .polygon_mode(vk::PolygonMode::FILL)
+                    .cull_mode(cull)
+                    .front_face(vk::FrontFace::COUNTER_CLOCKWISE)
+                    .line_width(1.0)
+            };
+            let (raster_back, raster_front) = (
+                raster(vk::CullModeFlags::FRONT),
+                raster(vk::CullModeFlags::BACK),
+            );
+            let multisample = vk::PipelineMultisampleStateCreateInfo::default()
+                .rasterization_samples(vk::SampleCountFlags::TYPE_1);
+            // Hidden where the volume is nearer; no writes, so translucent items never hide
+            // each other or the volume's depth (which read-back reports).
+            let depth = vk::PipelineDepthStencilStateCreateInfo::default()
+                .depth_test_enable(true)
+                .depth_write_enable(false)
+                .depth_compare_op(vk::CompareOp::LESS);
+            // Straight-alpha "over"; alpha accumulates like the ray caster's opacity.
+            let blend_att = [vk::PipelineColorBlendAttachmentState::default()
+                .blend_enable(true)
+                .src_color_blend_factor(vk::BlendFactor::SRC_ALPHA)
+                .dst_color_blend_factor(vk::BlendFactor::ONE_MINUS_SRC_ALPHA)
+                .color_blend_op(vk::BlendOp::ADD)
+                .src_alpha_blend_factor(vk::BlendFactor::ONE)
+                .dst_alpha_blend_factor(vk::BlendFactor::ONE_MINUS_SRC_ALPHA)
+                .alpha_blend_op(vk::BlendOp::ADD)
+                .color_write_mask(vk::ColorComponentFlags::RGBA)];
+            let blend = vk::PipelineColorBlendStateCreateInfo::default().attachments(&blend_att);
+            let dyn_states = [vk::DynamicState::VIEWPORT, vk::DynamicState::SCISSOR];
+            let dynamic = vk::PipelineDynamicStateCreateInfo::default().dynamic_states(&dyn_states);
+            let formats = [COLOR_FORMAT];
+            let mut rendering = [0, 1].map(|_| {
+                vk::PipelineRenderingCreateInfo::default()
+                    .color_attachment_formats(&formats)
+                    .depth_attachment_format(DEPTH_FORMAT)
+            });
+            let [r0, r1] = &mut rendering;
+            let info = |raster, rendering| {
+                vk::GraphicsPipelineCreateInfo::default()
+                    .stages(&stages)
+                    .vertex_input_state(&vertex_input)
+                    .input_assembly_state(&input_assembly)
+                    .viewport_state(&viewport)
+                    .rasterization_state(raster)
+                    .multisample_state(&multisample)
+                    .depth_stencil_state(&depth)
+                    .color_blend_state(&blend)
+                    .dynamic_state(&dynamic)
+                    .layout(layout)
+                    .push_next(rendering)
+            };
+            let infos = [info(&raster_back, r0), info(&raster_front, r1)];
+            let res = d.create_graphics_pipelines(vk::PipelineCache::null(), &infos, None);
+            d.destroy_shader_module(vs, None);
+            d.destroy_shader_module(fs, None);
+            let pipelines = match res {
+                Ok(p) => p,
+                Err((_, e)) => {
+                    d.destroy_pipeline_layout(layout, None);
+                    return Err(e.into());
+                }
+            };
+            Ok(OverlayRenderer {
+                gpu: gpu.clone(),
+                back: pipelines[0],
+                front: pipelines[1],
+                layout,
+                builtin,
+                loaded: Vec::new(),
+            })
+        }
+    }
+
+    /// Uploads the session's loaded OBJ/PLY meshes (the same list, in the same order, that
+    /// [`crate::ao::cao::Cao::meshes`] clips with). Items whose [`Shape::Mesh`] index has no
+    /// uploaded mesh are skipped.
+    pub fn set_meshes(&mut self, meshes: &[TriMesh]) -> Result<()> {
+        self.loaded = meshes
+            .iter()
+            .map(|m| GpuMesh::new(&self.gpu, m, "overlay-mesh"))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(())
+    }
+
+    fn mesh(&self, mesh: OverlayMesh) -> Option<&GpuMesh> {
+        match mesh {
+            OverlayMesh::Tool(Shape::Sphere) => self.builtin.first(),
+            OverlayMesh::Tool(Shape::Box) => self.builtin.get(1),
+            OverlayMesh::Tool(Shape::Cylinder) | OverlayMesh::Rod => self.builtin.get(2),
+            OverlayMesh::Tool(Shape::Torus) => self.builtin.get(3),
+            OverlayMesh::Marker => self.builtin.get(4),
+            OverlayMesh::Tool(Shape::Mesh(i)) => self.loaded.get(i),
+        }
+    }
+
+    /// Records `items` over what [`super::Renderer::record`] left in `target` (both images
+    /// still attachments), both eyes. Items are drawn far to near from each eye (by the
+    /// distance to their local origin), so overlapping translucent items blend in order. Call
+    /// [`StereoTarget::cmd_finish`] afterwards. With no items nothing is recorded.
+    pub fn record(
+        &mut self,
+        cmd: vk::CommandBuffer,
+        target: &StereoTarget,
+        views: &[View; 2],
+        items: &[OverlayItem],
+    ) -> Result<()> {
+        if items.is_empty() {
+            return Ok(());
+        }
+        let d = &self.gpu.device;
+        // The ray caster's colour and depth writes, before this pass reads and blends them.
+        self.gpu.barrier(cmd);
+        let area = vk::Rect2D {
+            offset: vk::Offset2D::default(),
+            extent: vk::Extent2D {
+                width: target.width,
+                height: target.height,
+            },
+        };
+        for (eye, view) in views.iter().enumerate() {
+            let eye_pos = view.pose.position;
+            let mut order: Vec<(f32, &OverlayItem)> = items
+                .iter()
+                .map(|it| (it.model.w_axis.truncate().distance(eye_pos), it))
+                .collect();
+            // Stable, and total on floats: the same items always draw in the same order.
+            order.sort_by(|a, b| b.0.total_cmp(&a.0));
+            let view_proj = view.view_proj();
+            let color_att = [vk::RenderingAttachmentInfo::default()
+                .image_view(target.color.layer_views[eye])
+                .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+                .load_op(vk::AttachmentLoadOp::LOAD)
+                .store_op(vk::AttachmentStoreOp::STORE)];
+            let depth_att = vk::RenderingAttachmentInfo::default()
+                .image_view(target.depth.layer_views[eye])
+                .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
+                .load_op(vk::AttachmentLoadOp::LOAD)
+                .store_op(vk::AttachmentStoreOp::STORE);
+            let info = vk::RenderingInfo::default()
+                .render_area(area)
+                .layer_count(1)
+                .color_attachments(&color_att)
+                .depth_attachment(&depth_att);
+            unsafe {
+                d.cmd_begin_rendering(cmd, &info);
+                d.cmd_set_viewport(
+                    cmd,
+                    0,
+                    &[vk::Viewport {
+                        x: 0.0,
+                        y: 0.0,
+                        width: target.width as f32,
+                        height: target.height as f32,
+                        min_depth: 0.0,
+                        max_depth: 1.0,
+                    }],
+                );
+                d.cmd_set_scissor(cmd, 0, &[area]);
+                for (_, item) in order {
+                    let Some(mesh) = self.mesh(item.mesh) else {
+                        continue;
+                    };
+                    let push = ItemPush {
+                        mvp: (view_proj * item.model).to_cols_array(),
+                        color: item.color,
+                        eye_local: item
+                            .model
+                            .inverse()
+                            .transform_point3(eye_pos)
+                            .extend(1.0)
+                            .into(),
+                    };
+                    d.cmd_bind_vertex_buffers(cmd, 0, &[mesh.vertices.raw], &[0]);
+                    d.cmd_bind_index_buffer(cmd, mesh.indices.raw, 0, vk::IndexType::UINT32);
+                    for pipeline in [self.back, self.front] {
+                        d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
+                        d.cmd_push_constants(
+                            cmd,
+                            self.layout,
+                            vk::ShaderStageFlags::VERTEX | vk::ShaderStageFlags::FRAGMENT,
+                            0,
+                            bytemuck::bytes_of(&push),
+                        );
+                        d.cmd_draw_indexed(cmd, mesh.index_count, 1, 0, 0, 0);
+                    }
+                }
+                d.cmd_end_rendering(cmd);
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Drop for OverlayRenderer {
+    fn drop(&mut self) {
+        unsafe {
+            let d = &self.gpu.device;
+            let _ = d.device_wait_idle();
+            d.destroy_pipeline(self.back, None);
+            d.destroy_pipeline(self.front, None);
+            d.destroy_pipeline_layout(self.layout, None);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::{Fov, Pose};
+
+    /// Vulkan's facing rule (spec, "Basic Polygon Rasterization"): with COUNTER_CLOCKWISE, a
+    /// triangle is front-facing when a = -1/2 sum(x_i y_{i+1} - x_{i+1} y_i) in framebuffer
+    /// coordinates is positive. The near side of every built-in mesh must be front-facing.
+    #[test]
+    fn near_faces_are_front_facing() {
+        let view = View {
+            pose: Pose {
+                position: Vec3::new(0.0, 0.0, 5.0),
+                orientation: Quat::IDENTITY,
+            },
+            fov: Fov {
+                angle_left: -0.4,
+                angle_right: 0.4,
+                angle_up: 0.4,
+                angle_down: -0.4,
+            },
+        };
+        let vp = view.view_proj();
+        let to_fb = |p: Vec3| {
+            let c = vp * p.extend(1.0);
+            // Viewport 100 x 100 at the origin: y grows downwards with NDC y.
+            glam::Vec2::new((c.x / c.w + 1.0) * 50.0, (c.y / c.w + 1.0) * 50.0)
+        };
+        for (name, mesh) in [
+            ("sphere", TriMesh::sphere()),
+            ("box", TriMesh::cube()),
+            ("cylinder", TriMesh::cylinder()),
+            ("torus", TriMesh::torus()),
+            ("marker", marker_mesh()),
+        ] {
+            let (v, i) = shaded_vertices(&mesh);
+            let p = |k: u32| Vec3::new(v[k as usize][0], v[k as usize][1], v[k as usize][2]);
+            // The triangle nearest the eye (largest centroid z) faces it.
+            let near = i
+                .chunks_exact(3)
+                .max_by(|a, b| {
+                    let z = |t: &[u32]| p(t[0]).z + p(t[1]).z + p(t[2]).z;
+                    z(a).total_cmp(&z(b))
+                })
+                .unwrap();
+            let f = [p(near[0]), p(near[1]), p(near[2])].map(to_fb);
+            let a = -0.5
+                * (0..3)
+                    .map(|k| f[k].x * f[(k + 1) % 3].y - f[(k + 1) % 3].x * f[k].y)
+                    .sum::<f32>();
+            assert!(a > 0.0, "{name}: the near side is back-facing (a = {a})");
+        }
+    }
+
+    #[test]
+    fn normals_are_smooth_on_curves_and_crisp_on_edges() {
+        let (v, _) = shaded_vertices(&TriMesh::sphere());
+        for x in &v {
+            let (p, n) = (Vec3::from_slice(&x[..3]), Vec3::from_slice(&x[3..]));
+            assert!(p.normalize().dot(n) > 0.995, "sphere normal {n} at {p}");
+        }
+        let (v, i) = shaded_vertices(&TriMesh::cube());
+        assert_eq!(v.len(), 24, "a cube has 6 faces x 4 corners of its own");
+        assert_eq!(i.len(), 36);
+        for x in &v {
+            let n = Vec3::from_slice(&x[3..]);
+            assert!(
+                n.abs().max_element() > 0.999,
+                "cube normal {n} is not a face's"
+            );
+        }
+    }
+}

@@ -1,0 +1,328 @@
+//! Tools and hands over the volume, on lavapipe with validation on: a tool tints where it
+//! projects and nowhere else, hides behind opaque bone, and the scene's overlay lists what the
+//! hands and tools are.
+
+mod common;
+
+use cao_xr::gpu::Gpu;
+use cao_xr::render::overlay::colors;
+use cao_xr::render::{
+    scene_overlay, world_from_tex, Fov, FrameViews, OverlayItem, OverlayMesh, OverlayRenderer,
+    Placement, Pose, RenderSettings, Renderer, StereoImage, StereoTarget, View, VolumeTextures,
+};
+use cao_xr::scene::{Scene, Shape, Tool, ToolMode};
+use cao_xr::volume::transfer::TransferFunction;
+use cao_xr::volume::{Modality, Volume, Voxels};
+use glam::{DMat3, DVec3, Quat, Vec3};
+
+/// A 24^3 volume (2 mm voxels) holding a solid bone ball of radius 16 mm (as in tests/render.rs).
+fn ball() -> Volume {
+    let n = 24;
+    let mut v = vec![-1000i16; n * n * n];
+    for k in 0..n {
+        for j in 0..n {
+            for i in 0..n {
+                let d =
+                    DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) - DVec3::splat(12.0);
+                if d.length() < 8.0 {
+                    v[i + n * (j + n * k)] = 1500;
+                }
+            }
+        }
+    }
+    Volume {
+        name: "ball".into(),
+        dims: [n; 3],
+        spacing: [2.0; 3],
+        directions: DMat3::IDENTITY,
+        origin: DVec3::ZERO,
+        modality: Modality::Ct,
+        voxels: Voxels::I16(v),
+    }
+}
+
+const W: u32 = 128;
+const HALF: f32 = 0.2; // half field of view, radians
+const DIST: f32 = 0.6;
+const IPD: f32 = 0.064;
+
+fn views() -> [View; 2] {
+    let fov = Fov {
+        angle_left: -HALF,
+        angle_right: HALF,
+        angle_up: HALF,
+        angle_down: -HALF,
+    };
+    let centre = Placement::default().center;
+    [-0.5f32, 0.5].map(|s| View {
+        pose: Pose {
+            position: centre + Vec3::new(s * IPD, 0.0, DIST),
+            orientation: Quat::IDENTITY,
+        },
+        fov,
+    })
+}
+
+/// Renders the ball, then each overlay in `overlays` (an empty list still runs the pass), each
+/// into its own frame; returns one image per overlay.
+fn render(gpu: &Gpu, overlays: &[Vec<OverlayItem>]) -> Vec<StereoImage> {
+    let vol = ball();
+    let tf = TransferFunction::preset("ct-bone").unwrap();
+    let tex = VolumeTextures::new(gpu, &vol, &tf).unwrap();
+    let mut renderer = Renderer::new(gpu).unwrap();
+    let mut overlay = OverlayRenderer::new(gpu).unwrap();
+    let target = StereoTarget::new(gpu, W, W).unwrap();
+    let v = views();
+    let frame = FrameViews {
+        views: &v,
+        model: world_from_tex(&vol, &Placement::default()),
+        clip: None,
+    };
+    let settings = RenderSettings::default();
+    let images = overlays
+        .iter()
+        .map(|items| {
+            gpu.submit_and_wait(|cmd| {
+                renderer
+                    .record(cmd, &target, &tex, &frame, &settings)
+                    .unwrap();
+                overlay.record(cmd, &target, &v, items).unwrap();
+                target.cmd_finish(cmd);
+            })
+            .unwrap();
+            target.read_back(gpu).unwrap()
+        })
+        .collect();
+    drop((tex, renderer, overlay, target));
+    common::assert_no_validation_messages(gpu);
+    images
+}
+
+fn sphere_tool(centre: Vec3, radius: f32, mode: ToolMode, active: bool) -> Tool {
+    Tool {
+        shape: Shape::Sphere,
+        pose: Pose {
+            position: centre,
+            orientation: Quat::IDENTITY,
+        },
+        size: radius,
+        mode,
+        active,
+    }
+}
+
+/// Projected centre (pixels) and an upper bound of the projected radius (pixels) of a sphere.
+fn project(view: &View, centre: Vec3, radius: f32) -> (f32, f32, f32) {
+    let c = view.view_proj() * centre.extend(1.0);
+    let x = (c.x / c.w + 1.0) * 0.5 * W as f32;
+    let y = (c.y / c.w + 1.0) * 0.5 * W as f32;
+    let d = (centre - view.pose.position).length();
+    // Half-angle asin(r/d), off-axis stretch bounded by the 1/cos^2 of the field's edge.
+    let r = (radius / d).asin().tan() / HALF.tan() * 0.5 * W as f32 / HALF.cos().powi(2);
+    (x, y, r)
+}
+
+fn px(img: &StereoImage, eye: usize, x: usize, y: usize) -> [u8; 4] {
+    let i = 4 * (x + y * W as usize);
+    img.rgba[eye][i..i + 4].try_into().unwrap()
+}
+
+fn dist3(a: [u8; 4], c: [f32; 4]) -> f32 {
+    (0..3)
+        .map(|k| (a[k] as f32 / 255.0 - c[k]).powi(2))
+        .sum::<f32>()
+        .sqrt()
+}
+
+#[test]
+fn a_tool_in_front_tints_where_it_projects_and_nowhere_else() {
+    let gpu = common::gpu();
+    let centre = Placement::default().center + Vec3::new(0.004, 0.003, 0.1);
+    let radius = 0.01;
+    let tool = sphere_tool(centre, radius, ToolMode::Carve, true);
+    let scene = Scene {
+        tools: vec![tool],
+        ..Default::default()
+    };
+    let items = scene_overlay(&scene, &[None, None], Vec3::ZERO);
+    assert_eq!(items.len(), 1);
+    let imgs = render(&gpu, &[Vec::new(), items.clone(), items]);
+    let (base, over) = (&imgs[0], &imgs[1]);
+    assert!(
+        imgs[1] == imgs[2],
+        "the same overlay twice gives different images"
+    );
+    assert_eq!(base.depth, over.depth, "the overlay must not write depth");
+    for (eye, view) in views().iter().enumerate() {
+        let (cx, cy, r) = project(view, centre, radius);
+        let (mut inside, mut changed_inside) = (0, 0);
+        for y in 0..W as usize {
+            for x in 0..W as usize {
+                let d = ((x as f32 + 0.5 - cx).powi(2) + (y as f32 + 0.5 - cy).powi(2)).sqrt();
+                let (a, b) = (px(base, eye, x, y), px(over, eye, x, y));
+                if d > r + 1.5 {
+                    assert_eq!(
+                        a, b,
+                        "eye {eye}: pixel ({x}, {y}) far from the tool changed"
+                    );
+                } else if d < r - 1.5 {
+                    inside += 1;
+                    changed_inside += (a != b) as usize;
+                }
+            }
+        }
+        assert!(
+            inside > 50,
+            "eye {eye}: the tool projects to {inside} pixels"
+        );
+        assert_eq!(
+            changed_inside, inside,
+            "eye {eye}: every pixel well inside the tool's projection is tinted"
+        );
+        let (a, b) = (
+            px(base, eye, cx as usize, cy as usize),
+            px(over, eye, cx as usize, cy as usize),
+        );
+        assert!(
+            dist3(b, colors::CARVING) < dist3(a, colors::CARVING),
+            "eye {eye}: centre {a:?} -> {b:?} does not move towards the carving colour"
+        );
+    }
+}
+
+#[test]
+fn a_tool_behind_the_ball_is_hidden_by_it_and_drawn_around_it() {
+    let gpu = common::gpu();
+    // 30 mm sphere 70 mm behind the ball's centre: its front (40 mm behind the centre) is
+    // behind the whole ball, its silhouette is wider than the ball's.
+    let centre = Placement::default().center + Vec3::new(0.0, 0.0, -0.07);
+    let radius = 0.03;
+    let scene = Scene {
+        tools: vec![sphere_tool(centre, radius, ToolMode::Carve, false)],
+        ..Default::default()
+    };
+    let items = scene_overlay(&scene, &[None, None], Vec3::ZERO);
+    let imgs = render(&gpu, &[Vec::new(), items]);
+    let (base, over) = (&imgs[0], &imgs[1]);
+    for eye in 0..2 {
+        let (mut covered, mut around) = (0, 0);
+        for y in 0..W as usize {
+            for x in 0..W as usize {
+                let i = x + y * W as usize;
+                let (a, b) = (px(base, eye, x, y), px(over, eye, x, y));
+                if base.depth[eye][i] < 1.0 {
+                    covered += 1;
+                    assert_eq!(a, b, "eye {eye}: ({x}, {y}) is bone, yet the tool shows");
+                } else if a != b {
+                    around += 1;
+                }
+            }
+        }
+        assert!(
+            covered > 120,
+            "eye {eye}: the ball covers only {covered} pixels"
+        );
+        assert!(
+            around > 200,
+            "eye {eye}: the tool shows around the ball in {around} pixels"
+        );
+    }
+    // Beside the ball (22 mm left of its centre, within the tool's silhouette, which parallax
+    // shifts left in the left eye) the tool is drawn.
+    let view = &views()[0];
+    let side = Placement::default().center + Vec3::new(-0.022, 0.0, 0.0);
+    let (x, y, _) = project(view, side, 0.0);
+    let (a, b) = (
+        px(base, 0, x as usize, y as usize),
+        px(over, 0, x as usize, y as usize),
+    );
+    assert_ne!(a, b, "beside the ball the tool must show");
+    assert!(dist3(b, colors::IDLE) < dist3(a, colors::IDLE));
+}
+
+#[test]
+fn scene_overlay_lists_tools_tracked_hands_and_the_right_offset() {
+    let centre = Placement::default().center;
+    let scene = Scene {
+        tools: vec![
+            sphere_tool(centre, 0.02, ToolMode::Carve, true),
+            Tool {
+                shape: Shape::Torus,
+                ..sphere_tool(centre + Vec3::X * 0.1, 0.03, ToolMode::Probe, false)
+            },
+        ],
+        ..Default::default()
+    };
+    let left = Pose {
+        position: Vec3::new(-0.2, 1.2, -0.3),
+        orientation: Quat::IDENTITY,
+    };
+    let right = Pose {
+        position: Vec3::new(0.2, 1.2, -0.3),
+        orientation: Quat::from_rotation_y(0.5),
+    };
+    let offset = Vec3::new(0.0, 0.0, -0.08);
+    let count = |items: &[OverlayItem], m: fn(&OverlayMesh) -> bool| {
+        items.iter().filter(|i| m(&i.mesh)).count()
+    };
+    let tools = |m: &OverlayMesh| matches!(m, OverlayMesh::Tool(_));
+    let markers = |m: &OverlayMesh| matches!(m, OverlayMesh::Marker);
+    let rods = |m: &OverlayMesh| matches!(m, OverlayMesh::Rod);
+
+    let both = scene_overlay(&scene, &[Some(left), Some(right)], offset);
+    assert_eq!(both.len(), 5, "2 tools + 2 markers + 1 offset rod");
+    assert_eq!(
+        (
+            count(&both, tools),
+            count(&both, markers),
+            count(&both, rods)
+        ),
+        (2, 2, 1)
+    );
+    assert_eq!(both[0].mesh, OverlayMesh::Tool(Shape::Sphere));
+    assert_eq!(both[1].mesh, OverlayMesh::Tool(Shape::Torus));
+    assert_ne!(
+        both[0].color, both[1].color,
+        "carving and idle probe differ"
+    );
+    // Tools sit at their pose, at their size.
+    let m = both[1].model;
+    assert!((m.transform_point3(Vec3::ZERO) - scene.tools[1].pose.position).length() < 1e-6);
+    assert!((m.transform_vector3(Vec3::X).length() - 0.03).abs() < 1e-6);
+    // The rod runs from the right grip to the tool centre, offset ahead in the grip's axes.
+    let rod = both.iter().find(|i| i.mesh == OverlayMesh::Rod).unwrap();
+    let tool_centre = right.position + right.orientation * offset;
+    let ends = [-Vec3::Z, Vec3::Z].map(|p| rod.model.transform_point3(p));
+    assert!((ends[0] - right.position).length() < 1e-5, "{ends:?}");
+    assert!((ends[1] - tool_centre).length() < 1e-5, "{ends:?}");
+    // Markers sit at the grips.
+    let marker_at: Vec<Vec3> = both
+        .iter()
+        .filter(|i| i.mesh == OverlayMesh::Marker)
+        .map(|i| i.model.transform_point3(Vec3::ZERO))
+        .collect();
+    assert_eq!(marker_at, vec![left.position, right.position]);
+
+    let right_only = scene_overlay(&scene, &[None, Some(right)], offset);
+    assert_eq!(
+        (
+            count(&right_only, tools),
+            count(&right_only, markers),
+            count(&right_only, rods)
+        ),
+        (2, 1, 1)
+    );
+    let left_only = scene_overlay(&scene, &[Some(left), None], offset);
+    assert_eq!(
+        (
+            count(&left_only, tools),
+            count(&left_only, markers),
+            count(&left_only, rods)
+        ),
+        (2, 1, 0),
+        "the offset belongs to the right hand"
+    );
+    let none = scene_overlay(&scene, &[None, None], offset);
+    assert_eq!(none.len(), 2, "untracked hands draw nothing");
+    assert!(scene_overlay(&Scene::default(), &[None, None], offset).is_empty());
+}
