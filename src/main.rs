@@ -164,6 +164,9 @@ enum Cmd {
         /// Hold the right trigger from the first frame (carving on without a button press).
         #[arg(long)]
         carve: bool,
+        /// Place the volume's centre at X,Y,Z metres in the stage (default 0,1.4,-0.6).
+        #[arg(long, value_parser = cao_xr::xr::parse_point, allow_hyphen_values = true)]
+        volume_at: Option<glam::Vec3>,
     },
     /// Generate a scripted pose stream (JSON Lines) for replay and tests.
     Script {
@@ -577,6 +580,7 @@ fn run(cli: Cli) -> Result<()> {
             size,
             bindings,
             carve,
+            volume_at,
         } => {
             let (v, tf) = vol.load()?;
             let opts = cao_xr::xr::XrOptions {
@@ -585,6 +589,7 @@ fn run(cli: Cli) -> Result<()> {
                 size,
                 bindings,
                 carve,
+                volume_at,
             };
             let s = cao_xr::xr::run(&v, &tf, lao.params(), opts)?;
             println!(

@@ -52,6 +52,9 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
         .arg(env!("CARGO_BIN_EXE_cao-xr"))
         .arg(&out)
         .args(["phantom:32", "--rays", "6", "--size", "96x96", "--carve"])
+        // Monado's simulated right controller rests at (0.2, 1.3, -0.5); its tool sits 8 cm
+        // ahead. Put the volume there so the tool carves and the touch pulse fires.
+        .args(["--volume-at", "0.2,1.3,-0.58"])
         .args(["--frames", &frames, "--record", "rec.jsonl"])
         .output()
         .expect("run scripts/xr-session.sh");
@@ -81,6 +84,8 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
         "{summary}"
     );
     assert!(stderr.contains("xr: session state FOCUSED"), "{context}");
+    // The tool touched tissue once: one haptic pulse, on the first frame it clipped.
+    assert!(summary.contains("haptic pulses 1"), "{summary}\n{context}");
 
     // Neither validation layer reported anything wrong.
     assert!(

@@ -64,6 +64,8 @@ pub struct XrOptions {
     /// press buttons (simulated ones in tests). The held trigger is part of the recorded input,
     /// so a replay carves the same way.
     pub carve: bool,
+    /// Where the volume's centre starts, in the reference space (default: the scene's).
+    pub volume_at: Option<Vec3>,
 }
 
 /// What a session did.
@@ -80,6 +82,19 @@ pub struct XrSummary {
     pub tracked_frames: usize,
     /// The reference space used (STAGE or LOCAL).
     pub space: String,
+}
+
+/// Parses `X,Y,Z` (metres) for the command line.
+pub fn parse_point(s: &str) -> std::result::Result<Vec3, String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|c| c.trim().parse::<f32>().ok().filter(|x| x.is_finite()))
+        .collect::<Option<_>>()
+        .ok_or_else(|| format!("'{s}': expected X,Y,Z in metres, e.g. 0,1.4,-0.6"))?;
+    match v[..] {
+        [x, y, z] => Ok(Vec3::new(x, y, z)),
+        _ => Err(format!("'{s}': expected three numbers X,Y,Z")),
+    }
 }
 
 pub(crate) fn pose_from_xr(p: &xr::Posef) -> Pose {
@@ -263,6 +278,10 @@ pub fn run(
         InteractionSettings::default(),
         false,
     )?;
+    let mut fl = fl;
+    if let Some(c) = opts.volume_at {
+        fl.scene.volume.center = c;
+    }
     let recorder = match &opts.record {
         Some(p) => Some(
             PoseStreamWriter::create(
