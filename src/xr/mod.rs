@@ -402,6 +402,52 @@ fn create_swapchain(session: &xr::Session<xr::Vulkan>, extent: (u32, u32)) -> Re
     })
 }
 
+/// What the loop must do on entering a session state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Step {
+    /// READY: xrBeginSession, then run frames.
+    Begin,
+    /// STOPPING: stop frames, xrEndSession (a later READY begins again).
+    End,
+    /// EXITING: the runtime is done with the session; leave cleanly.
+    Exit,
+    /// LOSS_PENDING: the session is lost; leave with an error.
+    Lost,
+    Nothing,
+}
+
+/// The session state machine, apart from the calls it leads to, so the paths a runtime rarely
+/// takes (a session that stops and begins again, a lost session) are tested without one.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StateMachine {
+    /// Between xrBeginSession and xrEndSession: frames must be waited, begun and ended.
+    pub running: bool,
+    /// FOCUSED was reached at least once.
+    pub focused: bool,
+}
+
+impl StateMachine {
+    pub fn enter(&mut self, state: xr::SessionState) -> Step {
+        match state {
+            xr::SessionState::READY if !self.running => {
+                self.running = true;
+                Step::Begin
+            }
+            xr::SessionState::STOPPING if self.running => {
+                self.running = false;
+                Step::End
+            }
+            xr::SessionState::FOCUSED => {
+                self.focused = true;
+                Step::Nothing
+            }
+            xr::SessionState::EXITING => Step::Exit,
+            xr::SessionState::LOSS_PENDING => Step::Lost,
+            _ => Step::Nothing,
+        }
+    }
+}
+
 struct SessionLoop<'a> {
     opts: XrOptions,
     instance: &'a xr::Instance,
@@ -423,7 +469,7 @@ impl SessionLoop<'_> {
     /// READY begins it again), EXITING and LOSS_PENDING leave; frames run while it is running.
     fn run(&mut self) -> Result<()> {
         let mut events = xr::EventDataBuffer::new();
-        let mut running = false;
+        let mut machine = StateMachine::default();
         let mut exit_requested = false;
         let mut t0: Option<i64> = None;
         let mut last_views: Option<[View; 2]> = None;
@@ -435,24 +481,22 @@ impl SessionLoop<'_> {
                         let state = e.state();
                         eprintln!("xr: session state {state:?}");
                         self.summary.states.push(format!("{state:?}"));
-                        match state {
-                            xr::SessionState::READY => {
+                        match machine.enter(state) {
+                            Step::Begin => {
                                 self.session.begin(VIEW_TYPE)?;
-                                running = true;
                             }
-                            xr::SessionState::STOPPING => {
+                            Step::End => {
                                 self.session.end()?;
-                                running = false;
                             }
-                            xr::SessionState::FOCUSED => self.summary.focused = true,
-                            xr::SessionState::EXITING => return Ok(()),
-                            xr::SessionState::LOSS_PENDING => {
+                            Step::Exit => return Ok(()),
+                            Step::Lost => {
                                 return Err(XrError::Runtime(
                                     "the runtime lost the session (LOSS_PENDING)".into(),
                                 ))
                             }
-                            _ => {}
+                            Step::Nothing => {}
                         }
+                        self.summary.focused |= machine.focused;
                     }
                     xr::Event::InstanceLossPending(_) => {
                         return Err(XrError::Runtime(
@@ -465,7 +509,7 @@ impl SessionLoop<'_> {
                     _ => {}
                 }
             }
-            if !running {
+            if !machine.running {
                 std::thread::sleep(std::time::Duration::from_millis(10));
                 continue;
             }
@@ -675,4 +719,55 @@ fn xr_views_or(located: &[xr::View], rendered: &[View; 2]) -> [xr::View; 2] {
             angle_down: v.fov.angle_down,
         },
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use xr::SessionState as S;
+
+    #[test]
+    fn a_session_that_stops_begins_again_and_exits_cleanly() {
+        let mut m = StateMachine::default();
+        let run = [
+            S::IDLE,
+            S::READY,
+            S::SYNCHRONIZED,
+            S::VISIBLE,
+            S::FOCUSED,
+            S::VISIBLE,
+            S::SYNCHRONIZED,
+            S::STOPPING,
+            S::IDLE,
+            S::READY,
+            S::SYNCHRONIZED,
+            S::STOPPING,
+            S::IDLE,
+            S::EXITING,
+        ];
+        let steps: Vec<Step> = run.iter().map(|s| m.enter(*s)).collect();
+        let count = |k| steps.iter().filter(|s| **s == k).count();
+        assert_eq!(count(Step::Begin), 2);
+        assert_eq!(count(Step::End), 2);
+        assert_eq!(steps.last(), Some(&Step::Exit));
+        assert!(m.focused && !m.running);
+    }
+
+    #[test]
+    fn loss_pending_is_an_error_and_running_state_is_tracked() {
+        let mut m = StateMachine::default();
+        assert_eq!(m.enter(S::READY), Step::Begin);
+        assert!(m.running);
+        assert_eq!(m.enter(S::LOSS_PENDING), Step::Lost);
+    }
+
+    #[test]
+    fn points_parse_and_bad_ones_are_named() {
+        assert_eq!(
+            parse_point("0.2,1.3,-0.58").unwrap(),
+            Vec3::new(0.2, 1.3, -0.58)
+        );
+        assert!(parse_point("1,2").unwrap_err().contains("'1,2'"));
+        assert!(parse_point("a,b,c").is_err());
+    }
 }
