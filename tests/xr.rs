@@ -96,6 +96,10 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
         !stderr.contains("vulkan validation:"),
         "Vulkan validation reported\n{context}"
     );
+    assert!(
+        !stderr.contains("openxr validation:"),
+        "the OpenXR debug messenger reported\n{context}"
+    );
     let xr_val = std::fs::read_to_string(out.join("xr-validation.txt"))
         .expect("the OpenXR core validation layer wrote no log (was it enabled?)");
     assert!(

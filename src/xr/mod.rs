@@ -13,6 +13,7 @@
 
 pub mod actions;
 pub mod bindings;
+pub mod debug;
 pub mod vulkan;
 
 use crate::ao::LaoParams;
@@ -146,6 +147,8 @@ fn open_instance() -> Result<(xr::Entry, xr::Instance, xr::ExtensionSet)> {
     }
     let mut exts = xr::ExtensionSet::default();
     exts.khr_vulkan_enable2 = true;
+    // For the messenger that reports the OpenXR validation layer (debug::XrMessenger).
+    exts.ext_debug_utils = available.ext_debug_utils;
     let instance = entry
         .create_instance(
             &xr::ApplicationInfo {
@@ -185,6 +188,7 @@ pub fn run(
             .as_deref(),
     )?;
     let (_entry, instance, _) = open_instance()?;
+    let messenger = debug::XrMessenger::new(&instance);
     let props = instance.properties()?;
     eprintln!(
         "xr: runtime {} {}",
@@ -340,6 +344,8 @@ pub fn run(
     let messages = gpu.validation_messages();
     drop(gpu);
     drop(actions);
+    let xr_messages = messenger.as_ref().map(|m| m.messages()).unwrap_or_default();
+    drop(messenger);
     drop(instance);
     result?;
     if let Some(r) = recorder {
@@ -347,6 +353,13 @@ pub fn run(
             path: "record".into(),
             msg: e.to_string(),
         })?;
+    }
+    if !xr_messages.is_empty() {
+        return Err(XrError::Runtime(format!(
+            "{} OpenXR validation messages (first: {})",
+            xr_messages.len(),
+            xr_messages[0]
+        )));
     }
     if !messages.is_empty() {
         return Err(XrError::Runtime(format!(
