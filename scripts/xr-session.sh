@@ -43,7 +43,7 @@ echo "xr-session: monado-service is up" >&2
 XR_ENABLE_API_LAYERS=XR_APILAYER_LUNARG_core_validation \
 XR_CORE_VALIDATION_EXPORT_TYPE=text XR_CORE_VALIDATION_FILE_NAME="$W/xr-validation.txt" \
 CAO_XR_VALIDATION=1 CAO_XR_BINDINGS="$W/bindings" \
-  "$W/cao-xr" xr "$@"
+  timeout "${CAO_XR_SESSION_TIMEOUT:-300}" "$W/cao-xr" xr "$@"
 rc=$?
 stop
 exit $rc
