@@ -12,4 +12,8 @@ if [ "${CAO_XR_TEST_DEVICE:-lavapipe}" = "lavapipe" ]; then
   export VK_DRIVER_FILES="$LVP_ICD"
 fi
 export CAO_XR_VALIDATION=1
+# The OpenXR test (tests/xr.rs) runs against Monado in a Debian trixie root, built once and
+# cached (scripts/xr-root.sh); without it that test fails with the reason rather than skipping.
+scripts/xr-root.sh >/dev/null || echo "test.sh: the Monado test root could not be built; tests/xr.rs will fail" >&2
+export CAO_XR_REQUIRE_XR=1
 cargo test "$@"

@@ -11,3 +11,4 @@ pub mod input;
 pub mod render;
 pub mod scene;
 pub mod volume;
+pub mod xr;

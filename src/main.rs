@@ -142,6 +142,32 @@ enum Cmd {
         #[arg(long)]
         dump: Option<PathBuf>,
     },
+    /// Run a headset session through OpenXR (XR_KHR_vulkan_enable2): both eyes into the
+    /// runtime's swapchain, controllers as hands, optionally recording the pose stream.
+    Xr {
+        #[command(flatten)]
+        vol: VolumeArgs,
+        #[command(flatten)]
+        lao: LaoArgs,
+        /// Submit this many frames, then end the session cleanly.
+        #[arg(long)]
+        frames: Option<usize>,
+        /// Record the session as a pose stream (JSON Lines) that `cao-xr replay` plays back.
+        #[arg(long)]
+        record: Option<PathBuf>,
+        /// Pixels per eye, WIDTHxHEIGHT (default: the runtime's recommended size).
+        #[arg(long, value_parser = parse_size)]
+        size: Option<(u32, u32)>,
+        /// Directory of controller binding files (default: controllers/bindings, else built in).
+        #[arg(long)]
+        bindings: Option<PathBuf>,
+        /// Hold the right trigger from the first frame (carving on without a button press).
+        #[arg(long)]
+        carve: bool,
+        /// Place the volume's centre at X,Y,Z metres in the stage (default 0,1.4,-0.6).
+        #[arg(long, value_parser = cao_xr::xr::parse_point, allow_hyphen_values = true)]
+        volume_at: Option<glam::Vec3>,
+    },
     /// Generate a scripted pose stream (JSON Lines) for replay and tests.
     Script {
         /// sphere-sweep, box-push-pull, torus-pass, two-tools, grab-scale or tremor.
@@ -545,6 +571,36 @@ fn run(cli: Cli) -> Result<()> {
             };
             let n = app::desktop::run(&v, &tf, lao.params(), opts)?;
             println!("closed after {n} frames");
+        }
+        Cmd::Xr {
+            vol,
+            lao,
+            frames,
+            record,
+            size,
+            bindings,
+            carve,
+            volume_at,
+        } => {
+            let (v, tf) = vol.load()?;
+            let opts = cao_xr::xr::XrOptions {
+                frames,
+                record,
+                size,
+                bindings,
+                carve,
+                volume_at,
+            };
+            let s = cao_xr::xr::run(&v, &tf, lao.params(), opts)?;
+            println!(
+                "xr session ended cleanly: {} frames submitted, {} with tracked hands, states {}, focused {}, haptic pulses {}, space {}",
+                s.frames,
+                s.tracked_frames,
+                s.states.join(">"),
+                s.focused,
+                s.pulses,
+                s.space
+            );
         }
         Cmd::Script {
             kind,

@@ -117,12 +117,81 @@ unsafe extern "system" fn debug_callback(
 
 const VALIDATION_LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
 
+/// Who creates the Vulkan instance and device. [`Gpu::new`] creates them itself; an OpenXR
+/// session must have them created through the runtime (XR_KHR_vulkan_enable2:
+/// xrCreateVulkanInstanceKHR / xrCreateVulkanDeviceKHR), which adds the extensions the compositor
+/// needs and picks the physical device that drives the headset. [`Gpu::with_factory`] takes such
+/// a factory; everything else (layers, messenger, features, queue, allocator) stays the same.
+pub trait VulkanFactory {
+    /// Creates the instance from the info the renderer wants (layers, extensions, API version).
+    ///
+    /// # Safety
+    /// `info` must be valid; the returned instance must have been created from it.
+    unsafe fn create_instance(
+        &mut self,
+        entry: &ash::Entry,
+        info: &vk::InstanceCreateInfo<'_>,
+    ) -> Result<ash::Instance>;
+
+    /// The physical device to use, or `None` to let [`Gpu`] pick one by its usual rules.
+    ///
+    /// # Safety
+    /// `instance` must be the one this factory created.
+    unsafe fn physical_device(
+        &mut self,
+        instance: &ash::Instance,
+    ) -> Result<Option<vk::PhysicalDevice>>;
+
+    /// Creates the device from the info the renderer wants (queue, extensions, features).
+    ///
+    /// # Safety
+    /// `info` must be valid for `physical`.
+    unsafe fn create_device(
+        &mut self,
+        instance: &ash::Instance,
+        physical: vk::PhysicalDevice,
+        info: &vk::DeviceCreateInfo<'_>,
+    ) -> Result<ash::Device>;
+}
+
+/// Plain Vulkan: the instance and device are created directly.
+struct DirectFactory;
+
+impl VulkanFactory for DirectFactory {
+    unsafe fn create_instance(
+        &mut self,
+        entry: &ash::Entry,
+        info: &vk::InstanceCreateInfo<'_>,
+    ) -> Result<ash::Instance> {
+        Ok(entry.create_instance(info, None)?)
+    }
+    unsafe fn physical_device(&mut self, _: &ash::Instance) -> Result<Option<vk::PhysicalDevice>> {
+        Ok(None)
+    }
+    unsafe fn create_device(
+        &mut self,
+        instance: &ash::Instance,
+        physical: vk::PhysicalDevice,
+        info: &vk::DeviceCreateInfo<'_>,
+    ) -> Result<ash::Device> {
+        Ok(instance.create_device(physical, info, None)?)
+    }
+}
+
 impl Gpu {
     pub fn new(opts: &GpuOptions) -> Result<Gpu> {
-        unsafe { Self::create(opts) }
+        unsafe { Self::create(opts, &mut DirectFactory) }
     }
 
-    unsafe fn create(opts: &GpuOptions) -> Result<Gpu> {
+    /// Like [`Gpu::new`], but the instance and device come from `factory` (the OpenXR path).
+    ///
+    /// # Safety
+    /// The factory must honour the create infos it is given.
+    pub unsafe fn with_factory(opts: &GpuOptions, factory: &mut dyn VulkanFactory) -> Result<Gpu> {
+        Self::create(opts, factory)
+    }
+
+    unsafe fn create(opts: &GpuOptions, factory: &mut dyn VulkanFactory) -> Result<Gpu> {
         let entry = ash::Entry::load()?;
         let log = Arc::new(ValidationLog::default());
 
@@ -167,7 +236,7 @@ impl Gpu {
             // Chained so instance creation and destruction are validated too.
             info = info.push_next(&mut messenger_info);
         }
-        let instance = entry.create_instance(&info, None)?;
+        let instance = factory.create_instance(&entry, &info)?;
         let debug = if opts.validation {
             let du = ash::ext::debug_utils::Instance::new(&entry, &instance);
             let m = du.create_debug_utils_messenger(&messenger_info, None)?;
@@ -176,7 +245,17 @@ impl Gpu {
             None
         };
 
-        let (physical, queue_family) = match pick_device(&instance, opts) {
+        let only = match factory.physical_device(&instance) {
+            Ok(p) => p,
+            Err(e) => {
+                if let Some((du, m)) = &debug {
+                    du.destroy_debug_utils_messenger(*m, None);
+                }
+                instance.destroy_instance(None);
+                return Err(e);
+            }
+        };
+        let (physical, queue_family) = match pick_device(&instance, opts, only) {
             Ok(p) => p,
             Err(e) => {
                 if let Some((du, m)) = &debug {
@@ -204,7 +283,7 @@ impl Gpu {
             .queue_create_infos(&queue_info)
             .enabled_extension_names(&dev_exts)
             .push_next(&mut f2);
-        let device = instance.create_device(physical, &dinfo, None)?;
+        let device = factory.create_device(&instance, physical, &dinfo)?;
         let queue = device.get_device_queue(queue_family, 0);
         let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
 
@@ -248,19 +327,25 @@ impl Gpu {
 }
 
 /// Prefers a discrete GPU, then integrated, virtual, and finally a CPU device (lavapipe).
+/// With `only`, that device is checked by the same rules and used if it passes.
 unsafe fn pick_device(
     instance: &ash::Instance,
     opts: &GpuOptions,
+    only: Option<vk::PhysicalDevice>,
 ) -> Result<(vk::PhysicalDevice, u32)> {
     let mut best: Option<(u32, vk::PhysicalDevice, u32)> = None;
     let mut rejected = Vec::new();
-    for pd in instance.enumerate_physical_devices()? {
+    let candidates = match only {
+        Some(pd) => vec![pd],
+        None => instance.enumerate_physical_devices()?,
+    };
+    for pd in candidates {
         let props = instance.get_physical_device_properties(pd);
         let name = props
             .device_name_as_c_str()
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_default();
-        if let Some(want) = &opts.device_name {
+        if let (Some(want), None) = (&opts.device_name, only) {
             if !name.to_lowercase().contains(&want.to_lowercase()) {
                 continue;
             }

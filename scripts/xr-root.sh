@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Builds, once, the Debian trixie root the OpenXR test runs in (Monado is packaged in trixie, not
+# in bookworm; a binary built on bookworm runs unchanged inside it). Cached at $CAO_XR_XR_ROOT
+# (default /var/cache/cao-xr/trixie-root); a root with the marker file .cao-xr-ready is reused.
+# Needs root and Debian's archive (deb.debian.org or $CAO_XR_DEBIAN_MIRROR). Prints the root's path.
+set -euo pipefail
+ROOT="${CAO_XR_XR_ROOT:-/var/cache/cao-xr/trixie-root}"
+MIRROR="${CAO_XR_DEBIAN_MIRROR:-http://deb.debian.org/debian}"
+# The runtime (monado-service + its OpenXR runtime library), the Khronos loader, the OpenXR core
+# validation layer, lavapipe, the Vulkan loader and the Khronos validation layers.
+PACKAGES="monado-service,libopenxr1-monado,libopenxr-loader1,openxr-layer-corevalidation,mesa-vulkan-drivers,libvulkan1,vulkan-validationlayers,ca-certificates"
+if [ -f "$ROOT/.cao-xr-ready" ]; then echo "$ROOT"; exit 0; fi
+[ "$(id -u)" -eq 0 ] || { echo "xr-root: building the trixie root needs root" >&2; exit 1; }
+if ! command -v mmdebstrap >/dev/null 2>&1; then
+  echo "xr-root: installing mmdebstrap" >&2
+  apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mmdebstrap >/dev/null
+fi
+rm -rf "$ROOT.tmp"
+mkdir -p "$(dirname "$ROOT")"
+echo "xr-root: building $ROOT (Debian trixie + Monado); this runs once" >&2
+start=$(date +%s)
+# --variant=apt keeps the root small: only Essential + apt + what the packages pull in.
+mmdebstrap --variant=apt --include="$PACKAGES" --skip=check/empty \
+  trixie "$ROOT.tmp" "$MIRROR" >&2
+rm -rf "$ROOT"
+mv "$ROOT.tmp" "$ROOT"
+touch "$ROOT/.cao-xr-ready"
+echo "xr-root: built in $(( $(date +%s) - start )) s" >&2
+echo "$ROOT"

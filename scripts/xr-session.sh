@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# Runs one `cao-xr xr` session against Monado inside the trixie root (scripts/xr-root.sh), with
+# no display: monado-service with the null compositor and two simulated controllers, lavapipe
+# for Vulkan, the Khronos Vulkan validation layer and the OpenXR core validation layer on.
+#
+#   scripts/xr-session.sh ROOT CAO_XR_BINARY OUTDIR [cao-xr xr arguments...]
+#
+# The mounts live in a private mount namespace (unshare), so they vanish with it even when the
+# run fails; monado-service is stopped on every exit path. OUTDIR receives monado.log,
+# xr-validation.txt and whatever the session wrote into its working directory (e.g. a
+# recording named with a relative path). Exit status: that of cao-xr.
+set -euo pipefail
+ROOT=$(realpath "$1"); BIN=$2; OUT=$3; shift 3
+[ -f "$ROOT/.cao-xr-ready" ] || { echo "xr-session: $ROOT is not a built root (run scripts/xr-root.sh)" >&2; exit 2; }
+mkdir -p "$OUT"; OUT=$(realpath "$OUT")
+mkdir -p "$ROOT/tmp"
+WORK=$(mktemp -d "$ROOT/tmp/cao-xr.XXXXXX")
+chmod 755 "$WORK"
+REL=${WORK#"$ROOT"}
+# Keep what the session wrote (logs, recordings), not the binary, the bindings or the fifo.
+trap 'find "$WORK" -maxdepth 1 -type f ! -name cao-xr ! -name inner.sh -exec cp {} "$OUT"/ \; ; rm -rf "$WORK"' EXIT
+cp "$BIN" "$WORK/cao-xr"
+cp -r "$(dirname "$0")/../controllers/bindings" "$WORK/bindings"
+cat > "$WORK/inner.sh" <<'INNER'
+set -u
+W=$1; shift
+cd "$W"
+export XDG_RUNTIME_DIR=$W/run
+mkdir -p -m 700 "$XDG_RUNTIME_DIR"
+export VK_DRIVER_FILES=/usr/share/vulkan/icd.d/lvp_icd.json
+export XRT_COMPOSITOR_NULL=1 SIMULATED_ENABLE=1 SIMULATED_LEFT=simple SIMULATED_RIGHT=simple
+# monado-service reads stdin (and quits on EOF): give it a pipe that stays open until we close it.
+mkfifo "$W/service-stdin"
+monado-service < "$W/service-stdin" > "$W/monado.log" 2>&1 &
+MON=$!
+exec 3> "$W/service-stdin"
+stop() { exec 3>&-; for _ in $(seq 50); do kill -0 $MON 2>/dev/null || return; sleep 0.1; done; kill $MON 2>/dev/null; wait $MON 2>/dev/null; }
+for _ in $(seq 100); do [ -S "$XDG_RUNTIME_DIR/monado_comp_ipc" ] && break; kill -0 $MON 2>/dev/null || break; sleep 0.1; done
+if [ ! -S "$XDG_RUNTIME_DIR/monado_comp_ipc" ]; then
+  echo "xr-session: monado-service did not come up; its log:" >&2; cat "$W/monado.log" >&2; stop; exit 3
+fi
+echo "xr-session: monado-service is up" >&2
+XR_ENABLE_API_LAYERS=XR_APILAYER_LUNARG_core_validation \
+XR_CORE_VALIDATION_EXPORT_TYPE=text XR_CORE_VALIDATION_FILE_NAME="$W/xr-validation.txt" \
+CAO_XR_VALIDATION=1 CAO_XR_BINDINGS="$W/bindings" \
+  timeout "${CAO_XR_SESSION_TIMEOUT:-300}" "$W/cao-xr" xr "$@"
+rc=$?
+stop
+exit $rc
+INNER
+unshare --mount --propagation private -- bash -c '
+  set -e
+  mount --rbind /dev "$1/dev"
+  mount -t proc proc "$1/proc"
+  mount --rbind /sys "$1/sys"
+  exec chroot "$1" /bin/bash "$2/inner.sh" "$2" "${@:3}"' _ "$ROOT" "$REL" "$@"
