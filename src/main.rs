@@ -28,6 +28,14 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Cmd {
+    /// The main job: a headset session if an OpenXR runtime answers, else the desktop window if
+    /// there is a display, else a headless render of a carved volume to out/render.
+    Start {
+        #[command(flatten)]
+        vol: VolumeArgs,
+        #[command(flatten)]
+        lao: LaoArgs,
+    },
     /// Render both eyes of a volume (LAO-lit) to DIR/left.png, right.png and stereo.png.
     Render {
         #[command(flatten)]
@@ -395,6 +403,48 @@ fn main() -> std::process::ExitCode {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
+        Cmd::Start { vol, lao } => {
+            let (v, tf) = vol.load()?;
+            if cao_xr::xr::available() {
+                eprintln!("start: an OpenXR runtime answered: starting the headset session");
+                let opts = cao_xr::xr::XrOptions::default();
+                let s = cao_xr::xr::run(&v, &tf, lao.params(), opts)?;
+                println!("headset session ended cleanly after {} frames", s.frames);
+            } else if std::env::var_os("DISPLAY").is_some() {
+                eprintln!(
+                    "start: no OpenXR runtime answered; DISPLAY is set: opening the desktop window"
+                );
+                let opts = app::desktop::ViewOptions {
+                    size: (480, 480),
+                    ..Default::default()
+                };
+                app::desktop::run(&v, &tf, lao.params(), opts)?;
+            } else {
+                eprintln!(
+                    "start: no OpenXR runtime and no display: rendering headless to out/render \
+                     (a 40 mm sphere carving the front; cao-xr replay plays pose streams)"
+                );
+                let gpu = gpu(cli.validation)?;
+                let placement = cao_xr::render::Placement::default();
+                let tools = vec![app::parse_tool("sphere:40:0,40,80", &placement)?];
+                let settings = RenderSettings::default();
+                let out = PathBuf::from("out/render");
+                app::render_to_dir(
+                    &gpu,
+                    &v,
+                    &tf,
+                    &lao.params(),
+                    &tools,
+                    (640, 640),
+                    &settings,
+                    &out,
+                )?;
+                println!(
+                    "wrote {0}/left.png {0}/right.png {0}/stereo.png",
+                    out.display()
+                );
+            }
+        }
         Cmd::Render {
             vol,
             lao,
