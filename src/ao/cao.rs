@@ -8,7 +8,7 @@
 //! for bit: both use the same kernels on the same clipped opacity.
 
 use super::lao::{index_steps, LaoParams, SkipBuffers};
-use crate::clip::{shape_mesh, ClipMap, TriMesh};
+use crate::clip::{shape_mesh, ClipMap, ClipMapGpu, TriMesh};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Result};
 use crate::render::{world_from_tex, Placement};
 use crate::scene::{Shape, Tool, ToolMode};
@@ -151,6 +151,8 @@ pub struct Cao {
     counts: Buffer,
     tools: Buffer,
     maps: Option<Buffer>,
+    /// Builds the tools' clip and dilation maps (rasterised peels, compute dilation).
+    map_builder: ClipMapGpu,
     map_cache: HashMap<(Shape, u32, usize), ClipMap>,
     /// Loaded OBJ/PLY meshes, for Shape::Mesh.
     pub meshes: Vec<TriMesh>,
@@ -246,6 +248,7 @@ impl Cao {
             counts,
             tools,
             maps: None,
+            map_builder: ClipMapGpu::new(gpu)?,
             map_cache: HashMap::new(),
             meshes: Vec::new(),
             clip_resolution: crate::clip::DEFAULT_RESOLUTION,
@@ -274,7 +277,12 @@ impl Cao {
             * 1.01
     }
 
-    fn map_for(&mut self, tool: &Tool, placement: &Placement) -> Result<ClipMap> {
+    /// The cached map of `tool`, built now if missing: with the GPU builder when `on_gpu`, else
+    /// with the CPU reference ([`ClipMap::build`]). A GPU build needs a submission of its own,
+    /// so it cannot happen while a frame is being recorded (the recording holds the command
+    /// pool): [`Cao::prepare_maps`] builds the maps before, and recording uses the CPU only for a
+    /// map nobody prepared.
+    fn map_for(&mut self, tool: &Tool, placement: &Placement, on_gpu: bool) -> Result<ClipMap> {
         // Radius in tool units, rounded up to 1/256 so the cache stays small and stays conservative.
         let r_world = self.dilation_radius_mm() * 1e-3 * placement.scale as f64;
         let r_local = r_world / tool.size.max(1e-6) as f64;
@@ -286,9 +294,25 @@ impl Cao {
         let mesh = shape_mesh(tool.shape, &self.meshes).ok_or_else(|| {
             GpuError::Other(format!("tool shape {:?} has no mesh loaded", tool.shape))
         })?;
-        let map = ClipMap::build(&mesh, self.clip_resolution, q as f32 / 256.0);
+        let radius = q as f32 / 256.0;
+        let map = if on_gpu {
+            self.map_builder
+                .build(&mesh, self.clip_resolution, radius)?
+        } else {
+            ClipMap::build(&mesh, self.clip_resolution, radius)
+        };
         self.map_cache.insert(key, map.clone());
         Ok(map)
+    }
+
+    /// Builds on the GPU, and caches, the clip maps the active tools need and the cache lacks.
+    /// Call it before [`Cao::record_frame`], outside any command recording; [`Cao::run_frame`]
+    /// does.
+    pub fn prepare_maps(&mut self, tools: &[Tool], placement: &Placement) -> Result<()> {
+        for tool in tools.iter().filter(|t| t.active).take(MAX_TOOLS) {
+            self.map_for(tool, placement, true)?;
+        }
+        Ok(())
     }
 
     /// Uploads the active tools' maps and transforms; returns their voxel boxes.
@@ -308,7 +332,7 @@ impl Cao {
         let mut texels: Vec<[f32; 4]> = Vec::new();
         let mut boxes = Vec::new();
         for tool in active {
-            let map = self.map_for(tool, placement)?;
+            let map = self.map_for(tool, placement, false)?;
             let world_from_local = tool.pose.matrix() * Mat4::from_scale(Vec3::splat(tool.size));
             let local_from_world = world_from_local.inverse();
             let local_from_index = local_from_world * world_from_index;
@@ -416,6 +440,7 @@ impl Cao {
 
     /// Records one frame's AO update (restore, clip + mask, update) into `cmd`; read the
     /// metrics with [`Cao::read_metrics`] once it has executed. V_AO is then in [`Cao::ao`].
+    /// Call [`Cao::prepare_maps`] first for GPU-built clip maps of new tool shapes or sizes.
     pub fn record_frame(
         &mut self,
         cmd: vk::CommandBuffer,
@@ -522,6 +547,7 @@ impl Cao {
         placement: &Placement,
         mode: Mode,
     ) -> Result<FrameMetrics> {
+        self.prepare_maps(tools, placement)?;
         let gpu = self.gpu.clone();
         let mut pending = Ok(PendingFrame { visited: 0, mode });
         gpu.submit_and_wait(|cmd| pending = self.record_frame(cmd, tools, placement, mode))?;

@@ -5,9 +5,15 @@
 //! holds up to two depth intervals of the shape along local Z (two peels: concave shapes such as
 //! a torus seen from its side) and one interval of the dilated shape (the 2D Minkowski sum of the
 //! depth maps with a sphere, conservatively widened by one texel).
+//!
+//! [`ClipMapGpu`] builds the maps on the GPU (rasterised depth peels, a compute-shader dilation);
+//! [`ClipMap::build`] is the CPU reference it is tested against, sampling the same points with
+//! the same crossing rule and dilating with the same kernel.
 
+pub mod gpu;
 pub mod mesh;
 
+pub use gpu::{ClipGpuError, ClipMapGpu};
 pub use mesh::{MeshError, TriMesh};
 
 use glam::{Vec2, Vec3};
@@ -35,9 +41,12 @@ pub struct ClipMap {
     pub z_range: (f32, f32),
 }
 
-/// Sub-texel offset of the sample points, irrational so that texel centres never fall exactly on
-/// the edges of the (often axis-aligned) meshes.
-const JITTER: Vec2 = Vec2::new(0.013_725_6, 0.021_194_3);
+/// Where in its texel each map samples the shape, in texels from the centre: an irrational
+/// sub-texel offset, so that the sample points of meshes with round coordinates (axis-aligned
+/// faces, a torus whose outline lies on a texel row) do not fall exactly on their silhouettes,
+/// where the CPU's fill rule and the rasteriser's could legitimately disagree. Both builders
+/// sample here: the GPU shifts its projection by this much.
+pub const SAMPLE_OFFSET: Vec2 = Vec2::new(0.013_725_6, 0.021_194_3);
 
 impl ClipMap {
     pub fn texel(&self) -> f32 {
@@ -65,15 +74,26 @@ impl ClipMap {
         (inside, p.z >= d[0] && p.z <= d[1])
     }
 
-    /// Ray-casts the mesh along local Z through every texel (a scan conversion on the CPU) and
-    /// builds the dilation for `radius` (tool-local units).
+    /// The map's extent for a mesh of half-extent `half` (x, y), a dilation `radius` and `res`
+    /// texels: room for the dilation plus two texels, extent = e0 + r + 4 * extent / res. Shared
+    /// by the CPU and GPU builders so both sample the same texel centres.
+    pub fn extent_for(half: Vec3, res: usize, radius: f32) -> f32 {
+        (half.x.max(half.y) + radius) / (1.0 - 4.0 / res as f32)
+    }
+
+    /// Ray-casts the mesh along local Z through every texel's sample point ([`SAMPLE_OFFSET`]; a
+    /// scan conversion on the CPU) and builds the dilation for `radius` (tool-local units). This
+    /// is the reference for [`ClipMapGpu`], which rasterises the same crossings.
+    ///
+    /// A sample that falls exactly on a triangle edge or vertex counts for exactly one of two
+    /// triangles on either side of it (a fill rule, as a GPU rasteriser has), and for both or
+    /// neither of two folding over at a silhouette, so no sample loses or doubles a crossing.
     pub fn build(mesh: &TriMesh, res: usize, radius: f32) -> ClipMap {
-        let half = mesh.half_extent();
         let res = res.max(8);
-        // Room for the dilation plus two texels: extent = e0 + r + 4 * extent / res.
-        let extent = (half.x.max(half.y) + radius) / (1.0 - 4.0 / res as f32);
+        let extent = Self::extent_for(mesh.half_extent(), res, radius);
         let texel = 2.0 * extent / res as f32;
         let centre = |i: usize| -extent + (i as f32 + 0.5) * texel;
+        let offset = SAMPLE_OFFSET * texel;
         // Scan-convert: every triangle adds its depth to the texels whose sample point it covers.
         let mut hits: Vec<Vec<f32>> = vec![Vec::new(); res * res];
         for tri in &mesh.triangles {
@@ -82,18 +102,14 @@ impl ClipMap {
             let first = |v: f32| (((v + extent) / texel - 0.5).floor().max(0.0)) as usize;
             let last =
                 |v: f32| ((((v + extent) / texel - 0.5).ceil()).max(0.0) as usize).min(res - 1);
-            let area = (b.x - a.x) * (c.y - a.y) - (c.x - a.x) * (b.y - a.y);
-            if area.abs() < 1e-12 {
+            let Some(tri) = ScanTriangle::new(a, b, c) else {
                 continue; // seen edge-on: adds no crossing
-            }
+            };
             for j in first(lo.y)..=last(hi.y) {
                 for i in first(lo.x)..=last(hi.x) {
-                    let p = Vec2::new(centre(i), centre(j)) + JITTER * texel;
-                    let w0 = ((b.x - p.x) * (c.y - p.y) - (c.x - p.x) * (b.y - p.y)) / area;
-                    let w1 = ((c.x - p.x) * (a.y - p.y) - (a.x - p.x) * (c.y - p.y)) / area;
-                    let w2 = 1.0 - w0 - w1;
-                    if w0 > 0.0 && w1 > 0.0 && w2 > 0.0 {
-                        hits[j * res + i].push(w0 * a.z + w1 * b.z + w2 * c.z);
+                    let p = Vec2::new(centre(i), centre(j)) + offset;
+                    if let Some(z) = tri.depth_at(p) {
+                        hits[j * res + i].push(z);
                     }
                 }
             }
@@ -102,24 +118,11 @@ impl ClipMap {
             .into_iter()
             .map(|mut z| {
                 z.sort_by(|a, b| a.total_cmp(b));
-                if z.len() % 2 == 1 {
-                    z.pop(); // a grazing ray: drop the unmatched crossing
-                }
-                match z.len() {
-                    0 => [EMPTY_IN, EMPTY_OUT, EMPTY_IN, EMPTY_OUT],
-                    2 => [z[0], z[1], EMPTY_IN, EMPTY_OUT],
-                    // Two or more intervals: keep the first, hull the rest into the second.
-                    _ => [z[0], z[1], z[2], z[z.len() - 1]],
-                }
+                intervals(&z)
             })
             .collect();
         let dilated = dilate(&clip, res, texel, radius);
-        let z_range = dilated
-            .iter()
-            .filter(|d| d[0] <= d[1])
-            .fold((f32::MAX, f32::MIN), |(lo, hi), d| {
-                (lo.min(d[0]), hi.max(d[1]))
-            });
+        let z_range = z_range(&dilated);
         ClipMap {
             res,
             extent,
@@ -131,12 +134,135 @@ impl ClipMap {
     }
 }
 
+/// A triangle as the CPU scan conversion sees it, along local Z.
+struct ScanTriangle {
+    v: [Vec3; 3],
+    /// Twice its signed area in the XY plane.
+    area: f32,
+    /// Whether the edge opposite each corner owns the samples exactly on it (see `owns`).
+    own: [bool; 3],
+}
+
+impl ScanTriangle {
+    /// None for a triangle seen edge-on (no area: it adds no crossing).
+    fn new(a: Vec3, b: Vec3, c: Vec3) -> Option<ScanTriangle> {
+        let area = edge(a, b, c.truncate());
+        if area.abs() < 1e-12 {
+            return None;
+        }
+        let s = area.signum();
+        Some(ScanTriangle {
+            v: [a, b, c],
+            area,
+            own: [owns(b, c, s), owns(c, a, s), owns(a, b, s)],
+        })
+    }
+
+    /// The local z where the ray along Z through `p` crosses the triangle, if it does.
+    fn depth_at(&self, p: Vec2) -> Option<f32> {
+        let [a, b, c] = self.v;
+        let e = [edge(b, c, p), edge(c, a, p), edge(a, b, p)];
+        let s = self.area.signum();
+        let covered = (0..3).all(|k| s * e[k] > 0.0 || (e[k] == 0.0 && self.own[k]));
+        covered.then(|| (e[0] * a.z + e[1] * b.z + e[2] * c.z) / self.area)
+    }
+}
+
+/// Twice the signed area of (u, v, p) in the XY plane: the edge function of the directed edge
+/// u -> v at p. Swapping u and v negates it exactly (the same two products, subtracted the other
+/// way), so of two triangles on either side of an edge at most one covers a sample next to it,
+/// however the products round: the scan conversion is watertight.
+fn edge(u: Vec3, v: Vec3, p: Vec2) -> f32 {
+    (u.x - p.x) * (v.y - p.y) - (v.x - p.x) * (u.y - p.y)
+}
+
+/// The fill rule for samples exactly on the edge u -> v of a triangle whose signed area has sign
+/// `s`: the edge owns them if the triangle lies on its +x side (or, for an edge parallel to x, on
+/// its +y side), as if the sample sat an infinitesimal step towards (+x, then +y). Of two
+/// triangles on either side of an edge exactly one owns it, of two folding over at a silhouette
+/// edge both or neither, and around a shared vertex exactly one triangle covers it.
+fn owns(u: Vec3, v: Vec3, s: f32) -> bool {
+    // The inward normal of the edge: the gradient of s * edge(u, v, p) in p.
+    let n = Vec2::new(u.y - v.y, v.x - u.x) * s;
+    n.x > 0.0 || (n.x == 0.0 && n.y > 0.0)
+}
+
+/// The clip intervals of a texel from its sorted crossings along local Z:
+/// - none or one crossing (a grazing ray): empty;
+/// - two or three (the odd one grazing): the first interval, the unmatched last crossing dropped;
+/// - four or more: the first interval, and everything from the third crossing to the last hulled
+///   into the second (a mesh needing more than two peels clips like its hull there, as the paper
+///   says; an odd count of five or more keeps its last crossing in that hull).
+///
+/// The GPU builder applies the same rule to its four front peels and its farthest crossing.
+pub fn intervals(z: &[f32]) -> [f32; 4] {
+    match z.len() {
+        0 | 1 => [EMPTY_IN, EMPTY_OUT, EMPTY_IN, EMPTY_OUT],
+        2 | 3 => [z[0], z[1], EMPTY_IN, EMPTY_OUT],
+        n => [z[0], z[1], z[2], z[n - 1]],
+    }
+}
+
+/// Local Z range of the non-empty texels of a dilation map.
+pub fn z_range(dilated: &[[f32; 4]]) -> (f32, f32) {
+    dilated
+        .iter()
+        .filter(|d| d[0] <= d[1])
+        .fold((f32::MAX, f32::MIN), |(lo, hi), d| {
+            (lo.min(d[0]), hi.max(d[1]))
+        })
+}
+
+/// The sphere of the dilation as a kernel over texel offsets (the half-spherical depth map of the
+/// paper's Fig. 7).
+///
+/// Distances between texels are shortened by one texel diagonal: a texel stands for every point
+/// of its square, so the result contains the exact Minkowski sum of the continuous shape. The CPU
+/// and GPU dilations share this table, so they do the same float operations.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DilationKernel {
+    /// Offsets up to this many texels (per axis) can reach a texel.
+    pub reach: usize,
+    /// For |di|, |dj| in 0..=reach at `[dj * (reach + 1) + di]`: the half-height of the sphere
+    /// around a surface point that far away, or [`EMPTY_OUT`] beyond the sphere (a value that
+    /// moves no hull: EMPTY_IN - h and z + EMPTY_OUT stay EMPTY_IN, -EMPTY_OUT stays below).
+    pub heights: Vec<f32>,
+    /// For |dj| in 0..=reach: the largest |di| inside the sphere, or -1 if none.
+    pub widths: Vec<i32>,
+}
+
+impl DilationKernel {
+    pub fn new(texel: f32, radius: f32) -> DilationKernel {
+        let reach = (radius / texel).ceil() as usize + 2;
+        let diag = texel * std::f32::consts::SQRT_2;
+        let mut heights = Vec::with_capacity((reach + 1) * (reach + 1));
+        let mut widths = vec![-1; reach + 1];
+        for (dj, width) in widths.iter_mut().enumerate() {
+            for di in 0..=reach {
+                let dist = ((di * di + dj * dj) as f32).sqrt() * texel;
+                let d = (dist - diag).max(0.0);
+                heights.push(if d > radius {
+                    EMPTY_OUT
+                } else {
+                    *width = di as i32;
+                    (radius * radius - d * d).sqrt()
+                });
+            }
+        }
+        DilationKernel {
+            reach,
+            heights,
+            widths,
+        }
+    }
+}
+
 /// The dilated shape: for every texel, the hull along Z of the spheres of `radius` centred on
-/// the surface points of all texels within reach. Distances between texels are shortened by one
-/// texel diagonal, so the result contains the exact Minkowski sum of the continuous shape.
-fn dilate(clip: &[[f32; 4]], res: usize, texel: f32, radius: f32) -> Vec<[f32; 4]> {
-    let reach = (radius / texel).ceil() as i64 + 2;
-    let diag = texel * std::f32::consts::SQRT_2;
+/// the surface points of all texels within reach (see [`DilationKernel`]). The reference for
+/// shaders/clip_dilate.comp.
+pub fn dilate(clip: &[[f32; 4]], res: usize, texel: f32, radius: f32) -> Vec<[f32; 4]> {
+    let kernel = DilationKernel::new(texel, radius);
+    let reach = kernel.reach as i64;
     (0..res * res)
         .into_par_iter()
         .map(|t| {
@@ -148,12 +274,12 @@ fn dilate(clip: &[[f32; 4]], res: usize, texel: f32, radius: f32) -> Vec<[f32; 4
                     if c[0] > c[1] {
                         continue;
                     }
-                    let dist = (((qi - pi).pow(2) + (qj - pj).pow(2)) as f32).sqrt() * texel;
-                    let d = (dist - diag).max(0.0);
-                    if d > radius {
+                    let k =
+                        (qj - pj).unsigned_abs() * (reach as u64 + 1) + (qi - pi).unsigned_abs();
+                    let h = kernel.heights[k as usize];
+                    if h < 0.0 {
                         continue;
                     }
-                    let h = (radius * radius - d * d).sqrt();
                     let last_out = if c[2] <= c[3] { c[3] } else { c[1] };
                     lo = lo.min(c[0] - h);
                     hi = hi.max(last_out + h);
@@ -212,6 +338,78 @@ mod tests {
         assert!(b.test(Vec3::new(0.95, -0.95, 0.9)).0);
         assert!(!b.test(Vec3::new(1.05, 0.0, 0.0)).0);
         assert!(b.test(Vec3::new(1.15, 0.0, 0.0)).1);
+    }
+
+    /// Crossings of the ray through `p` with `tris` (corner indices into `v`).
+    fn crossings(v: &[Vec3], tris: &[[usize; 3]], p: Vec2) -> usize {
+        tris.iter()
+            .filter_map(|t| ScanTriangle::new(v[t[0]], v[t[1]], v[t[2]]))
+            .filter(|t| t.depth_at(p).is_some())
+            .count()
+    }
+
+    #[test]
+    fn samples_on_edges_and_vertices_are_covered_once() {
+        // A fan of six triangles around the origin, alternately wound: every point of the
+        // hexagon, edges and centre included, is covered exactly once.
+        let mut v = vec![Vec3::ZERO];
+        for k in 0..6 {
+            let a = k as f32 * std::f32::consts::FRAC_PI_3;
+            v.push(Vec3::new(a.cos(), a.sin(), 0.0));
+        }
+        let tris: Vec<[usize; 3]> = (0..6)
+            .map(|k| {
+                let (b, c) = (1 + k, 1 + (k + 1) % 6);
+                if k % 2 == 0 {
+                    [0, b, c]
+                } else {
+                    [0, c, b]
+                }
+            })
+            .collect();
+        for p in [
+            Vec2::ZERO,
+            Vec2::new(0.5, 0.0),
+            Vec2::new(-0.25, 0.0),
+            v[2].truncate() * 0.5,
+            Vec2::new(0.1, 0.05),
+        ] {
+            assert_eq!(crossings(&v, &tris, p), 1, "{p}");
+        }
+        // A square split on its diagonal, samples on the diagonal.
+        let v = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+            .map(|(x, y)| Vec3::new(x, y, 0.0))
+            .to_vec();
+        for t in [-0.5f32, 0.0, 0.3] {
+            assert_eq!(crossings(&v, &[[0, 1, 2], [0, 2, 3]], Vec2::splat(t)), 1);
+        }
+        // A fold: two triangles on the same side of a shared edge give a sample on it two
+        // crossings or none, never one.
+        let v = vec![
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(0.5, 1.0, -1.0),
+            Vec3::new(0.5, 1.0, 1.0),
+        ];
+        for p in [
+            Vec2::new(0.5, 0.0),
+            Vec2::new(0.0, 0.0),
+            Vec2::new(0.3, 0.0),
+        ] {
+            assert_eq!(crossings(&v, &[[0, 1, 2], [1, 0, 3]], p) % 2, 0, "{p}");
+        }
+    }
+
+    #[test]
+    fn crossings_pair_into_intervals() {
+        let e = [EMPTY_IN, EMPTY_OUT, EMPTY_IN, EMPTY_OUT];
+        assert_eq!(intervals(&[]), e);
+        assert_eq!(intervals(&[0.5]), e, "a grazing ray clips nothing");
+        assert_eq!(intervals(&[0.0, 1.0]), [0.0, 1.0, EMPTY_IN, EMPTY_OUT]);
+        assert_eq!(intervals(&[0.0, 1.0, 2.0]), [0.0, 1.0, EMPTY_IN, EMPTY_OUT]);
+        assert_eq!(intervals(&[0.0, 1.0, 2.0, 3.0]), [0.0, 1.0, 2.0, 3.0]);
+        assert_eq!(intervals(&[0.0, 1.0, 2.0, 3.0, 4.0]), [0.0, 1.0, 2.0, 4.0]);
+        assert_eq!(intervals(&[0., 1., 2., 3., 4., 5.]), [0.0, 1.0, 2.0, 5.0]);
     }
 
     #[test]
