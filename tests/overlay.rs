@@ -12,34 +12,8 @@ use cao_xr::render::{
 };
 use cao_xr::scene::{Scene, Shape, Tool, ToolMode};
 use cao_xr::volume::transfer::TransferFunction;
-use cao_xr::volume::{Modality, Volume, Voxels};
-use glam::{DMat3, DVec3, Quat, Vec3};
 
-/// A 24^3 volume (2 mm voxels) holding a solid bone ball of radius 16 mm (as in tests/render.rs).
-fn ball() -> Volume {
-    let n = 24;
-    let mut v = vec![-1000i16; n * n * n];
-    for k in 0..n {
-        for j in 0..n {
-            for i in 0..n {
-                let d =
-                    DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) - DVec3::splat(12.0);
-                if d.length() < 8.0 {
-                    v[i + n * (j + n * k)] = 1500;
-                }
-            }
-        }
-    }
-    Volume {
-        name: "ball".into(),
-        dims: [n; 3],
-        spacing: [2.0; 3],
-        directions: DMat3::IDENTITY,
-        origin: DVec3::ZERO,
-        modality: Modality::Ct,
-        voxels: Voxels::I16(v),
-    }
-}
+use glam::{Quat, Vec3};
 
 const W: u32 = 128;
 const HALF: f32 = 0.2; // half field of view, radians
@@ -66,7 +40,7 @@ fn views() -> [View; 2] {
 /// Renders the ball, then each overlay in `overlays` (an empty list still runs the pass), each
 /// into its own frame; returns one image per overlay.
 fn render(gpu: &Gpu, overlays: &[Vec<OverlayItem>]) -> Vec<StereoImage> {
-    let vol = ball();
+    let vol = common::ball();
     let tf = TransferFunction::preset("ct-bone").unwrap();
     let tex = VolumeTextures::new(gpu, &vol, &tf).unwrap();
     let mut renderer = Renderer::new(gpu).unwrap();

@@ -5,34 +5,8 @@ mod common;
 use cao_xr::app::HeadlessRenderer;
 use cao_xr::render::{Fov, Placement, Pose, RenderSettings, StereoImage, View, VolumeTextures};
 use cao_xr::volume::transfer::TransferFunction;
-use cao_xr::volume::{Modality, Volume, Voxels};
-use glam::{DMat3, DVec3, Quat, Vec3};
-
-/// A 24^3 volume (2 mm voxels) holding a solid bone ball of radius 16 mm.
-fn ball() -> Volume {
-    let n = 24;
-    let mut v = vec![-1000i16; n * n * n];
-    for k in 0..n {
-        for j in 0..n {
-            for i in 0..n {
-                let d =
-                    DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) - DVec3::splat(12.0);
-                if d.length() < 8.0 {
-                    v[i + n * (j + n * k)] = 1500;
-                }
-            }
-        }
-    }
-    Volume {
-        name: "ball".into(),
-        dims: [n; 3],
-        spacing: [2.0; 3],
-        directions: DMat3::IDENTITY,
-        origin: DVec3::ZERO,
-        modality: Modality::Ct,
-        voxels: Voxels::I16(v),
-    }
-}
+use cao_xr::volume::Volume;
+use glam::{Quat, Vec3};
 
 const W: u32 = 128;
 const HALF: f32 = 0.2; // half field of view, radians
@@ -88,7 +62,7 @@ fn centroid(img: &StereoImage, eye: usize) -> (f64, f64) {
 
 #[test]
 fn rendering_twice_is_bit_identical() {
-    let vol = ball();
+    let vol = common::ball();
     let s = RenderSettings::default();
     let (a, _) = render(&vol, &s);
     let (b, _) = render(&vol, &s);
@@ -97,7 +71,7 @@ fn rendering_twice_is_bit_identical() {
 
 #[test]
 fn eyes_differ_by_the_parallax_of_their_offset() {
-    let (img, _) = render(&ball(), &RenderSettings::default());
+    let (img, _) = render(&common::ball(), &RenderSettings::default());
     assert_ne!(
         img.rgba[0], img.rgba[1],
         "left and right images must differ"
@@ -126,7 +100,7 @@ fn eyes_differ_by_the_parallax_of_their_offset() {
 
 #[test]
 fn depth_is_the_front_surface_of_the_volume() {
-    let (img, views) = render(&ball(), &RenderSettings::default());
+    let (img, views) = render(&common::ball(), &RenderSettings::default());
     for (eye, view) in views.iter().enumerate() {
         // Pixel where the ball's centre projects; the front surface is 16 mm nearer.
         let centre = Placement::default().center;

@@ -36,7 +36,7 @@
 //! than by z, then sorted.
 
 use super::{z_range, ClipMap, DilationKernel, TriMesh, EMPTY_IN, EMPTY_OUT, SAMPLE_OFFSET};
-use crate::gpu::{push_set_layout, shader_module, Buffer, ComputePipeline, Gpu, GpuError};
+use crate::gpu::{pipeline, push_set_layout, Buffer, ComputePipeline, Gpu, GpuError};
 use crate::gpu::{Image, ImageDesc};
 use ash::vk;
 use gpu_allocator::MemoryLocation;
@@ -659,94 +659,26 @@ fn triangle_corners(mesh: &TriMesh) -> Result<Vec<[f32; 4]>> {
 /// The front-peel (depth LESS) and farthest-crossing (depth GREATER) pipelines: one R32_SFLOAT
 /// colour target (local z) and a D32 depth target, culling off, dynamic viewport and scissor.
 fn peel_pipelines(gpu: &Gpu, layout: vk::PipelineLayout) -> crate::gpu::Result<[vk::Pipeline; 2]> {
-    let d = &gpu.device;
-    let vs = shader_module(
+    let desc = pipeline::GraphicsDesc {
+        vs: include_bytes!(concat!(env!("OUT_DIR"), "/clip_peel.vert.spv")),
+        fs: include_bytes!(concat!(env!("OUT_DIR"), "/clip_peel.frag.spv")),
+        layout,
+        vertex_bindings: &[],
+        vertex_attributes: &[],
+        color_format: PEEL_FORMAT,
+        depth_format: DEPTH_FORMAT,
+        blend: pipeline::opaque(),
+    };
+    // Every crossing counts, front- or back-facing; one sample per texel at the CPU reference's
+    // sample point.
+    let none = pipeline::raster(vk::CullModeFlags::NONE);
+    let p = pipeline::graphics_pipelines(
         gpu,
-        include_bytes!(concat!(env!("OUT_DIR"), "/clip_peel.vert.spv")),
+        &desc,
+        &[
+            (none, pipeline::depth(vk::CompareOp::LESS, true)),
+            (none, pipeline::depth(vk::CompareOp::GREATER, true)),
+        ],
     )?;
-    let fs = match shader_module(
-        gpu,
-        include_bytes!(concat!(env!("OUT_DIR"), "/clip_peel.frag.spv")),
-    ) {
-        Ok(fs) => fs,
-        Err(e) => {
-            unsafe { d.destroy_shader_module(vs, None) };
-            return Err(e);
-        }
-    };
-    let stages = [
-        vk::PipelineShaderStageCreateInfo::default()
-            .stage(vk::ShaderStageFlags::VERTEX)
-            .module(vs)
-            .name(c"main"),
-        vk::PipelineShaderStageCreateInfo::default()
-            .stage(vk::ShaderStageFlags::FRAGMENT)
-            .module(fs)
-            .name(c"main"),
-    ];
-    let vertex_input = vk::PipelineVertexInputStateCreateInfo::default();
-    let input_assembly = vk::PipelineInputAssemblyStateCreateInfo::default()
-        .topology(vk::PrimitiveTopology::TRIANGLE_LIST);
-    let viewport = vk::PipelineViewportStateCreateInfo::default()
-        .viewport_count(1)
-        .scissor_count(1);
-    // Every crossing counts, front- or back-facing.
-    let raster = vk::PipelineRasterizationStateCreateInfo::default()
-        .polygon_mode(vk::PolygonMode::FILL)
-        .cull_mode(vk::CullModeFlags::NONE)
-        .line_width(1.0);
-    // One sample per texel, at its centre: the CPU reference's sample point.
-    let multisample = vk::PipelineMultisampleStateCreateInfo::default()
-        .rasterization_samples(vk::SampleCountFlags::TYPE_1);
-    let depth = |op| {
-        vk::PipelineDepthStencilStateCreateInfo::default()
-            .depth_test_enable(true)
-            .depth_write_enable(true)
-            .depth_compare_op(op)
-    };
-    let (less, greater) = (depth(vk::CompareOp::LESS), depth(vk::CompareOp::GREATER));
-    let blend_att = [vk::PipelineColorBlendAttachmentState::default()
-        .color_write_mask(vk::ColorComponentFlags::RGBA)];
-    let blend = vk::PipelineColorBlendStateCreateInfo::default().attachments(&blend_att);
-    let dyn_states = [vk::DynamicState::VIEWPORT, vk::DynamicState::SCISSOR];
-    let dynamic = vk::PipelineDynamicStateCreateInfo::default().dynamic_states(&dyn_states);
-    let formats = [PEEL_FORMAT];
-    let mut rendering = [
-        vk::PipelineRenderingCreateInfo::default()
-            .color_attachment_formats(&formats)
-            .depth_attachment_format(DEPTH_FORMAT),
-        vk::PipelineRenderingCreateInfo::default()
-            .color_attachment_formats(&formats)
-            .depth_attachment_format(DEPTH_FORMAT),
-    ];
-    let [r0, r1] = &mut rendering;
-    let info = |depth_state, rendering| {
-        vk::GraphicsPipelineCreateInfo::default()
-            .stages(&stages)
-            .vertex_input_state(&vertex_input)
-            .input_assembly_state(&input_assembly)
-            .viewport_state(&viewport)
-            .rasterization_state(&raster)
-            .multisample_state(&multisample)
-            .depth_stencil_state(depth_state)
-            .color_blend_state(&blend)
-            .dynamic_state(&dynamic)
-            .layout(layout)
-            .push_next(rendering)
-    };
-    let infos = [info(&less, r0), info(&greater, r1)];
-    let res = unsafe { d.create_graphics_pipelines(vk::PipelineCache::null(), &infos, None) };
-    unsafe {
-        d.destroy_shader_module(vs, None);
-        d.destroy_shader_module(fs, None);
-    }
-    let p = res.map_err(|(created, e)| {
-        for p in created {
-            if p != vk::Pipeline::null() {
-                unsafe { d.destroy_pipeline(p, None) };
-            }
-        }
-        e
-    })?;
     Ok([p[0], p[1]])
 }

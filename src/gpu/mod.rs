@@ -1,6 +1,7 @@
 //! Vulkan context: instance, validation messenger, device choice, queue, allocator, one-shot
 //! submissions and the small resource types (buffers, images, pipelines, timers) every pass uses.
 
+pub mod pipeline;
 mod resources;
 mod timer;
 

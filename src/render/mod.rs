@@ -5,7 +5,7 @@ pub mod overlay;
 pub mod png_out;
 pub mod view;
 
-use crate::gpu::{shader_module, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
+use crate::gpu::{pipeline, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use ash::vk;
@@ -359,67 +359,24 @@ impl Renderer {
                     .push_constant_ranges(&eye_push),
                 None,
             )?;
-            let vs = shader_module(
-                gpu,
-                include_bytes!(concat!(env!("OUT_DIR"), "/raycast.vert.spv")),
-            )?;
-            let fs = shader_module(
-                gpu,
-                include_bytes!(concat!(env!("OUT_DIR"), "/raycast.frag.spv")),
-            )?;
-            let stages = [
-                vk::PipelineShaderStageCreateInfo::default()
-                    .stage(vk::ShaderStageFlags::VERTEX)
-                    .module(vs)
-                    .name(c"main"),
-                vk::PipelineShaderStageCreateInfo::default()
-                    .stage(vk::ShaderStageFlags::FRAGMENT)
-                    .module(fs)
-                    .name(c"main"),
-            ];
-            let vertex_input = vk::PipelineVertexInputStateCreateInfo::default();
-            let input_assembly = vk::PipelineInputAssemblyStateCreateInfo::default()
-                .topology(vk::PrimitiveTopology::TRIANGLE_LIST);
-            let viewport = vk::PipelineViewportStateCreateInfo::default()
-                .viewport_count(1)
-                .scissor_count(1);
-            let raster = vk::PipelineRasterizationStateCreateInfo::default()
-                .polygon_mode(vk::PolygonMode::FILL)
-                .cull_mode(vk::CullModeFlags::NONE)
-                .line_width(1.0);
-            let multisample = vk::PipelineMultisampleStateCreateInfo::default()
-                .rasterization_samples(vk::SampleCountFlags::TYPE_1);
-            let depth = vk::PipelineDepthStencilStateCreateInfo::default()
-                .depth_test_enable(true)
-                .depth_write_enable(true)
-                .depth_compare_op(vk::CompareOp::ALWAYS);
-            let blend_att = [vk::PipelineColorBlendAttachmentState::default()
-                .color_write_mask(vk::ColorComponentFlags::RGBA)];
-            let blend = vk::PipelineColorBlendStateCreateInfo::default().attachments(&blend_att);
-            let dyn_states = [vk::DynamicState::VIEWPORT, vk::DynamicState::SCISSOR];
-            let dynamic = vk::PipelineDynamicStateCreateInfo::default().dynamic_states(&dyn_states);
-            let formats = [COLOR_FORMAT];
             // One draw per eye rather than multiview: lavapipe (Mesa 22.3) renders only the first
-            // layer of a multiview pass with dynamic rendering.
-            let mut rendering = vk::PipelineRenderingCreateInfo::default()
-                .color_attachment_formats(&formats)
-                .depth_attachment_format(DEPTH_FORMAT);
-            let info = [vk::GraphicsPipelineCreateInfo::default()
-                .stages(&stages)
-                .vertex_input_state(&vertex_input)
-                .input_assembly_state(&input_assembly)
-                .viewport_state(&viewport)
-                .rasterization_state(&raster)
-                .multisample_state(&multisample)
-                .depth_stencil_state(&depth)
-                .color_blend_state(&blend)
-                .dynamic_state(&dynamic)
-                .layout(layout)
-                .push_next(&mut rendering)];
-            let res = d.create_graphics_pipelines(vk::PipelineCache::null(), &info, None);
-            d.destroy_shader_module(vs, None);
-            d.destroy_shader_module(fs, None);
-            let pipeline = res.map_err(|(_, e)| e)?[0];
+            // layer of a multiview pass with dynamic rendering. The ray caster writes every pixel's
+            // depth itself (gl_FragDepth), so the test always passes.
+            let desc = pipeline::GraphicsDesc {
+                vs: include_bytes!(concat!(env!("OUT_DIR"), "/raycast.vert.spv")),
+                fs: include_bytes!(concat!(env!("OUT_DIR"), "/raycast.frag.spv")),
+                layout,
+                vertex_bindings: &[],
+                vertex_attributes: &[],
+                color_format: COLOR_FORMAT,
+                depth_format: DEPTH_FORMAT,
+                blend: pipeline::opaque(),
+            };
+            let variant = (
+                pipeline::raster(vk::CullModeFlags::NONE),
+                pipeline::depth(vk::CompareOp::ALWAYS, true),
+            );
+            let pipeline = pipeline::graphics_pipelines(gpu, &desc, &[variant])?[0];
             let sampler = d.create_sampler(
                 &vk::SamplerCreateInfo::default()
                     .mag_filter(vk::Filter::LINEAR)

@@ -14,7 +14,7 @@
 
 use super::{StereoTarget, View, COLOR_FORMAT, DEPTH_FORMAT};
 use crate::clip::TriMesh;
-use crate::gpu::{shader_module, Buffer, Gpu, Result};
+use crate::gpu::{pipeline, Buffer, Gpu, Result};
 use crate::input::{LEFT, RIGHT};
 use crate::render::Pose;
 use crate::scene::{Scene, Shape, Tool, ToolMode};
@@ -267,24 +267,6 @@ impl OverlayRenderer {
                 &vk::PipelineLayoutCreateInfo::default().push_constant_ranges(&push),
                 None,
             )?;
-            let vs = shader_module(
-                gpu,
-                include_bytes!(concat!(env!("OUT_DIR"), "/overlay.vert.spv")),
-            )?;
-            let fs = shader_module(
-                gpu,
-                include_bytes!(concat!(env!("OUT_DIR"), "/overlay.frag.spv")),
-            )?;
-            let stages = [
-                vk::PipelineShaderStageCreateInfo::default()
-                    .stage(vk::ShaderStageFlags::VERTEX)
-                    .module(vs)
-                    .name(c"main"),
-                vk::PipelineShaderStageCreateInfo::default()
-                    .stage(vk::ShaderStageFlags::FRAGMENT)
-                    .module(fs)
-                    .name(c"main"),
-            ];
             let bindings = [vk::VertexInputBindingDescription::default()
                 .binding(0)
                 .stride(std::mem::size_of::<[f32; 6]>() as u32)
@@ -301,78 +283,41 @@ impl OverlayRenderer {
                     .format(vk::Format::R32G32B32_SFLOAT)
                     .offset(12),
             ];
-            let vertex_input = vk::PipelineVertexInputStateCreateInfo::default()
-                .vertex_binding_descriptions(&bindings)
-                .vertex_attribute_descriptions(&attributes);
-            let input_assembly = vk::PipelineInputAssemblyStateCreateInfo::default()
-                .topology(vk::PrimitiveTopology::TRIANGLE_LIST);
-            let viewport = vk::PipelineViewportStateCreateInfo::default()
-                .viewport_count(1)
-                .scissor_count(1);
             // The projection flips y (Vulkan NDC is y down), so a triangle that is
             // counter-clockwise seen from outside stays counter-clockwise in the framebuffer.
-            let raster = |cull| {
-                vk::PipelineRasterizationStateCreateInfo::default()
-                    .polygon_mode(vk::PolygonMode::FILL)
-                    .cull_mode(cull)
-                    .front_face(vk::FrontFace::COUNTER_CLOCKWISE)
-                    .line_width(1.0)
+            // Hidden where the volume is nearer; no depth writes, so translucent items never hide
+            // each other or the volume's depth (which read-back reports). Straight-alpha "over";
+            // alpha accumulates like the ray caster's opacity.
+            let desc = pipeline::GraphicsDesc {
+                vs: include_bytes!(concat!(env!("OUT_DIR"), "/overlay.vert.spv")),
+                fs: include_bytes!(concat!(env!("OUT_DIR"), "/overlay.frag.spv")),
+                layout,
+                vertex_bindings: &bindings,
+                vertex_attributes: &attributes,
+                color_format: COLOR_FORMAT,
+                depth_format: DEPTH_FORMAT,
+                blend: vk::PipelineColorBlendAttachmentState::default()
+                    .blend_enable(true)
+                    .src_color_blend_factor(vk::BlendFactor::SRC_ALPHA)
+                    .dst_color_blend_factor(vk::BlendFactor::ONE_MINUS_SRC_ALPHA)
+                    .color_blend_op(vk::BlendOp::ADD)
+                    .src_alpha_blend_factor(vk::BlendFactor::ONE)
+                    .dst_alpha_blend_factor(vk::BlendFactor::ONE_MINUS_SRC_ALPHA)
+                    .alpha_blend_op(vk::BlendOp::ADD)
+                    .color_write_mask(vk::ColorComponentFlags::RGBA),
             };
-            let (raster_back, raster_front) = (
-                raster(vk::CullModeFlags::FRONT),
-                raster(vk::CullModeFlags::BACK),
-            );
-            let multisample = vk::PipelineMultisampleStateCreateInfo::default()
-                .rasterization_samples(vk::SampleCountFlags::TYPE_1);
-            // Hidden where the volume is nearer; no writes, so translucent items never hide
-            // each other or the volume's depth (which read-back reports).
-            let depth = vk::PipelineDepthStencilStateCreateInfo::default()
-                .depth_test_enable(true)
-                .depth_write_enable(false)
-                .depth_compare_op(vk::CompareOp::LESS);
-            // Straight-alpha "over"; alpha accumulates like the ray caster's opacity.
-            let blend_att = [vk::PipelineColorBlendAttachmentState::default()
-                .blend_enable(true)
-                .src_color_blend_factor(vk::BlendFactor::SRC_ALPHA)
-                .dst_color_blend_factor(vk::BlendFactor::ONE_MINUS_SRC_ALPHA)
-                .color_blend_op(vk::BlendOp::ADD)
-                .src_alpha_blend_factor(vk::BlendFactor::ONE)
-                .dst_alpha_blend_factor(vk::BlendFactor::ONE_MINUS_SRC_ALPHA)
-                .alpha_blend_op(vk::BlendOp::ADD)
-                .color_write_mask(vk::ColorComponentFlags::RGBA)];
-            let blend = vk::PipelineColorBlendStateCreateInfo::default().attachments(&blend_att);
-            let dyn_states = [vk::DynamicState::VIEWPORT, vk::DynamicState::SCISSOR];
-            let dynamic = vk::PipelineDynamicStateCreateInfo::default().dynamic_states(&dyn_states);
-            let formats = [COLOR_FORMAT];
-            let mut rendering = [0, 1].map(|_| {
-                vk::PipelineRenderingCreateInfo::default()
-                    .color_attachment_formats(&formats)
-                    .depth_attachment_format(DEPTH_FORMAT)
-            });
-            let [r0, r1] = &mut rendering;
-            let info = |raster, rendering| {
-                vk::GraphicsPipelineCreateInfo::default()
-                    .stages(&stages)
-                    .vertex_input_state(&vertex_input)
-                    .input_assembly_state(&input_assembly)
-                    .viewport_state(&viewport)
-                    .rasterization_state(raster)
-                    .multisample_state(&multisample)
-                    .depth_stencil_state(&depth)
-                    .color_blend_state(&blend)
-                    .dynamic_state(&dynamic)
-                    .layout(layout)
-                    .push_next(rendering)
-            };
-            let infos = [info(&raster_back, r0), info(&raster_front, r1)];
-            let res = d.create_graphics_pipelines(vk::PipelineCache::null(), &infos, None);
-            d.destroy_shader_module(vs, None);
-            d.destroy_shader_module(fs, None);
+            let depth = pipeline::depth(vk::CompareOp::LESS, false);
+            // Back faces first, then front faces.
+            let variants = [
+                (pipeline::raster(vk::CullModeFlags::FRONT), depth),
+                (pipeline::raster(vk::CullModeFlags::BACK), depth),
+            ];
+            let res = pipeline::graphics_pipelines(gpu, &desc, &variants);
             let pipelines = match res {
                 Ok(p) => p,
-                Err((_, e)) => {
+                Err(e) => {
                     d.destroy_pipeline_layout(layout, None);
-                    return Err(e.into());
+                    return Err(e);
                 }
             };
             Ok(OverlayRenderer {
