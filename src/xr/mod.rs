@@ -22,6 +22,7 @@ use crate::app::AppError;
 use crate::gpu::{Gpu, GpuError, GpuOptions};
 use crate::input::{FrameInput, InteractionSettings, PoseStreamWriter, StreamHeader, RIGHT};
 use crate::render::view::{Fov, Pose, View};
+use crate::render::StereoTarget;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use ash::vk::{self, Handle};
@@ -582,7 +583,21 @@ impl SessionLoop<'_> {
                     msg: e.to_string(),
                 })?;
             }
-            let stats = self.fl.render(&input)?;
+            // One command buffer per frame: the swapchain image is acquired and waited first,
+            // the eyes are copied into it at the end of the frame's own command buffer, and it
+            // is released once that submission finished.
+            let sc = &mut self.swapchain;
+            let index = sc.handle.acquire_image()?;
+            sc.handle.wait_image(xr::Duration::INFINITE)?;
+            let image = sc.images[index as usize];
+            let extent = sc.extent;
+            let d = self.fl.gpu.device.clone();
+            let stats = self.fl.render_with(&input, |cmd, src| unsafe {
+                record_blit(&d, cmd, src, image, extent)
+            });
+            // Release even when the frame failed, so the swapchain is not left waited.
+            sc.handle.release_image()?;
+            let stats = stats?;
             if stats.metrics.clipped > 0 && prev_clipped == 0 {
                 self.actions.pulse(&self.session, RIGHT)?;
                 self.summary.pulses += 1;
@@ -600,85 +615,10 @@ impl SessionLoop<'_> {
         }
     }
 
-    /// Copies both eyes into the next swapchain image and submits the projection layer.
+    /// Submits the projection layer (the swapchain image was filled and released by then).
     fn present(&mut self, time: xr::Time, views: &[xr::View; 2]) -> Result<()> {
-        let sc = &mut self.swapchain;
-        let index = sc.handle.acquire_image()?;
-        sc.handle.wait_image(xr::Duration::INFINITE)?;
-        let image = sc.images[index as usize];
-        let src = self.fl.target();
-        let gpu = &self.fl.gpu;
-        let d = &gpu.device;
+        let sc = &self.swapchain;
         let (w, h) = sc.extent;
-        let range = vk::ImageSubresourceRange::default()
-            .aspect_mask(vk::ImageAspectFlags::COLOR)
-            .level_count(1)
-            .layer_count(2);
-        let barrier = |from, to| {
-            [vk::ImageMemoryBarrier2::default()
-                .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-                .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
-                .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-                .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
-                .old_layout(from)
-                .new_layout(to)
-                .image(image)
-                .subresource_range(range)]
-        };
-        let layers = vk::ImageSubresourceLayers::default()
-            .aspect_mask(vk::ImageAspectFlags::COLOR)
-            .layer_count(2);
-        let blit = gpu.submit_and_wait(|cmd| unsafe {
-            // The runtime hands images over in COLOR_ATTACHMENT_OPTIMAL and wants them back so
-            // (XR_KHR_vulkan_enable); the old contents are not needed.
-            let b = barrier(
-                vk::ImageLayout::UNDEFINED,
-                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-            );
-            d.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&b),
-            );
-            let region = [vk::ImageBlit::default()
-                .src_subresource(layers)
-                .src_offsets([
-                    vk::Offset3D::default(),
-                    vk::Offset3D {
-                        x: src.width as i32,
-                        y: src.height as i32,
-                        z: 1,
-                    },
-                ])
-                .dst_subresource(layers)
-                .dst_offsets([
-                    vk::Offset3D::default(),
-                    vk::Offset3D {
-                        x: w as i32,
-                        y: h as i32,
-                        z: 1,
-                    },
-                ])];
-            d.cmd_blit_image(
-                cmd,
-                src.color.raw,
-                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                image,
-                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-                &region,
-                vk::Filter::LINEAR,
-            );
-            let b = barrier(
-                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-                vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
-            );
-            d.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&b),
-            );
-        });
-        // Release even when the blit failed, so the swapchain is not left waited.
-        sc.handle.release_image()?;
-        blit?;
         let rect = xr::Rect2Di {
             offset: xr::Offset2Di { x: 0, y: 0 },
             extent: xr::Extent2Di {
@@ -703,6 +643,84 @@ impl SessionLoop<'_> {
         self.stream.end(time, self.blend, &[&layer])?;
         Ok(())
     }
+}
+
+/// Records the copy of both eyes (the stereo target's colour, in TRANSFER_SRC_OPTIMAL) into the
+/// acquired swapchain image, one blit region for both layers.
+///
+/// # Safety
+/// `cmd` is recording on `d`, `image` is the waited swapchain image.
+unsafe fn record_blit(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    src: &StereoTarget,
+    image: vk::Image,
+    (w, h): (u32, u32),
+) {
+    let range = vk::ImageSubresourceRange::default()
+        .aspect_mask(vk::ImageAspectFlags::COLOR)
+        .level_count(1)
+        .layer_count(2);
+    let barrier = |from, to| {
+        [vk::ImageMemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
+            .old_layout(from)
+            .new_layout(to)
+            .image(image)
+            .subresource_range(range)]
+    };
+    let layers = vk::ImageSubresourceLayers::default()
+        .aspect_mask(vk::ImageAspectFlags::COLOR)
+        .layer_count(2);
+    // The runtime hands images over in COLOR_ATTACHMENT_OPTIMAL and wants them back so
+    // (XR_KHR_vulkan_enable); the old contents are not needed.
+    let b = barrier(
+        vk::ImageLayout::UNDEFINED,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+    );
+    d.cmd_pipeline_barrier2(
+        cmd,
+        &vk::DependencyInfo::default().image_memory_barriers(&b),
+    );
+    let region = [vk::ImageBlit::default()
+        .src_subresource(layers)
+        .src_offsets([
+            vk::Offset3D::default(),
+            vk::Offset3D {
+                x: src.width as i32,
+                y: src.height as i32,
+                z: 1,
+            },
+        ])
+        .dst_subresource(layers)
+        .dst_offsets([
+            vk::Offset3D::default(),
+            vk::Offset3D {
+                x: w as i32,
+                y: h as i32,
+                z: 1,
+            },
+        ])];
+    d.cmd_blit_image(
+        cmd,
+        src.color.raw,
+        vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+        image,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        &region,
+        vk::Filter::LINEAR,
+    );
+    let b = barrier(
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+    );
+    d.cmd_pipeline_barrier2(
+        cmd,
+        &vk::DependencyInfo::default().image_memory_barriers(&b),
+    );
 }
 
 /// The located views as submitted: the runtime's own when it gave two, else the ones rendered
