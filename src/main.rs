@@ -651,6 +651,10 @@ fn run(cli: Cli) -> Result<()> {
                 s.pulses,
                 s.space
             );
+            match &s.depth_missing {
+                None => println!("depth layer: submitted with {} frames", s.depth_frames),
+                Some(why) => println!("depth layer: {why}"),
+            }
         }
         Cmd::Script {
             kind,
