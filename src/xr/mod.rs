@@ -68,6 +68,8 @@ pub struct XrOptions {
     pub carve: bool,
     /// Where the volume's centre starts, in the reference space (default: the scene's).
     pub volume_at: Option<Vec3>,
+    /// Also show the left eye in a desktop window (X11), presented after each headset frame.
+    pub mirror: bool,
 }
 
 /// What a session did.
@@ -217,7 +219,11 @@ pub fn run(
         system,
         gipa: None,
     };
-    let gpu = unsafe { Gpu::with_factory(&GpuOptions::default(), &mut factory)? };
+    let gpu_opts = GpuOptions {
+        present: opts.mirror,
+        ..Default::default()
+    };
+    let gpu = unsafe { Gpu::with_factory(&gpu_opts, &mut factory)? };
     eprintln!(
         "xr: GPU {}{}",
         gpu.device_name,
@@ -319,6 +325,11 @@ pub fn run(
     if let Some(c) = opts.volume_at {
         fl.scene.volume.center = c;
     }
+    let mirror = if opts.mirror {
+        Some(crate::app::desktop::Mirror::new(&gpu, extent)?)
+    } else {
+        None
+    };
     let recorder = match &opts.record {
         Some(p) => Some(
             PoseStreamWriter::create(
@@ -348,6 +359,7 @@ pub fn run(
         depth_swapchain,
         blend,
         fl,
+        mirror,
         recorder,
         summary: XrSummary {
             space: space_name.into(),
@@ -368,6 +380,7 @@ pub fn run(
         swapchain,
         depth_swapchain,
         fl,
+        mirror,
         recorder,
         summary,
         actions,
@@ -384,6 +397,7 @@ pub fn run(
         waiter,
         session,
     ));
+    drop(mirror);
     drop(fl);
     let messages = gpu.validation_messages();
     drop(gpu);
@@ -555,6 +569,7 @@ struct SessionLoop<'a> {
     depth_swapchain: Option<Swapchain>,
     blend: xr::EnvironmentBlendMode,
     fl: FrameLoop,
+    mirror: Option<crate::app::desktop::Mirror>,
     recorder: Option<PoseStreamWriter<std::io::BufWriter<std::fs::File>>>,
     summary: XrSummary,
 }
@@ -709,6 +724,14 @@ impl SessionLoop<'_> {
             }
             prev_clipped = stats.metrics.clipped;
             self.present(time, &xr_views_or(&xr_views, &views))?;
+            // The mirror shows the same finished frame, after the headset has it.
+            if let Some(m) = &mut self.mirror {
+                m.show(self.fl.target())?;
+                if !m.open() {
+                    eprintln!("xr: mirror window closed; the session goes on");
+                    self.mirror = None;
+                }
+            }
             self.summary.frames += 1;
             if self.summary.frames % 100 == 0 {
                 eprintln!("xr: {} frames submitted", self.summary.frames);
