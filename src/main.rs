@@ -175,6 +175,9 @@ enum Cmd {
         /// Place the volume's centre at X,Y,Z metres in the stage (default 0,1.4,-0.6).
         #[arg(long, value_parser = cao_xr::xr::parse_point, allow_hyphen_values = true)]
         volume_at: Option<glam::Vec3>,
+        /// Also show the left eye in a desktop window (X11) while the session runs.
+        #[arg(long)]
+        mirror: bool,
     },
     /// Generate a scripted pose stream (JSON Lines) for replay and tests.
     Script {
@@ -631,6 +634,7 @@ fn run(cli: Cli) -> Result<()> {
             bindings,
             carve,
             volume_at,
+            mirror,
         } => {
             let (v, tf) = vol.load()?;
             let opts = cao_xr::xr::XrOptions {
@@ -640,6 +644,7 @@ fn run(cli: Cli) -> Result<()> {
                 bindings,
                 carve,
                 volume_at,
+                mirror,
             };
             let s = cao_xr::xr::run(&v, &tf, lao.params(), opts)?;
             println!(
@@ -651,6 +656,10 @@ fn run(cli: Cli) -> Result<()> {
                 s.pulses,
                 s.space
             );
+            match &s.depth_missing {
+                None => println!("depth layer: submitted with {} frames", s.depth_frames),
+                Some(why) => println!("depth layer: {why}"),
+            }
         }
         Cmd::Script {
             kind,

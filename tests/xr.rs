@@ -2,7 +2,7 @@
 //! simulated controllers) in a Debian trixie root built by scripts/xr-root.sh, driven by
 //! scripts/xr-session.sh. One session of 300 frames with the right controller holding a
 //! carving tool; the session must reach FOCUSED, submit every frame, end cleanly, record the
-//! controllers as FrameInput, and neither the Vulkan nor the OpenXR validation layer may
+//! controllers as FrameInput, submit depth with every projection view, and neither the Vulkan nor the OpenXR validation layer may
 //! report an error.
 //!
 //! Needs root (chroot, mounts) and, the first time, Debian's archive. Without them the test is
@@ -86,6 +86,13 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
     assert!(stderr.contains("xr: session state FOCUSED"), "{context}");
     // The tool touched tissue once: one haptic pulse, on the first frame it clipped.
     assert!(summary.contains("haptic pulses 1"), "{summary}\n{context}");
+
+    // Depth went with every projection view (XR_KHR_composition_layer_depth): Monado in the
+    // root offers the extension and D32_SFLOAT swapchains.
+    assert!(
+        stdout.contains(&format!("depth layer: submitted with {FRAMES} frames")),
+        "depth layer not submitted with every frame\n{context}"
+    );
 
     // Neither validation layer reported anything wrong.
     assert!(

@@ -48,14 +48,15 @@ pub fn desktop_interaction() -> InteractionSettings {
 }
 
 /// What the window showed: RGB rows, top down.
-struct Screenshot {
+pub(crate) struct Screenshot {
     width: u32,
     height: u32,
     rgb: Vec<u8>,
 }
 
-/// Window surface and swapchain; destroyed before the device goes.
-struct Presenter {
+/// Window surface and swapchain; destroyed before the device goes. Shared by the desktop
+/// window and the headset's mirror ([`Mirror`]).
+pub(crate) struct Presenter {
     gpu: Gpu,
     surface_fn: ash::khr::surface::Instance,
     swapchain_fn: ash::khr::swapchain::Device,
@@ -68,7 +69,7 @@ struct Presenter {
 }
 
 impl Presenter {
-    unsafe fn new(gpu: &Gpu, window: &Window) -> Result<Presenter> {
+    pub(crate) unsafe fn new(gpu: &Gpu, window: &Window) -> Result<Presenter> {
         let err = |m: &str| AppError::Gpu(GpuError::Other(m.to_string()));
         let (RawWindowHandle::Xlib(w), RawDisplayHandle::Xlib(d)) = (
             window
@@ -121,7 +122,7 @@ impl Presenter {
         Ok(p)
     }
 
-    unsafe fn recreate(&mut self, width: u32, height: u32) -> Result<()> {
+    pub(crate) unsafe fn recreate(&mut self, width: u32, height: u32) -> Result<()> {
         let _ = self.gpu.device.device_wait_idle();
         let caps = self
             .surface_fn
@@ -192,7 +193,7 @@ impl Presenter {
 
     /// Blits one eye (or both side by side) of the stereo target to the window and presents it;
     /// with `capture`, also returns the presented pixels as RGB.
-    unsafe fn present(
+    pub(crate) unsafe fn present(
         &mut self,
         src: &crate::render::StereoTarget,
         both: bool,
@@ -364,6 +365,127 @@ impl Drop for Presenter {
             self.gpu.device.destroy_fence(self.fence, None);
             self.swapchain_fn.destroy_swapchain(self.swapchain, None);
             self.surface_fn.destroy_surface(self.surface, None);
+        }
+    }
+}
+
+/// A desktop window that shows the left eye of frames another loop rendered (`cao-xr xr
+/// --mirror`). That loop is not a winit event loop, so the window's events are pumped once per
+/// frame ([`Mirror::show`]); closing the window ends the mirror, not the session.
+pub(crate) struct Mirror {
+    event_loop: EventLoop<()>,
+    state: MirrorWindow,
+}
+
+struct MirrorWindow {
+    gpu: Gpu,
+    size: (u32, u32),
+    // The presenter (surface, swapchain) goes before its window.
+    presenter: Option<Presenter>,
+    window: Option<Window>,
+    closed: bool,
+    error: Option<AppError>,
+}
+
+impl Mirror {
+    /// Connects to the display; the window opens on the first [`Mirror::show`]. `gpu` must have
+    /// been created with [`crate::gpu::GpuOptions::present`].
+    pub(crate) fn new(gpu: &Gpu, size: (u32, u32)) -> Result<Mirror> {
+        let event_loop = EventLoop::new().map_err(|e| {
+            AppError::Usage(format!(
+                "--mirror cannot open the display: {e} (is DISPLAY set?)"
+            ))
+        })?;
+        Ok(Mirror {
+            event_loop,
+            state: MirrorWindow {
+                gpu: gpu.clone(),
+                size,
+                presenter: None,
+                window: None,
+                closed: false,
+                error: None,
+            },
+        })
+    }
+
+    /// Whether the window is still open (or yet to open).
+    pub(crate) fn open(&self) -> bool {
+        !self.state.closed
+    }
+
+    /// Handles the window's pending events, then shows the left eye of `target` (a finished
+    /// frame: colour in TRANSFER_SRC_OPTIMAL).
+    pub(crate) fn show(&mut self, target: &crate::render::StereoTarget) -> Result<()> {
+        use winit::platform::pump_events::{EventLoopExtPumpEvents, PumpStatus};
+        if self.state.closed {
+            return Ok(());
+        }
+        let status = self
+            .event_loop
+            .pump_app_events(Some(std::time::Duration::ZERO), &mut self.state);
+        if let Some(e) = self.state.error.take() {
+            return Err(e);
+        }
+        if matches!(status, PumpStatus::Exit(_)) {
+            self.state.close();
+        }
+        if let Some(p) = &mut self.state.presenter {
+            unsafe { p.present(target, false, false)? };
+        }
+        Ok(())
+    }
+}
+
+impl MirrorWindow {
+    fn close(&mut self) {
+        self.closed = true;
+        self.presenter = None;
+        self.window = None;
+    }
+}
+
+impl ApplicationHandler for MirrorWindow {
+    fn resumed(&mut self, el: &ActiveEventLoop) {
+        if self.window.is_some() || self.closed {
+            return;
+        }
+        let attrs = Window::default_attributes()
+            .with_title("cao-xr mirror (left eye)")
+            .with_inner_size(PhysicalSize::new(self.size.0, self.size.1));
+        let window = match el.create_window(attrs) {
+            Ok(w) => w,
+            Err(e) => {
+                self.error = Some(AppError::Usage(format!("cannot open a window: {e}")));
+                return;
+            }
+        };
+        match unsafe { Presenter::new(&self.gpu, &window) } {
+            Ok(p) => self.presenter = Some(p),
+            Err(e) => {
+                self.error = Some(e);
+                return;
+            }
+        }
+        self.window = Some(window);
+    }
+
+    fn window_event(&mut self, _: &ActiveEventLoop, _: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => self.close(),
+            WindowEvent::KeyboardInput { event, .. }
+                if event.physical_key == PhysicalKey::Code(KeyCode::Escape) =>
+            {
+                self.close()
+            }
+            WindowEvent::Resized(size) => {
+                if let Some(p) = &mut self.presenter {
+                    if let Err(e) = unsafe { p.recreate(size.width, size.height) } {
+                        self.error = Some(e);
+                    }
+                }
+            }
+            _ => {}
         }
     }
 }

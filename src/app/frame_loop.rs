@@ -99,6 +99,17 @@ impl FrameLoop {
     /// Runs one frame on the GPU: interaction, then AO update and both eyes in one command
     /// buffer, leaving the images in [`FrameLoop::target`].
     pub fn render(&mut self, input: &FrameInput) -> Result<FrameStats> {
+        self.render_with(input, |_, _| {})
+    }
+
+    /// [`FrameLoop::render`], with `after` recorded at the end of the same command buffer, once
+    /// both images are in TRANSFER_SRC_OPTIMAL ([`StereoTarget::cmd_finish`]): the headset
+    /// copies the eyes into the runtime's swapchain there, so a frame is one submission.
+    pub fn render_with(
+        &mut self,
+        input: &FrameInput,
+        after: impl FnOnce(ash::vk::CommandBuffer, &StereoTarget),
+    ) -> Result<FrameStats> {
         let t0 = std::time::Instant::now();
         self.interaction.update(input, &mut self.scene);
         let FrameLoop {
@@ -141,6 +152,7 @@ impl FrameLoop {
                 let items = scene_overlay(scene, &hands, interaction.settings().tool_offset);
                 overlay.record(cmd, target, &input.views, &items)?;
                 target.cmd_finish(cmd);
+                after(cmd, target);
                 Ok::<_, crate::gpu::GpuError>(Some(pending))
             })();
         })?;

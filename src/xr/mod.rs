@@ -22,6 +22,7 @@ use crate::app::AppError;
 use crate::gpu::{Gpu, GpuError, GpuOptions};
 use crate::input::{FrameInput, InteractionSettings, PoseStreamWriter, StreamHeader, RIGHT};
 use crate::render::view::{Fov, Pose, View};
+use crate::render::StereoTarget;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use ash::vk::{self, Handle};
@@ -67,6 +68,8 @@ pub struct XrOptions {
     pub carve: bool,
     /// Where the volume's centre starts, in the reference space (default: the scene's).
     pub volume_at: Option<Vec3>,
+    /// Also show the left eye in a desktop window (X11), presented after each headset frame.
+    pub mirror: bool,
 }
 
 /// What a session did.
@@ -83,6 +86,10 @@ pub struct XrSummary {
     pub tracked_frames: usize,
     /// The reference space used (STAGE or LOCAL).
     pub space: String,
+    /// Frames submitted with depth (XR_KHR_composition_layer_depth) on every projection view.
+    pub depth_frames: usize,
+    /// Why depth was not submitted (None when it was offered and used).
+    pub depth_missing: Option<String>,
 }
 
 /// Parses `X,Y,Z` (metres) for the command line.
@@ -149,6 +156,8 @@ fn open_instance() -> Result<(xr::Entry, xr::Instance, xr::ExtensionSet)> {
     exts.khr_vulkan_enable2 = true;
     // For the messenger that reports the OpenXR validation layer (debug::XrMessenger).
     exts.ext_debug_utils = available.ext_debug_utils;
+    // Depth submitted with each projection view, when the runtime takes it (reprojection).
+    exts.khr_composition_layer_depth = available.khr_composition_layer_depth;
     let instance = entry
         .create_instance(
             &xr::ApplicationInfo {
@@ -187,7 +196,7 @@ pub fn run(
             .or_else(bindings::default_dir)
             .as_deref(),
     )?;
-    let (_entry, instance, _) = open_instance()?;
+    let (_entry, instance, exts) = open_instance()?;
     let messenger = debug::XrMessenger::new(&instance);
     let props = instance.properties()?;
     eprintln!(
@@ -210,7 +219,11 @@ pub fn run(
         system,
         gipa: None,
     };
-    let gpu = unsafe { Gpu::with_factory(&GpuOptions::default(), &mut factory)? };
+    let gpu_opts = GpuOptions {
+        present: opts.mirror,
+        ..Default::default()
+    };
+    let gpu = unsafe { Gpu::with_factory(&gpu_opts, &mut factory)? };
     eprintln!(
         "xr: GPU {}{}",
         gpu.device_name,
@@ -271,6 +284,32 @@ pub fn run(
         swapchain.format,
         swapchain.images.len()
     );
+    let (depth_swapchain, depth_missing) = if exts.khr_composition_layer_depth {
+        match create_depth_swapchain(&session, extent)? {
+            Some(d) => {
+                eprintln!(
+                    "xr: depth swapchain {}x{} x2 layers, {:?}, {} images (XR_KHR_composition_layer_depth)",
+                    extent.0,
+                    extent.1,
+                    d.format,
+                    d.images.len()
+                );
+                (Some(d), None)
+            }
+            None => (
+                None,
+                Some("the runtime offers no D32_SFLOAT depth swapchain".to_string()),
+            ),
+        }
+    } else {
+        (
+            None,
+            Some("runtime lacks XR_KHR_composition_layer_depth".to_string()),
+        )
+    };
+    if let Some(why) = &depth_missing {
+        eprintln!("xr: no depth layer: {why}");
+    }
     let blend = instance.enumerate_environment_blend_modes(system, VIEW_TYPE)?[0];
 
     let fl = FrameLoop::new(
@@ -286,6 +325,11 @@ pub fn run(
     if let Some(c) = opts.volume_at {
         fl.scene.volume.center = c;
     }
+    let mirror = if opts.mirror {
+        Some(crate::app::desktop::Mirror::new(&gpu, extent)?)
+    } else {
+        None
+    };
     let recorder = match &opts.record {
         Some(p) => Some(
             PoseStreamWriter::create(
@@ -312,11 +356,14 @@ pub fn run(
         spaces,
         base,
         swapchain,
+        depth_swapchain,
         blend,
         fl,
+        mirror,
         recorder,
         summary: XrSummary {
             space: space_name.into(),
+            depth_missing,
             ..Default::default()
         },
     };
@@ -331,7 +378,9 @@ pub fn run(
         spaces,
         base,
         swapchain,
+        depth_swapchain,
         fl,
+        mirror,
         recorder,
         summary,
         actions,
@@ -339,7 +388,16 @@ pub fn run(
     } = s;
     // The runtime's objects go before the Vulkan device they use, and that before the XR
     // instance that created it.
-    drop((swapchain, spaces, base, stream, waiter, session));
+    drop((
+        swapchain,
+        depth_swapchain,
+        spaces,
+        base,
+        stream,
+        waiter,
+        session,
+    ));
+    drop(mirror);
     drop(fl);
     let messages = gpu.validation_messages();
     drop(gpu);
@@ -415,6 +473,43 @@ fn create_swapchain(session: &xr::Session<xr::Vulkan>, extent: (u32, u32)) -> Re
     })
 }
 
+/// The depth swapchain for XR_KHR_composition_layer_depth: two layers like the colour one, in
+/// the renderer's own depth format so the eyes' depth goes over with a plain copy (a depth
+/// image cannot be blitted into another format). None when the runtime does not offer it.
+fn create_depth_swapchain(
+    session: &xr::Session<xr::Vulkan>,
+    extent: (u32, u32),
+) -> Result<Option<Swapchain>> {
+    let format = crate::render::DEPTH_FORMAT;
+    let offered = session.enumerate_swapchain_formats()?;
+    if !offered.contains(&(format.as_raw() as _)) {
+        return Ok(None);
+    }
+    let handle = session.create_swapchain(&xr::SwapchainCreateInfo {
+        create_flags: xr::SwapchainCreateFlags::EMPTY,
+        usage_flags: xr::SwapchainUsageFlags::TRANSFER_DST
+            | xr::SwapchainUsageFlags::DEPTH_STENCIL_ATTACHMENT,
+        format: format.as_raw() as _,
+        sample_count: 1,
+        width: extent.0,
+        height: extent.1,
+        face_count: 1,
+        array_size: 2,
+        mip_count: 1,
+    })?;
+    let images = handle
+        .enumerate_images()?
+        .into_iter()
+        .map(vk::Image::from_raw)
+        .collect();
+    Ok(Some(Swapchain {
+        handle,
+        images,
+        extent,
+        format,
+    }))
+}
+
 /// What the loop must do on entering a session state.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Step {
@@ -471,8 +566,10 @@ struct SessionLoop<'a> {
     spaces: actions::HandSpaces,
     base: xr::Space,
     swapchain: Swapchain,
+    depth_swapchain: Option<Swapchain>,
     blend: xr::EnvironmentBlendMode,
     fl: FrameLoop,
+    mirror: Option<crate::app::desktop::Mirror>,
     recorder: Option<PoseStreamWriter<std::io::BufWriter<std::fs::File>>>,
     summary: XrSummary,
 }
@@ -582,7 +679,41 @@ impl SessionLoop<'_> {
                     msg: e.to_string(),
                 })?;
             }
-            let stats = self.fl.render(&input)?;
+            // One command buffer per frame: the swapchain image is acquired and waited first,
+            // the eyes are copied into it at the end of the frame's own command buffer, and it
+            // is released once that submission finished.
+            let sc = &mut self.swapchain;
+            let index = sc.handle.acquire_image()?;
+            sc.handle.wait_image(xr::Duration::INFINITE)?;
+            let image = sc.images[index as usize];
+            let extent = sc.extent;
+            let depth_image = match &mut self.depth_swapchain {
+                Some(ds) => {
+                    let i = ds.handle.acquire_image();
+                    let i = i.and_then(|i| ds.handle.wait_image(xr::Duration::INFINITE).map(|_| i));
+                    match i {
+                        Ok(i) => Some(ds.images[i as usize]),
+                        Err(e) => {
+                            sc.handle.release_image()?;
+                            return Err(e.into());
+                        }
+                    }
+                }
+                None => None,
+            };
+            let d = self.fl.gpu.device.clone();
+            let stats = self.fl.render_with(&input, |cmd, src| unsafe {
+                record_blit(&d, cmd, src, image, extent);
+                if let Some(depth) = depth_image {
+                    record_depth_copy(&d, cmd, src, depth, extent);
+                }
+            });
+            // Release even when the frame failed, so the swapchains are not left waited.
+            sc.handle.release_image()?;
+            if let Some(ds) = &mut self.depth_swapchain {
+                ds.handle.release_image()?;
+            }
+            let stats = stats?;
             if stats.metrics.clipped > 0 && prev_clipped == 0 {
                 self.actions.pulse(&self.session, RIGHT)?;
                 self.summary.pulses += 1;
@@ -593,6 +724,14 @@ impl SessionLoop<'_> {
             }
             prev_clipped = stats.metrics.clipped;
             self.present(time, &xr_views_or(&xr_views, &views))?;
+            // The mirror shows the same finished frame, after the headset has it.
+            if let Some(m) = &mut self.mirror {
+                m.show(self.fl.target())?;
+                if !m.open() {
+                    eprintln!("xr: mirror window closed; the session goes on");
+                    self.mirror = None;
+                }
+            }
             self.summary.frames += 1;
             if self.summary.frames % 100 == 0 {
                 eprintln!("xr: {} frames submitted", self.summary.frames);
@@ -600,85 +739,10 @@ impl SessionLoop<'_> {
         }
     }
 
-    /// Copies both eyes into the next swapchain image and submits the projection layer.
+    /// Submits the projection layer (the swapchain image was filled and released by then).
     fn present(&mut self, time: xr::Time, views: &[xr::View; 2]) -> Result<()> {
-        let sc = &mut self.swapchain;
-        let index = sc.handle.acquire_image()?;
-        sc.handle.wait_image(xr::Duration::INFINITE)?;
-        let image = sc.images[index as usize];
-        let src = self.fl.target();
-        let gpu = &self.fl.gpu;
-        let d = &gpu.device;
+        let sc = &self.swapchain;
         let (w, h) = sc.extent;
-        let range = vk::ImageSubresourceRange::default()
-            .aspect_mask(vk::ImageAspectFlags::COLOR)
-            .level_count(1)
-            .layer_count(2);
-        let barrier = |from, to| {
-            [vk::ImageMemoryBarrier2::default()
-                .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-                .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
-                .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-                .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
-                .old_layout(from)
-                .new_layout(to)
-                .image(image)
-                .subresource_range(range)]
-        };
-        let layers = vk::ImageSubresourceLayers::default()
-            .aspect_mask(vk::ImageAspectFlags::COLOR)
-            .layer_count(2);
-        let blit = gpu.submit_and_wait(|cmd| unsafe {
-            // The runtime hands images over in COLOR_ATTACHMENT_OPTIMAL and wants them back so
-            // (XR_KHR_vulkan_enable); the old contents are not needed.
-            let b = barrier(
-                vk::ImageLayout::UNDEFINED,
-                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-            );
-            d.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&b),
-            );
-            let region = [vk::ImageBlit::default()
-                .src_subresource(layers)
-                .src_offsets([
-                    vk::Offset3D::default(),
-                    vk::Offset3D {
-                        x: src.width as i32,
-                        y: src.height as i32,
-                        z: 1,
-                    },
-                ])
-                .dst_subresource(layers)
-                .dst_offsets([
-                    vk::Offset3D::default(),
-                    vk::Offset3D {
-                        x: w as i32,
-                        y: h as i32,
-                        z: 1,
-                    },
-                ])];
-            d.cmd_blit_image(
-                cmd,
-                src.color.raw,
-                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                image,
-                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-                &region,
-                vk::Filter::LINEAR,
-            );
-            let b = barrier(
-                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-                vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
-            );
-            d.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&b),
-            );
-        });
-        // Release even when the blit failed, so the swapchain is not left waited.
-        sc.handle.release_image()?;
-        blit?;
         let rect = xr::Rect2Di {
             offset: xr::Offset2Di { x: 0, y: 0 },
             extent: xr::Extent2Di {
@@ -697,12 +761,184 @@ impl SessionLoop<'_> {
                         .image_rect(rect),
                 )
         });
+        // XR_KHR_composition_layer_depth: each view's depth, chained to it. The projection
+        // is a standard Vulkan one: depth 0 at NEAR, 1 at FAR (render::view).
+        let depth_info = self.depth_swapchain.as_ref().map(|ds| {
+            [0u32, 1].map(|eye| xr::sys::CompositionLayerDepthInfoKHR {
+                ty: xr::sys::CompositionLayerDepthInfoKHR::TYPE,
+                next: std::ptr::null(),
+                sub_image: xr::sys::SwapchainSubImage {
+                    swapchain: ds.handle.as_raw(),
+                    image_rect: rect,
+                    image_array_index: eye,
+                },
+                min_depth: 0.0,
+                max_depth: 1.0,
+                near_z: crate::render::view::NEAR,
+                far_z: crate::render::view::FAR,
+            })
+        });
+        let proj = match &depth_info {
+            Some(info) => [0, 1].map(|eye| {
+                let mut raw = *proj[eye].as_raw();
+                raw.next = &info[eye] as *const _ as *const std::ffi::c_void;
+                // SAFETY: `info` outlives the xrEndFrame below, the only use of the chain.
+                unsafe { xr::CompositionLayerProjectionView::from_raw(raw) }
+            }),
+            None => proj,
+        };
         let layer = xr::CompositionLayerProjection::new()
             .space(&self.base)
             .views(&proj);
         self.stream.end(time, self.blend, &[&layer])?;
+        if depth_info.is_some() {
+            self.summary.depth_frames += 1;
+        }
         Ok(())
     }
+}
+
+/// Records the copy of both eyes (the stereo target's colour, in TRANSFER_SRC_OPTIMAL) into the
+/// acquired swapchain image, one blit region for both layers.
+///
+/// # Safety
+/// `cmd` is recording on `d`, `image` is the waited swapchain image.
+unsafe fn record_blit(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    src: &StereoTarget,
+    image: vk::Image,
+    (w, h): (u32, u32),
+) {
+    let range = vk::ImageSubresourceRange::default()
+        .aspect_mask(vk::ImageAspectFlags::COLOR)
+        .level_count(1)
+        .layer_count(2);
+    let barrier = |from, to| {
+        [vk::ImageMemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
+            .old_layout(from)
+            .new_layout(to)
+            .image(image)
+            .subresource_range(range)]
+    };
+    let layers = vk::ImageSubresourceLayers::default()
+        .aspect_mask(vk::ImageAspectFlags::COLOR)
+        .layer_count(2);
+    // The runtime hands images over in COLOR_ATTACHMENT_OPTIMAL and wants them back so
+    // (XR_KHR_vulkan_enable); the old contents are not needed.
+    let b = barrier(
+        vk::ImageLayout::UNDEFINED,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+    );
+    d.cmd_pipeline_barrier2(
+        cmd,
+        &vk::DependencyInfo::default().image_memory_barriers(&b),
+    );
+    let region = [vk::ImageBlit::default()
+        .src_subresource(layers)
+        .src_offsets([
+            vk::Offset3D::default(),
+            vk::Offset3D {
+                x: src.width as i32,
+                y: src.height as i32,
+                z: 1,
+            },
+        ])
+        .dst_subresource(layers)
+        .dst_offsets([
+            vk::Offset3D::default(),
+            vk::Offset3D {
+                x: w as i32,
+                y: h as i32,
+                z: 1,
+            },
+        ])];
+    d.cmd_blit_image(
+        cmd,
+        src.color.raw,
+        vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+        image,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        &region,
+        vk::Filter::LINEAR,
+    );
+    let b = barrier(
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+    );
+    d.cmd_pipeline_barrier2(
+        cmd,
+        &vk::DependencyInfo::default().image_memory_barriers(&b),
+    );
+}
+
+/// Records the copy of both eyes' depth (the stereo target's, D32_SFLOAT in TRANSFER_SRC_OPTIMAL)
+/// into the acquired depth swapchain image, which goes back to the runtime in
+/// DEPTH_STENCIL_ATTACHMENT_OPTIMAL (XR_KHR_vulkan_enable).
+///
+/// # Safety
+/// `cmd` is recording on `d`, `image` is the waited depth swapchain image.
+unsafe fn record_depth_copy(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    src: &StereoTarget,
+    image: vk::Image,
+    (w, h): (u32, u32),
+) {
+    let range = vk::ImageSubresourceRange::default()
+        .aspect_mask(vk::ImageAspectFlags::DEPTH)
+        .level_count(1)
+        .layer_count(2);
+    let barrier = |from, to| {
+        [vk::ImageMemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+            .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
+            .old_layout(from)
+            .new_layout(to)
+            .image(image)
+            .subresource_range(range)]
+    };
+    let b = barrier(
+        vk::ImageLayout::UNDEFINED,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+    );
+    d.cmd_pipeline_barrier2(
+        cmd,
+        &vk::DependencyInfo::default().image_memory_barriers(&b),
+    );
+    let layers = vk::ImageSubresourceLayers::default()
+        .aspect_mask(vk::ImageAspectFlags::DEPTH)
+        .layer_count(2);
+    let region = [vk::ImageCopy::default()
+        .src_subresource(layers)
+        .dst_subresource(layers)
+        .extent(vk::Extent3D {
+            width: src.width.min(w),
+            height: src.height.min(h),
+            depth: 1,
+        })];
+    d.cmd_copy_image(
+        cmd,
+        src.depth.raw,
+        vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+        image,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        &region,
+    );
+    let b = barrier(
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        vk::ImageLayout::DEPTH_STENCIL_ATTACHMENT_OPTIMAL,
+    );
+    d.cmd_pipeline_barrier2(
+        cmd,
+        &vk::DependencyInfo::default().image_memory_barriers(&b),
+    );
 }
 
 /// The located views as submitted: the runtime's own when it gave two, else the ones rendered
