@@ -6,7 +6,9 @@ set -euo pipefail
 
 need=()
 have_pkg() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }
-for p in libvulkan1 mesa-vulkan-drivers vulkan-validationlayers glslc ${CAO_XR_EXTRA_PACKAGES:-}; do
+# The X11 libraries are what winit loads at run time for the desktop window.
+for p in libvulkan1 mesa-vulkan-drivers vulkan-validationlayers glslc \
+  libx11-6 libx11-xcb1 libxkbcommon-x11-0 libxcursor1 libxrandr2 libxi6 ${CAO_XR_EXTRA_PACKAGES:-}; do
   have_pkg "$p" || need+=("$p")
 done
 if [ ${#need[@]} -gt 0 ]; then

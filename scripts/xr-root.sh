@@ -1,15 +1,18 @@
 #!/usr/bin/env bash
 # Builds, once, the Debian trixie root the OpenXR test runs in (Monado is packaged in trixie, not
 # in bookworm; a binary built on bookworm runs unchanged inside it). Cached at $CAO_XR_XR_ROOT
-# (default /var/cache/cao-xr/trixie-root); a root with the marker file .cao-xr-ready is reused.
+# (default /var/cache/cao-xr/trixie-root); a root whose marker .cao-xr-ready lists the same
+# packages is reused.
 # Needs root and Debian's archive (deb.debian.org or $CAO_XR_DEBIAN_MIRROR). Prints the root's path.
 set -euo pipefail
 ROOT="${CAO_XR_XR_ROOT:-/var/cache/cao-xr/trixie-root}"
 MIRROR="${CAO_XR_DEBIAN_MIRROR:-http://deb.debian.org/debian}"
 # The runtime (monado-service + its OpenXR runtime library), the Khronos loader, the OpenXR core
-# validation layer, lavapipe, the Vulkan loader and the Khronos validation layers.
-PACKAGES="monado-service,libopenxr1-monado,libopenxr-loader1,openxr-layer-corevalidation,mesa-vulkan-drivers,libvulkan1,vulkan-validationlayers,ca-certificates"
-if [ -f "$ROOT/.cao-xr-ready" ]; then echo "$ROOT"; exit 0; fi
+# validation layer, lavapipe, the Vulkan loader and the Khronos validation layers; the X11 libraries
+# winit loads for `cao-xr xr --mirror`.
+PACKAGES="monado-service,libopenxr1-monado,libopenxr-loader1,openxr-layer-corevalidation,mesa-vulkan-drivers,libvulkan1,vulkan-validationlayers,ca-certificates,libx11-6,libx11-xcb1,libxkbcommon-x11-0,libxcursor1,libxrandr2,libxi6"
+# The marker holds the package list, so a root built from an older list is rebuilt.
+if [ "$(cat "$ROOT/.cao-xr-ready" 2>/dev/null)" = "$PACKAGES" ]; then echo "$ROOT"; exit 0; fi
 [ "$(id -u)" -eq 0 ] || { echo "xr-root: building the trixie root needs root" >&2; exit 1; }
 if ! command -v mmdebstrap >/dev/null 2>&1; then
   echo "xr-root: installing mmdebstrap" >&2
@@ -25,6 +28,6 @@ mmdebstrap --variant=apt --include="$PACKAGES" --skip=check/empty \
   trixie "$ROOT.tmp" "$MIRROR" >&2
 rm -rf "$ROOT"
 mv "$ROOT.tmp" "$ROOT"
-touch "$ROOT/.cao-xr-ready"
+echo "$PACKAGES" > "$ROOT/.cao-xr-ready"
 echo "xr-root: built in $(( $(date +%s) - start )) s" >&2
 echo "$ROOT"
