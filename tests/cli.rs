@@ -458,3 +458,53 @@ fn every_committed_script_replays_without_validation_messages() {
     }
     assert!(n >= 6, "expected the six scripts, found {n}");
 }
+
+#[test]
+fn info_reads_nifti_and_metaimage() {
+    use cao_xr::volume::{metaimage, nifti, Modality, Volume, Voxels};
+    use glam::{DMat3, DVec3};
+    let dir = tmp("medio");
+    let vol = Volume {
+        name: "m".into(),
+        dims: [6, 5, 4],
+        spacing: [0.5, 0.75, 2.5],
+        directions: DMat3::from_rotation_y(0.4),
+        origin: DVec3::new(10.0, -20.0, 30.0),
+        modality: Modality::Unknown,
+        voxels: Voxels::I16((0..120).map(|i| i * 10 - 500).collect()),
+    };
+    let files = [
+        dir.join("v.nii"),
+        dir.join("v.nii.gz"),
+        dir.join("v.mha"),
+        dir.join("v.mhd"),
+    ];
+    nifti::write(&files[0], &vol, false).unwrap();
+    nifti::write(&files[1], &vol, true).unwrap();
+    metaimage::write(&files[2], &vol, false).unwrap();
+    metaimage::write(&files[3], &vol, true).unwrap();
+    for f in &files {
+        let out = cao(&["info", f.to_str().unwrap()]);
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success(),
+            "{}: {}",
+            f.display(),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(text.contains("dims        6 x 5 x 4"), "{text}");
+        assert!(text.contains("type        int16"), "{text}");
+        assert!(
+            text.contains("spacing     0.5000 x 0.7500 x 2.5000 mm"),
+            "{text}"
+        );
+        assert!(text.contains("values      -500 .. 690"), "{text}");
+    }
+    // A broken NIfTI is refused with the file named.
+    let broken = dir.join("broken.nii");
+    std::fs::write(&broken, [0u8; 40]).unwrap();
+    let out = cao(&["info", broken.to_str().unwrap()]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("broken.nii"));
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -85,16 +85,20 @@ pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>) -> Result<Volume> 
                 .and_then(|e| e.to_str())
                 .unwrap_or("")
                 .to_lowercase();
+            let lower = path.to_lowercase();
             match ext.as_str() {
                 "nrrd" | "nhdr" => Ok(nrrd::load(p)?),
+                "nii" => Ok(crate::volume::nifti::load(p)?),
+                "gz" if lower.ends_with(".nii.gz") => Ok(crate::volume::nifti::load(p)?),
+                "mha" | "mhd" => Ok(crate::volume::metaimage::load(p)?),
                 "raw" | "dat" | "bin" => Err(AppError::Usage(format!(
                     "{path}: a raw volume needs --raw-dims X,Y,Z (and --raw-type, --raw-spacing)"
                 ))),
                 _ if !p.exists() => Err(AppError::Usage(format!(
-                    "{path}: no such file (volumes: a .nrrd/.nhdr file, raw with --raw-dims, phantom[:N], ct-head)"
+                    "{path}: no such file (volumes: a .nrrd/.nhdr/.nii/.nii.gz/.mha/.mhd file, raw with --raw-dims, phantom[:N], ct-head)"
                 ))),
                 _ => Err(AppError::Usage(format!(
-                    "{path}: unknown volume format (supported: .nrrd, .nhdr, raw with --raw-dims)"
+                    "{path}: unknown volume format (supported: .nrrd, .nhdr, .nii, .nii.gz, .mha, .mhd, raw with --raw-dims)"
                 ))),
             }
         }

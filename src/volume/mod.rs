@@ -2,6 +2,8 @@
 //! fetched CT head.
 
 pub mod ct_head;
+pub mod metaimage;
+pub mod nifti;
 pub mod nrrd;
 pub mod phantom;
 pub mod raw;
@@ -300,4 +302,248 @@ pub(crate) fn read_samples(
             (Voxels::I16(v), n)
         }
     })
+}
+
+/// Sample encodings of the NIfTI and MetaImage loaders, which (unlike NRRD) may come with
+/// 32-bit, floating-point or scaled samples that are still integers in practice.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum WideType {
+    U8,
+    I8,
+    U16,
+    I16,
+    I32,
+    U32,
+    F32,
+    F64,
+}
+
+impl WideType {
+    pub(crate) fn bytes(self) -> u64 {
+        match self {
+            WideType::U8 | WideType::I8 => 1,
+            WideType::U16 | WideType::I16 => 2,
+            WideType::I32 | WideType::U32 | WideType::F32 => 4,
+            WideType::F64 => 8,
+        }
+    }
+    /// The direct 8/16-bit encoding, if there is one.
+    fn narrow(self) -> Option<SampleFormat> {
+        match self {
+            WideType::U8 => Some(SampleFormat::U8),
+            WideType::I8 => Some(SampleFormat::I8),
+            WideType::U16 => Some(SampleFormat::U16),
+            WideType::I16 => Some(SampleFormat::I16),
+            _ => None,
+        }
+    }
+    /// Sample `i` of `b` (which holds whole samples) as f64; exact for every type but F64
+    /// itself (f32 and 32-bit integers fit an f64 exactly).
+    fn get(self, b: &[u8], i: usize, big_endian: bool) -> f64 {
+        let n = self.bytes() as usize;
+        let s = &b[i * n..(i + 1) * n];
+        macro_rules! num {
+            ($t:ty) => {{
+                let a = s.try_into().unwrap_or_default();
+                (if big_endian {
+                    <$t>::from_be_bytes(a)
+                } else {
+                    <$t>::from_le_bytes(a)
+                }) as f64
+            }};
+        }
+        match self {
+            WideType::U8 => s[0] as f64,
+            WideType::I8 => s[0] as i8 as f64,
+            WideType::U16 => num!(u16),
+            WideType::I16 => num!(i16),
+            WideType::I32 => num!(i32),
+            WideType::U32 => num!(u32),
+            WideType::F32 => num!(f32),
+            WideType::F64 => num!(f64),
+        }
+    }
+}
+
+/// Reads `count` samples of type `ty` from `r` and applies `value * slope + inter` when `scale`
+/// is given. 8/16-bit samples without scaling are read as they are. Everything else must come
+/// out as integers: they are stored as int16 when they fit, else as uint16 when they fit, and
+/// refused otherwise, because [`Voxels`] holds no floating-point type (yet). `exact`: the input
+/// is known to hold the data (see [`read_samples`]). Errors name `path`; `what` prefixes data
+/// messages (e.g. the detached data file).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn read_wide(
+    path: &Path,
+    what: &str,
+    r: &mut dyn std::io::Read,
+    ty: WideType,
+    count: usize,
+    big_endian: bool,
+    scale: Option<(f64, f64)>,
+    exact: bool,
+) -> Result<Voxels, VolumeError> {
+    let data_bytes = count as u64 * ty.bytes();
+    let io = |e: std::io::Error| VolumeError::format(path, format!("{what}read error: {e}"));
+    let short = |got: u64| {
+        VolumeError::format(
+            path,
+            format!("{what}truncated data: expected {data_bytes} bytes, found {got}"),
+        )
+    };
+    if let (Some(f), None) = (ty.narrow(), scale) {
+        let (v, got) = read_samples(r, f, count, big_endian, exact).map_err(io)?;
+        if got < data_bytes || v.len() != count {
+            return Err(short(got));
+        }
+        return Ok(v);
+    }
+    let want = usize::try_from(data_bytes)
+        .map_err(|_| VolumeError::unsupported(path, "volume too large for this platform"))?;
+    let mut bytes = Vec::with_capacity(if exact { want } else { want.min(1 << 24) });
+    std::io::Read::read_to_end(&mut std::io::Read::take(&mut *r, data_bytes), &mut bytes)
+        .map_err(io)?;
+    if bytes.len() < want {
+        return Err(short(bytes.len() as u64));
+    }
+    let (slope, inter) = scale.unwrap_or((1.0, 0.0));
+    let value = |i: usize| ty.get(&bytes, i, big_endian) * slope + inter;
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for i in 0..count {
+        let v = value(i);
+        if !v.is_finite() || v.fract() != 0.0 {
+            return Err(VolumeError::unsupported(
+                path,
+                format!(
+                    "voxel {i} has the non-integer value {v}{}: needs a float voxel type \
+                     (volumes hold 8/16-bit integers)",
+                    if scale.is_some() {
+                        " after scaling"
+                    } else {
+                        ""
+                    }
+                ),
+            ));
+        }
+        lo = lo.min(v);
+        hi = hi.max(v);
+    }
+    if lo >= i16::MIN as f64 && hi <= i16::MAX as f64 {
+        Ok(Voxels::I16((0..count).map(|i| value(i) as i16).collect()))
+    } else if lo >= 0.0 && hi <= u16::MAX as f64 {
+        Ok(Voxels::U16((0..count).map(|i| value(i) as u16).collect()))
+    } else {
+        Err(VolumeError::unsupported(
+            path,
+            format!(
+                "values {lo} .. {hi} do not fit 16-bit integers: needs a float voxel type \
+                 (volumes hold 8/16-bit integers)"
+            ),
+        ))
+    }
+}
+
+/// Writes `path` through a temporary file next to it, renamed into place only when `body`
+/// succeeded, so a failed write never leaves a half-written volume under the real name.
+pub(crate) fn write_atomically(
+    path: &Path,
+    body: impl FnOnce(&mut dyn std::io::Write) -> std::io::Result<()>,
+) -> Result<(), VolumeError> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let file_name = path
+        .file_name()
+        .ok_or_else(|| VolumeError::format(path, "cannot write: not a file path"))?;
+    let stamp = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.subsec_nanos())
+        .unwrap_or(0);
+    let tmp = dir.join(format!(
+        ".{}.tmp-{}-{stamp}",
+        file_name.to_string_lossy(),
+        std::process::id()
+    ));
+    let result = (|| -> std::io::Result<()> {
+        let file = std::fs::File::create(&tmp)?;
+        let mut w = std::io::BufWriter::with_capacity(1 << 20, file);
+        body(&mut w)?;
+        let file = w.into_inner().map_err(|e| e.into_error())?;
+        file.sync_all()?;
+        drop(file);
+        std::fs::rename(&tmp, path)
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(VolumeError::io(path, e));
+    }
+    Ok(())
+}
+
+/// Writes voxels in file order with the given byte order.
+pub(crate) fn write_voxels(
+    w: &mut dyn std::io::Write,
+    v: &Voxels,
+    big_endian: bool,
+) -> std::io::Result<()> {
+    const CHUNK: usize = 1 << 16;
+    let mut buf = Vec::with_capacity(CHUNK * 2);
+    match v {
+        Voxels::U8(v) => w.write_all(v)?,
+        Voxels::U16(v) => {
+            for c in v.chunks(CHUNK) {
+                buf.clear();
+                for &x in c {
+                    buf.extend_from_slice(&if big_endian {
+                        x.to_be_bytes()
+                    } else {
+                        x.to_le_bytes()
+                    });
+                }
+                w.write_all(&buf)?;
+            }
+        }
+        Voxels::I16(v) => {
+            for c in v.chunks(CHUNK) {
+                buf.clear();
+                for &x in c {
+                    buf.extend_from_slice(&if big_endian {
+                        x.to_be_bytes()
+                    } else {
+                        x.to_le_bytes()
+                    });
+                }
+                w.write_all(&buf)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Splits a 3x3 whose columns are the physical (LPS, mm) steps of the i, j, k axes into
+/// spacings (column lengths) and unit directions. A sheared matrix keeps its column lengths and
+/// normalised columns: the Volume model has no shear, so that is the closest it can say.
+pub(crate) fn split_axes(path: &Path, m: DMat3) -> Result<([f64; 3], DMat3), VolumeError> {
+    let cols = [m.x_axis, m.y_axis, m.z_axis];
+    let mut spacing = [0.0; 3];
+    let mut dirs = [DVec3::ZERO; 3];
+    for a in 0..3 {
+        let len = cols[a].length();
+        if !(len.is_finite() && len > 0.0) {
+            return Err(VolumeError::format(
+                path,
+                format!("axis {a} has a zero or invalid step vector {:?}", cols[a]),
+            ));
+        }
+        spacing[a] = len;
+        dirs[a] = cols[a] / len;
+    }
+    let d = DMat3::from_cols(dirs[0], dirs[1], dirs[2]);
+    if d.determinant().abs() < 1e-6 {
+        return Err(VolumeError::format(
+            path,
+            "the axis directions are degenerate (not independent)",
+        ));
+    }
+    Ok((spacing, d))
 }

@@ -1,0 +1,794 @@
+//! NIfTI-1 reader and writer: single-file `.nii`, or `.nii.gz` (gzip of the same bytes).
+//!
+//! Reads 3-D scalar volumes (a 4-D file with one time point counts as 3-D) of either byte order.
+//! 8/16-bit integers are kept as they are; 32-bit integers, floats and scaled data
+//! (`scl_slope`/`scl_inter`) are accepted when every resulting value is an integer that fits
+//! 16 bits, because [`Voxels`] has no floating-point type. The geometry comes from the sform
+//! (preferred), the qform, or the voxel sizes alone, and is converted from NIfTI's RAS+ world
+//! into LPS. The writer stores both an sform and (for rotations) a qform.
+
+use super::{
+    checked_size, read_wide, split_axes, write_atomically, write_voxels, Modality, Volume,
+    VolumeError, Voxels, WideType,
+};
+use flate2::read::MultiGzDecoder;
+use flate2::write::GzEncoder;
+use flate2::Compression;
+use glam::{DMat3, DQuat, DVec3};
+use std::fs::File;
+use std::io::{BufReader, Read, Seek, SeekFrom, Write};
+use std::path::Path;
+
+/// Size of the NIfTI-1 header proper.
+const HEADER_BYTES: usize = 348;
+/// Where the writer puts the data: header + the 4-byte (empty) extension flag.
+const WRITE_OFFSET: usize = 352;
+/// RAS <-> LPS: NIfTI's world x points right and y anterior; ours left and posterior.
+const RAS_TO_LPS: DVec3 = DVec3::new(-1.0, -1.0, 1.0);
+
+/// Whether `path` names a gzip-compressed NIfTI (`.nii.gz`).
+fn is_gzip_name(path: &Path) -> bool {
+    path.file_name()
+        .map(|n| n.to_string_lossy().to_ascii_lowercase().ends_with(".gz"))
+        .unwrap_or(false)
+}
+
+/// Field access into a header of either byte order.
+struct Fields<'a> {
+    b: &'a [u8; HEADER_BYTES],
+    be: bool,
+}
+
+impl Fields<'_> {
+    fn i16(&self, off: usize) -> i16 {
+        let a = [self.b[off], self.b[off + 1]];
+        if self.be {
+            i16::from_be_bytes(a)
+        } else {
+            i16::from_le_bytes(a)
+        }
+    }
+    fn f32(&self, off: usize) -> f64 {
+        let a = [
+            self.b[off],
+            self.b[off + 1],
+            self.b[off + 2],
+            self.b[off + 3],
+        ];
+        (if self.be {
+            f32::from_be_bytes(a)
+        } else {
+            f32::from_le_bytes(a)
+        }) as f64
+    }
+    fn vec3(&self, off: usize) -> DVec3 {
+        DVec3::new(self.f32(off), self.f32(off + 4), self.f32(off + 8))
+    }
+}
+
+/// Maps the NIfTI datatype code; `Err` names the type for the message.
+fn parse_datatype(code: i16) -> Result<WideType, String> {
+    Ok(match code {
+        2 => WideType::U8,
+        4 => WideType::I16,
+        8 => WideType::I32,
+        16 => WideType::F32,
+        64 => WideType::F64,
+        256 => WideType::I8,
+        512 => WideType::U16,
+        768 => WideType::U32,
+        1 => return Err("binary (1 bit)".into()),
+        32 | 1792 | 2048 => return Err(format!("complex ({code})")),
+        128 | 2304 => return Err(format!("RGB/RGBA colour ({code})")),
+        1024 | 1280 => return Err(format!("64-bit integer ({code})")),
+        1536 => return Err("float128 (1536)".into()),
+        _ => return Err(format!("unknown code {code}")),
+    })
+}
+
+/// The qform rotation (RAS) from the quaternion (b, c, d), a = sqrt(1 - b² - c² - d²); as
+/// nifti1_io does, a slightly over-long (b, c, d) is renormalised with a = 0.
+fn quaternion_matrix(b: f64, c: f64, d: f64) -> DMat3 {
+    let (mut a, mut b, mut c, mut d) = (1.0 - (b * b + c * c + d * d), b, c, d);
+    if a < 1e-7 {
+        let n = (b * b + c * c + d * d).sqrt();
+        if n > 0.0 {
+            (b, c, d) = (b / n, c / n, d / n);
+        }
+        a = 0.0;
+    } else {
+        a = a.sqrt();
+    }
+    DMat3::from_cols(
+        DVec3::new(
+            a * a + b * b - c * c - d * d,
+            2.0 * (b * c + a * d),
+            2.0 * (b * d - a * c),
+        ),
+        DVec3::new(
+            2.0 * (b * c - a * d),
+            a * a + c * c - b * b - d * d,
+            2.0 * (c * d + a * b),
+        ),
+        DVec3::new(
+            2.0 * (b * d + a * c),
+            2.0 * (c * d - a * b),
+            a * a + d * d - c * c - b * b,
+        ),
+    )
+}
+
+/// Loads a NIfTI-1 volume from `.nii` or `.nii.gz`.
+pub fn load(path: &Path) -> Result<Volume, VolumeError> {
+    let file = File::open(path).map_err(|e| VolumeError::io(path, e))?;
+    let gzip = is_gzip_name(path);
+    let mut reader: Box<dyn Read> = if gzip {
+        Box::new(MultiGzDecoder::new(BufReader::new(file)))
+    } else {
+        Box::new(BufReader::new(file))
+    };
+    let fmt = |m: String| VolumeError::format(path, m);
+    let what = if gzip { "gzip " } else { "" };
+
+    let mut hdr = [0u8; HEADER_BYTES];
+    let mut got = 0;
+    while got < HEADER_BYTES {
+        match reader.read(&mut hdr[got..]) {
+            Ok(0) => break,
+            Ok(n) => got += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(fmt(format!("{what}read error in the header: {e}"))),
+        }
+    }
+    let first = i32::from_le_bytes([hdr[0], hdr[1], hdr[2], hdr[3]]);
+    if got < HEADER_BYTES {
+        if got >= 4 && (first == 540 || first.swap_bytes() == 540) {
+            return Err(VolumeError::unsupported(path, "NIfTI-2 (only NIfTI-1)"));
+        }
+        return Err(fmt(format!(
+            "truncated header: {got} of {HEADER_BYTES} bytes, not a NIfTI-1 file"
+        )));
+    }
+    let be = match first {
+        348 => false,
+        _ if first.swap_bytes() == 348 => true,
+        540 => return Err(VolumeError::unsupported(path, "NIfTI-2 (only NIfTI-1)")),
+        _ if first.swap_bytes() == 540 => {
+            return Err(VolumeError::unsupported(path, "NIfTI-2 (only NIfTI-1)"))
+        }
+        _ => {
+            return Err(fmt(format!(
+                "not a NIfTI-1 file: sizeof_hdr is {first}, expected 348"
+            )))
+        }
+    };
+    let f = Fields { b: &hdr, be };
+    match &hdr[344..348] {
+        b"n+1\0" => {}
+        b"ni1\0" => {
+            return Err(VolumeError::unsupported(
+                path,
+                "a two-file NIfTI header (.hdr/.img, magic \"ni1\"); convert it to a single .nii",
+            ))
+        }
+        m => {
+            return Err(fmt(format!(
+                "bad magic {:?}, expected \"n+1\\0\" for a single-file .nii",
+                String::from_utf8_lossy(m)
+            )))
+        }
+    }
+
+    // dimensions
+    let dim: Vec<i16> = (0..8).map(|i| f.i16(40 + 2 * i)).collect();
+    let ndim = dim[0];
+    let ok = ndim == 3 || (ndim == 4 && dim[4] == 1);
+    if !ok {
+        return Err(if (1..=7).contains(&ndim) {
+            VolumeError::unsupported(
+                path,
+                format!(
+                    "{ndim}-dimensional data (dim {:?}); only 3-D volumes (or 4-D with one time \
+                     point) are supported",
+                    &dim[1..=ndim as usize]
+                ),
+            )
+        } else {
+            fmt(format!("invalid dim[0] = {ndim} (must be 1..7)"))
+        });
+    }
+    if dim[1..=3].iter().any(|&d| d < 1) {
+        return Err(fmt(format!(
+            "invalid sizes {} {} {} (must be positive)",
+            dim[1], dim[2], dim[3]
+        )));
+    }
+    let dims = [dim[1] as u64, dim[2] as u64, dim[3] as u64];
+
+    // samples
+    let code = f.i16(70);
+    let ty = parse_datatype(code).map_err(|t| {
+        VolumeError::unsupported(
+            path,
+            format!(
+                "datatype {t}; supported are uint8, int8, int16, uint16, and int32, uint32, \
+                 float32, float64 holding integers"
+            ),
+        )
+    })?;
+    let bitpix = f.i16(72);
+    if bitpix as u64 != ty.bytes() * 8 {
+        return Err(fmt(format!(
+            "bitpix {bitpix} does not match datatype {code} ({} bits)",
+            ty.bytes() * 8
+        )));
+    }
+    let (count, data_bytes) = checked_size(path, dims, ty.bytes())?;
+    let slope = f.f32(112);
+    let inter = f.f32(116);
+    let scale = if slope == 0.0 || !slope.is_finite() || (slope == 1.0 && inter == 0.0) {
+        None // "scl_slope = 0: no scaling", as the standard says
+    } else if !inter.is_finite() {
+        return Err(fmt(format!("invalid scl_inter {inter}")));
+    } else {
+        Some((slope, inter))
+    };
+    let vox_offset = f.f32(108);
+    if !(vox_offset.is_finite() && vox_offset >= HEADER_BYTES as f64) || vox_offset.fract() != 0.0 {
+        return Err(fmt(format!(
+            "invalid vox_offset {vox_offset} (must be a whole number >= 348)"
+        )));
+    }
+    let vox_offset = vox_offset as u64;
+
+    // geometry: NIfTI's spatial unit (xyzt_units & 7) is metres, mm or microns; we work in mm.
+    let unit = match hdr[123] & 7 {
+        1 => 1000.0,
+        3 => 0.001,
+        _ => 1.0, // mm, or unknown (taken as mm, as most readers do)
+    };
+    let pixdim: Vec<f64> = (0..8).map(|i| f.f32(76 + 4 * i)).collect();
+    let sform_code = f.i16(254);
+    let qform_code = f.i16(252);
+    let pix = |a: usize| {
+        let p = pixdim[a].abs();
+        if p.is_finite() && p > 0.0 {
+            p
+        } else {
+            1.0
+        }
+    };
+    let (steps_ras, origin_ras) = if sform_code > 0 {
+        let row = |r: usize| {
+            DVec3::new(
+                f.f32(280 + 16 * r),
+                f.f32(284 + 16 * r),
+                f.f32(288 + 16 * r),
+            )
+        };
+        let (rx, ry, rz) = (row(0), row(1), row(2));
+        let m = DMat3::from_cols(rx, ry, rz).transpose();
+        let o = DVec3::new(f.f32(292), f.f32(308), f.f32(324));
+        (m, o)
+    } else if qform_code > 0 {
+        let r = quaternion_matrix(f.f32(256), f.f32(260), f.f32(264));
+        let qfac = if pixdim[0] < 0.0 { -1.0 } else { 1.0 };
+        let m = DMat3::from_cols(
+            r.x_axis * pix(1),
+            r.y_axis * pix(2),
+            r.z_axis * (pix(3) * qfac),
+        );
+        (m, f.vec3(268))
+    } else {
+        // "method 1" of the standard: voxel sizes only, axes along RAS.
+        (
+            DMat3::from_diagonal(DVec3::new(pix(1), pix(2), pix(3))),
+            DVec3::ZERO,
+        )
+    };
+    if !(steps_ras.is_finite() && origin_ras.is_finite()) {
+        return Err(fmt("the sform/qform holds non-finite numbers".into()));
+    }
+    let flip = DMat3::from_diagonal(RAS_TO_LPS);
+    let (spacing, directions) = split_axes(path, flip * steps_ras * unit)?;
+    let origin = origin_ras * RAS_TO_LPS * unit;
+
+    // data
+    let exact;
+    if gzip {
+        let skip = vox_offset - HEADER_BYTES as u64;
+        let skipped = std::io::copy(&mut (&mut reader).take(skip), &mut std::io::sink())
+            .map_err(|e| fmt(format!("gzip data are corrupt: {e}")))?;
+        if skipped < skip {
+            return Err(fmt(format!(
+                "truncated data: the file ends before vox_offset {vox_offset}"
+            )));
+        }
+        exact = false;
+    } else {
+        drop(reader);
+        let mut file = File::open(path).map_err(|e| VolumeError::io(path, e))?;
+        let len = file.metadata().map_err(|e| VolumeError::io(path, e))?.len();
+        let avail = len.saturating_sub(vox_offset);
+        if avail < data_bytes {
+            return Err(fmt(format!(
+                "truncated data: expected {data_bytes} bytes after vox_offset {vox_offset}, \
+                 found {avail}"
+            )));
+        }
+        file.seek(SeekFrom::Start(vox_offset))
+            .map_err(|e| VolumeError::io(path, e))?;
+        reader = Box::new(BufReader::new(file));
+        exact = true;
+    }
+    let voxels = read_wide(path, what, &mut reader, ty, count, be, scale, exact)?;
+    let name = path
+        .file_name()
+        .map(|s| {
+            let s = s.to_string_lossy();
+            let l = s.to_ascii_lowercase();
+            let cut = [".nii.gz", ".nii", ".gz"]
+                .iter()
+                .find(|e| l.ends_with(*e))
+                .map_or(0, |e| e.len());
+            s[..s.len() - cut].to_string()
+        })
+        .unwrap_or_else(|| "volume".into());
+    Ok(Volume {
+        name,
+        dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize],
+        spacing,
+        directions,
+        origin,
+        modality: Modality::Unknown,
+        voxels,
+    })
+}
+
+/// The 352 bytes (header + empty extension flag) the writer puts before the data of `vol`.
+fn header(path: &Path, vol: &Volume, be: bool) -> Result<Vec<u8>, VolumeError> {
+    if vol.dims.iter().any(|&d| d == 0 || d > i16::MAX as usize)
+        || vol.voxel_count() != vol.voxels.len()
+    {
+        return Err(VolumeError::format(
+            path,
+            format!(
+                "cannot write: sizes {:?} do not fit NIfTI-1 (1..32767) or the {} voxels",
+                vol.dims,
+                vol.voxels.len()
+            ),
+        ));
+    }
+    if vol.spacing.iter().any(|s| !(s.is_finite() && *s > 0.0))
+        || !vol.directions.is_finite()
+        || !vol.origin.is_finite()
+    {
+        return Err(VolumeError::format(
+            path,
+            "cannot write: spacing, directions or origin are invalid",
+        ));
+    }
+    let mut h = vec![0u8; WRITE_OFFSET];
+    let put_i16 = |h: &mut Vec<u8>, off: usize, v: i16| {
+        h[off..off + 2].copy_from_slice(&if be { v.to_be_bytes() } else { v.to_le_bytes() })
+    };
+    let put_f32 = |h: &mut Vec<u8>, off: usize, v: f64| {
+        let v = v as f32;
+        h[off..off + 4].copy_from_slice(&if be { v.to_be_bytes() } else { v.to_le_bytes() })
+    };
+    let sizeof = 348i32;
+    h[0..4].copy_from_slice(&if be {
+        sizeof.to_be_bytes()
+    } else {
+        sizeof.to_le_bytes()
+    });
+    h[38] = b'r';
+    put_i16(&mut h, 40, 3);
+    for a in 0..3 {
+        put_i16(&mut h, 42 + 2 * a, vol.dims[a] as i16);
+    }
+    for a in 3..7 {
+        put_i16(&mut h, 42 + 2 * a, 1);
+    }
+    let (code, bitpix) = match vol.voxels {
+        Voxels::U8(_) => (2, 8),
+        Voxels::I16(_) => (4, 16),
+        Voxels::U16(_) => (512, 16),
+    };
+    put_i16(&mut h, 70, code);
+    put_i16(&mut h, 72, bitpix);
+
+    // RAS steps of the i, j, k axes.
+    let flip = DMat3::from_diagonal(RAS_TO_LPS);
+    let dirs_ras = flip * vol.directions;
+    let steps = DMat3::from_cols(
+        dirs_ras.x_axis * vol.spacing[0],
+        dirs_ras.y_axis * vol.spacing[1],
+        dirs_ras.z_axis * vol.spacing[2],
+    );
+    let origin_ras = vol.origin * RAS_TO_LPS;
+
+    // qform: only for (possibly reflected) rotations; the reflection goes into qfac.
+    let qfac = if dirs_ras.determinant() < 0.0 {
+        -1.0
+    } else {
+        1.0
+    };
+    let rot = DMat3::from_cols(dirs_ras.x_axis, dirs_ras.y_axis, dirs_ras.z_axis * qfac);
+    let orthonormal = (rot.transpose() * rot).abs_diff_eq(DMat3::IDENTITY, 1e-6);
+    put_f32(&mut h, 76, qfac);
+    for a in 0..3 {
+        put_f32(&mut h, 80 + 4 * a, vol.spacing[a]);
+    }
+    put_f32(&mut h, 108, WRITE_OFFSET as f64);
+    h[123] = 2 | 8; // mm, seconds
+    if orthonormal {
+        let mut q = DQuat::from_mat3(&rot).normalize();
+        if q.w < 0.0 {
+            q = -q;
+        }
+        put_i16(&mut h, 252, 1);
+        put_f32(&mut h, 256, q.x);
+        put_f32(&mut h, 260, q.y);
+        put_f32(&mut h, 264, q.z);
+        put_f32(&mut h, 268, origin_ras.x);
+        put_f32(&mut h, 272, origin_ras.y);
+        put_f32(&mut h, 276, origin_ras.z);
+    }
+    put_i16(&mut h, 254, 1);
+    let rows = steps.transpose();
+    for (r, (row, o)) in [rows.x_axis, rows.y_axis, rows.z_axis]
+        .iter()
+        .zip([origin_ras.x, origin_ras.y, origin_ras.z])
+        .enumerate()
+    {
+        put_f32(&mut h, 280 + 16 * r, row.x);
+        put_f32(&mut h, 284 + 16 * r, row.y);
+        put_f32(&mut h, 288 + 16 * r, row.z);
+        put_f32(&mut h, 292 + 16 * r, o);
+    }
+    let descrip = b"cao-xr";
+    h[148..148 + descrip.len()].copy_from_slice(descrip);
+    h[344..348].copy_from_slice(b"n+1\0");
+    Ok(h)
+}
+
+/// Writes `vol` as a little-endian NIfTI-1 (`gzip`: gzip-compressed, for `.nii.gz`), with the
+/// geometry as an sform (exact to f32) and, when the directions are a rotation or reflection, a
+/// qform. Written under a temporary name and renamed when complete.
+pub fn write(path: &Path, vol: &Volume, gzip: bool) -> Result<(), VolumeError> {
+    write_with(path, vol, gzip, false)
+}
+
+fn write_with(path: &Path, vol: &Volume, gzip: bool, be: bool) -> Result<(), VolumeError> {
+    let h = header(path, vol, be)?;
+    write_atomically(path, |w| {
+        if gzip {
+            let mut enc = GzEncoder::new(w, Compression::default());
+            enc.write_all(&h)?;
+            write_voxels(&mut enc, &vol.voxels, be)?;
+            enc.finish()?;
+        } else {
+            w.write_all(&h)?;
+            write_voxels(w, &vol.voxels, be)?;
+        }
+        Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::PathBuf;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    static COUNTER: AtomicUsize = AtomicUsize::new(0);
+
+    /// A unique scratch directory, removed on drop.
+    struct Scratch(PathBuf);
+    impl Scratch {
+        fn new(tag: &str) -> Self {
+            let n = COUNTER.fetch_add(1, Ordering::SeqCst);
+            let p = std::env::temp_dir()
+                .join(format!("volcrate-nifti-{tag}-{}-{n}", std::process::id()));
+            let _ = std::fs::remove_dir_all(&p);
+            std::fs::create_dir_all(&p).unwrap();
+            Scratch(p)
+        }
+        fn file(&self, name: &str) -> PathBuf {
+            self.0.join(name)
+        }
+    }
+    impl Drop for Scratch {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+
+    fn sample(voxels: Voxels) -> Volume {
+        Volume {
+            name: "t".into(),
+            dims: [5, 4, 3],
+            spacing: [0.7, 1.25, 3.0],
+            directions: DMat3::from_rotation_z(0.3) * DMat3::from_rotation_x(-0.7),
+            origin: DVec3::new(-12.5, 30.25, 7.0),
+            modality: Modality::Unknown,
+            voxels,
+        }
+    }
+
+    fn assert_same_geometry(a: &Volume, b: &Volume, tol: f64) {
+        assert_eq!(a.dims, b.dims);
+        for i in 0..3 {
+            assert!(
+                (a.spacing[i] - b.spacing[i]).abs() < tol,
+                "{:?} {:?}",
+                a.spacing,
+                b.spacing
+            );
+        }
+        assert!(
+            a.directions.abs_diff_eq(b.directions, tol),
+            "{:?} vs {:?}",
+            a.directions,
+            b.directions
+        );
+        assert!(
+            a.origin.abs_diff_eq(b.origin, tol),
+            "{:?} {:?}",
+            a.origin,
+            b.origin
+        );
+    }
+
+    fn err_of(path: &Path) -> String {
+        let e = load(path).expect_err("load should fail").to_string();
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        assert!(e.contains(&name), "error {e:?} does not name {name}");
+        e
+    }
+
+    /// A header for `vol`'s geometry with its datatype replaced, followed by `data`.
+    fn custom(path: &Path, vol: &Volume, code: i16, bitpix: i16, data: &[u8], be: bool) {
+        let mut h = header(path, vol, be).unwrap();
+        let put = |h: &mut Vec<u8>, off: usize, v: i16| {
+            h[off..off + 2].copy_from_slice(&if be { v.to_be_bytes() } else { v.to_le_bytes() })
+        };
+        put(&mut h, 70, code);
+        put(&mut h, 72, bitpix);
+        h.extend_from_slice(data);
+        std::fs::write(path, h).unwrap();
+    }
+
+    fn set_f32(path: &Path, off: usize, v: f32) {
+        let mut b = std::fs::read(path).unwrap();
+        b[off..off + 4].copy_from_slice(&v.to_le_bytes());
+        std::fs::write(path, b).unwrap();
+    }
+
+    #[test]
+    fn round_trip_types_and_gzip() {
+        let s = Scratch::new("rt");
+        let n = 60;
+        let cases = [
+            Voxels::U8((0..n).map(|i| (i * 37 % 256) as u8).collect()),
+            Voxels::I16((0..n).map(|i| (i as i16 - 30) * 1000).collect()),
+            Voxels::U16((0..n).map(|i| (i as u16) * 1000 + 7).collect()),
+        ];
+        for (c, vox) in cases.into_iter().enumerate() {
+            let vol = sample(vox);
+            for (gz, name) in [(false, format!("a{c}.nii")), (true, format!("a{c}.nii.gz"))] {
+                let p = s.file(&name);
+                write(&p, &vol, gz).unwrap();
+                let back = load(&p).unwrap();
+                assert_eq!(back.voxels, vol.voxels, "{name}");
+                assert_same_geometry(&back, &vol, 1e-6);
+                assert_eq!(back.modality, Modality::Unknown);
+                assert_eq!(back.name, format!("a{c}"));
+            }
+        }
+    }
+
+    #[test]
+    fn qform_reflection_and_big_endian() {
+        let s = Scratch::new("qf");
+        let mut vol = sample(Voxels::I16((0..60).map(|i| i * 3 - 90).collect()));
+        // A reflected frame (det -1) exercises qfac.
+        vol.directions = DMat3::from_cols(
+            vol.directions.x_axis,
+            vol.directions.y_axis,
+            -vol.directions.z_axis,
+        );
+        let p = s.file("be.nii");
+        write_with(&p, &vol, false, true).unwrap();
+        let back = load(&p).unwrap();
+        assert_eq!(back.voxels, vol.voxels);
+        assert_same_geometry(&back, &vol, 1e-6);
+        // The qform alone (sform_code 0) gives the same geometry.
+        let mut b = std::fs::read(&p).unwrap();
+        b[254..256].copy_from_slice(&0i16.to_be_bytes());
+        std::fs::write(&p, &b).unwrap();
+        let q = load(&p).unwrap();
+        assert_same_geometry(&q, &vol, 1e-5);
+        // Neither: voxel sizes along RAS, i.e. -x, -y, +z in LPS.
+        b[252..254].copy_from_slice(&0i16.to_be_bytes());
+        std::fs::write(&p, &b).unwrap();
+        let plain = load(&p).unwrap();
+        assert!(plain
+            .directions
+            .abs_diff_eq(DMat3::from_diagonal(DVec3::new(-1.0, -1.0, 1.0)), 1e-12));
+        assert!((plain.spacing[0] - 0.7).abs() < 1e-6 && plain.origin == DVec3::ZERO);
+    }
+
+    #[test]
+    fn sheared_sform_keeps_column_lengths() {
+        let s = Scratch::new("shear");
+        let vol = sample(Voxels::U8(vec![1; 60]));
+        let p = s.file("shear.nii");
+        write(&p, &vol, false).unwrap();
+        let mut b = std::fs::read(&p).unwrap();
+        // sform rows: x = (2, 1, 0, 5), y = (0, 3, 0, 6), z = (0, 0, 4, 7); no qform.
+        let rows = [
+            [2.0f32, 1.0, 0.0, 5.0],
+            [0.0, 3.0, 0.0, 6.0],
+            [0.0, 0.0, 4.0, 7.0],
+        ];
+        for (r, row) in rows.iter().enumerate() {
+            for (c, v) in row.iter().enumerate() {
+                b[280 + 16 * r + 4 * c..284 + 16 * r + 4 * c].copy_from_slice(&v.to_le_bytes());
+            }
+        }
+        b[252..254].copy_from_slice(&0i16.to_le_bytes());
+        std::fs::write(&p, &b).unwrap();
+        let v = load(&p).unwrap();
+        let l = 10f64.sqrt();
+        assert!((v.spacing[0] - 2.0).abs() < 1e-9);
+        assert!((v.spacing[1] - l).abs() < 1e-6);
+        assert!((v.spacing[2] - 4.0).abs() < 1e-9);
+        assert!(v
+            .directions
+            .y_axis
+            .abs_diff_eq(DVec3::new(-1.0 / l, -3.0 / l, 0.0), 1e-6));
+        assert!(v.origin.abs_diff_eq(DVec3::new(-5.0, -6.0, 7.0), 1e-9));
+    }
+
+    #[test]
+    fn scaling_and_wide_types() {
+        let s = Scratch::new("scl");
+        let vol = sample(Voxels::U8(vec![0; 60]));
+        // uint8 with slope 2, intercept -100 -> int16
+        let p = s.file("scl.nii");
+        let raw: Vec<u8> = (0..60).collect();
+        custom(&p, &vol, 2, 8, &raw, false);
+        set_f32(&p, 112, 2.0);
+        set_f32(&p, 116, -100.0);
+        let v = load(&p).unwrap();
+        let want: Vec<i16> = (0..60).map(|i| i * 2 - 100).collect();
+        assert_eq!(v.voxels, Voxels::I16(want));
+        // slope 0 means "no scaling": the uint8 stay uint8.
+        set_f32(&p, 112, 0.0);
+        assert_eq!(load(&p).unwrap().voxels, Voxels::U8(raw.clone()));
+        // non-integral scaling is refused
+        set_f32(&p, 112, 0.5);
+        set_f32(&p, 116, 0.0);
+        let e = err_of(&p);
+        assert!(e.contains("needs a float voxel type"), "{e}");
+
+        // float32 holding integers -> int16, big-endian too
+        for be in [false, true] {
+            let p = s.file(&format!("f32-{be}.nii"));
+            let data: Vec<u8> = (0..60)
+                .flat_map(|i| {
+                    let x = i as f32 * 10.0 - 300.0;
+                    if be {
+                        x.to_be_bytes()
+                    } else {
+                        x.to_le_bytes()
+                    }
+                })
+                .collect();
+            custom(&p, &vol, 16, 32, &data, be);
+            let v = load(&p).unwrap();
+            assert_eq!(
+                v.voxels,
+                Voxels::I16((0..60).map(|i| i * 10 - 300).collect())
+            );
+        }
+        // float64 with a fraction -> clear refusal
+        let p = s.file("f64.nii");
+        let data: Vec<u8> = (0..60)
+            .flat_map(|i| (i as f64 + 0.25).to_le_bytes())
+            .collect();
+        custom(&p, &vol, 64, 64, &data, false);
+        let e = err_of(&p);
+        assert!(
+            e.contains("unsupported") && e.contains("needs a float voxel type"),
+            "{e}"
+        );
+        // int32 beyond 16 bits -> refusal; int32 within uint16 -> uint16; int8 -> int16
+        let p = s.file("i32.nii");
+        let data: Vec<u8> = (0..60)
+            .flat_map(|i| (i * 100_000i32).to_le_bytes())
+            .collect();
+        custom(&p, &vol, 8, 32, &data, false);
+        assert!(err_of(&p).contains("do not fit 16-bit"));
+        let data: Vec<u8> = (0..60).flat_map(|i| (i * 1000u32).to_le_bytes()).collect();
+        custom(&p, &vol, 768, 32, &data, false);
+        assert_eq!(
+            load(&p).unwrap().voxels,
+            Voxels::U16((0..60).map(|i| i * 1000).collect())
+        );
+        let data: Vec<u8> = (0..60).map(|i| (i as i8 - 30) as u8).collect();
+        custom(&p, &vol, 256, 8, &data, false);
+        assert_eq!(
+            load(&p).unwrap().voxels,
+            Voxels::I16((0..60).map(|i| i - 30).collect())
+        );
+    }
+
+    #[test]
+    fn bad_inputs() {
+        let s = Scratch::new("bad");
+        let vol = sample(Voxels::I16(vec![5; 60]));
+        let good = s.file("good.nii");
+        write(&good, &vol, false).unwrap();
+        let bytes = std::fs::read(&good).unwrap();
+        let case = |name: &str, f: &dyn Fn(&mut Vec<u8>)| {
+            let p = s.file(name);
+            let mut b = bytes.clone();
+            f(&mut b);
+            std::fs::write(&p, &b).unwrap();
+            err_of(&p)
+        };
+        assert!(case("short.nii", &|b| b.truncate(100)).contains("truncated header"));
+        assert!(case("data.nii", &|b| b.truncate(352 + 50)).contains("truncated data"));
+        assert!(case("magic.nii", &|b| b[344..348].copy_from_slice(b"xyz\0")).contains("magic"));
+        assert!(case("pair.nii", &|b| b[344..348].copy_from_slice(b"ni1\0")).contains("two-file"));
+        assert!(case("size.nii", &|b| b[0] = 7).contains("sizeof_hdr"));
+        assert!(case("dt.nii", &|b| b[70..72]
+            .copy_from_slice(&128i16.to_le_bytes()))
+        .contains("unsupported: datatype"));
+        assert!(case("bitpix.nii", &|b| b[72..74]
+            .copy_from_slice(&8i16.to_le_bytes()))
+        .contains("bitpix"));
+        assert!(case("4d.nii", &|b| {
+            b[40..42].copy_from_slice(&4i16.to_le_bytes());
+            b[48..50].copy_from_slice(&2i16.to_le_bytes());
+        })
+        .contains("4-dimensional"));
+        assert!(case("neg.nii", &|b| b[42..44]
+            .copy_from_slice(&(-5i16).to_le_bytes()))
+        .contains("invalid sizes"));
+        assert!(case("huge.nii", &|b| {
+            for a in 0..3 {
+                b[42 + 2 * a..44 + 2 * a].copy_from_slice(&32000i16.to_le_bytes());
+            }
+        })
+        .contains("too large"));
+        assert!(case("off.nii", &|b| b[108..112]
+            .copy_from_slice(&10f32.to_le_bytes()))
+        .contains("vox_offset"));
+        // 4-D with one time point is fine
+        let p = s.file("t1.nii");
+        let mut b = bytes.clone();
+        b[40..42].copy_from_slice(&4i16.to_le_bytes());
+        std::fs::write(&p, &b).unwrap();
+        assert_eq!(load(&p).unwrap().dims, [5, 4, 3]);
+        // a corrupt / truncated gzip
+        let gz = s.file("cut.nii.gz");
+        write(&gz, &vol, true).unwrap();
+        let g = std::fs::read(&gz).unwrap();
+        std::fs::write(&gz, &g[..g.len() / 2]).unwrap();
+        err_of(&gz);
+        // missing file
+        assert!(err_of(&s.file("missing.nii")).contains("missing.nii"));
+        // never panics on mangled headers
+        for i in 0..352 {
+            let mut b = bytes.clone();
+            b[i] ^= 0xA5;
+            let p = s.file("mangled.nii");
+            std::fs::write(&p, &b).unwrap();
+            let _ = load(&p);
+        }
+    }
+}
