@@ -576,20 +576,6 @@ fn fmt_vec(v: DVec3) -> String {
     format!("({},{},{})", v.x + 0.0, v.y + 0.0, v.z + 0.0)
 }
 
-/// Deletes the temporary file unless the write was committed.
-struct TempFile {
-    path: PathBuf,
-    keep: bool,
-}
-
-impl Drop for TempFile {
-    fn drop(&mut self) {
-        if !self.keep {
-            let _ = std::fs::remove_file(&self.path);
-        }
-    }
-}
-
 /// Writes a 3-D NRRD0004 file in LPS space: `directions` columns are the unit vectors of the
 /// i, j, k axes, `spacing` their lengths (mm), `origin` the centre of voxel (0,0,0).
 /// The file is written next to `path` under a temporary name and renamed when complete.
@@ -658,42 +644,17 @@ pub fn write(
     }
     header.push('\n');
 
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let file_name = path
-        .file_name()
-        .ok_or_else(|| VolumeError::format(path, "cannot write: not a file path"))?;
-    let stamp = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.subsec_nanos())
-        .unwrap_or(0);
-    let mut tmp = TempFile {
-        path: dir.join(format!(
-            ".{}.tmp-{}-{stamp}",
-            file_name.to_string_lossy(),
-            std::process::id()
-        )),
-        keep: false,
-    };
-    let io = |e: std::io::Error| VolumeError::io(path, e);
-    let file = File::create(&tmp.path).map_err(|e| VolumeError::io(&tmp.path, e))?;
-    let mut w = std::io::BufWriter::with_capacity(1 << 20, file);
-    w.write_all(header.as_bytes()).map_err(io)?;
-    if gzip {
-        let mut enc = GzEncoder::new(w, Compression::default());
-        data.write_le(&mut enc).map_err(io)?;
-        w = enc.finish().map_err(io)?;
-    } else {
-        data.write_le(&mut w).map_err(io)?;
-    }
-    let file = w.into_inner().map_err(|e| io(e.into_error()))?;
-    file.sync_all().map_err(io)?;
-    drop(file);
-    std::fs::rename(&tmp.path, path).map_err(io)?;
-    tmp.keep = true;
-    Ok(())
+    super::write_atomically(path, |w| {
+        w.write_all(header.as_bytes())?;
+        if gzip {
+            let mut enc = GzEncoder::new(w, Compression::default());
+            data.write_le(&mut enc)?;
+            enc.finish()?;
+            Ok(())
+        } else {
+            data.write_le(w)
+        }
+    })
 }
 
 /// Writes `vol` with [`write`].
