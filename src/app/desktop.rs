@@ -4,7 +4,7 @@
 use super::frame_loop::FrameLoop;
 use super::{AppError, Result};
 use crate::ao::LaoParams;
-use crate::gpu::{Buffer, Gpu, GpuError};
+use crate::gpu::{cmd_image_barrier, Buffer, Gpu, GpuError};
 use crate::input::desktop::{DesktopInput, Key};
 use crate::input::{InteractionSettings, PoseStreamWriter, StreamHeader};
 use crate::volume::transfer::TransferFunction;
@@ -221,17 +221,6 @@ impl Presenter {
             .aspect_mask(vk::ImageAspectFlags::COLOR)
             .level_count(1)
             .layer_count(1);
-        let barrier = |from, to| {
-            [vk::ImageMemoryBarrier2::default()
-                .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-                .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
-                .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-                .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
-                .old_layout(from)
-                .new_layout(to)
-                .image(image)
-                .subresource_range(range)]
-        };
         let (w, h) = (self.extent.width as i32, self.extent.height as i32);
         let bytes = (w * h * 4) as u64;
         let readback = if capture {
@@ -246,13 +235,13 @@ impl Presenter {
             None
         };
         self.gpu.submit_and_wait(|cmd| {
-            let b = barrier(
+            cmd_image_barrier(
+                d,
+                cmd,
+                image,
+                range,
                 vk::ImageLayout::UNDEFINED,
                 vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-            );
-            d.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&b),
             );
             let eyes = if both { 2 } else { 1 };
             for eye in 0..eyes {
@@ -294,10 +283,13 @@ impl Presenter {
             }
             let mut last = vk::ImageLayout::TRANSFER_DST_OPTIMAL;
             if let Some(buf) = &readback {
-                let b = barrier(last, vk::ImageLayout::TRANSFER_SRC_OPTIMAL);
-                d.cmd_pipeline_barrier2(
+                cmd_image_barrier(
+                    d,
                     cmd,
-                    &vk::DependencyInfo::default().image_memory_barriers(&b),
+                    image,
+                    range,
+                    last,
+                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
                 );
                 let region = [vk::BufferImageCopy::default()
                     .image_subresource(
@@ -319,11 +311,7 @@ impl Presenter {
                 );
                 last = vk::ImageLayout::TRANSFER_SRC_OPTIMAL;
             }
-            let b = barrier(last, vk::ImageLayout::PRESENT_SRC_KHR);
-            d.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&b),
-            );
+            cmd_image_barrier(d, cmd, image, range, last, vk::ImageLayout::PRESENT_SRC_KHR);
         })?;
         let swapchains = [self.swapchain];
         let indices = [index];

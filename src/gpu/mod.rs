@@ -5,7 +5,9 @@ pub mod pipeline;
 mod resources;
 mod timer;
 
-pub use resources::{push_set_layout, shader_module, Buffer, ComputePipeline, Image, ImageDesc};
+pub use resources::{
+    cmd_image_barrier, push_set_layout, shader_module, Buffer, ComputePipeline, Image, ImageDesc,
+};
 pub use timer::GpuTimer;
 
 use ash::vk;

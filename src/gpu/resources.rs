@@ -284,23 +284,14 @@ impl Image {
 
     /// A layout transition of the whole image that also orders all earlier memory writes.
     pub fn transition(&self, cmd: vk::CommandBuffer, from: vk::ImageLayout, to: vk::ImageLayout) {
-        let b = [vk::ImageMemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-            .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-            .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
-            .old_layout(from)
-            .new_layout(to)
-            .src_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
-            .dst_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
-            .image(self.raw)
-            .subresource_range(self.subresource_range())];
-        unsafe {
-            self.gpu.device.cmd_pipeline_barrier2(
-                cmd,
-                &vk::DependencyInfo::default().image_memory_barriers(&b),
-            );
-        }
+        cmd_image_barrier(
+            &self.gpu.device,
+            cmd,
+            self.raw,
+            self.subresource_range(),
+            from,
+            to,
+        );
     }
 
     fn layers_all(&self) -> vk::ImageSubresourceLayers {
@@ -376,6 +367,35 @@ impl Drop for Image {
             self.gpu.device.destroy_image(self.raw, None);
         }
     }
+}
+
+/// A layout transition of `range` of any image (also swapchain images, which no [`Image`] owns)
+/// that orders all earlier memory writes before all later accesses.
+pub fn cmd_image_barrier(
+    device: &ash::Device,
+    cmd: vk::CommandBuffer,
+    image: vk::Image,
+    range: vk::ImageSubresourceRange,
+    from: vk::ImageLayout,
+    to: vk::ImageLayout,
+) {
+    let b = [vk::ImageMemoryBarrier2::default()
+        .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+        .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
+        .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+        .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
+        .old_layout(from)
+        .new_layout(to)
+        .src_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
+        .dst_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
+        .image(image)
+        .subresource_range(range)];
+    unsafe {
+        device.cmd_pipeline_barrier2(
+            cmd,
+            &vk::DependencyInfo::default().image_memory_barriers(&b),
+        )
+    };
 }
 
 /// A compute pipeline whose descriptors are pushed (VK_KHR_push_descriptor), one set, with an

@@ -19,7 +19,7 @@ pub mod vulkan;
 use crate::ao::LaoParams;
 use crate::app::frame_loop::FrameLoop;
 use crate::app::AppError;
-use crate::gpu::{Gpu, GpuError, GpuOptions};
+use crate::gpu::{cmd_image_barrier, Gpu, GpuError, GpuOptions};
 use crate::input::{FrameInput, InteractionSettings, PoseStreamWriter, StreamHeader, RIGHT};
 use crate::render::view::{Fov, Pose, View};
 use crate::render::StereoTarget;
@@ -814,29 +814,18 @@ unsafe fn record_blit(
         .aspect_mask(vk::ImageAspectFlags::COLOR)
         .level_count(1)
         .layer_count(2);
-    let barrier = |from, to| {
-        [vk::ImageMemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-            .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-            .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
-            .old_layout(from)
-            .new_layout(to)
-            .image(image)
-            .subresource_range(range)]
-    };
     let layers = vk::ImageSubresourceLayers::default()
         .aspect_mask(vk::ImageAspectFlags::COLOR)
         .layer_count(2);
     // The runtime hands images over in COLOR_ATTACHMENT_OPTIMAL and wants them back so
     // (XR_KHR_vulkan_enable); the old contents are not needed.
-    let b = barrier(
+    cmd_image_barrier(
+        d,
+        cmd,
+        image,
+        range,
         vk::ImageLayout::UNDEFINED,
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-    );
-    d.cmd_pipeline_barrier2(
-        cmd,
-        &vk::DependencyInfo::default().image_memory_barriers(&b),
     );
     let region = [vk::ImageBlit::default()
         .src_subresource(layers)
@@ -866,13 +855,13 @@ unsafe fn record_blit(
         &region,
         vk::Filter::LINEAR,
     );
-    let b = barrier(
+    cmd_image_barrier(
+        d,
+        cmd,
+        image,
+        range,
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
         vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
-    );
-    d.cmd_pipeline_barrier2(
-        cmd,
-        &vk::DependencyInfo::default().image_memory_barriers(&b),
     );
 }
 
@@ -893,24 +882,13 @@ unsafe fn record_depth_copy(
         .aspect_mask(vk::ImageAspectFlags::DEPTH)
         .level_count(1)
         .layer_count(2);
-    let barrier = |from, to| {
-        [vk::ImageMemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-            .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-            .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)
-            .old_layout(from)
-            .new_layout(to)
-            .image(image)
-            .subresource_range(range)]
-    };
-    let b = barrier(
+    cmd_image_barrier(
+        d,
+        cmd,
+        image,
+        range,
         vk::ImageLayout::UNDEFINED,
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-    );
-    d.cmd_pipeline_barrier2(
-        cmd,
-        &vk::DependencyInfo::default().image_memory_barriers(&b),
     );
     let layers = vk::ImageSubresourceLayers::default()
         .aspect_mask(vk::ImageAspectFlags::DEPTH)
@@ -931,13 +909,13 @@ unsafe fn record_depth_copy(
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
         &region,
     );
-    let b = barrier(
+    cmd_image_barrier(
+        d,
+        cmd,
+        image,
+        range,
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
         vk::ImageLayout::DEPTH_STENCIL_ATTACHMENT_OPTIMAL,
-    );
-    d.cmd_pipeline_barrier2(
-        cmd,
-        &vk::DependencyInfo::default().image_memory_barriers(&b),
     );
 }
 
