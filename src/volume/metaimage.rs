@@ -424,29 +424,10 @@ pub fn write(path: &Path, vol: &Volume, compressed: bool) -> Result<(), VolumeEr
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::sync::atomic::{AtomicUsize, Ordering};
 
-    static COUNTER: AtomicUsize = AtomicUsize::new(0);
-
-    /// A unique scratch directory, removed on drop.
-    struct Scratch(PathBuf);
-    impl Scratch {
-        fn new(tag: &str) -> Self {
-            let n = COUNTER.fetch_add(1, Ordering::SeqCst);
-            let p =
-                std::env::temp_dir().join(format!("volcrate-mha-{tag}-{}-{n}", std::process::id()));
-            let _ = std::fs::remove_dir_all(&p);
-            std::fs::create_dir_all(&p).unwrap();
-            Scratch(p)
-        }
-        fn file(&self, name: &str) -> PathBuf {
-            self.0.join(name)
-        }
-    }
-    impl Drop for Scratch {
-        fn drop(&mut self) {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
+    /// A unique scratch directory for this module's tests, removed on drop.
+    fn scratch(tag: &str) -> crate::volume::test_scratch::Scratch {
+        crate::volume::test_scratch::Scratch::new(&format!("mha-{tag}"))
     }
 
     fn sample(voxels: Voxels) -> Volume {
@@ -497,7 +478,7 @@ mod tests {
 
     #[test]
     fn round_trips_mha_mhd_raw_and_zlib() {
-        let s = Scratch::new("rt");
+        let s = scratch("rt");
         let n = 60;
         let cases = [
             Voxels::U8((0..n).map(|i| (i * 37 % 256) as u8).collect()),
@@ -522,7 +503,7 @@ mod tests {
 
     #[test]
     fn hand_written_headers() {
-        let s = Scratch::new("hand");
+        let s = scratch("hand");
         // Big-endian shorts, Position + Orientation spellings, data at the end (HeaderSize -1).
         let p = s.file("be.mha");
         let data: Vec<u8> = (0..60i16)
@@ -598,7 +579,7 @@ mod tests {
 
     #[test]
     fn bad_inputs() {
-        let s = Scratch::new("bad");
+        let s = scratch("bad");
         let local = |name: &str, extra: &str, data: &[u8]| {
             let p = s.file(name);
             write_file(

@@ -479,30 +479,10 @@ fn write_with(path: &Path, vol: &Volume, gzip: bool, be: bool) -> Result<(), Vol
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::path::PathBuf;
-    use std::sync::atomic::{AtomicUsize, Ordering};
 
-    static COUNTER: AtomicUsize = AtomicUsize::new(0);
-
-    /// A unique scratch directory, removed on drop.
-    struct Scratch(PathBuf);
-    impl Scratch {
-        fn new(tag: &str) -> Self {
-            let n = COUNTER.fetch_add(1, Ordering::SeqCst);
-            let p = std::env::temp_dir()
-                .join(format!("volcrate-nifti-{tag}-{}-{n}", std::process::id()));
-            let _ = std::fs::remove_dir_all(&p);
-            std::fs::create_dir_all(&p).unwrap();
-            Scratch(p)
-        }
-        fn file(&self, name: &str) -> PathBuf {
-            self.0.join(name)
-        }
-    }
-    impl Drop for Scratch {
-        fn drop(&mut self) {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
+    /// A unique scratch directory for this module's tests, removed on drop.
+    fn scratch(tag: &str) -> crate::volume::test_scratch::Scratch {
+        crate::volume::test_scratch::Scratch::new(&format!("nifti-{tag}"))
     }
 
     fn sample(voxels: Voxels) -> Volume {
@@ -568,7 +548,7 @@ mod tests {
 
     #[test]
     fn round_trip_types_and_gzip() {
-        let s = Scratch::new("rt");
+        let s = scratch("rt");
         let n = 60;
         let cases = [
             Voxels::U8((0..n).map(|i| (i * 37 % 256) as u8).collect()),
@@ -591,7 +571,7 @@ mod tests {
 
     #[test]
     fn qform_reflection_and_big_endian() {
-        let s = Scratch::new("qf");
+        let s = scratch("qf");
         let mut vol = sample(Voxels::I16((0..60).map(|i| i * 3 - 90).collect()));
         // A reflected frame (det -1) exercises qfac.
         vol.directions = DMat3::from_cols(
@@ -622,7 +602,7 @@ mod tests {
 
     #[test]
     fn sheared_sform_keeps_column_lengths() {
-        let s = Scratch::new("shear");
+        let s = scratch("shear");
         let vol = sample(Voxels::U8(vec![1; 60]));
         let p = s.file("shear.nii");
         write(&p, &vol, false).unwrap();
@@ -654,7 +634,7 @@ mod tests {
 
     #[test]
     fn scaling_and_wide_types() {
-        let s = Scratch::new("scl");
+        let s = scratch("scl");
         let vol = sample(Voxels::U8(vec![0; 60]));
         // uint8 with slope 2, intercept -100 -> int16
         let p = s.file("scl.nii");
@@ -728,7 +708,7 @@ mod tests {
 
     #[test]
     fn bad_inputs() {
-        let s = Scratch::new("bad");
+        let s = scratch("bad");
         let vol = sample(Voxels::I16(vec![5; 60]));
         let good = s.file("good.nii");
         write(&good, &vol, false).unwrap();

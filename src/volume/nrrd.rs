@@ -679,29 +679,10 @@ pub fn write_volume(path: &Path, vol: &Volume, gzip: bool) -> Result<(), VolumeE
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::sync::atomic::{AtomicUsize, Ordering};
 
-    static COUNTER: AtomicUsize = AtomicUsize::new(0);
-
-    /// A unique scratch directory, removed on drop.
-    struct Scratch(PathBuf);
-    impl Scratch {
-        fn new(tag: &str) -> Self {
-            let n = COUNTER.fetch_add(1, Ordering::SeqCst);
-            let p = std::env::temp_dir()
-                .join(format!("volcrate-nrrd-{tag}-{}-{n}", std::process::id()));
-            let _ = std::fs::remove_dir_all(&p);
-            std::fs::create_dir_all(&p).unwrap();
-            Scratch(p)
-        }
-        fn file(&self, name: &str) -> PathBuf {
-            self.0.join(name)
-        }
-    }
-    impl Drop for Scratch {
-        fn drop(&mut self) {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
+    /// A unique scratch directory for this module's tests, removed on drop.
+    fn scratch(tag: &str) -> crate::volume::test_scratch::Scratch {
+        crate::volume::test_scratch::Scratch::new(&format!("nrrd-{tag}"))
     }
 
     fn rotation() -> DMat3 {
@@ -742,7 +723,7 @@ mod tests {
 
     #[test]
     fn round_trip_all_types() {
-        let s = Scratch::new("rt");
+        let s = scratch("rt");
         let dims = [5, 4, 3];
         let n = 60;
         let spacing = [0.7, 1.25, 3.0];
@@ -797,7 +778,7 @@ mod tests {
 
     #[test]
     fn f32_header_and_payload() {
-        let s = Scratch::new("f32");
+        let s = scratch("f32");
         let dims = [3, 2, 2];
         let vals: Vec<f32> = (0..12).map(|i| i as f32 * 0.5 - 2.0).collect();
         let dirs = DMat3::from_cols(-DVec3::X, DVec3::Z, DVec3::Y);
@@ -856,7 +837,7 @@ mod tests {
 
     #[test]
     fn write_refuses_mismatched_data() {
-        let s = Scratch::new("mismatch");
+        let s = scratch("mismatch");
         let p = s.file("bad.nrrd");
         let e = write(
             &p,
@@ -876,7 +857,7 @@ mod tests {
 
     #[test]
     fn big_endian_and_spellings() {
-        let s = Scratch::new("be");
+        let s = scratch("be");
         let p = s.file("be.nrrd");
         let vals: [i16; 8] = [-1000, -1, 0, 1, 255, 256, 3000, -32768];
         let data: Vec<u8> = vals.iter().flat_map(|v| v.to_be_bytes()).collect();
@@ -922,7 +903,7 @@ mod tests {
 
     #[test]
     fn detached_header_and_skips() {
-        let s = Scratch::new("nhdr");
+        let s = scratch("nhdr");
         let sub = s.file("data");
         std::fs::create_dir_all(&sub).unwrap();
         let mut payload = b"junk line one\nline two\nXYZ".to_vec();
@@ -989,7 +970,7 @@ mod tests {
 
     #[test]
     fn ras_and_las_become_lps() {
-        let s = Scratch::new("ras");
+        let s = scratch("ras");
         let p = s.file("ras.nrrd");
         write_file(
             &p,
@@ -1029,7 +1010,7 @@ mod tests {
 
     #[test]
     fn bad_inputs() {
-        let s = Scratch::new("bad");
+        let s = scratch("bad");
         let good = "NRRD0004\ntype: uint16\ndimension: 3\nsizes: 2 2 2\nendian: little\n\
                     encoding: raw\n\n";
 
@@ -1158,7 +1139,7 @@ mod tests {
     #[test]
     fn multi_chunk_data() {
         // More samples than one read chunk (1 Mi samples), raw and gzip.
-        let s = Scratch::new("chunks");
+        let s = scratch("chunks");
         let dims = [130, 100, 90];
         let vals: Vec<i16> = (0..130 * 100 * 90)
             .map(|i: i32| ((i % 4001) * 7 % 4001 - 2000) as i16)
@@ -1187,7 +1168,7 @@ mod tests {
     fn gzip_claiming_a_huge_volume_fails_cheaply() {
         // 2^31 one-byte voxels are within the limits, but the stream holds 100 bytes: the
         // loader must report truncation without allocating gigabytes first.
-        let s = Scratch::new("claim");
+        let s = scratch("claim");
         let p = s.file("claim.nrrd");
         let mut enc = GzEncoder::new(Vec::new(), Compression::fast());
         enc.write_all(&[1u8; 100]).unwrap();
@@ -1205,7 +1186,7 @@ mod tests {
 
     #[test]
     fn never_panics_on_mangled_headers() {
-        let s = Scratch::new("fuzz");
+        let s = scratch("fuzz");
         let base = "NRRD0004\ntype: int16\ndimension: 3\nsizes: 3 2 2\nendian: little\n\
                     encoding: raw\nspace: RAS\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n\
                     space origin: (1,2,3)\nbyte skip: 0\nline skip: 0\n\n";
