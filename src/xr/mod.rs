@@ -448,10 +448,24 @@ fn create_swapchain(session: &xr::Session<xr::Vulkan>, extent: (u32, u32)) -> Re
             "the runtime offers no 8-bit RGBA swapchain format (offered: {offered:?})"
         ))
     })?;
+    two_layer_swapchain(
+        session,
+        format,
+        xr::SwapchainUsageFlags::COLOR_ATTACHMENT,
+        extent,
+    )
+}
+
+/// A two-layer array swapchain (layer 0 = left eye) that the frame's copy writes into.
+fn two_layer_swapchain(
+    session: &xr::Session<xr::Vulkan>,
+    format: vk::Format,
+    attachment: xr::SwapchainUsageFlags,
+    extent: (u32, u32),
+) -> Result<Swapchain> {
     let handle = session.create_swapchain(&xr::SwapchainCreateInfo {
         create_flags: xr::SwapchainCreateFlags::EMPTY,
-        usage_flags: xr::SwapchainUsageFlags::TRANSFER_DST
-            | xr::SwapchainUsageFlags::COLOR_ATTACHMENT,
+        usage_flags: xr::SwapchainUsageFlags::TRANSFER_DST | attachment,
         format: format.as_raw() as _,
         sample_count: 1,
         width: extent.0,
@@ -485,29 +499,13 @@ fn create_depth_swapchain(
     if !offered.contains(&(format.as_raw() as _)) {
         return Ok(None);
     }
-    let handle = session.create_swapchain(&xr::SwapchainCreateInfo {
-        create_flags: xr::SwapchainCreateFlags::EMPTY,
-        usage_flags: xr::SwapchainUsageFlags::TRANSFER_DST
-            | xr::SwapchainUsageFlags::DEPTH_STENCIL_ATTACHMENT,
-        format: format.as_raw() as _,
-        sample_count: 1,
-        width: extent.0,
-        height: extent.1,
-        face_count: 1,
-        array_size: 2,
-        mip_count: 1,
-    })?;
-    let images = handle
-        .enumerate_images()?
-        .into_iter()
-        .map(vk::Image::from_raw)
-        .collect();
-    Ok(Some(Swapchain {
-        handle,
-        images,
-        extent,
+    two_layer_swapchain(
+        session,
         format,
-    }))
+        xr::SwapchainUsageFlags::DEPTH_STENCIL_ATTACHMENT,
+        extent,
+    )
+    .map(Some)
 }
 
 /// What the loop must do on entering a session state.
