@@ -7,7 +7,8 @@ struct ClipTool {
     mat4 local_from_index;   // volume index space -> tool-local units
     mat4 local_from_world;   // world -> tool-local units
     vec4 map;                // x: extent, y: texels per local unit, z: resolution, w: mode
-    uvec4 offsets;           // x: clip map, y: dilation map (vec4 units into clip_maps)
+    uvec4 offsets;           // x: clip map, y: dilation map, z: SH dilation map (vec4 units)
+    vec4 sh_map;             // the SH dilation map's own x, y, z (it has its own extent)
 };
 
 layout(std430, set = CLIP_SET, binding = CLIP_TOOLS_BINDING) readonly buffer ClipTools {
@@ -45,6 +46,22 @@ uint clip_test_index(vec3 p) {
         if (probe || (r & 2u) != 0u) affected = true;
     }
     return (visible ? 1u : 0u) | (affected ? 2u : 0u);
+}
+
+// Whether the SH visibility at index-space point p can see any tool's cut: inside some tool's
+// shape dilated by the SH reach (offsets.z), or any probe tool (it changes everything outside it).
+bool sh_affected_index(vec3 p) {
+    for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
+        ClipTool tool = tools[t];
+        if (tool.map.w > 0.5) return true;
+        vec3 local = (tool.local_from_index * vec4(p, 1.0)).xyz;
+        ivec2 px = ivec2(floor((local.xy + tool.sh_map.x) * tool.sh_map.y));
+        int res = int(tool.sh_map.z);
+        if (any(lessThan(px, ivec2(0))) || any(greaterThanEqual(px, ivec2(res)))) continue;
+        vec4 d = clip_maps[tool.offsets.z + uint(px.y * res + px.x)];
+        if (local.z >= d.x && local.z <= d.y) return true;
+    }
+    return false;
 }
 
 bool clipped_world(vec3 w) {

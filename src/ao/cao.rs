@@ -62,6 +62,8 @@ pub struct ClipToolGpu {
     pub local_from_world: [f32; 16],
     pub map: [f32; 4],
     pub offsets: [u32; 4],
+    /// The SH dilation map's extent, texels per unit and resolution (see [`Cao::sh_radius_mm`]).
+    pub sh_map: [f32; 4],
 }
 
 /// A voxel box [min, max).
@@ -158,6 +160,12 @@ pub struct Cao {
     pub meshes: Vec<TriMesh>,
     pub clip_resolution: usize,
     prev_boxes: Vec<VoxelBox>,
+    /// When set, the tools also get dilation maps of this radius (the SH visibility reach) and
+    /// [`Cao::sh_boxes`] holds their voxel boxes after each recorded frame.
+    pub sh_radius_mm: Option<f64>,
+    pub sh_boxes: Vec<VoxelBox>,
+    /// Tools uploaded for the last recorded frame.
+    pub tool_count: u32,
     timer: GpuTimer,
 }
 
@@ -253,6 +261,9 @@ impl Cao {
             meshes: Vec::new(),
             clip_resolution: crate::clip::DEFAULT_RESOLUTION,
             prev_boxes: Vec::new(),
+            sh_radius_mm: None,
+            sh_boxes: Vec::new(),
+            tool_count: 0,
             timer: GpuTimer::new(gpu, 8)?,
         };
         // Start unclipped: O_c = O, V_AO = V_PAO everywhere.
@@ -282,9 +293,16 @@ impl Cao {
     /// so it cannot happen while a frame is being recorded (the recording holds the command
     /// pool): [`Cao::prepare_maps`] builds the maps before, and recording uses the CPU only for a
     /// map nobody prepared.
-    fn map_for(&mut self, tool: &Tool, placement: &Placement, on_gpu: bool) -> Result<ClipMap> {
+    /// `radius_mm` is the dilation radius (the LAO one or [`Cao::sh_radius_mm`]).
+    fn map_for(
+        &mut self,
+        tool: &Tool,
+        placement: &Placement,
+        on_gpu: bool,
+        radius_mm: f64,
+    ) -> Result<ClipMap> {
         // Radius in tool units, rounded up to 1/256 so the cache stays small and stays conservative.
-        let r_world = self.dilation_radius_mm() * 1e-3 * placement.scale as f64;
+        let r_world = radius_mm * 1e-3 * placement.scale as f64;
         let r_local = r_world / tool.size.max(1e-6) as f64;
         let q = (r_local * 256.0).ceil() as u32;
         let key = (tool.shape, q, self.clip_resolution);
@@ -309,8 +327,11 @@ impl Cao {
     /// Call it before [`Cao::record_frame`], outside any command recording; [`Cao::run_frame`]
     /// does.
     pub fn prepare_maps(&mut self, tools: &[Tool], placement: &Placement) -> Result<()> {
+        let radii = [Some(self.dilation_radius_mm()), self.sh_radius_mm];
         for tool in tools.iter().filter(|t| t.active).take(MAX_TOOLS) {
-            self.map_for(tool, placement, true)?;
+            for r in radii.iter().flatten() {
+                self.map_for(tool, placement, true, *r)?;
+            }
         }
         Ok(())
     }
@@ -331,8 +352,10 @@ impl Cao {
         let mut gpu_tools = Vec::new();
         let mut texels: Vec<[f32; 4]> = Vec::new();
         let mut boxes = Vec::new();
+        let mut sh_boxes = Vec::new();
+        let lao_radius = self.dilation_radius_mm();
         for tool in active {
-            let map = self.map_for(tool, placement, false)?;
+            let map = self.map_for(tool, placement, false, lao_radius)?;
             let world_from_local = tool.pose.matrix() * Mat4::from_scale(Vec3::splat(tool.size));
             let local_from_world = world_from_local.inverse();
             let local_from_index = local_from_world * world_from_index;
@@ -340,6 +363,22 @@ impl Cao {
             texels.extend_from_slice(&map.clip);
             let dil_off = texels.len() as u32;
             texels.extend_from_slice(&map.dilated);
+            let map_params =
+                |m: &ClipMap| [m.extent, m.res as f32 / (2.0 * m.extent), m.res as f32, 0.0];
+            // The SH dilation (a second map of the same shape), or the LAO one standing in.
+            let (sh_off, sh_map) = match self.sh_radius_mm {
+                Some(r) => {
+                    let sh = self.map_for(tool, placement, false, r)?;
+                    let off = texels.len() as u32;
+                    texels.extend_from_slice(&sh.dilated);
+                    sh_boxes.push(match tool.mode {
+                        ToolMode::Probe => self.whole(),
+                        ToolMode::Carve => self.box_of(&sh, local_from_index.inverse()),
+                    });
+                    (off, map_params(&sh))
+                }
+                None => (dil_off, map_params(&map)),
+            };
             gpu_tools.push(ClipToolGpu {
                 local_from_index: local_from_index.to_cols_array(),
                 local_from_world: local_from_world.to_cols_array(),
@@ -353,7 +392,8 @@ impl Cao {
                         0.0
                     },
                 ],
-                offsets: [clip_off, dil_off, 0, 0],
+                offsets: [clip_off, dil_off, sh_off, 0],
+                sh_map,
             });
             boxes.push(match tool.mode {
                 ToolMode::Probe => self.whole(),
@@ -379,6 +419,7 @@ impl Cao {
             self.maps.as_mut().unwrap().write(0, bytes)?;
         }
         let boxes = boxes.into_iter().filter(|b| b.voxels() > 0).collect();
+        self.sh_boxes = merge_boxes(sh_boxes.into_iter().filter(|b| b.voxels() > 0).collect());
         Ok((gpu_tools.len() as u32, merge_boxes(boxes)))
     }
 
@@ -449,6 +490,7 @@ impl Cao {
         mode: Mode,
     ) -> Result<PendingFrame> {
         let (count, mut boxes) = self.prepare_tools(tools, placement)?;
+        self.tool_count = count;
         if mode == Mode::Naive {
             boxes = vec![self.whole()];
         }

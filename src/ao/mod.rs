@@ -3,5 +3,6 @@
 pub mod cao;
 pub mod cpu;
 pub mod lao;
+pub mod sh;
 
 pub use lao::{directions, LaoGpu, LaoParams};

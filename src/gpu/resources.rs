@@ -304,7 +304,13 @@ impl Image {
 
     /// Records a copy of a tightly packed buffer into the whole image (layout TRANSFER_DST).
     pub fn cmd_copy_from(&self, cmd: vk::CommandBuffer, src: &Buffer) {
+        self.cmd_copy_from_offset(cmd, src, 0)
+    }
+
+    /// [`Image::cmd_copy_from`] starting `offset` bytes into `src`.
+    pub fn cmd_copy_from_offset(&self, cmd: vk::CommandBuffer, src: &Buffer, offset: u64) {
         let region = [vk::BufferImageCopy::default()
+            .buffer_offset(offset)
             .image_subresource(self.layers_all())
             .image_extent(self.desc.extent)];
         unsafe {
