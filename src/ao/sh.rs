@@ -816,20 +816,16 @@ mod tests {
         for d in &dirs {
             assert!((d.length() - 1.0).abs() < 1e-12);
             let y = sh_basis(*d);
-            for j in 0..16 {
-                for k in 0..16 {
-                    gram[j][k] += y[j] * y[k] * 4.0 * std::f64::consts::PI / dirs.len() as f64;
+            for (row, yj) in gram.iter_mut().zip(y) {
+                for (g, yk) in row.iter_mut().zip(y) {
+                    *g += yj * yk * 4.0 * std::f64::consts::PI / dirs.len() as f64;
                 }
             }
         }
-        for j in 0..16 {
-            for k in 0..16 {
+        for (j, row) in gram.iter().enumerate() {
+            for (k, g) in row.iter().enumerate() {
                 let want = if j == k { 1.0 } else { 0.0 };
-                assert!(
-                    (gram[j][k] - want).abs() < 0.01,
-                    "({j},{k}) = {}",
-                    gram[j][k]
-                );
+                assert!((g - want).abs() < 0.01, "({j},{k}) = {g}");
             }
         }
     }
