@@ -1,6 +1,8 @@
 #version 460
 // Stereo ray caster: front-to-back compositing through the volume with early termination.
-// Colour = C_tf * (k * AO + diffuse * |n.l|), opacity corrected per mm; depth is written where
+// Colour = C_tf * (k * AO + diffuse * |n.l| + w * E_sh), where E_sh = sum_k V_k L_k is the
+// environment light seen through the SH visibility volume (Ritschel), optionally times AO.
+// Opacity is corrected per mm; depth is written where
 // the ray enters visible material, so later geometry (tools, hands) is depth-correct.
 #extension GL_GOOGLE_include_directive : require
 #include "frame.glsl"
@@ -8,6 +10,11 @@
 layout(set = 0, binding = 1) uniform sampler3D scalars;
 layout(set = 0, binding = 2) uniform sampler3D ambient;
 layout(set = 0, binding = 3) uniform sampler1D tf_lut;
+// SH visibility, coefficients 4g..4g+3 in texture g, snorm8 of V_k / Y_0 (src/ao/sh.rs).
+layout(set = 0, binding = 6) uniform sampler3D sh0;
+layout(set = 0, binding = 7) uniform sampler3D sh1;
+layout(set = 0, binding = 8) uniform sampler3D sh2;
+layout(set = 0, binding = 9) uniform sampler3D sh3;
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 4
@@ -36,6 +43,20 @@ vec3 gradient_mm(vec3 t) {
     float gy = texture(scalars, t + vec3(0, texel.y, 0)).r - texture(scalars, t - vec3(0, texel.y, 0)).r;
     float gz = texture(scalars, t + vec3(0, 0, texel.z)).r - texture(scalars, t - vec3(0, 0, texel.z)).r;
     return vec3(gx, gy, gz) / (2.0 * mm);
+}
+
+vec3 sh_dot(vec4 v, int first) {
+    return v.x * frame.sh_light[first].rgb + v.y * frame.sh_light[first + 1].rgb
+         + v.z * frame.sh_light[first + 2].rgb + v.w * frame.sh_light[first + 3].rgb;
+}
+
+// The environment light reaching point t through the volume (Y_0 is folded into sh_light).
+vec3 sh_emission(vec3 t) {
+    vec3 e = sh_dot(texture(sh0, t), 0);
+    if (frame.lighting.y > 4.5) {
+        e += sh_dot(texture(sh1, t), 4) + sh_dot(texture(sh2, t), 8) + sh_dot(texture(sh3, t), 12);
+    }
+    return max(e, vec3(0.0));
 }
 
 // Deterministic per-pixel offset in [0,1) that breaks up wood-grain artefacts.
@@ -77,11 +98,15 @@ void main() {
             if (c.a > 0.0) {
                 float a = 1.0 - pow(1.0 - min(c.a, 0.9999), step_mm);
                 float occl = frame.background.a > 0.5 ? texture(ambient, p).r : 1.0;
-                float shade = frame.value_map.z * occl;
+                vec3 shade = vec3(frame.value_map.z * occl);
                 if (frame.value_map.w > 0.0) {
                     vec3 g = gradient_mm(p);
                     float gl = length(g);
                     if (gl > 1e-3) shade += frame.value_map.w * abs(dot(g / gl, light));
+                }
+                if (frame.lighting.x > 0.0) {
+                    float ao_factor = frame.lighting.z > 0.5 ? occl : 1.0;
+                    shade += frame.lighting.x * ao_factor * sh_emission(p);
                 }
                 color += (1.0 - alpha) * a * c.rgb * shade;
                 alpha += (1.0 - alpha) * a;

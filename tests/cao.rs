@@ -66,6 +66,7 @@ fn render(
         views: &views,
         model,
         clip: Some(clip),
+        sh: None,
     };
     hr.render(
         &tex,

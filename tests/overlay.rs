@@ -51,6 +51,7 @@ fn render(gpu: &Gpu, overlays: &[Vec<OverlayItem>]) -> Vec<StereoImage> {
         views: &v,
         model: world_from_tex(&vol, &Placement::default()),
         clip: None,
+        sh: None,
     };
     let settings = RenderSettings::default();
     let images = overlays

@@ -40,6 +40,7 @@ fn render(vol: &Volume, settings: &RenderSettings) -> (StereoImage, [View; 2]) {
         views: &v,
         model: cao_xr::render::world_from_tex(vol, &placement),
         clip: None,
+        sh: None,
     };
     let img = hr.render(&tex, None, &frame, (W, W), settings).unwrap();
     drop((tex, hr));

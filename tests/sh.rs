@@ -303,3 +303,82 @@ fn clip_aware_update_equals_a_full_recompute_every_frame() {
     }
     common::assert_no_validation_messages(&gpu);
 }
+
+#[test]
+fn constant_environment_lights_with_albedo_times_light() {
+    use cao_xr::app::HeadlessRenderer;
+    use cao_xr::render::{
+        default_stereo_views, world_from_tex, FrameViews, RenderSettings, ShBinding, VolumeTextures,
+    };
+    let gpu = common::gpu();
+    let vol = common::ball();
+    let tf = TransferFunction::preset("ct-bone").unwrap();
+    // Nothing occludes the light: the SH volume of an empty opacity (V = 1, V_0 = Y_0 exactly).
+    let zero = vec![0.0f32; vol.voxel_count()];
+    let p = ShParams {
+        coeffs: 4,
+        directions: 8,
+        patterns: 1,
+        downsample: 2,
+        ..ShParams::default()
+    };
+    let (shv, _) = gpu_sh(&gpu, &vol, &zero, p);
+    // A constant environment c projects to L_0 = c * sqrt(4 pi), nothing else.
+    let c = [1.0f32, 0.5, 0.25];
+    let root4pi = (4.0 * std::f32::consts::PI).sqrt();
+    let light: [[f32; 16]; 3] = std::array::from_fn(|ch| {
+        let mut l = [0.0; 16];
+        l[0] = c[ch] * root4pi;
+        l
+    });
+    let tex = VolumeTextures::new(&gpu, &vol, &tf).unwrap();
+    let mut hr = HeadlessRenderer::new(&gpu).unwrap();
+    let placement = Placement::default();
+    let views = default_stereo_views(&vol, &placement, 0.064);
+    let model = world_from_tex(&vol, &placement);
+    let mut frame = FrameViews {
+        views: &views,
+        model,
+        clip: None,
+        sh: None,
+    };
+    let black = RenderSettings {
+        background: [0.0; 3],
+        diffuse: 0.0,
+        ..RenderSettings::default()
+    };
+    // Albedo alone: ambient 1, no AO.
+    let flat = RenderSettings {
+        use_ao: false,
+        ..black
+    };
+    let albedo = hr.render(&tex, None, &frame, (48, 48), &flat).unwrap();
+    frame.sh = Some(ShBinding {
+        images: &shv.images,
+        light: &light,
+    });
+    let lit_settings = RenderSettings {
+        ambient: 0.0,
+        sh_weight: 1.0,
+        ..flat
+    };
+    let lit = hr
+        .render(&tex, None, &frame, (48, 48), &lit_settings)
+        .unwrap();
+    let mut covered = 0;
+    for eye in 0..2 {
+        for (a, l) in albedo.rgba[eye].chunks(4).zip(lit.rgba[eye].chunks(4)) {
+            assert_eq!(l[0], a[0], "red: light 1 gives the albedo exactly");
+            for ch in 1..3 {
+                let want = a[ch] as f32 * c[ch];
+                assert!((l[ch] as f32 - want).abs() <= 1.0, "{l:?} vs {a:?} * {c:?}");
+            }
+            covered += (a[0] > 50) as usize;
+        }
+    }
+    assert!(
+        covered > 200,
+        "the ball covers the image ({covered} pixels)"
+    );
+    common::assert_no_validation_messages(&gpu);
+}

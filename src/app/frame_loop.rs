@@ -139,6 +139,7 @@ impl FrameLoop {
                     views: &input.views,
                     model,
                     clip: (count > 0).then_some(ClipBinding { tools, maps, count }),
+                    sh: None,
                 };
                 timer.begin(cmd);
                 renderer.record(cmd, target, tex, &frame, settings)?;

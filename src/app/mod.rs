@@ -268,6 +268,7 @@ pub fn render_to_dir(
             views: &views,
             model,
             clip: None,
+            sh: None,
         };
         let img = hr.render(&tex, Some(&ao.ao_buf), &frame, size, settings)?;
         (img, None)
@@ -285,6 +286,7 @@ pub fn render_to_dir(
             views: &views,
             model,
             clip: Some(clip),
+            sh: None,
         };
         let img = hr.render(&tex, Some(&cao.ao), &frame, size, settings)?;
         (img, Some(m))

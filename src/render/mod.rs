@@ -29,6 +29,10 @@ pub struct RenderSettings {
     pub diffuse: f32,
     pub use_ao: bool,
     pub background: [f32; 3],
+    /// Weight of the SH environment light (used when the frame has an SH volume bound).
+    pub sh_weight: f32,
+    /// Multiply the SH light by the AO (the exact local occlusion CAO keeps up to date).
+    pub sh_times_ao: bool,
 }
 
 impl Default for RenderSettings {
@@ -39,6 +43,8 @@ impl Default for RenderSettings {
             diffuse: 0.35,
             use_ao: true,
             background: [0.06, 0.07, 0.09],
+            sh_weight: 1.0,
+            sh_times_ao: false,
         }
     }
 }
@@ -303,6 +309,8 @@ struct FrameUniforms {
     value_map: [f32; 4],
     background: [f32; 4],
     viewport: [f32; 4],
+    lighting: [f32; 4],
+    sh_light: [[f32; 4]; 16],
 }
 
 pub struct Renderer {
@@ -322,6 +330,16 @@ pub struct FrameViews<'a> {
     pub views: &'a [View; 2],
     pub model: Mat4,
     pub clip: Option<ClipBinding<'a>>,
+    /// The SH visibility volume and the environment light, when the frame is lit by it.
+    pub sh: Option<ShBinding<'a>>,
+}
+
+/// An SH visibility volume ([`crate::ao::sh::ShVolume::images`]) and the environment light
+/// projected into the volume's data frame ([`crate::light`]), per colour channel.
+#[derive(Clone, Copy)]
+pub struct ShBinding<'a> {
+    pub images: &'a [Image],
+    pub light: &'a [[f32; 16]; 3],
 }
 
 /// The tools that clip the rendered volume: CAO's tool table and clip maps (see
@@ -347,6 +365,10 @@ impl Renderer {
                     sampled,
                     vk::DescriptorType::STORAGE_BUFFER,
                     vk::DescriptorType::STORAGE_BUFFER,
+                    sampled,
+                    sampled,
+                    sampled,
+                    sampled,
                 ],
                 vk::ShaderStageFlags::FRAGMENT,
             )?;
@@ -456,6 +478,20 @@ impl Renderer {
                 clip.map_or(0, |c| c.count) as f32,
                 0.0,
             ],
+            lighting: match frame.sh {
+                Some(sh) => [
+                    settings.sh_weight,
+                    4.0 * sh.images.len() as f32,
+                    if settings.sh_times_ao { 1.0 } else { 0.0 },
+                    0.0,
+                ],
+                None => [0.0; 4],
+            },
+            sh_light: std::array::from_fn(|k| {
+                let l = frame.sh.map_or([[0.0; 16]; 3], |sh| *sh.light);
+                let y0 = crate::ao::sh::Y0 as f32;
+                [y0 * l[0][k], y0 * l[1][k], y0 * l[2][k], 0.0]
+            }),
         };
         self.uniforms.write(0, bytemuck::bytes_of(&u))?;
 
@@ -493,6 +529,13 @@ impl Renderer {
             img(tex.ambient.view),
             img(tex.lut.view),
         );
+        // Four SH slots; unused ones (4 coefficients, or no SH) repeat a bound image unread.
+        let sh_views: [vk::ImageView; 4] = std::array::from_fn(|g| {
+            frame.sh.map_or(tex.ambient.view, |sh| {
+                sh.images.get(g).unwrap_or(&sh.images[0]).view
+            })
+        });
+        let sh_infos = sh_views.map(img);
         let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
         let clip_maps = [clip.map_or(&self.no_clip, |c| c.maps).descriptor()];
@@ -521,6 +564,22 @@ impl Renderer {
                 .dst_binding(5)
                 .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
                 .buffer_info(&clip_maps),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(6)
+                .descriptor_type(sampled)
+                .image_info(&sh_infos[0]),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(7)
+                .descriptor_type(sampled)
+                .image_info(&sh_infos[1]),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(8)
+                .descriptor_type(sampled)
+                .image_info(&sh_infos[2]),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(9)
+                .descriptor_type(sampled)
+                .image_info(&sh_infos[3]),
         ];
         for eye in 0..2u32 {
             let color_att = [vk::RenderingAttachmentInfo::default()
