@@ -1,6 +1,7 @@
 //! The cao-xr command line. Every subcommand is a thin call into the library.
 
 use anyhow::{bail, Context, Result};
+use cao_xr::ao::sh::ShParams;
 use cao_xr::ao::LaoParams;
 use cao_xr::app;
 use cao_xr::gpu::{Gpu, GpuOptions};
@@ -218,6 +219,24 @@ enum BenchCmd {
         /// Compare every naive frame with CAO bit for bit; exit non-zero on a difference.
         #[arg(long)]
         verify: bool,
+    },
+    /// SH visibility precompute time with the hierarchy on and off and its error: phantom 64^3
+    /// and 128^3 and the CT head (or VOLUME).
+    Sh {
+        #[command(flatten)]
+        common: BenchArgs,
+        /// SH volume rates 1:N.
+        #[arg(long, value_delimiter = ',', default_value = "1,2,4,8")]
+        downsample: Vec<u32>,
+        /// Coefficient counts (4 = bands 0-1, 16 = bands 0-3).
+        #[arg(long, value_delimiter = ',', default_value = "4,16")]
+        coeffs: Vec<u32>,
+        /// Directions per voxel.
+        #[arg(long, value_delimiter = ',', default_value = "100,400")]
+        directions: Vec<u32>,
+        /// Visibility ray length in mm.
+        #[arg(long, default_value_t = ShParams::default().length_mm)]
+        sh_length: f32,
     },
     /// LAO precompute time and throughput: phantom 64^3 and 128^3 and the CT head (or VOLUME).
     Lao {
@@ -521,6 +540,40 @@ fn run(cli: Cli) -> Result<()> {
                 if cpu { t.wall_ms } else { t.gpu_ms },
                 if cpu { " on the CPU" } else { " GPU time" }
             );
+        }
+        Cmd::Bench {
+            what:
+                BenchCmd::Sh {
+                    common,
+                    downsample,
+                    coeffs,
+                    directions,
+                    sh_length,
+                },
+        } => {
+            let b = common.setup(cli.validation)?;
+            let base = ShParams {
+                length_mm: sh_length,
+                ..ShParams::default()
+            };
+            for d in &directions {
+                ShParams {
+                    directions: *d,
+                    ..base
+                }
+                .validate()
+                .map_err(anyhow::Error::msg)?;
+            }
+            app::bench::bench_sh(
+                &b.gpu,
+                &b.volumes,
+                &b.tf,
+                &downsample,
+                &coeffs,
+                &directions,
+                &base,
+                b.runs,
+            )?;
         }
         Cmd::Bench {
             what: BenchCmd::Lao { common, rays },

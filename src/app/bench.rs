@@ -239,3 +239,114 @@ pub fn bench_cao(
     }
     Ok(rows)
 }
+
+#[derive(Clone, Debug)]
+pub struct ShBenchRow {
+    pub volume: String,
+    pub downsample: u32,
+    pub sh_dims: [usize; 3],
+    pub coeffs: u32,
+    pub directions: u32,
+    /// Precompute (pyramid + SH volume) GPU ms with the hierarchy, and with the full-resolution
+    /// march, medians.
+    pub hierarchy_ms: f64,
+    pub flat_ms: f64,
+    /// Mean absolute difference of the hierarchical coefficients from the full-resolution
+    /// march's (same patterns), in units of Y_0 (the coefficient of full visibility).
+    pub mean_abs_diff: f64,
+}
+
+/// SH visibility precompute time at each downsampling, coefficient count and direction count,
+/// with the hierarchy on and off (both in the same run), and the error of the hierarchy.
+#[allow(clippy::too_many_arguments)]
+pub fn bench_sh(
+    gpu: &Gpu,
+    volumes: &[Volume],
+    tf: &TransferFunction,
+    downsample: &[u32],
+    coeffs: &[u32],
+    directions: &[u32],
+    base: &crate::ao::sh::ShParams,
+    runs: usize,
+) -> Result<Vec<ShBenchRow>> {
+    use crate::ao::sh::{packed_coeff, ShVolume, Y0};
+    use ash::vk;
+    println!(
+        "SH visibility precompute on {} (ray length {} mm, {} steps per level; GPU ms, median of \
+         {runs} run(s); error = mean |hierarchical - full march| / Y_0)",
+        gpu.device_name, base.length_mm, base.steps_per_level
+    );
+    println!(
+        "{:<14} {:>5} {:>11} {:>6} {:>5} {:>12} {:>12} {:>8} {:>9}",
+        "volume", "rate", "SH dims", "coeffs", "N", "hierarchy ms", "full ms", "speedup", "error"
+    );
+    let mut rows = Vec::new();
+    for vol in volumes {
+        let opacity = tf.opacity_volume(vol);
+        let obuf = crate::gpu::Buffer::device_local(
+            gpu,
+            &opacity,
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "opacity",
+        )?;
+        for &ds in downsample {
+            for &c in coeffs {
+                for &n in directions {
+                    let run = |hierarchy: bool| -> Result<(f64, Vec<u32>, [usize; 3])> {
+                        let p = crate::ao::sh::ShParams {
+                            coeffs: c,
+                            directions: n,
+                            downsample: ds,
+                            hierarchy,
+                            ..*base
+                        };
+                        let mut ms = Vec::new();
+                        let mut packed = Vec::new();
+                        let mut dims = [0; 3];
+                        for _ in 0..runs.max(1) {
+                            let mut shv = ShVolume::new(gpu, vol, p)?;
+                            ms.push(shv.precompute(&obuf, &mut |_, _| {})?.gpu_ms);
+                            packed = shv.read_back()?;
+                            dims = shv.grid.dims;
+                        }
+                        Ok((median(&mut ms), packed, dims))
+                    };
+                    let (h_ms, h, dims) = run(true)?;
+                    let (f_ms, f, _) = run(false)?;
+                    let count: usize = dims.iter().product();
+                    let mut sum = 0.0;
+                    for i in 0..count {
+                        for k in 0..c as usize {
+                            sum += (packed_coeff(&h, count, i, k) - packed_coeff(&f, count, i, k))
+                                .abs();
+                        }
+                    }
+                    let row = ShBenchRow {
+                        volume: vol.name.clone(),
+                        downsample: ds,
+                        sh_dims: dims,
+                        coeffs: c,
+                        directions: n,
+                        hierarchy_ms: h_ms,
+                        flat_ms: f_ms,
+                        mean_abs_diff: sum / (count * c as usize) as f64 / Y0,
+                    };
+                    println!(
+                        "{:<14} {:>5} {:>11} {:>6} {:>5} {:>12.1} {:>12.1} {:>7.1}x {:>9.4}",
+                        row.volume,
+                        format!("1:{ds}"),
+                        format!("{}x{}x{}", dims[0], dims[1], dims[2]),
+                        c,
+                        n,
+                        row.hierarchy_ms,
+                        row.flat_ms,
+                        row.flat_ms / row.hierarchy_ms,
+                        row.mean_abs_diff
+                    );
+                    rows.push(row);
+                }
+            }
+        }
+    }
+    Ok(rows)
+}
