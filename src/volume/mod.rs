@@ -161,6 +161,63 @@ impl Volume {
         }
     }
 
+    /// The volume averaged over n x n x n blocks (`--downsample N`): dims ceil(dims / n), spacing
+    /// x n, the same directions, the origin moved to the centre of the first new voxel. Blocks
+    /// cut by the far edges average the voxels they hold. Integer voxels are rounded to the
+    /// nearest integer and keep their type; float32 stays float32. `n <= 1` returns a copy.
+    pub fn downsample(&self, n: usize) -> Volume {
+        use rayon::prelude::*;
+        if n <= 1 {
+            return self.clone();
+        }
+        let d = self.dims;
+        let nd = d.map(|x| x.div_ceil(n));
+        let slice = nd[0] * nd[1];
+        let mut mean = vec![0f64; slice * nd[2]];
+        mean.par_chunks_mut(slice)
+            .enumerate()
+            .for_each(|(kk, out)| {
+                for jj in 0..nd[1] {
+                    for ii in 0..nd[0] {
+                        let (mut sum, mut count) = (0f64, 0usize);
+                        for k in kk * n..((kk + 1) * n).min(d[2]) {
+                            for j in jj * n..((jj + 1) * n).min(d[1]) {
+                                let row = self.index(0, j, k);
+                                for i in ii * n..((ii + 1) * n).min(d[0]) {
+                                    sum += self.voxels.get(row + i) as f64;
+                                    count += 1;
+                                }
+                            }
+                        }
+                        out[ii + nd[0] * jj] = sum / count as f64;
+                    }
+                }
+            });
+        // The mean lies within the block's values, so rounding stays in the type's range.
+        let voxels = match &self.voxels {
+            Voxels::U8(_) => Voxels::U8(mean.iter().map(|&m| m.round() as u8).collect()),
+            Voxels::U16(_) => Voxels::U16(mean.iter().map(|&m| m.round() as u16).collect()),
+            Voxels::I16(_) => Voxels::I16(mean.iter().map(|&m| m.round() as i16).collect()),
+            Voxels::F32(_) => Voxels::F32(mean.iter().map(|&m| m as f32).collect()),
+        };
+        let half = (n as f64 - 1.0) / 2.0;
+        let shift = self.directions
+            * DVec3::new(
+                half * self.spacing[0],
+                half * self.spacing[1],
+                half * self.spacing[2],
+            );
+        Volume {
+            name: format!("{}-ds{n}", self.name),
+            dims: nd,
+            spacing: self.spacing.map(|s| s * n as f64),
+            directions: self.directions,
+            origin: self.origin + shift,
+            modality: self.modality,
+            voxels,
+        }
+    }
+
     /// Physical extent in mm along i, j, k.
     pub fn extent_mm(&self) -> DVec3 {
         DVec3::new(
@@ -788,6 +845,64 @@ mod tests {
                 "{e}"
             );
         }
+    }
+
+    #[test]
+    fn downsample_averages_blocks_and_keeps_the_world_size() {
+        let dims = [5, 4, 3];
+        let dirs = DMat3::from_rotation_z(0.4);
+        let vol = Volume {
+            name: "v".into(),
+            dims,
+            spacing: [0.5, 1.0, 2.0],
+            directions: dirs,
+            origin: DVec3::new(10.0, -5.0, 3.0),
+            modality: Modality::Ct,
+            voxels: Voxels::I16((0..60).map(|i| i as i16 * 10 - 300).collect()),
+        };
+        let ds = vol.downsample(2);
+        assert_eq!(ds.dims, [3, 2, 2]);
+        assert_eq!(ds.spacing, [1.0, 2.0, 4.0]);
+        assert_eq!(ds.directions, dirs);
+        assert_eq!(ds.modality, Modality::Ct);
+        assert_eq!(ds.name, "v-ds2");
+        // origin: the centre of old voxels 0..1 along each axis = old origin + half a step
+        let want = vol.origin + dirs * DVec3::new(0.25, 0.5, 1.0);
+        assert!(ds.origin.abs_diff_eq(want, 1e-12), "{:?}", ds.origin);
+        // the world size changes by less than one new voxel per axis
+        let (a, b) = (vol.extent_mm(), ds.extent_mm());
+        for ax in 0..3 {
+            assert!((b[ax] - a[ax]).abs() < ds.spacing[ax], "{a:?} {b:?}");
+        }
+        // voxel (0,0,0) averages i 0..1, j 0..1, k 0..1: linear 0,1,5,6,20,21,25,26
+        let mean = |idx: &[usize]| {
+            idx.iter().map(|&i| i as f64 * 10.0 - 300.0).sum::<f64>() / idx.len() as f64
+        };
+        let Voxels::I16(v) = &ds.voxels else {
+            panic!("type changed: {}", ds.voxels.type_name())
+        };
+        assert_eq!(v[0] as f64, mean(&[0, 1, 5, 6, 20, 21, 25, 26]).round());
+        // voxel (2,1,1): the edge block holds only i 4, j 2..3, k 2
+        assert_eq!(v[ds.index(2, 1, 1)] as f64, mean(&[54, 59]).round());
+        // rounding of integer types: 1,2 -> 1.5 rounds to 2
+        let mut small = vol.clone();
+        small.dims = [2, 1, 1];
+        small.voxels = Voxels::U8(vec![1, 2]);
+        assert_eq!(small.downsample(2).voxels, Voxels::U8(vec![2]));
+        small.voxels = Voxels::F32(vec![1.0, 2.0]);
+        assert_eq!(small.downsample(2).voxels, Voxels::F32(vec![1.5]));
+        small.voxels = Voxels::U16(vec![65535, 65535]);
+        assert_eq!(small.downsample(4).voxels, Voxels::U16(vec![65535]));
+        // n = 1: unchanged
+        assert_eq!(vol.downsample(1).voxels, vol.voxels);
+        assert_eq!(vol.downsample(1).dims, dims);
+        // n beyond every side: one voxel, the mean of all
+        let one = vol.downsample(10);
+        assert_eq!(one.dims, [1, 1, 1]);
+        assert_eq!(
+            one.voxels.get(0) as f64,
+            mean(&(0..60).collect::<Vec<_>>()).round()
+        );
     }
 
     #[test]
