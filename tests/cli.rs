@@ -593,7 +593,10 @@ fn bad_voxels_and_lying_headers_are_refused_by_the_cli() {
         "NRRD0004\ntype: float\ndimension: 3\nsizes: 2 2 2\nendian: little\nencoding: raw\n\n",
         &data,
     );
-    assert!(err.contains("voxel (1,0,1)") && err.contains("NaN"), "{err}");
+    assert!(
+        err.contains("voxel (1,0,1)") && err.contains("NaN"),
+        "{err}"
+    );
     // Sizes that claim 10^15 voxels: refused before anything is allocated.
     let err = run(
         "absurd.nrrd",

@@ -308,6 +308,16 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
                 "{what}truncated data: expected {data_bytes} bytes, found {avail}"
             )));
         }
+        // A separate raw data file holds the samples and nothing else: more bytes than the
+        // header describes means DimSize or ElementType are wrong. (Data inside the .mha may be
+        // followed by anything; HeaderSize = -1 takes the last bytes on purpose.)
+        if data_path != path && header_size != -1 && avail > data_bytes {
+            return Err(fmt(format!(
+                "{what}the file holds {avail} bytes after the header skip but the header \
+                 describes {data_bytes} ({} x {} x {} {ts}): wrong DimSize or ElementType?",
+                dims[0], dims[1], dims[2]
+            )));
+        }
         data.seek(SeekFrom::Start(start)).map_err(dio)?;
         read_wide(path, &what, &mut data, ty, udims, big_endian, None, true)?
     };
@@ -553,6 +563,38 @@ mod tests {
             let e = err_of(&p);
             assert!(e.contains("voxel (2,1,1)") && e.contains("NaN"), "{e}");
         }
+    }
+
+    #[test]
+    fn data_longer_than_the_header_says() {
+        let s = scratch("long");
+        let vol = sample(Voxels::I16((0..60).collect()));
+        // inside the .mha: trailing bytes are ignored
+        let p = s.file("trailing.mha");
+        write(&p, &vol, false).unwrap();
+        let mut b = std::fs::read(&p).unwrap();
+        b.extend_from_slice(&[7; 13]);
+        std::fs::write(&p, &b).unwrap();
+        assert_eq!(load(&p).unwrap().voxels, vol.voxels);
+        // a separate raw file with more bytes than DimSize x ElementType: refused
+        let p = s.file("long.mhd");
+        write(&p, &vol, false).unwrap();
+        std::fs::write(s.file("long.raw"), [0u8; 122]).unwrap();
+        let e = err_of(&p);
+        assert!(
+            e.contains("long.raw")
+                && e.contains("122 bytes")
+                && e.contains("describes 120")
+                && e.contains("MET_SHORT"),
+            "{e}"
+        );
+        // a zlib stream cut short
+        let p = s.file("cut.mha");
+        write(&p, &vol, true).unwrap();
+        let b = std::fs::read(&p).unwrap();
+        std::fs::write(&p, &b[..b.len() - 20]).unwrap();
+        let e = err_of(&p);
+        assert!(e.contains("zlib"), "{e}");
     }
 
     #[test]

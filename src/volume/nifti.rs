@@ -781,6 +781,21 @@ mod tests {
         assert!(case("dt.nii", &|b| b[70..72]
             .copy_from_slice(&128i16.to_le_bytes()))
         .contains("unsupported: datatype"));
+        let e = case("complex.nii", &|b| {
+            b[70..72].copy_from_slice(&32i16.to_le_bytes());
+            b[72..74].copy_from_slice(&64i16.to_le_bytes());
+        });
+        assert!(e.contains("unsupported: datatype complex (32)"), "{e}");
+        let e = case("unknown-dt.nii", &|b| {
+            b[70..72].copy_from_slice(&77i16.to_le_bytes())
+        });
+        assert!(e.contains("unknown code 77"), "{e}");
+        // data longer than the header says: trailing bytes are ignored (single-file .nii)
+        let p = s.file("trailing.nii");
+        let mut b = bytes.clone();
+        b.extend_from_slice(&[1; 9]);
+        std::fs::write(&p, &b).unwrap();
+        assert_eq!(load(&p).unwrap().voxels, vol.voxels);
         assert!(case("bitpix.nii", &|b| b[72..74]
             .copy_from_slice(&8i16.to_le_bytes()))
         .contains("bitpix"));
@@ -812,7 +827,8 @@ mod tests {
         write(&gz, &vol, true).unwrap();
         let g = std::fs::read(&gz).unwrap();
         std::fs::write(&gz, &g[..g.len() / 2]).unwrap();
-        err_of(&gz);
+        let e = err_of(&gz);
+        assert!(e.contains("gzip"), "{e}");
         // missing file
         assert!(err_of(&s.file("missing.nii")).contains("missing.nii"));
         // never panics on mangled headers

@@ -497,6 +497,16 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
                 "truncated data: expected {data_bytes} bytes, found {avail}"
             )));
         }
+        // A detached raw file holds the samples and nothing else: more bytes than the header
+        // describes means the sizes or the type are wrong. (Attached data may be followed by
+        // anything, as teem allows; `byte skip: -1` takes the last bytes on purpose.)
+        if data_path != path && byte_skip != -1 && avail > data_bytes {
+            return Err(dfmt(format!(
+                "the data file holds {avail} bytes after the skips but the header describes \
+                 {data_bytes} ({} x {} x {} {ty_s}): wrong sizes or type?",
+                dims[0], dims[1], dims[2]
+            )));
+        }
         data.seek(SeekFrom::Start(start)).map_err(dio)?;
         read_wide(path, &what, &mut data, ty, udims, big_endian, None, true)?
     };
@@ -896,6 +906,43 @@ mod tests {
             &[0x80, 0x7f],
         );
         assert_eq!(load(&p).unwrap().voxels, Voxels::I16(vec![-128, 127]));
+    }
+
+    #[test]
+    fn data_longer_than_the_header_says() {
+        let s = scratch("long");
+        // attached: trailing bytes are ignored (teem does the same)
+        let p = s.file("trailing.nrrd");
+        write_file(
+            &p,
+            "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: raw\n\n",
+            &[1, 2, 3, 4, 5, 6, 7, 8, 99, 99],
+        );
+        assert_eq!(
+            load(&p).unwrap().voxels,
+            Voxels::U8(vec![1, 2, 3, 4, 5, 6, 7, 8])
+        );
+        // detached raw: refused, naming both files, both sizes and the type
+        std::fs::write(s.file("long.raw"), [0u8; 9]).unwrap();
+        let p = s.file("long.nhdr");
+        write_file(
+            &p,
+            "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: raw\n\
+             data file: long.raw\n",
+            &[],
+        );
+        let e = err_of(&p);
+        assert!(
+            e.contains("long.raw")
+                && e.contains("9 bytes")
+                && e.contains("describes 8")
+                && e.contains("2 x 2 x 2 uint8"),
+            "{e}"
+        );
+        // detached shorter: truncated
+        std::fs::write(s.file("long.raw"), [0u8; 7]).unwrap();
+        let e = err_of(&p);
+        assert!(e.contains("long.raw") && e.contains("truncated"), "{e}");
     }
 
     #[test]
