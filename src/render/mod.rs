@@ -105,7 +105,7 @@ pub fn check_volume_fits(
             Some(format!(
                 "it needs about {} MiB of GPU memory ({GPU_BYTES_PER_VOXEL} bytes per voxel), \
                  more than the {} MiB device-local heap",
-                voxels * GPU_BYTES_PER_VOXEL >> 20,
+                (voxels * GPU_BYTES_PER_VOXEL) >> 20,
                 limits.device_local_bytes >> 20
             ))
         } else {

@@ -2,6 +2,8 @@
 //! fetched CT head.
 
 pub mod ct_head;
+#[doc(hidden)]
+pub mod fuzzing;
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;

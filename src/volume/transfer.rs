@@ -273,9 +273,14 @@ impl TransferFunction {
             msg,
         };
         let text = std::fs::read_to_string(path).map_err(|e| err(e.to_string()))?;
-        let tf: TransferFunction = serde_json::from_str(&text)
-            .map_err(|e| err(format!("not a transfer function: {e}")))?;
-        tf.validate().map_err(err)?;
+        Self::from_json(&text).map_err(err)
+    }
+
+    /// Parses and validates the JSON text of a transfer function (the message names no file).
+    pub fn from_json(text: &str) -> Result<TransferFunction, String> {
+        let tf: TransferFunction =
+            serde_json::from_str(text).map_err(|e| format!("not a transfer function: {e}"))?;
+        tf.validate()?;
         Ok(tf)
     }
 
