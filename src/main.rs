@@ -259,8 +259,12 @@ struct BenchArgs {
     steps: u32,
     #[arg(long, default_value_t = LaoParams::default().step_mm)]
     step_mm: f32,
+    /// Transfer function for every volume (fixed, so that tables compare).
     #[arg(long, default_value = "ct-bone")]
     tf: String,
+    /// Average N x N x N voxel blocks of VOLUME first (N = 2, 3, ...).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
+    downsample: u32,
 }
 
 /// What both benchmarks start from: the transfer function, the volumes, the GPU, base LAO
@@ -277,7 +281,7 @@ impl BenchArgs {
     fn setup(self, validation: bool) -> Result<BenchSetup> {
         Ok(BenchSetup {
             tf: TransferFunction::resolve(&self.tf)?,
-            volumes: bench_volumes(self.volume)?,
+            volumes: bench_volumes(self.volume, self.downsample as usize)?,
             gpu: gpu(validation)?,
             base: LaoParams {
                 rays: 6,
@@ -294,9 +298,14 @@ struct VolumeArgs {
     /// A .nrrd/.nhdr file, a raw file (with --raw-dims), `phantom[:N]` or `ct-head`.
     /// Default: the CT head if fetched (cao-xr fetch-ct), else the phantom.
     volume: Option<String>,
-    /// Transfer function: a preset (ct-bone, ct-skin, mri) or a JSON file.
-    #[arg(long, default_value = "ct-bone")]
-    tf: String,
+    /// Transfer function: a preset (CT: ct-bone, ct-soft-tissue, ct-muscle-bone, ct-lung,
+    /// ct-angio, ct-skin; MR: mr-default, mr-angio) or a JSON file. Default: ct-bone for CT
+    /// (Hounsfield) data, mr-default otherwise.
+    #[arg(long)]
+    tf: Option<String>,
+    /// Average N x N x N voxel blocks first (N = 2, 3, ...), for volumes too large for the GPU.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
+    downsample: u32,
     /// Raw volume dimensions X,Y,Z (x fastest).
     #[arg(long, value_delimiter = ',', num_args = 3)]
     raw_dims: Option<Vec<usize>>,
@@ -356,8 +365,18 @@ impl VolumeArgs {
                 header_bytes: self.raw_header,
             }),
         };
-        let vol = app::load_volume(self.volume.as_deref(), raw.as_ref())?;
-        let tf = TransferFunction::resolve(&self.tf)?;
+        let mut vol = app::load_volume(self.volume.as_deref(), raw.as_ref())?;
+        if self.downsample > 1 {
+            vol = vol.downsample(self.downsample as usize);
+            eprintln!(
+                "downsampled {0}x{0}x{0}: {1} x {2} x {3} voxels",
+                self.downsample, vol.dims[0], vol.dims[1], vol.dims[2]
+            );
+        }
+        let tf = match &self.tf {
+            Some(t) => TransferFunction::resolve(t)?,
+            None => TransferFunction::default_for(&vol),
+        };
         Ok((vol, tf))
     }
 }
@@ -374,9 +393,9 @@ fn parse_size(s: &str) -> Result<(u32, u32), String> {
 }
 
 /// VOLUME if given, else the phantom at 64^3 and 128^3 and the CT head if fetched.
-fn bench_volumes(volume: Option<String>) -> Result<Vec<cao_xr::volume::Volume>> {
+fn bench_volumes(volume: Option<String>, downsample: usize) -> Result<Vec<cao_xr::volume::Volume>> {
     Ok(match volume {
-        Some(v) => vec![app::load_volume(Some(&v), None)?],
+        Some(v) => vec![app::load_volume(Some(&v), None)?.downsample(downsample)],
         None => {
             let mut v = vec![phantom::head(64), phantom::head(128)];
             match app::load_volume(Some("ct-head"), None) {
@@ -734,7 +753,7 @@ fn run(cli: Cli) -> Result<()> {
             println!("wrote {} ({frames} frames of {kind})", out.display());
         }
         Cmd::Info { vol } => {
-            let (v, _) = vol.load()?;
+            let (v, tf) = vol.load()?;
             let (lo, hi) = v.value_range();
             let ext = v.extent_mm();
             println!("name        {}", v.name);
@@ -752,6 +771,11 @@ fn run(cli: Cli) -> Result<()> {
             println!("values      {lo} .. {hi}");
             println!("modality    {:?}", v.modality);
             println!("size        {:.1} x {:.1} x {:.1} mm", ext.x, ext.y, ext.z);
+            println!("tf          {}", tf.name);
+            println!(
+                "presets     {}",
+                cao_xr::volume::transfer::presets_for_volume(&v).join(", ")
+            );
         }
     }
     Ok(())

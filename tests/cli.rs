@@ -508,3 +508,101 @@ fn info_reads_nifti_and_metaimage() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("broken.nii"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn info_picks_the_transfer_function_and_downsamples() {
+    use cao_xr::volume::{nrrd, Modality, Volume, Voxels};
+    use glam::{DMat3, DVec3};
+    let dir = tmp("auto-tf");
+    let info = |args: &[&str]| {
+        let out = cao(&[&["info"], args].concat());
+        let text = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        text
+    };
+    // The CT phantom: ct-bone and the CT presets.
+    let text = info(&["phantom:16"]);
+    assert!(text.contains("tf          ct-bone"), "{text}");
+    assert!(
+        text.contains("presets     ct-bone, ct-soft-tissue, ct-muscle-bone, ct-lung, ct-angio"),
+        "{text}"
+    );
+    // --tf overrides; the old name `mri` still resolves.
+    let text = info(&["phantom:16", "--tf", "mri"]);
+    assert!(text.contains("tf          mr-default"), "{text}");
+    // Float data of unknown modality outside the HU range: float32, mr-default.
+    let mut vol = Volume {
+        name: "f".into(),
+        dims: [6, 5, 4],
+        spacing: [0.5, 0.75, 2.5],
+        directions: DMat3::IDENTITY,
+        origin: DVec3::ZERO,
+        modality: Modality::Unknown,
+        voxels: Voxels::F32((0..120).map(|i| i as f32 * 0.25).collect()),
+    };
+    let f = dir.join("f.nrrd");
+    nrrd::write_volume(&f, &vol, false).unwrap();
+    let text = info(&[f.to_str().unwrap()]);
+    assert!(text.contains("type        float32"), "{text}");
+    assert!(text.contains("values      0 .. 29.75"), "{text}");
+    assert!(text.contains("tf          mr-default"), "{text}");
+    assert!(text.contains("presets     mr-default, mr-angio"), "{text}");
+    // HU-like values, modality unknown: ct-bone. Downsampled by 2: half the dims, twice the
+    // spacing, the type kept.
+    vol.voxels = Voxels::I16((0..120).map(|i| i * 20 - 1000).collect());
+    let h = dir.join("hu.nrrd");
+    nrrd::write_volume(&h, &vol, false).unwrap();
+    let text = info(&[h.to_str().unwrap()]);
+    assert!(text.contains("tf          ct-bone"), "{text}");
+    let text = info(&[h.to_str().unwrap(), "--downsample", "2"]);
+    assert!(text.contains("dims        3 x 3 x 2"), "{text}");
+    assert!(
+        text.contains("spacing     1.0000 x 1.5000 x 5.0000 mm"),
+        "{text}"
+    );
+    assert!(text.contains("type        int16"), "{text}");
+    let out = cao(&["info", h.to_str().unwrap(), "--downsample", "0"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--downsample"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn bad_voxels_and_lying_headers_are_refused_by_the_cli() {
+    let dir = tmp("bad-voxels");
+    let run = |name: &str, header: &str, data: &[u8]| {
+        let p = dir.join(name);
+        let mut b = header.as_bytes().to_vec();
+        b.extend_from_slice(data);
+        std::fs::write(&p, b).unwrap();
+        let out = cao(&["info", p.to_str().unwrap()]);
+        assert!(!out.status.success(), "{name} was accepted");
+        let err = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(err.contains(name), "{err}");
+        err
+    };
+    // NaN voxel: the file, the voxel and the value.
+    let mut data: Vec<u8> = (0..8).flat_map(|i| (i as f32).to_le_bytes()).collect();
+    data[5 * 4..6 * 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    let err = run(
+        "nan.nrrd",
+        "NRRD0004\ntype: float\ndimension: 3\nsizes: 2 2 2\nendian: little\nencoding: raw\n\n",
+        &data,
+    );
+    assert!(
+        err.contains("voxel (1,0,1)") && err.contains("NaN"),
+        "{err}"
+    );
+    // Sizes that claim 10^15 voxels: refused before anything is allocated.
+    let err = run(
+        "absurd.nrrd",
+        "NRRD0004\ntype: short\ndimension: 3\nsizes: 100000 100000 100000\nendian: little\nencoding: raw\n\n",
+        &[0; 16],
+    );
+    assert!(err.contains("too large"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -170,6 +170,7 @@ pub fn precompute_ao(
     show_progress: bool,
 ) -> Result<AoVolume> {
     params.validate().map_err(AppError::Usage)?;
+    crate::render::check_volume_fits_gpu(gpu, vol)?;
     let opacity = tf.opacity_volume(vol);
     let opacity_buf = Buffer::device_local(
         gpu,

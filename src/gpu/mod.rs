@@ -402,6 +402,20 @@ unsafe fn pick_device(
 }
 
 impl Core {
+    /// Size in bytes of the largest device-local memory heap (where volumes and their AO live).
+    pub fn device_local_heap_bytes(&self) -> u64 {
+        let mem = unsafe {
+            self.instance
+                .get_physical_device_memory_properties(self.physical)
+        };
+        mem.memory_heaps_as_slice()
+            .iter()
+            .filter(|h| h.flags.contains(vk::MemoryHeapFlags::DEVICE_LOCAL))
+            .map(|h| h.size)
+            .max()
+            .unwrap_or(0)
+    }
+
     /// Validation warnings and errors reported so far (empty when validation is off).
     pub fn validation_messages(&self) -> Vec<String> {
         self.log

@@ -1322,7 +1322,10 @@ mod tests {
 
     #[test]
     fn menu_cycles_the_transfer_function_presets() {
-        let mut ix = Interaction::default();
+        let mut ix = Interaction::new(InteractionSettings {
+            tf_presets: 3,
+            ..InteractionSettings::default()
+        });
         let mut scene = Scene::default();
         let menu = |l: bool, r: bool| {
             let (mut a, mut b) = (idle_left(), idle_right());

@@ -60,6 +60,92 @@ pub struct VolumeTextures {
     pub value_range: (f32, f32),
 }
 
+/// What a GPU can hold of a volume (see [`check_volume_fits`]).
+#[derive(Clone, Copy, Debug)]
+pub struct VolumeLimits {
+    /// Largest side of a 3D image (`maxImageDimension3D`).
+    pub max_image_dimension_3d: u64,
+    /// Largest storage-buffer binding (`maxStorageBufferRange`): O and the AO are f32 buffers.
+    pub max_storage_buffer_range: u64,
+    /// Size of the largest device-local heap.
+    pub device_local_bytes: u64,
+}
+
+impl VolumeLimits {
+    pub fn of(gpu: &Gpu) -> VolumeLimits {
+        VolumeLimits {
+            max_image_dimension_3d: gpu.limits.max_image_dimension3_d as u64,
+            max_storage_buffer_range: gpu.limits.max_storage_buffer_range as u64,
+            device_local_bytes: gpu.device_local_heap_bytes(),
+        }
+    }
+}
+
+/// GPU bytes per voxel: the scalar and AO images (R32F), O, O_c, V_PAO and V_AO (f32 buffers).
+pub const GPU_BYTES_PER_VOXEL: u64 = 6 * 4;
+
+/// Whether a volume of `dims` voxels fits `limits` (3D image side, f32 storage-buffer range,
+/// [`GPU_BYTES_PER_VOXEL`] per voxel within the device-local heap). The refusal names the volume,
+/// its dims, the limit, and the smallest `--downsample N` that fits.
+pub fn check_volume_fits(
+    name: &str,
+    dims: [usize; 3],
+    limits: &VolumeLimits,
+    device: &str,
+) -> std::result::Result<(), String> {
+    let problem = |d: [u64; 3]| -> Option<String> {
+        let voxels = d[0] * d[1] * d[2];
+        let side = d.iter().copied().max().unwrap_or(0);
+        if side > limits.max_image_dimension_3d {
+            Some(format!(
+                "a side of {side} voxels exceeds the 3D image limit of {} per axis",
+                limits.max_image_dimension_3d
+            ))
+        } else if voxels * 4 > limits.max_storage_buffer_range {
+            Some(format!(
+                "{} bytes per f32 volume exceed the storage-buffer limit of {} bytes",
+                voxels * 4,
+                limits.max_storage_buffer_range
+            ))
+        } else if voxels * GPU_BYTES_PER_VOXEL > limits.device_local_bytes {
+            Some(format!(
+                "it needs about {} MiB of GPU memory ({GPU_BYTES_PER_VOXEL} bytes per voxel), \
+                 more than the {} MiB device-local heap",
+                (voxels * GPU_BYTES_PER_VOXEL) >> 20,
+                limits.device_local_bytes >> 20
+            ))
+        } else {
+            None
+        }
+    };
+    let d = dims.map(|d| d as u64);
+    let Some(why) = problem(d) else {
+        return Ok(());
+    };
+    let fits = (2..=64u64).find(|&n| problem(d.map(|x| x.div_ceil(n))).is_none());
+    Err(format!(
+        "volume {name} ({} x {} x {}) does not fit the GPU ({device}): {why}; {}",
+        d[0],
+        d[1],
+        d[2],
+        match fits {
+            Some(n) => format!("try --downsample {n}"),
+            None => "not even --downsample 64 makes it fit".to_string(),
+        }
+    ))
+}
+
+/// [`check_volume_fits`] on `gpu`'s limits, as a GPU error.
+pub fn check_volume_fits_gpu(gpu: &Gpu, vol: &Volume) -> Result<()> {
+    check_volume_fits(
+        &vol.name,
+        vol.dims,
+        &VolumeLimits::of(gpu),
+        &gpu.device_name,
+    )
+    .map_err(GpuError::Other)
+}
+
 fn check_linear_filter(gpu: &Gpu, format: vk::Format) -> Result<()> {
     let props = unsafe {
         gpu.instance
@@ -106,6 +192,7 @@ fn volume_image(gpu: &Gpu, dims: [usize; 3], name: &str) -> Result<Image> {
 impl VolumeTextures {
     /// Uploads the scalars and the transfer function; the AO volume starts at 1 (unoccluded).
     pub fn new(gpu: &Gpu, vol: &Volume, tf: &TransferFunction) -> Result<VolumeTextures> {
+        check_volume_fits_gpu(gpu, vol)?;
         check_linear_filter(gpu, vk::Format::R32_SFLOAT)?;
         check_linear_filter(gpu, vk::Format::R32G32B32A32_SFLOAT)?;
         let n = vol.voxel_count();
@@ -656,5 +743,70 @@ impl Drop for Renderer {
             d.destroy_pipeline_layout(self.layout, None);
             d.destroy_descriptor_set_layout(self.set_layout, None);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const LIMITS: VolumeLimits = VolumeLimits {
+        max_image_dimension_3d: 2048,
+        max_storage_buffer_range: 1 << 32,
+        device_local_bytes: 8 << 30,
+    };
+
+    #[test]
+    fn volumes_within_the_limits_fit() {
+        assert_eq!(
+            check_volume_fits("ct", [512, 512, 400], &LIMITS, "gpu"),
+            Ok(())
+        );
+        assert_eq!(
+            check_volume_fits("edge", [2048, 1, 1], &LIMITS, "gpu"),
+            Ok(())
+        );
+    }
+
+    #[test]
+    fn too_long_a_side_is_refused_with_a_downsample_hint() {
+        let e = check_volume_fits("long", [4100, 64, 64], &LIMITS, "Fake GPU").unwrap_err();
+        assert!(
+            e.contains("volume long (4100 x 64 x 64)")
+                && e.contains("Fake GPU")
+                && e.contains("3D image limit of 2048")
+                && e.contains("--downsample 3"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn too_many_bytes_are_refused_with_a_downsample_hint() {
+        // 1024^3 voxels x 24 bytes = 24 GiB > 8 GiB; / 2 per axis = 3 GiB fits.
+        let limits = VolumeLimits {
+            max_storage_buffer_range: u64::MAX,
+            ..LIMITS
+        };
+        let e = check_volume_fits("big", [1024, 1024, 1024], &limits, "gpu").unwrap_err();
+        assert!(
+            e.contains("volume big (1024 x 1024 x 1024)")
+                && e.contains("24576 MiB")
+                && e.contains("8192 MiB device-local heap")
+                && e.contains("--downsample 2"),
+            "{e}"
+        );
+        // Just over 4 GiB of f32 exceeds the storage-buffer range; the message says so.
+        let e = check_volume_fits("buf", [1024, 1024, 1025], &LIMITS, "gpu").unwrap_err();
+        assert!(
+            e.contains("storage-buffer limit of 4294967296 bytes") && e.contains("--downsample 2"),
+            "{e}"
+        );
+        // Nothing fits a heap of zero bytes.
+        let none = VolumeLimits {
+            device_local_bytes: 0,
+            ..LIMITS
+        };
+        let e = check_volume_fits("any", [8, 8, 8], &none, "gpu").unwrap_err();
+        assert!(e.contains("not even --downsample 64"), "{e}");
     }
 }

@@ -3,7 +3,8 @@
 //!
 //! Reads 3-D scalar images, raw or zlib-compressed, either byte order. MET_UCHAR, MET_CHAR,
 //! MET_SHORT and MET_USHORT are read as they are; MET_INT, MET_UINT, MET_FLOAT and MET_DOUBLE
-//! only when every value is an integer that fits 16 bits (the [`Voxels`] types). MetaImage
+//! become int16/uint16 when every value is an integer that fits, else float32 (NaN and
+//! infinities are refused). MetaImage
 //! geometry is already in LPS, so it is taken as written.
 
 use super::{
@@ -156,12 +157,13 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         VolumeError::unsupported(
             path,
             format!(
-                "{m}; supported are MET_UCHAR, MET_CHAR, MET_SHORT, MET_USHORT, and MET_INT, \
-                 MET_UINT, MET_FLOAT, MET_DOUBLE holding integers"
+                "{m}; supported are MET_UCHAR, MET_CHAR, MET_SHORT, MET_USHORT, MET_INT, \
+                 MET_UINT, MET_FLOAT and MET_DOUBLE"
             ),
         )
     })?;
-    let (count, data_bytes) = checked_size(path, dims, ty.bytes())?;
+    let (_, data_bytes) = checked_size(path, dims, ty.bytes())?;
+    let udims = dims.map(|d| d as usize);
     if let Some(b) = get(&["binarydata"]) {
         if boolean(b) == Some(false) {
             return Err(VolumeError::unsupported(
@@ -285,7 +287,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         let limit = compressed_size.unwrap_or(u64::MAX);
         let mut dec = ZlibDecoder::new(data.take(limit));
         let what = format!("{what}zlib ");
-        read_wide(path, &what, &mut dec, ty, count, big_endian, None, false)?
+        read_wide(path, &what, &mut dec, ty, udims, big_endian, None, false)?
     } else {
         let start = if header_size == -1 {
             len.checked_sub(data_bytes)
@@ -306,8 +308,18 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
                 "{what}truncated data: expected {data_bytes} bytes, found {avail}"
             )));
         }
+        // A separate raw data file holds the samples and nothing else: more bytes than the
+        // header describes means DimSize or ElementType are wrong. (Data inside the .mha may be
+        // followed by anything; HeaderSize = -1 takes the last bytes on purpose.)
+        if data_path != path && header_size != -1 && avail > data_bytes {
+            return Err(fmt(format!(
+                "{what}the file holds {avail} bytes after the header skip but the header \
+                 describes {data_bytes} ({} x {} x {} {ts}): wrong DimSize or ElementType?",
+                dims[0], dims[1], dims[2]
+            )));
+        }
         data.seek(SeekFrom::Start(start)).map_err(dio)?;
-        read_wide(path, &what, &mut data, ty, count, big_endian, None, true)?
+        read_wide(path, &what, &mut data, ty, udims, big_endian, None, true)?
     };
     let name = path
         .file_stem()
@@ -315,7 +327,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         .unwrap_or_else(|| "volume".into());
     Ok(Volume {
         name,
-        dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize],
+        dims: udims,
         spacing,
         directions,
         origin,
@@ -395,6 +407,7 @@ pub fn write(path: &Path, vol: &Volume, compressed: bool) -> Result<(), VolumeEr
         Voxels::U8(_) => "MET_UCHAR",
         Voxels::I16(_) => "MET_SHORT",
         Voxels::U16(_) => "MET_USHORT",
+        Voxels::F32(_) => "MET_FLOAT",
     };
     h.push_str(&format!("ElementType = {et}\n"));
     let body = |w: &mut dyn Write| match &payload {
@@ -502,6 +515,89 @@ mod tests {
     }
 
     #[test]
+    fn round_trip_every_sample_type() {
+        use crate::volume::test_types::cases;
+        let s = scratch("types");
+        let want_geometry = Volume {
+            spacing: [0.5, 2.0, 3.0],
+            directions: DMat3::IDENTITY,
+            origin: DVec3::new(1.0, 2.0, 3.0),
+            ..sample(Voxels::U8(vec![]))
+        };
+        for c in cases() {
+            let p = s.file(&format!("{}.mha", c.name));
+            write_file(
+                &p,
+                &format!(
+                    "{GEOMETRY}ElementType = {}\nElementDataFile = LOCAL\n",
+                    c.metaimage
+                ),
+                &c.bytes,
+            );
+            let v = load(&p).unwrap();
+            assert_eq!(v.voxels, c.want, "{}", c.name);
+            assert_same_geometry(&v, &want_geometry);
+            for (ext, z) in [("mha", false), ("mhd", true)] {
+                let p2 = s.file(&format!("{}-back-{z}.{ext}", c.name));
+                write(&p2, &v, z).unwrap();
+                let back = load(&p2).unwrap();
+                assert_eq!(back.voxels, c.want, "{} written back", c.name);
+                assert_same_geometry(&back, &want_geometry);
+            }
+        }
+    }
+
+    #[test]
+    fn nan_voxels_are_refused() {
+        let s = scratch("nan");
+        for (c, bytes) in crate::volume::test_types::nan_cases() {
+            let p = s.file(&format!("nan-{}.mha", c.name));
+            write_file(
+                &p,
+                &format!(
+                    "{GEOMETRY}ElementType = {}\nElementDataFile = LOCAL\n",
+                    c.metaimage
+                ),
+                &bytes,
+            );
+            let e = err_of(&p);
+            assert!(e.contains("voxel (2,1,1)") && e.contains("NaN"), "{e}");
+        }
+    }
+
+    #[test]
+    fn data_longer_than_the_header_says() {
+        let s = scratch("long");
+        let vol = sample(Voxels::I16((0..60).collect()));
+        // inside the .mha: trailing bytes are ignored
+        let p = s.file("trailing.mha");
+        write(&p, &vol, false).unwrap();
+        let mut b = std::fs::read(&p).unwrap();
+        b.extend_from_slice(&[7; 13]);
+        std::fs::write(&p, &b).unwrap();
+        assert_eq!(load(&p).unwrap().voxels, vol.voxels);
+        // a separate raw file with more bytes than DimSize x ElementType: refused
+        let p = s.file("long.mhd");
+        write(&p, &vol, false).unwrap();
+        std::fs::write(s.file("long.raw"), [0u8; 122]).unwrap();
+        let e = err_of(&p);
+        assert!(
+            e.contains("long.raw")
+                && e.contains("122 bytes")
+                && e.contains("describes 120")
+                && e.contains("MET_SHORT"),
+            "{e}"
+        );
+        // a zlib stream cut short
+        let p = s.file("cut.mha");
+        write(&p, &vol, true).unwrap();
+        let b = std::fs::read(&p).unwrap();
+        std::fs::write(&p, &b[..b.len() - 20]).unwrap();
+        let e = err_of(&p);
+        assert!(e.contains("zlib"), "{e}");
+    }
+
+    #[test]
     fn hand_written_headers() {
         let s = scratch("hand");
         // Big-endian shorts, Position + Orientation spellings, data at the end (HeaderSize -1).
@@ -561,7 +657,7 @@ mod tests {
             load(&p).unwrap().voxels,
             Voxels::U16((0..60).map(|i| i * 1000).collect())
         );
-        // MET_DOUBLE with fractions -> clear refusal
+        // MET_DOUBLE with fractions -> float32
         let data: Vec<u8> = (0..60)
             .flat_map(|i| (i as f64 * 0.1).to_le_bytes())
             .collect();
@@ -570,10 +666,9 @@ mod tests {
             &format!("{GEOMETRY}ElementType = MET_DOUBLE\nElementDataFile = LOCAL\n"),
             &data,
         );
-        let e = err_of(&p);
-        assert!(
-            e.contains("unsupported") && e.contains("needs a float voxel type"),
-            "{e}"
+        assert_eq!(
+            load(&p).unwrap().voxels,
+            Voxels::F32((0..60).map(|i| (i as f64 * 0.1) as f32).collect())
         );
     }
 

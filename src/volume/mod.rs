@@ -2,6 +2,8 @@
 //! fetched CT head.
 
 pub mod ct_head;
+#[doc(hidden)]
+pub mod fuzzing;
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;
@@ -48,12 +50,15 @@ impl VolumeError {
     }
 }
 
-/// Voxel storage at the file's own precision (x fastest, then y, then z).
+/// Voxel storage at the file's own precision (x fastest, then y, then z). Integer data that fit
+/// 16 bits stay integers; everything else (floats, scaled data, wider integers) is `F32`, and
+/// never holds NaN or infinities (the loaders refuse them).
 #[derive(Clone, Debug, PartialEq)]
 pub enum Voxels {
     U8(Vec<u8>),
     U16(Vec<u16>),
     I16(Vec<i16>),
+    F32(Vec<f32>),
 }
 
 impl Voxels {
@@ -62,6 +67,7 @@ impl Voxels {
             Voxels::U8(v) => v.len(),
             Voxels::U16(v) => v.len(),
             Voxels::I16(v) => v.len(),
+            Voxels::F32(v) => v.len(),
         }
     }
     pub fn is_empty(&self) -> bool {
@@ -73,6 +79,7 @@ impl Voxels {
             Voxels::U8(v) => v[i] as f32,
             Voxels::U16(v) => v[i] as f32,
             Voxels::I16(v) => v[i] as f32,
+            Voxels::F32(v) => v[i],
         }
     }
     pub fn type_name(&self) -> &'static str {
@@ -80,6 +87,7 @@ impl Voxels {
             Voxels::U8(_) => "uint8",
             Voxels::U16(_) => "uint16",
             Voxels::I16(_) => "int16",
+            Voxels::F32(_) => "float32",
         }
     }
 }
@@ -120,8 +128,11 @@ impl Volume {
     /// (min, max) of the stored values.
     pub fn value_range(&self) -> (f32, f32) {
         fn mm<T: Copy + PartialOrd + Into<f32>>(v: &[T]) -> (f32, f32) {
-            let mut lo = v[0];
-            let mut hi = v[0];
+            let Some(&first) = v.first() else {
+                return (0.0, 0.0);
+            };
+            let mut lo = first;
+            let mut hi = first;
             for &x in v {
                 if x < lo {
                     lo = x
@@ -136,6 +147,7 @@ impl Volume {
             Voxels::U8(v) => mm(v),
             Voxels::U16(v) => mm(v),
             Voxels::I16(v) => mm(v),
+            Voxels::F32(v) => mm(v),
         }
     }
     /// The same geometry (dims, spacing, orientation, name) with no voxels.
@@ -148,6 +160,63 @@ impl Volume {
             origin: self.origin,
             modality: self.modality,
             voxels: Voxels::U8(Vec::new()),
+        }
+    }
+
+    /// The volume averaged over n x n x n blocks (`--downsample N`): dims ceil(dims / n), spacing
+    /// x n, the same directions, the origin moved to the centre of the first new voxel. Blocks
+    /// cut by the far edges average the voxels they hold. Integer voxels are rounded to the
+    /// nearest integer and keep their type; float32 stays float32. `n <= 1` returns a copy.
+    pub fn downsample(&self, n: usize) -> Volume {
+        use rayon::prelude::*;
+        if n <= 1 {
+            return self.clone();
+        }
+        let d = self.dims;
+        let nd = d.map(|x| x.div_ceil(n));
+        let slice = nd[0] * nd[1];
+        let mut mean = vec![0f64; slice * nd[2]];
+        mean.par_chunks_mut(slice)
+            .enumerate()
+            .for_each(|(kk, out)| {
+                for jj in 0..nd[1] {
+                    for ii in 0..nd[0] {
+                        let (mut sum, mut count) = (0f64, 0usize);
+                        for k in kk * n..((kk + 1) * n).min(d[2]) {
+                            for j in jj * n..((jj + 1) * n).min(d[1]) {
+                                let row = self.index(0, j, k);
+                                for i in ii * n..((ii + 1) * n).min(d[0]) {
+                                    sum += self.voxels.get(row + i) as f64;
+                                    count += 1;
+                                }
+                            }
+                        }
+                        out[ii + nd[0] * jj] = sum / count as f64;
+                    }
+                }
+            });
+        // The mean lies within the block's values, so rounding stays in the type's range.
+        let voxels = match &self.voxels {
+            Voxels::U8(_) => Voxels::U8(mean.iter().map(|&m| m.round() as u8).collect()),
+            Voxels::U16(_) => Voxels::U16(mean.iter().map(|&m| m.round() as u16).collect()),
+            Voxels::I16(_) => Voxels::I16(mean.iter().map(|&m| m.round() as i16).collect()),
+            Voxels::F32(_) => Voxels::F32(mean.iter().map(|&m| m as f32).collect()),
+        };
+        let half = (n as f64 - 1.0) / 2.0;
+        let shift = self.directions
+            * DVec3::new(
+                half * self.spacing[0],
+                half * self.spacing[1],
+                half * self.spacing[2],
+            );
+        Volume {
+            name: format!("{}-ds{n}", self.name),
+            dims: nd,
+            spacing: self.spacing.map(|s| s * n as f64),
+            directions: self.directions,
+            origin: self.origin + shift,
+            modality: self.modality,
+            voxels,
         }
     }
 
@@ -213,15 +282,6 @@ pub(crate) enum SampleFormat {
     I8,
     U16,
     I16,
-}
-
-impl SampleFormat {
-    pub(crate) fn bytes(self) -> u64 {
-        match self {
-            SampleFormat::U8 | SampleFormat::I8 => 1,
-            SampleFormat::U16 | SampleFormat::I16 => 2,
-        }
-    }
 }
 
 /// Reads up to `count` samples from `r` in chunks (no second full-size byte buffer). Returns the
@@ -365,23 +425,84 @@ impl WideType {
     }
 }
 
-/// Reads `count` samples of type `ty` from `r` and applies `value * slope + inter` when `scale`
-/// is given. 8/16-bit samples without scaling are read as they are. Everything else must come
-/// out as integers: they are stored as int16 when they fit, else as uint16 when they fit, and
-/// refused otherwise, because [`Voxels`] holds no floating-point type (yet). `exact`: the input
-/// is known to hold the data (see [`read_samples`]). Errors name `path`; `what` prefixes data
-/// messages (e.g. the detached data file).
+/// The voxel storage for values computed by `value(linear index)` (x fastest): int16 when every
+/// value is an integer within int16, else uint16 when they are integers within uint16, else
+/// float32 (f64 values are rounded to the nearest f32). NaN and infinite values are refused
+/// with the voxel's (i, j, k) and value; so are finite values beyond the float32 range. The one
+/// conversion every loader of wide, float or scaled data (NIfTI, MetaImage, NRRD, DICOM) uses.
+#[allow(dead_code)] // for the DICOM loader; the others call it through `read_wide`
+pub(crate) fn voxels_from_values(
+    path: &Path,
+    dims: [usize; 3],
+    value: impl Fn(usize) -> f64,
+) -> Result<Voxels, VolumeError> {
+    values_to_voxels(path, "", dims, value)
+}
+
+/// [`voxels_from_values`] with `what` prefixing the messages (e.g. the detached data file).
+fn values_to_voxels(
+    path: &Path,
+    what: &str,
+    dims: [usize; 3],
+    value: impl Fn(usize) -> f64,
+) -> Result<Voxels, VolumeError> {
+    let count = dims[0] * dims[1] * dims[2];
+    let ijk = |n: usize| {
+        let (i, rest) = (n % dims[0].max(1), n / dims[0].max(1));
+        (i, rest % dims[1].max(1), rest / dims[1].max(1))
+    };
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    let mut integral = true;
+    for n in 0..count {
+        let v = value(n);
+        if !v.is_finite() || v.abs() > f32::MAX as f64 {
+            let (i, j, k) = ijk(n);
+            return Err(VolumeError::unsupported(
+                path,
+                format!(
+                    "{what}voxel ({i},{j},{k}) has the value {v}{}: volumes must hold finite \
+                     numbers",
+                    if v.is_finite() {
+                        " (beyond the float32 range)"
+                    } else {
+                        ""
+                    }
+                ),
+            ));
+        }
+        integral &= v.fract() == 0.0;
+        lo = lo.min(v);
+        hi = hi.max(v);
+    }
+    Ok(
+        if integral && lo >= i16::MIN as f64 && hi <= i16::MAX as f64 {
+            Voxels::I16((0..count).map(|n| value(n) as i16).collect())
+        } else if integral && lo >= 0.0 && hi <= u16::MAX as f64 {
+            Voxels::U16((0..count).map(|n| value(n) as u16).collect())
+        } else {
+            Voxels::F32((0..count).map(|n| value(n) as f32).collect())
+        },
+    )
+}
+
+/// Reads the samples of a `dims` volume of type `ty` from `r` and applies
+/// `value * slope + inter` when `scale` is given. 8/16-bit samples without scaling are read as
+/// they are; everything else goes through [`voxels_from_values`] (int16/uint16 when the values
+/// are integers that fit, float32 otherwise; NaN refused). `exact`: the input is known to hold
+/// the data (see [`read_samples`]). Errors name `path`; `what` prefixes data messages (e.g. the
+/// detached data file).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn read_wide(
     path: &Path,
     what: &str,
     r: &mut dyn std::io::Read,
     ty: WideType,
-    count: usize,
+    dims: [usize; 3],
     big_endian: bool,
     scale: Option<(f64, f64)>,
     exact: bool,
 ) -> Result<Voxels, VolumeError> {
+    let count = dims[0] * dims[1] * dims[2];
     let data_bytes = count as u64 * ty.bytes();
     let io = |e: std::io::Error| VolumeError::format(path, format!("{what}read error: {e}"));
     let short = |got: u64| {
@@ -406,40 +527,13 @@ pub(crate) fn read_wide(
         return Err(short(bytes.len() as u64));
     }
     let (slope, inter) = scale.unwrap_or((1.0, 0.0));
-    let value = |i: usize| ty.get(&bytes, i, big_endian) * slope + inter;
-    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-    for i in 0..count {
-        let v = value(i);
-        if !v.is_finite() || v.fract() != 0.0 {
-            return Err(VolumeError::unsupported(
-                path,
-                format!(
-                    "voxel {i} has the non-integer value {v}{}: needs a float voxel type \
-                     (volumes hold 8/16-bit integers)",
-                    if scale.is_some() {
-                        " after scaling"
-                    } else {
-                        ""
-                    }
-                ),
-            ));
-        }
-        lo = lo.min(v);
-        hi = hi.max(v);
-    }
-    if lo >= i16::MIN as f64 && hi <= i16::MAX as f64 {
-        Ok(Voxels::I16((0..count).map(|i| value(i) as i16).collect()))
-    } else if lo >= 0.0 && hi <= u16::MAX as f64 {
-        Ok(Voxels::U16((0..count).map(|i| value(i) as u16).collect()))
-    } else {
-        Err(VolumeError::unsupported(
-            path,
-            format!(
-                "values {lo} .. {hi} do not fit 16-bit integers: needs a float voxel type \
-                 (volumes hold 8/16-bit integers)"
-            ),
-        ))
-    }
+    let what = match scale {
+        Some(_) => format!("{what}after scaling, "),
+        None => what.to_string(),
+    };
+    values_to_voxels(path, &what, dims, |i| {
+        ty.get(&bytes, i, big_endian) * slope + inter
+    })
 }
 
 /// Writes `path` through a temporary file next to it, renamed into place only when `body`
@@ -487,7 +581,7 @@ pub(crate) fn write_voxels(
     big_endian: bool,
 ) -> std::io::Result<()> {
     const CHUNK: usize = 1 << 16;
-    let mut buf = Vec::with_capacity(CHUNK * 2);
+    let mut buf = Vec::with_capacity(CHUNK * 4);
     match v {
         Voxels::U8(v) => w.write_all(v)?,
         Voxels::U16(v) => {
@@ -504,6 +598,19 @@ pub(crate) fn write_voxels(
             }
         }
         Voxels::I16(v) => {
+            for c in v.chunks(CHUNK) {
+                buf.clear();
+                for &x in c {
+                    buf.extend_from_slice(&if big_endian {
+                        x.to_be_bytes()
+                    } else {
+                        x.to_le_bytes()
+                    });
+                }
+                w.write_all(&buf)?;
+            }
+        }
+        Voxels::F32(v) => {
             for c in v.chunks(CHUNK) {
                 buf.clear();
                 for &x in c {
@@ -577,5 +684,234 @@ pub(crate) mod test_scratch {
         fn drop(&mut self) {
             let _ = std::fs::remove_dir_all(&self.0);
         }
+    }
+}
+
+/// The sample types every loader reads, as test cases: 60 little-endian samples (a 5 x 4 x 3
+/// volume) of each type and the voxels they must load as.
+#[cfg(test)]
+pub(crate) mod test_types {
+    use super::Voxels;
+
+    pub(crate) struct TypeCase {
+        /// Short name, for file names and messages.
+        pub name: &'static str,
+        pub nrrd: &'static str,
+        pub nifti: (i16, i16),
+        pub metaimage: &'static str,
+        pub bytes: Vec<u8>,
+        pub want: Voxels,
+    }
+
+    pub(crate) const N: usize = 60;
+
+    pub(crate) fn cases() -> Vec<TypeCase> {
+        let le = |v: Vec<Vec<u8>>| v.concat();
+        vec![
+            TypeCase {
+                name: "u8",
+                nrrd: "uint8",
+                nifti: (2, 8),
+                metaimage: "MET_UCHAR",
+                bytes: (0..N).map(|i| (i * 4) as u8).collect(),
+                want: Voxels::U8((0..N).map(|i| (i * 4) as u8).collect()),
+            },
+            TypeCase {
+                name: "i8",
+                nrrd: "int8",
+                nifti: (256, 8),
+                metaimage: "MET_CHAR",
+                bytes: (0..N).map(|i| (i as i8 - 30) as u8).collect(),
+                want: Voxels::I16((0..N).map(|i| i as i16 - 30).collect()),
+            },
+            TypeCase {
+                name: "u16",
+                nrrd: "uint16",
+                nifti: (512, 16),
+                metaimage: "MET_USHORT",
+                bytes: le((0..N)
+                    .map(|i| (i as u16 * 1000 + 7).to_le_bytes().to_vec())
+                    .collect()),
+                want: Voxels::U16((0..N).map(|i| i as u16 * 1000 + 7).collect()),
+            },
+            TypeCase {
+                name: "i16",
+                nrrd: "int16",
+                nifti: (4, 16),
+                metaimage: "MET_SHORT",
+                bytes: le((0..N)
+                    .map(|i| ((i as i16 - 30) * 1000).to_le_bytes().to_vec())
+                    .collect()),
+                want: Voxels::I16((0..N).map(|i| (i as i16 - 30) * 1000).collect()),
+            },
+            TypeCase {
+                // beyond 16 bits: float32 (exact below 2^24)
+                name: "u32",
+                nrrd: "uint32",
+                nifti: (768, 32),
+                metaimage: "MET_UINT",
+                bytes: le((0..N)
+                    .map(|i| (i as u32 * 100_003).to_le_bytes().to_vec())
+                    .collect()),
+                want: Voxels::F32((0..N).map(|i| (i as u32 * 100_003) as f32).collect()),
+            },
+            TypeCase {
+                name: "i32",
+                nrrd: "int32",
+                nifti: (8, 32),
+                metaimage: "MET_INT",
+                bytes: le((0..N)
+                    .map(|i| ((i as i32 - 30) * 70_001).to_le_bytes().to_vec())
+                    .collect()),
+                want: Voxels::F32((0..N).map(|i| ((i as i32 - 30) * 70_001) as f32).collect()),
+            },
+            TypeCase {
+                name: "f32",
+                nrrd: "float",
+                nifti: (16, 32),
+                metaimage: "MET_FLOAT",
+                bytes: le((0..N)
+                    .map(|i| (i as f32 * 0.25 - 3.3).to_le_bytes().to_vec())
+                    .collect()),
+                want: Voxels::F32((0..N).map(|i| i as f32 * 0.25 - 3.3).collect()),
+            },
+            TypeCase {
+                // converted to the nearest float32
+                name: "f64",
+                nrrd: "double",
+                nifti: (64, 64),
+                metaimage: "MET_DOUBLE",
+                bytes: le((0..N)
+                    .map(|i| (i as f64 * 0.1 - 2.0).to_le_bytes().to_vec())
+                    .collect()),
+                want: Voxels::F32((0..N).map(|i| (i as f64 * 0.1 - 2.0) as f32).collect()),
+            },
+        ]
+    }
+
+    /// The cases' first sample replaced by NaN (float types only): (case, bytes).
+    pub(crate) fn nan_cases() -> Vec<(TypeCase, Vec<u8>)> {
+        cases()
+            .into_iter()
+            .filter(|c| c.name == "f32" || c.name == "f64")
+            .map(|c| {
+                let mut b = c.bytes.clone();
+                // voxel 27 = (2, 1, 1) in a 5 x 4 x 3 volume
+                if c.name == "f32" {
+                    b[27 * 4..28 * 4].copy_from_slice(&f32::NAN.to_le_bytes());
+                } else {
+                    b[27 * 8..28 * 8].copy_from_slice(&f64::NAN.to_le_bytes());
+                }
+                (c, b)
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn values_pick_int16_uint16_or_float32() {
+        let p = Path::new("v.nii");
+        let d = [2, 2, 1];
+        let v = voxels_from_values(p, d, |i| i as f64 * 100.0 - 200.0).unwrap();
+        assert_eq!(v, Voxels::I16(vec![-200, -100, 0, 100]));
+        let v = voxels_from_values(p, d, |i| i as f64 * 20000.0).unwrap();
+        assert_eq!(v, Voxels::U16(vec![0, 20000, 40000, 60000]));
+        let v = voxels_from_values(p, d, |i| i as f64 * 30000.0 - 1.0).unwrap();
+        assert_eq!(v, Voxels::F32(vec![-1.0, 29999.0, 59999.0, 89999.0]));
+        let v = voxels_from_values(p, d, |i| i as f64 * 0.5).unwrap();
+        assert_eq!(v, Voxels::F32(vec![0.0, 0.5, 1.0, 1.5]));
+        assert_eq!(v.type_name(), "float32");
+        assert_eq!(v.get(3), 1.5);
+    }
+
+    #[test]
+    fn values_refuse_nan_and_infinities_naming_the_voxel() {
+        let p = Path::new("dir/scan.nii");
+        let d = [3, 2, 2];
+        // linear index 10 = (1, 1, 1)
+        for (bad, shown) in [
+            (f64::NAN, "NaN"),
+            (f64::INFINITY, "inf"),
+            (f64::NEG_INFINITY, "-inf"),
+            (1e300, "float32 range"),
+        ] {
+            let e = voxels_from_values(p, d, |i| if i == 10 { bad } else { 1.0 })
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("dir/scan.nii") && e.contains("voxel (1,1,1)") && e.contains(shown),
+                "{e}"
+            );
+        }
+    }
+
+    #[test]
+    fn downsample_averages_blocks_and_keeps_the_world_size() {
+        let dims = [5, 4, 3];
+        let dirs = DMat3::from_rotation_z(0.4);
+        let vol = Volume {
+            name: "v".into(),
+            dims,
+            spacing: [0.5, 1.0, 2.0],
+            directions: dirs,
+            origin: DVec3::new(10.0, -5.0, 3.0),
+            modality: Modality::Ct,
+            voxels: Voxels::I16((0..60).map(|i| i as i16 * 10 - 300).collect()),
+        };
+        let ds = vol.downsample(2);
+        assert_eq!(ds.dims, [3, 2, 2]);
+        assert_eq!(ds.spacing, [1.0, 2.0, 4.0]);
+        assert_eq!(ds.directions, dirs);
+        assert_eq!(ds.modality, Modality::Ct);
+        assert_eq!(ds.name, "v-ds2");
+        // origin: the centre of old voxels 0..1 along each axis = old origin + half a step
+        let want = vol.origin + dirs * DVec3::new(0.25, 0.5, 1.0);
+        assert!(ds.origin.abs_diff_eq(want, 1e-12), "{:?}", ds.origin);
+        // the world size changes by less than one new voxel per axis
+        let (a, b) = (vol.extent_mm(), ds.extent_mm());
+        for ax in 0..3 {
+            assert!((b[ax] - a[ax]).abs() < ds.spacing[ax], "{a:?} {b:?}");
+        }
+        // voxel (0,0,0) averages i 0..1, j 0..1, k 0..1: linear 0,1,5,6,20,21,25,26
+        let mean = |idx: &[usize]| {
+            idx.iter().map(|&i| i as f64 * 10.0 - 300.0).sum::<f64>() / idx.len() as f64
+        };
+        let Voxels::I16(v) = &ds.voxels else {
+            panic!("type changed: {}", ds.voxels.type_name())
+        };
+        assert_eq!(v[0] as f64, mean(&[0, 1, 5, 6, 20, 21, 25, 26]).round());
+        // voxel (2,1,1): the edge block holds only i 4, j 2..3, k 2
+        assert_eq!(v[ds.index(2, 1, 1)] as f64, mean(&[54, 59]).round());
+        // rounding of integer types: 1,2 -> 1.5 rounds to 2
+        let mut small = vol.clone();
+        small.dims = [2, 1, 1];
+        small.voxels = Voxels::U8(vec![1, 2]);
+        assert_eq!(small.downsample(2).voxels, Voxels::U8(vec![2]));
+        small.voxels = Voxels::F32(vec![1.0, 2.0]);
+        assert_eq!(small.downsample(2).voxels, Voxels::F32(vec![1.5]));
+        small.voxels = Voxels::U16(vec![65535, 65535]);
+        assert_eq!(small.downsample(4).voxels, Voxels::U16(vec![65535]));
+        // n = 1: unchanged
+        assert_eq!(vol.downsample(1).voxels, vol.voxels);
+        assert_eq!(vol.downsample(1).dims, dims);
+        // n beyond every side: one voxel, the mean of all
+        let one = vol.downsample(10);
+        assert_eq!(one.dims, [1, 1, 1]);
+        assert_eq!(
+            one.voxels.get(0) as f64,
+            mean(&(0..60).collect::<Vec<_>>()).round()
+        );
+    }
+
+    #[test]
+    fn value_range_of_float_and_empty_voxels() {
+        let mut v = crate::volume::phantom::head(8);
+        v.voxels = Voxels::F32((0..512).map(|i| i as f32 * 0.5 - 7.25).collect());
+        assert_eq!(v.value_range(), (-7.25, 248.25));
+        assert_eq!(v.clone_geometry().value_range(), (0.0, 0.0));
     }
 }

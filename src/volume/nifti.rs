@@ -2,8 +2,8 @@
 //!
 //! Reads 3-D scalar volumes (a 4-D file with one time point counts as 3-D) of either byte order.
 //! 8/16-bit integers are kept as they are; 32-bit integers, floats and scaled data
-//! (`scl_slope`/`scl_inter`) are accepted when every resulting value is an integer that fits
-//! 16 bits, because [`Voxels`] has no floating-point type. The geometry comes from the sform
+//! (`scl_slope`/`scl_inter`) become int16/uint16 when every value is an integer that fits, else
+//! float32 (NaN and infinities are refused). The geometry comes from the sform
 //! (preferred), the qform, or the voxel sizes alone, and is converted from NIfTI's RAS+ world
 //! into LPS. The writer stores both an sform and (for rotations) a qform.
 
@@ -211,8 +211,8 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         VolumeError::unsupported(
             path,
             format!(
-                "datatype {t}; supported are uint8, int8, int16, uint16, and int32, uint32, \
-                 float32, float64 holding integers"
+                "datatype {t}; supported are uint8, int8, int16, uint16, int32, uint32, \
+                 float32 and float64"
             ),
         )
     })?;
@@ -223,7 +223,8 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
             ty.bytes() * 8
         )));
     }
-    let (count, data_bytes) = checked_size(path, dims, ty.bytes())?;
+    let (_, data_bytes) = checked_size(path, dims, ty.bytes())?;
+    let udims = dims.map(|d| d as usize);
     let slope = f.f32(112);
     let inter = f.f32(116);
     let scale = if slope == 0.0 || !slope.is_finite() || (slope == 1.0 && inter == 0.0) {
@@ -321,7 +322,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         reader = Box::new(BufReader::new(file));
         exact = true;
     }
-    let voxels = read_wide(path, what, &mut reader, ty, count, be, scale, exact)?;
+    let voxels = read_wide(path, what, &mut reader, ty, udims, be, scale, exact)?;
     let name = path
         .file_name()
         .map(|s| {
@@ -336,7 +337,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         .unwrap_or_else(|| "volume".into());
     Ok(Volume {
         name,
-        dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize],
+        dims: udims,
         spacing,
         directions,
         origin,
@@ -394,6 +395,7 @@ fn header(path: &Path, vol: &Volume, be: bool) -> Result<Vec<u8>, VolumeError> {
         Voxels::U8(_) => (2, 8),
         Voxels::I16(_) => (4, 16),
         Voxels::U16(_) => (512, 16),
+        Voxels::F32(_) => (16, 32),
     };
     put_i16(&mut h, 70, code);
     put_i16(&mut h, 72, bitpix);
@@ -570,6 +572,53 @@ mod tests {
     }
 
     #[test]
+    fn round_trip_every_sample_type() {
+        use crate::volume::test_types::cases;
+        let s = scratch("types");
+        let vol = sample(Voxels::U8(vec![0; 60]));
+        for c in cases() {
+            let p = s.file(&format!("{}.nii", c.name));
+            custom(&p, &vol, c.nifti.0, c.nifti.1, &c.bytes, false);
+            let v = load(&p).unwrap();
+            assert_eq!(v.voxels, c.want, "{}", c.name);
+            assert_same_geometry(&v, &vol, 1e-6);
+            for gz in [false, true] {
+                let p2 = s.file(&format!(
+                    "{}-back.nii{}",
+                    c.name,
+                    if gz { ".gz" } else { "" }
+                ));
+                write(&p2, &v, gz).unwrap();
+                let back = load(&p2).unwrap();
+                assert_eq!(back.voxels, c.want, "{} written back", c.name);
+                assert_same_geometry(&back, &vol, 1e-6);
+            }
+        }
+    }
+
+    #[test]
+    fn nan_voxels_are_refused() {
+        let s = scratch("nan");
+        let vol = sample(Voxels::U8(vec![0; 60]));
+        for (c, bytes) in crate::volume::test_types::nan_cases() {
+            let p = s.file(&format!("nan-{}.nii", c.name));
+            custom(&p, &vol, c.nifti.0, c.nifti.1, &bytes, false);
+            let e = err_of(&p);
+            assert!(e.contains("voxel (2,1,1)") && e.contains("NaN"), "{e}");
+        }
+        // scaling that overflows to infinity is refused too
+        let p = s.file("inf.nii");
+        let data: Vec<u8> = (0..60).flat_map(|i| (i as f32).to_le_bytes()).collect();
+        custom(&p, &vol, 16, 32, &data, false);
+        set_f32(&p, 112, 3e38);
+        let e = err_of(&p);
+        assert!(
+            e.contains("after scaling") && e.contains("voxel (2,0,0)") && e.contains("float32"),
+            "{e}"
+        );
+    }
+
+    #[test]
     fn qform_reflection_and_big_endian() {
         let s = scratch("qf");
         let mut vol = sample(Voxels::I16((0..60).map(|i| i * 3 - 90).collect()));
@@ -648,11 +697,13 @@ mod tests {
         // slope 0 means "no scaling": the uint8 stay uint8.
         set_f32(&p, 112, 0.0);
         assert_eq!(load(&p).unwrap().voxels, Voxels::U8(raw.clone()));
-        // non-integral scaling is refused
+        // non-integral scaling gives float32
         set_f32(&p, 112, 0.5);
         set_f32(&p, 116, 0.0);
-        let e = err_of(&p);
-        assert!(e.contains("needs a float voxel type"), "{e}");
+        assert_eq!(
+            load(&p).unwrap().voxels,
+            Voxels::F32((0..60).map(|i| i as f32 * 0.5).collect())
+        );
 
         // float32 holding integers -> int16, big-endian too
         for be in [false, true] {
@@ -674,24 +725,26 @@ mod tests {
                 Voxels::I16((0..60).map(|i| i * 10 - 300).collect())
             );
         }
-        // float64 with a fraction -> clear refusal
+        // float64 with a fraction -> float32
         let p = s.file("f64.nii");
         let data: Vec<u8> = (0..60)
             .flat_map(|i| (i as f64 + 0.25).to_le_bytes())
             .collect();
         custom(&p, &vol, 64, 64, &data, false);
-        let e = err_of(&p);
-        assert!(
-            e.contains("unsupported") && e.contains("needs a float voxel type"),
-            "{e}"
+        assert_eq!(
+            load(&p).unwrap().voxels,
+            Voxels::F32((0..60).map(|i| i as f32 + 0.25).collect())
         );
-        // int32 beyond 16 bits -> refusal; int32 within uint16 -> uint16; int8 -> int16
+        // int32 beyond 16 bits -> float32; int32 within uint16 -> uint16; int8 -> int16
         let p = s.file("i32.nii");
         let data: Vec<u8> = (0..60)
             .flat_map(|i| (i * 100_000i32).to_le_bytes())
             .collect();
         custom(&p, &vol, 8, 32, &data, false);
-        assert!(err_of(&p).contains("do not fit 16-bit"));
+        assert_eq!(
+            load(&p).unwrap().voxels,
+            Voxels::F32((0..60).map(|i| i as f32 * 100_000.0).collect())
+        );
         let data: Vec<u8> = (0..60).flat_map(|i| (i * 1000u32).to_le_bytes()).collect();
         custom(&p, &vol, 768, 32, &data, false);
         assert_eq!(
@@ -728,6 +781,21 @@ mod tests {
         assert!(case("dt.nii", &|b| b[70..72]
             .copy_from_slice(&128i16.to_le_bytes()))
         .contains("unsupported: datatype"));
+        let e = case("complex.nii", &|b| {
+            b[70..72].copy_from_slice(&32i16.to_le_bytes());
+            b[72..74].copy_from_slice(&64i16.to_le_bytes());
+        });
+        assert!(e.contains("unsupported: datatype complex (32)"), "{e}");
+        let e = case("unknown-dt.nii", &|b| {
+            b[70..72].copy_from_slice(&77i16.to_le_bytes())
+        });
+        assert!(e.contains("unknown code 77"), "{e}");
+        // data longer than the header says: trailing bytes are ignored (single-file .nii)
+        let p = s.file("trailing.nii");
+        let mut b = bytes.clone();
+        b.extend_from_slice(&[1; 9]);
+        std::fs::write(&p, &b).unwrap();
+        assert_eq!(load(&p).unwrap().voxels, vol.voxels);
         assert!(case("bitpix.nii", &|b| b[72..74]
             .copy_from_slice(&8i16.to_le_bytes()))
         .contains("bitpix"));
@@ -759,7 +827,8 @@ mod tests {
         write(&gz, &vol, true).unwrap();
         let g = std::fs::read(&gz).unwrap();
         std::fs::write(&gz, &g[..g.len() / 2]).unwrap();
-        err_of(&gz);
+        let e = err_of(&gz);
+        assert!(e.contains("gzip"), "{e}");
         // missing file
         assert!(err_of(&s.file("missing.nii")).contains("missing.nii"));
         // never panics on mangled headers

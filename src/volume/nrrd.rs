@@ -1,10 +1,10 @@
 //! NRRD reader and writer (teem's "nearly raw raster data", magic NRRD0001..NRRD0005).
 //!
-//! Reads 3-D scalar volumes of 8- and 16-bit integers, attached (`.nrrd`) or detached
-//! (`.nhdr` + `data file:`), raw or gzip encoded, with `space directions`/`spacings`, and
+//! Reads 3-D scalar volumes of 8-, 16- and 32-bit integers, float and double, attached
+//! (`.nrrd`) or detached (`.nhdr` + `data file:`), raw or gzip encoded, with `space directions`/`spacings`, and
 //! converts the geometry into LPS. Writes NRRD0004 in LPS, raw or gzip.
 
-use super::{checked_size, read_samples, Modality, SampleFormat, Volume, VolumeError, Voxels};
+use super::{checked_size, read_wide, Modality, Volume, VolumeError, Voxels, WideType};
 use flate2::read::MultiGzDecoder;
 use flate2::write::GzEncoder;
 use flate2::Compression;
@@ -19,27 +19,21 @@ const MAX_HEADER_BYTES: u64 = 1 << 20;
 const MODALITY_KEY: &str = "modality";
 
 /// Maps every NRRD spelling of a supported type; `Err` carries the kind of type for the message.
-fn parse_type(s: &str) -> Result<SampleFormat, &'static str> {
+fn parse_type(s: &str) -> Result<WideType, &'static str> {
     let s = s.trim().to_ascii_lowercase();
     let s = s.split_whitespace().collect::<Vec<_>>().join(" ");
     Ok(match s.as_str() {
-        "signed char" | "int8" | "int8_t" | "char" => SampleFormat::I8,
-        "uchar" | "unsigned char" | "uint8" | "uint8_t" => SampleFormat::U8,
+        "signed char" | "int8" | "int8_t" | "char" => WideType::I8,
+        "uchar" | "unsigned char" | "uint8" | "uint8_t" => WideType::U8,
         "short" | "short int" | "signed short" | "signed short int" | "int16" | "int16_t" => {
-            SampleFormat::I16
+            WideType::I16
         }
-        "ushort" | "unsigned short" | "unsigned short int" | "uint16" | "uint16_t" => {
-            SampleFormat::U16
-        }
-        "int"
-        | "signed int"
-        | "int32"
-        | "int32_t"
-        | "uint"
-        | "unsigned int"
-        | "uint32"
-        | "uint32_t"
-        | "longlong"
+        "ushort" | "unsigned short" | "unsigned short int" | "uint16" | "uint16_t" => WideType::U16,
+        "int" | "signed int" | "int32" | "int32_t" => WideType::I32,
+        "uint" | "unsigned int" | "uint32" | "uint32_t" => WideType::U32,
+        "float" => WideType::F32,
+        "double" => WideType::F64,
+        "longlong"
         | "long long"
         | "long long int"
         | "signed long long"
@@ -50,8 +44,7 @@ fn parse_type(s: &str) -> Result<SampleFormat, &'static str> {
         | "unsigned long long"
         | "unsigned long long int"
         | "uint64"
-        | "uint64_t" => return Err("integer"),
-        "float" | "double" => return Err("floating-point"),
+        | "uint64_t" => return Err("64-bit integer"),
         "block" => return Err("block"),
         _ => return Err("unknown"),
     })
@@ -246,8 +239,8 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         VolumeError::unsupported(
             path,
             format!(
-                "sample type {ty_s:?} ({kind}); supported are 8- and 16-bit integers \
-                 (uchar/uint8, int8, short/int16, ushort/uint16)"
+                "sample type {ty_s:?} ({kind}); supported are 8-, 16- and 32-bit integers, \
+                 float and double"
             ),
         )
     })?;
@@ -275,7 +268,8 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         )));
     }
     let dims = [sizes[0], sizes[1], sizes[2]];
-    let (count, data_bytes) = checked_size(path, dims, ty.bytes())?;
+    let (_, data_bytes) = checked_size(path, dims, ty.bytes())?;
+    let udims = dims.map(|d| d as usize);
 
     // encoding, endian
     let enc_s = required(&h.encoding, "encoding")?;
@@ -461,7 +455,17 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         }
     }
 
-    let (voxels, got) = if gzip {
+    // Prefix of the data messages: the detached data file, if any, and the encoding.
+    let what = format!(
+        "{}{}",
+        if data_path == path {
+            String::new()
+        } else {
+            format!("data file {}: ", data_path.display())
+        },
+        if gzip { "gzip " } else { "" }
+    );
+    let voxels = if gzip {
         let mut dec = MultiGzDecoder::new(data);
         let gz_err = |e: std::io::Error| dfmt(format!("gzip data are corrupt: {e}"));
         let skip = byte_skip as u64;
@@ -472,7 +476,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
                 "truncated data: decompressed data end after {skipped} of {skip} bytes to skip"
             )));
         }
-        read_samples(&mut dec, ty, count, big_endian, false).map_err(gz_err)?
+        read_wide(path, &what, &mut dec, ty, udims, big_endian, None, false)?
     } else {
         let pos = data.stream_position().map_err(dio)?;
         let len = data.get_ref().metadata().map_err(dio)?.len();
@@ -493,22 +497,26 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
                 "truncated data: expected {data_bytes} bytes, found {avail}"
             )));
         }
+        // A detached raw file holds the samples and nothing else: more bytes than the header
+        // describes means the sizes or the type are wrong. (Attached data may be followed by
+        // anything, as teem allows; `byte skip: -1` takes the last bytes on purpose.)
+        if data_path != path && byte_skip != -1 && avail > data_bytes {
+            return Err(dfmt(format!(
+                "the data file holds {avail} bytes after the skips but the header describes \
+                 {data_bytes} ({} x {} x {} {ty_s}): wrong sizes or type?",
+                dims[0], dims[1], dims[2]
+            )));
+        }
         data.seek(SeekFrom::Start(start)).map_err(dio)?;
-        read_samples(&mut data, ty, count, big_endian, true).map_err(dio)?
+        read_wide(path, &what, &mut data, ty, udims, big_endian, None, true)?
     };
-    if got < data_bytes || voxels.len() != count {
-        return Err(dfmt(format!(
-            "truncated data: expected {data_bytes} bytes{}, found {got}",
-            if gzip { " after decompression" } else { "" }
-        )));
-    }
     let name = path
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "volume".into());
     Ok(Volume {
         name,
-        dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize],
+        dims: udims,
         spacing,
         directions,
         origin,
@@ -517,8 +525,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     })
 }
 
-/// Samples to write; `F32` exists for derived data (e.g. precomputed fields) that the loader
-/// itself does not read back.
+/// Samples to write.
 #[derive(Clone, Copy, Debug)]
 pub enum NrrdData<'a> {
     U8(&'a [u8]),
@@ -663,6 +670,7 @@ pub fn write_volume(path: &Path, vol: &Volume, gzip: bool) -> Result<(), VolumeE
         Voxels::U8(v) => NrrdData::U8(v),
         Voxels::U16(v) => NrrdData::U16(v),
         Voxels::I16(v) => NrrdData::I16(v),
+        Voxels::F32(v) => NrrdData::F32(v),
     };
     write(
         path,
@@ -830,8 +838,7 @@ mod tests {
                 .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
                 .collect();
             assert_eq!(back, vals);
-            let e = err_of(&p);
-            assert!(e.contains("float") && e.contains("unsupported"), "{e}");
+            assert_eq!(load(&p).unwrap().voxels, Voxels::F32(vals.clone()));
         }
     }
 
@@ -899,6 +906,43 @@ mod tests {
             &[0x80, 0x7f],
         );
         assert_eq!(load(&p).unwrap().voxels, Voxels::I16(vec![-128, 127]));
+    }
+
+    #[test]
+    fn data_longer_than_the_header_says() {
+        let s = scratch("long");
+        // attached: trailing bytes are ignored (teem does the same)
+        let p = s.file("trailing.nrrd");
+        write_file(
+            &p,
+            "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: raw\n\n",
+            &[1, 2, 3, 4, 5, 6, 7, 8, 99, 99],
+        );
+        assert_eq!(
+            load(&p).unwrap().voxels,
+            Voxels::U8(vec![1, 2, 3, 4, 5, 6, 7, 8])
+        );
+        // detached raw: refused, naming both files, both sizes and the type
+        std::fs::write(s.file("long.raw"), [0u8; 9]).unwrap();
+        let p = s.file("long.nhdr");
+        write_file(
+            &p,
+            "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: raw\n\
+             data file: long.raw\n",
+            &[],
+        );
+        let e = err_of(&p);
+        assert!(
+            e.contains("long.raw")
+                && e.contains("9 bytes")
+                && e.contains("describes 8")
+                && e.contains("2 x 2 x 2 uint8"),
+            "{e}"
+        );
+        // detached shorter: truncated
+        std::fs::write(s.file("long.raw"), [0u8; 7]).unwrap();
+        let e = err_of(&p);
+        assert!(e.contains("long.raw") && e.contains("truncated"), "{e}");
     }
 
     #[test]
@@ -1084,13 +1128,24 @@ mod tests {
         let e = err_of(&p);
         assert!(e.contains("unsupported") && e.contains("encoding"), "{e}");
 
-        let p = s.file("double.nrrd");
-        write_file(&p, &good.replace("uint16", "double"), &[0u8; 64]);
+        let p = s.file("int64.nrrd");
+        write_file(&p, &good.replace("uint16", "int64"), &[0u8; 64]);
         let e = err_of(&p);
-        assert!(e.contains("unsupported") && e.contains("double"), "{e}");
-        let p = s.file("int32.nrrd");
-        write_file(&p, &good.replace("uint16", "int32"), &[0u8; 32]);
-        assert!(err_of(&p).contains("int32"));
+        assert!(
+            e.contains("unsupported") && e.contains("int64") && e.contains("64-bit"),
+            "{e}"
+        );
+        let p = s.file("block.nrrd");
+        write_file(&p, &good.replace("uint16", "block"), &[0u8; 64]);
+        assert!(err_of(&p).contains("block"));
+        // a double stream shorter than the header says
+        let p = s.file("short_double.nrrd");
+        write_file(&p, &good.replace("uint16", "double"), &[0u8; 63]);
+        let e = err_of(&p);
+        assert!(
+            e.contains("truncated") && e.contains("64") && e.contains("63"),
+            "{e}"
+        );
 
         let p = s.file("noendian.nrrd");
         write_file(&p, &good.replace("endian: little\n", ""), &[0u8; 16]);
@@ -1134,6 +1189,68 @@ mod tests {
 
         let p = s.file("does-not-exist.nrrd");
         assert!(err_of(&p).contains("No such file"));
+    }
+
+    #[test]
+    fn round_trip_every_sample_type() {
+        use crate::volume::test_types::cases;
+        let s = scratch("types");
+        let dirs = rotation();
+        let origin = DVec3::new(3.5, -2.0, 41.0);
+        for c in cases() {
+            for gzip in [false, true] {
+                let p = s.file(&format!("{}-{gzip}.nrrd", c.name));
+                let mut data = c.bytes.clone();
+                if gzip {
+                    let mut enc = GzEncoder::new(Vec::new(), Compression::fast());
+                    enc.write_all(&data).unwrap();
+                    data = enc.finish().unwrap();
+                }
+                write_file(
+                    &p,
+                    &format!(
+                        "NRRD0004\ntype: {}\ndimension: 3\nspace: left-posterior-superior\n\
+                         sizes: 5 4 3\nspace directions: {} {} {}\nendian: little\n\
+                         encoding: {}\nspace origin: {}\n\n",
+                        c.nrrd,
+                        fmt_vec(dirs.x_axis * 0.7),
+                        fmt_vec(dirs.y_axis * 1.25),
+                        fmt_vec(dirs.z_axis * 3.0),
+                        if gzip { "gzip" } else { "raw" },
+                        fmt_vec(origin)
+                    ),
+                    &data,
+                );
+                let v = load(&p).unwrap();
+                assert_eq!(v.voxels, c.want, "{}", c.name);
+                assert_geometry(&v, [5, 4, 3], [0.7, 1.25, 3.0], dirs, origin);
+                // written back (F32 as float) and read again: the same voxels and geometry
+                let p2 = s.file(&format!("{}-{gzip}-back.nrrd", c.name));
+                write_volume(&p2, &v, gzip).unwrap();
+                let back = load(&p2).unwrap();
+                assert_eq!(back.voxels, c.want, "{} written back", c.name);
+                assert_geometry(&back, [5, 4, 3], [0.7, 1.25, 3.0], dirs, origin);
+            }
+        }
+    }
+
+    #[test]
+    fn nan_voxels_are_refused() {
+        let s = scratch("nan");
+        for (c, bytes) in crate::volume::test_types::nan_cases() {
+            let p = s.file(&format!("nan-{}.nrrd", c.name));
+            write_file(
+                &p,
+                &format!(
+                    "NRRD0004\ntype: {}\ndimension: 3\nsizes: 5 4 3\nendian: little\n\
+                     encoding: raw\n\n",
+                    c.nrrd
+                ),
+                &bytes,
+            );
+            let e = err_of(&p);
+            assert!(e.contains("voxel (2,1,1)") && e.contains("NaN"), "{e}");
+        }
     }
 
     #[test]
