@@ -2,6 +2,7 @@
 //! fetched CT head.
 
 pub mod ct_head;
+pub mod dicom;
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;
