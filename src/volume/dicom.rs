@@ -216,9 +216,8 @@ pub fn scan(dir: &Path) -> Result<Scan, VolumeError> {
     let mut files = Vec::new();
     collect_files(dir, 0, &mut files)?;
     files.sort();
-    let results: Vec<
-        Result<Result<Vec<(String, String, String, Option<i64>, Slice)>, String>, VolumeError>,
-    > = files.par_iter().map(|p| read_header(p)).collect();
+    let results: Vec<Result<Result<Planes, String>, VolumeError>> =
+        files.par_iter().map(|p| read_header(p)).collect();
     let mut by_uid: BTreeMap<String, Series> = BTreeMap::new();
     let mut skipped = Vec::new();
     for (path, r) in files.iter().zip(results) {
@@ -287,7 +286,10 @@ fn collect_files(dir: &Path, depth: usize, out: &mut Vec<PathBuf>) -> Result<(),
     Ok(())
 }
 
+/// A file's image planes, each with its series keys (UID, modality, description, number).
 type Planes = Vec<(String, String, String, Option<i64>, Slice)>;
+/// A file's format (its first plane) and where each of its frames goes in the volume.
+type PlaneSlots<'a> = (&'a Slice, Vec<(u32, &'a mut [u16])>);
 
 /// The image planes of one file with their series keys; `Ok(Err(reason))` for a file that is
 /// not a DICOM image (skipped); `Err` for a DICOM file whose header is broken.
@@ -1026,7 +1028,7 @@ fn load_chosen(dir: &Path, series: &Series) -> Result<Volume, VolumeError> {
     let plane = first.cols as usize * first.rows as usize;
     let mut raw = vec![0u16; count];
     // each plane's slot, grouped by file so a multi-frame file is opened once
-    let mut by_file: BTreeMap<&Path, (&Slice, Vec<(u32, &mut [u16])>)> = BTreeMap::new();
+    let mut by_file: BTreeMap<&Path, PlaneSlots> = BTreeMap::new();
     for (k, chunk) in raw.chunks_mut(plane).enumerate() {
         let s = &sl[g.order[k]];
         by_file
@@ -1067,4 +1069,60 @@ fn load_chosen(dir: &Path, series: &Series) -> Result<Volume, VolumeError> {
         modality,
         voxels,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn picks_parse_from_the_volume_argument() {
+        assert_eq!(
+            parse_spec("/no/such/dir#3"),
+            (PathBuf::from("/no/such/dir"), Some(Pick::Index(3)))
+        );
+        assert_eq!(
+            parse_spec("/no/such/dir#1.2.840.99"),
+            (
+                PathBuf::from("/no/such/dir"),
+                Some(Pick::Uid("1.2.840.99".into()))
+            )
+        );
+        assert_eq!(
+            parse_spec("/no/such/dir"),
+            (PathBuf::from("/no/such/dir"), None)
+        );
+        assert_eq!(
+            parse_spec("/no/such/dir#"),
+            (PathBuf::from("/no/such/dir#"), None)
+        );
+        // an existing path with '#' in its name is taken whole
+        let s = super::super::test_scratch::Scratch::new("dicom#pick");
+        let whole = s.0.to_str().unwrap().to_string();
+        assert_eq!(parse_spec(&whole), (s.0.clone(), None));
+    }
+
+    #[test]
+    fn stored_values_are_sign_extended_and_rescaled_per_slice() {
+        let p = Path::new("x");
+        // 12-bit signed: 0xfff is -1, 0x800 is -2048
+        let v = to_voxels(
+            p,
+            vec![0xfff, 0x800, 5, 7],
+            2,
+            12,
+            true,
+            &[(1.0, 0.0), (2.0, -3.0)],
+        )
+        .unwrap();
+        assert_eq!(v, Voxels::I16(vec![-1, -2048, 7, 11]));
+        // beyond int16 but non-negative: uint16
+        let v = to_voxels(p, vec![60000, 1], 2, 16, false, &[(1.0, 10.0)]).unwrap();
+        assert_eq!(v, Voxels::U16(vec![60010, 11]));
+        // non-integral after rescale: needs a float voxel type
+        let e = to_voxels(p, vec![1, 2], 2, 16, false, &[(0.5, 0.0)]).unwrap_err();
+        assert!(e.to_string().contains("float voxel type"), "{e}");
+        let e = to_voxels(p, vec![65535, 0], 2, 16, false, &[(2.0, 0.0)]).unwrap_err();
+        assert!(e.to_string().contains("do not fit 16-bit"), "{e}");
+    }
 }
