@@ -737,3 +737,65 @@ fn enhanced_multi_frame_places_each_frame_by_its_functional_groups() {
     }
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// Real-world files that nobody here wrote: pydicom's test data (Debian's python3-pydicom, or
+/// `CAO_XR_PYDICOM_DATA=.../pydicom/data/test_files`). Skipped with a message when absent.
+#[test]
+fn pydicom_sample_files_load_with_their_header_geometry() {
+    let data = std::env::var_os("CAO_XR_PYDICOM_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("/usr/lib/python3/dist-packages/pydicom/data/test_files"));
+    if !data.join("MR_small.dcm").exists() {
+        eprintln!(
+            "SKIPPED: pydicom's sample files are not at {} (apt-get install python3-pydicom)",
+            data.display()
+        );
+        return;
+    }
+    let root = tmp("pydicom");
+    let one = |name: &str| {
+        let d = root.join(name);
+        std::fs::create_dir_all(&d).unwrap();
+        std::fs::copy(data.join(format!("{name}.dcm")), d.join("f.dcm")).unwrap();
+        dicom::load_series(&d, None)
+    };
+    // MR_small: 64 x 64, PixelSpacing 0.3125\0.3125, SliceThickness 0.8 (one slice)
+    let mr = one("MR_small").unwrap();
+    assert_eq!(mr.dims, [64, 64, 1]);
+    assert_eq!(mr.spacing, [0.3125, 0.3125, 0.8]);
+    assert_eq!(mr.modality, Modality::Mr);
+    assert_eq!(mr.value_range(), (127.0, 2145.0));
+    for v in [
+        "MR_small_RLE",
+        "MR_small_jp2klossless",
+        "MR_small_implicit",
+        "MR_small_bigendian",
+        "MR_small_expb",
+    ] {
+        let got = one(v).unwrap_or_else(|e| panic!("{v}: {e}"));
+        assert_eq!(got.voxels, mr.voxels, "{v}");
+        assert_eq!(got.directions, mr.directions, "{v}");
+    }
+    let e = err_of(one("MR_small_jpeg_ls_lossless"));
+    assert!(e.contains("1.2.840.10008.1.2.4.80"), "{e}");
+    // CT_small: 128 x 128, PixelSpacing 0.661468\0.661468, SliceThickness 5, HU
+    let ct = one("CT_small").unwrap();
+    assert_eq!(ct.dims, [128, 128, 1]);
+    assert!((ct.spacing[0] - 0.661468).abs() < 1e-9 && ct.spacing[2] == 5.0);
+    assert_eq!(ct.modality, Modality::Ct);
+    // a PACS-like export: 13 series, DICOMDIRs and localisers, one clean CT stack
+    let tree = data.join("dicomdirtests");
+    if tree.is_dir() {
+        let scan = dicom::scan(&tree).unwrap();
+        assert_eq!(scan.series.len(), 13, "{}", scan.listing());
+        let gated = scan
+            .series
+            .iter()
+            .position(|s| s.description.starts_with("SmartScore"))
+            .unwrap();
+        let v = dicom::load_series(&tree, Some(&Pick::Index(gated + 1))).unwrap();
+        assert_eq!(v.dims, [16, 16, 5]);
+        assert!((v.spacing[2] - 2.5).abs() < 1e-6, "{:?}", v.spacing);
+    }
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -302,6 +302,13 @@ fn read_header(path: &Path) -> Result<Result<Planes, String>, VolumeError> {
     if !ok || &magic[128..132] != b"DICM" {
         return Ok(Err("not DICOM Part 10".into()));
     }
+    // media directories (also damaged ones, which real exports carry) hold no image
+    let file_name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().to_ascii_uppercase());
+    if file_name.is_some_and(|n| n.starts_with("DICOMDIR")) {
+        return Ok(Err("DICOMDIR".into()));
+    }
     let obj = OpenFileOptions::new()
         .read_until(tags::PIXEL_DATA)
         .open_file(path)
