@@ -295,7 +295,8 @@ impl BenchArgs {
 
 #[derive(Args)]
 struct VolumeArgs {
-    /// A .nrrd/.nhdr file, a raw file (with --raw-dims), `phantom[:N]` or `ct-head`.
+    /// A .nrrd/.nhdr/.nii/.mha file, a DICOM series directory (DIR, or DIR#N / DIR#UID to pick
+    /// one of several series), a raw file (with --raw-dims), `phantom[:N]` or `ct-head`.
     /// Default: the CT head if fetched (cao-xr fetch-ct), else the phantom.
     volume: Option<String>,
     /// Transfer function: a preset (CT: ct-bone, ct-soft-tissue, ct-muscle-bone, ct-lung,
@@ -753,6 +754,13 @@ fn run(cli: Cli) -> Result<()> {
             println!("wrote {} ({frames} frames of {kind})", out.display());
         }
         Cmd::Info { vol } => {
+            if let Some((listing, chosen)) = app::dicom_listing(vol.volume.as_deref())? {
+                print!("{listing}");
+                if !chosen {
+                    println!("pick one as DIR#N or DIR#SERIES_UID for its volume info");
+                    return Ok(());
+                }
+            }
             let (v, tf) = vol.load()?;
             let (lo, hi) = v.value_range();
             let ext = v.extent_mm();

@@ -77,6 +77,9 @@ pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>) -> Result<Volume> 
         }
         Some(path) => {
             let p = Path::new(path);
+            if raw.is_none() && crate::volume::dicom::is_series_spec(path) {
+                return Ok(crate::volume::dicom::load_spec(path)?);
+            }
             if let Some(spec) = raw {
                 return Ok(crate::volume::raw::load(p, spec)?);
             }
@@ -95,14 +98,34 @@ pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>) -> Result<Volume> 
                     "{path}: a raw volume needs --raw-dims X,Y,Z (and --raw-type, --raw-spacing)"
                 ))),
                 _ if !p.exists() => Err(AppError::Usage(format!(
-                    "{path}: no such file (volumes: a .nrrd/.nhdr/.nii/.nii.gz/.mha/.mhd file, raw with --raw-dims, phantom[:N], ct-head)"
+                    "{path}: no such file or directory (volumes: a .nrrd/.nhdr/.nii/.nii.gz/.mha/.mhd file, a DICOM series directory DIR or DIR#N, raw with --raw-dims, phantom[:N], ct-head)"
                 ))),
                 _ => Err(AppError::Usage(format!(
-                    "{path}: unknown volume format (supported: .nrrd, .nhdr, .nii, .nii.gz, .mha, .mhd, raw with --raw-dims)"
+                    "{path}: unknown volume format (supported: .nrrd, .nhdr, .nii, .nii.gz, .mha, .mhd, a DICOM series directory, raw with --raw-dims)"
                 ))),
             }
         }
     }
+}
+
+/// For `info` on a DICOM series argument (`DIR`, `DIR#N`, `DIR#UID`): the listing of the
+/// directory's series, and whether one series is chosen (only one, or picked) so that
+/// `load_volume` will load it. `None` for any other volume argument.
+pub fn dicom_listing(spec: Option<&str>) -> Result<Option<(String, bool)>> {
+    use crate::volume::dicom;
+    let Some(spec) = spec.filter(|s| dicom::is_series_spec(s)) else {
+        return Ok(None);
+    };
+    let (dir, pick) = dicom::parse_spec(spec);
+    let scan = dicom::scan(&dir)?;
+    let chosen = pick.is_some() || scan.series.len() == 1;
+    let head = format!(
+        "{}: {} DICOM series\n{}",
+        dir.display(),
+        scan.series.len(),
+        scan.listing()
+    );
+    Ok(Some((head, chosen)))
 }
 
 /// A volume's classification and LAO, resident on the GPU.

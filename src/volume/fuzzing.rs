@@ -7,7 +7,7 @@
 //! colours and opacities in [0,1]). A broken promise panics, which the fuzzer reports.
 
 use super::transfer::TransferFunction;
-use super::{metaimage, nifti, nrrd, Volume, VolumeError};
+use super::{dicom, metaimage, nifti, nrrd, Volume, VolumeError};
 use std::path::PathBuf;
 
 /// A per-thread scratch file named `name` (in /dev/shm when there is one: no disk traffic).
@@ -47,8 +47,13 @@ fn load_file(
     match &r {
         Ok(v) => check_volume(v),
         Err(e) => {
+            // the file, or for a DICOM series the directory it is in
             let msg = e.to_string();
-            assert!(msg.contains(name), "error does not name the file: {msg}");
+            let dir = path.parent().map(|d| d.display().to_string());
+            assert!(
+                msg.contains(name) || dir.is_some_and(|d| msg.contains(&d)),
+                "error does not name the file: {msg}"
+            );
         }
     }
     r
@@ -82,6 +87,14 @@ pub fn nifti(bytes: &[u8]) -> Result<Volume, VolumeError> {
 /// MetaImage (`.mha`, local or detached data, raw or zlib).
 pub fn metaimage(bytes: &[u8]) -> Result<Volume, VolumeError> {
     load_file("fuzz.mha", bytes, metaimage::load)
+}
+
+/// DICOM: the bytes as the one file of a series directory, loaded as that directory (a
+/// single-slice series is a volume one voxel deep).
+pub fn dicom(bytes: &[u8]) -> Result<Volume, VolumeError> {
+    load_file("fuzz.dcm", bytes, |path| {
+        dicom::load_series(path.parent().unwrap_or(path), None)
+    })
 }
 
 /// A transfer-function JSON file; an accepted one is evaluated over data and normalised ranges.
@@ -158,6 +171,7 @@ mod tests {
         check("nrrd", nrrd);
         check("nifti", nifti);
         check("metaimage", metaimage);
+        check("dicom", dicom);
         check("transfer_json", transfer_json);
         check("pose_stream", pose_stream);
     }

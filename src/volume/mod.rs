@@ -2,6 +2,7 @@
 //! fetched CT head.
 
 pub mod ct_head;
+pub mod dicom;
 #[doc(hidden)]
 pub mod fuzzing;
 pub mod metaimage;

@@ -1,0 +1,1081 @@
+//! DICOM series: a directory of slice files (or enhanced multi-frame objects) read with the
+//! dicom-rs crates and pure-Rust codecs (uncompressed, deflate, RLE lossless, JPEG
+//! baseline/extended/lossless, JPEG 2000).
+//!
+//! Files are grouped by SeriesInstanceUID and sorted along the slice normal
+//! n = row direction x column direction; the slice spacing is measured from
+//! ImagePositionPatient, never taken from SliceThickness when positions exist. Geometry:
+//! i = columns (row direction), j = rows (column direction), k = increasing position along n,
+//! all in LPS, which is DICOM's patient space already. Values are rescaled per slice
+//! (RescaleSlope/RescaleIntercept, e.g. to Hounsfield units).
+//!
+//! Several series in one directory are listed; one is picked with `DIR#N` (1-based index in
+//! the listing) or `DIR#UID` (see [`parse_spec`]).
+
+use super::{checked_size, voxels_from_values, Modality, Volume, VolumeError, Voxels};
+use dicom_dictionary_std::tags;
+use dicom_object::{InMemDicomObject, OpenFileOptions, Tag};
+use glam::{DMat3, DVec3};
+use rayon::prelude::*;
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+/// Which series of a directory to load.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Pick {
+    /// 1-based index in the listing ([`Scan::listing`]).
+    Index(usize),
+    /// SeriesInstanceUID.
+    Uid(String),
+}
+
+/// Splits a VOLUME argument `DIR`, `DIR#N` or `DIR#UID` into the directory and the pick. A
+/// path that exists as written is taken whole (a directory may have '#' in its name).
+pub fn parse_spec(spec: &str) -> (PathBuf, Option<Pick>) {
+    if Path::new(spec).exists() {
+        return (PathBuf::from(spec), None);
+    }
+    match spec.rsplit_once('#') {
+        Some((dir, pick)) if !dir.is_empty() && !pick.is_empty() => {
+            let pick = match pick.parse::<usize>() {
+                Ok(n) => Pick::Index(n),
+                Err(_) => Pick::Uid(pick.to_string()),
+            };
+            (PathBuf::from(dir), Some(pick))
+        }
+        _ => (PathBuf::from(spec), None),
+    }
+}
+
+/// Is `spec` a DICOM series argument: an existing directory, or `DIR#PICK` with an existing
+/// directory?
+pub fn is_series_spec(spec: &str) -> bool {
+    parse_spec(spec).0.is_dir()
+}
+
+/// One image plane: a single-frame file, or one frame of a multi-frame file.
+#[derive(Clone, Debug)]
+struct Slice {
+    path: PathBuf,
+    frame: u32,
+    /// Frames in the file (1 for a classic single-frame image).
+    frames_in_file: u32,
+    rows: u16,
+    cols: u16,
+    samples: u16,
+    photometric: String,
+    bits_allocated: u16,
+    bits_stored: u16,
+    high_bit: u16,
+    signed: bool,
+    /// (row spacing, column spacing) as in PixelSpacing.
+    pixel_spacing: Option<[f64; 2]>,
+    iop: Option<[f64; 6]>,
+    ipp: Option<[f64; 3]>,
+    slice_thickness: Option<f64>,
+    spacing_between: Option<f64>,
+    slope: f64,
+    intercept: f64,
+    instance: Option<i64>,
+    transfer_syntax: String,
+}
+
+/// One series found in a directory.
+#[derive(Clone, Debug)]
+pub struct Series {
+    pub uid: String,
+    pub modality: String,
+    pub description: String,
+    pub number: Option<i64>,
+    slices: Vec<Slice>,
+}
+
+impl Series {
+    /// Image planes (slices or frames) in the series.
+    pub fn slice_count(&self) -> usize {
+        self.slices.len()
+    }
+    /// (rows, columns) of the first slice.
+    pub fn rows_cols(&self) -> (u16, u16) {
+        self.slices
+            .first()
+            .map(|s| (s.rows, s.cols))
+            .unwrap_or((0, 0))
+    }
+}
+
+/// What a directory holds: its image series (sorted by series number, then UID) and the
+/// files that were not DICOM images.
+#[derive(Clone, Debug)]
+pub struct Scan {
+    pub dir: PathBuf,
+    pub series: Vec<Series>,
+    /// Files skipped, with the reason (not DICOM Part 10, DICOMDIR, no image).
+    pub skipped: Vec<(PathBuf, String)>,
+}
+
+impl Scan {
+    /// The numbered series list, one line each, plus a line on skipped files.
+    pub fn listing(&self) -> String {
+        let mut s = String::new();
+        for (i, se) in self.series.iter().enumerate() {
+            let (r, c) = se.rows_cols();
+            let _ = writeln!(
+                s,
+                "  #{:<3} {:<4} {:>5} slices  {} x {}  {}  {}",
+                i + 1,
+                if se.modality.is_empty() {
+                    "?"
+                } else {
+                    &se.modality
+                },
+                se.slice_count(),
+                r,
+                c,
+                if se.description.is_empty() {
+                    "(no description)"
+                } else {
+                    &se.description
+                },
+                se.uid
+            );
+        }
+        if !self.skipped.is_empty() {
+            let mut why: BTreeMap<&str, usize> = BTreeMap::new();
+            for (_, r) in &self.skipped {
+                *why.entry(r.as_str()).or_default() += 1;
+            }
+            let parts: Vec<String> = why.iter().map(|(r, n)| format!("{n} {r}")).collect();
+            let _ = writeln!(
+                s,
+                "  skipped {} file(s): {}",
+                self.skipped.len(),
+                parts.join(", ")
+            );
+        }
+        s
+    }
+
+    /// The series `pick` names, or the only one.
+    pub fn choose(&self, pick: Option<&Pick>) -> Result<&Series, VolumeError> {
+        let how = || {
+            format!(
+                "pick one as {d}#N (N = 1..{n} in this list) or {d}#SERIES_UID",
+                d = self.dir.display(),
+                n = self.series.len()
+            )
+        };
+        match pick {
+            None if self.series.len() == 1 => Ok(&self.series[0]),
+            None => Err(VolumeError::format(
+                &self.dir,
+                format!(
+                    "{} DICOM series in this directory:\n{}{}",
+                    self.series.len(),
+                    self.listing(),
+                    how()
+                ),
+            )),
+            Some(Pick::Index(n)) => self.series.get(n.wrapping_sub(1)).ok_or_else(|| {
+                VolumeError::format(
+                    &self.dir,
+                    format!(
+                        "no series #{n}: the directory holds {}:\n{}{}",
+                        self.series.len(),
+                        self.listing(),
+                        how()
+                    ),
+                )
+            }),
+            Some(Pick::Uid(u)) => self.series.iter().find(|s| &s.uid == u).ok_or_else(|| {
+                VolumeError::format(
+                    &self.dir,
+                    format!(
+                        "no series with SeriesInstanceUID {u}:\n{}{}",
+                        self.listing(),
+                        how()
+                    ),
+                )
+            }),
+        }
+    }
+}
+
+const DICOMDIR_SOP_CLASS: &str = "1.2.840.10008.1.3.10";
+/// Directory levels scanned below the series directory (PACS exports nest a few deep).
+const MAX_DEPTH: usize = 16;
+
+/// Reads the headers of every file under `dir` (recursively) and groups the images by series.
+/// Errors when the directory has no DICOM image at all, or a file that claims to be DICOM
+/// (the "DICM" magic) has a header that cannot be read.
+pub fn scan(dir: &Path) -> Result<Scan, VolumeError> {
+    if !dir.is_dir() {
+        return Err(VolumeError::format(dir, "not a directory"));
+    }
+    let mut files = Vec::new();
+    collect_files(dir, 0, &mut files)?;
+    files.sort();
+    let results: Vec<Result<Result<Planes, String>, VolumeError>> =
+        files.par_iter().map(|p| read_header(p)).collect();
+    let mut by_uid: BTreeMap<String, Series> = BTreeMap::new();
+    let mut skipped = Vec::new();
+    for (path, r) in files.iter().zip(results) {
+        match r? {
+            Err(reason) => skipped.push((path.clone(), reason)),
+            Ok(planes) => {
+                for (uid, modality, description, number, slice) in planes {
+                    by_uid
+                        .entry(uid.clone())
+                        .or_insert_with(|| Series {
+                            uid,
+                            modality,
+                            description,
+                            number,
+                            slices: Vec::new(),
+                        })
+                        .slices
+                        .push(slice);
+                }
+            }
+        }
+    }
+    if by_uid.is_empty() {
+        return Err(VolumeError::format(
+            dir,
+            format!(
+                "no DICOM image files in this directory ({} file(s) looked at{})",
+                files.len(),
+                if files.is_empty() {
+                    String::new()
+                } else {
+                    format!(
+                        ", none a DICOM Part 10 image: e.g. {}: {}",
+                        skipped[0].0.display(),
+                        skipped[0].1
+                    )
+                }
+            ),
+        ));
+    }
+    let mut series: Vec<Series> = by_uid.into_values().collect();
+    series.sort_by(|a, b| {
+        (a.number.is_none(), a.number, &a.uid).cmp(&(b.number.is_none(), b.number, &b.uid))
+    });
+    Ok(Scan {
+        dir: dir.to_path_buf(),
+        series,
+        skipped,
+    })
+}
+
+fn collect_files(dir: &Path, depth: usize, out: &mut Vec<PathBuf>) -> Result<(), VolumeError> {
+    let rd = std::fs::read_dir(dir).map_err(|e| VolumeError::io(dir, e))?;
+    for entry in rd {
+        let entry = entry.map_err(|e| VolumeError::io(dir, e))?;
+        let p = entry.path();
+        // follows symlinks; the depth limit stops link cycles
+        if p.is_dir() {
+            if depth < MAX_DEPTH {
+                collect_files(&p, depth + 1, out)?;
+            }
+        } else if p.is_file() {
+            out.push(p);
+        }
+    }
+    Ok(())
+}
+
+/// A file's image planes, each with its series keys (UID, modality, description, number).
+type Planes = Vec<(String, String, String, Option<i64>, Slice)>;
+/// A file's format (its first plane) and where each of its frames goes in the volume.
+type PlaneSlots<'a> = (&'a Slice, Vec<(u32, &'a mut [u16])>);
+
+/// The image planes of one file with their series keys; `Ok(Err(reason))` for a file that is
+/// not a DICOM image (skipped); `Err` for a DICOM file whose header is broken.
+fn read_header(path: &Path) -> Result<Result<Planes, String>, VolumeError> {
+    use std::io::Read;
+    let mut magic = [0u8; 132];
+    let ok = std::fs::File::open(path)
+        .and_then(|mut f| f.read_exact(&mut magic))
+        .is_ok();
+    if !ok || &magic[128..132] != b"DICM" {
+        return Ok(Err("not DICOM Part 10".into()));
+    }
+    // media directories (also damaged ones, which real exports carry) hold no image
+    let file_name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().to_ascii_uppercase());
+    if file_name.is_some_and(|n| n.starts_with("DICOMDIR")) {
+        return Ok(Err("DICOMDIR".into()));
+    }
+    let obj = OpenFileOptions::new()
+        .read_until(tags::PIXEL_DATA)
+        .open_file(path)
+        .map_err(|e| VolumeError::format(path, format!("cannot read the DICOM header: {e}")))?;
+    if obj
+        .meta()
+        .media_storage_sop_class_uid()
+        .trim_end_matches('\0')
+        == DICOMDIR_SOP_CLASS
+    {
+        return Ok(Err("DICOMDIR".into()));
+    }
+    let (Some(rows), Some(cols)) = (int(&obj, tags::ROWS), int(&obj, tags::COLUMNS)) else {
+        return Ok(Err("without an image (no Rows/Columns)".into()));
+    };
+    let fmt = |m: String| VolumeError::format(path, m);
+    let rows = u16::try_from(rows).map_err(|_| fmt(format!("invalid Rows {rows}")))?;
+    let cols = u16::try_from(cols).map_err(|_| fmt(format!("invalid Columns {cols}")))?;
+    let uid = text(&obj, tags::SERIES_INSTANCE_UID).unwrap_or_default();
+    let modality = text(&obj, tags::MODALITY).unwrap_or_default();
+    let description = text(&obj, tags::SERIES_DESCRIPTION).unwrap_or_default();
+    let number = int(&obj, tags::SERIES_NUMBER);
+    let frames = match int(&obj, tags::NUMBER_OF_FRAMES) {
+        None => 1,
+        Some(n) if n >= 1 && n <= u32::MAX as i64 => n as u32,
+        Some(n) => return Err(fmt(format!("invalid NumberOfFrames {n}"))),
+    };
+    let u16_of = |tag: Tag, name: &str, default: Option<u16>| -> Result<u16, VolumeError> {
+        match int(&obj, tag) {
+            Some(v) => u16::try_from(v).map_err(|_| fmt(format!("invalid {name} {v}"))),
+            None => default.ok_or_else(|| fmt(format!("no {name}"))),
+        }
+    };
+    let bits_allocated = u16_of(tags::BITS_ALLOCATED, "BitsAllocated", None)?;
+    let bits_stored = u16_of(tags::BITS_STORED, "BitsStored", Some(bits_allocated))?;
+    let high_bit = u16_of(
+        tags::HIGH_BIT,
+        "HighBit",
+        Some(bits_stored.saturating_sub(1)),
+    )?;
+    let base = Slice {
+        path: path.to_path_buf(),
+        frame: 0,
+        frames_in_file: frames,
+        rows,
+        cols,
+        samples: u16_of(tags::SAMPLES_PER_PIXEL, "SamplesPerPixel", Some(1))?,
+        photometric: text(&obj, tags::PHOTOMETRIC_INTERPRETATION).unwrap_or_default(),
+        bits_allocated,
+        bits_stored,
+        high_bit,
+        signed: int(&obj, tags::PIXEL_REPRESENTATION) == Some(1),
+        pixel_spacing: floats::<2>(&obj, tags::PIXEL_SPACING)
+            .or_else(|| floats::<2>(&obj, tags::IMAGER_PIXEL_SPACING)),
+        iop: floats::<6>(&obj, tags::IMAGE_ORIENTATION_PATIENT),
+        ipp: floats::<3>(&obj, tags::IMAGE_POSITION_PATIENT),
+        slice_thickness: floats::<1>(&obj, tags::SLICE_THICKNESS).map(|v| v[0]),
+        spacing_between: floats::<1>(&obj, tags::SPACING_BETWEEN_SLICES).map(|v| v[0]),
+        slope: floats::<1>(&obj, tags::RESCALE_SLOPE).map_or(1.0, |v| v[0]),
+        intercept: floats::<1>(&obj, tags::RESCALE_INTERCEPT).map_or(0.0, |v| v[0]),
+        instance: int(&obj, tags::INSTANCE_NUMBER),
+        transfer_syntax: obj
+            .meta()
+            .transfer_syntax()
+            .trim_end_matches('\0')
+            .to_string(),
+    };
+    let key = |s: Slice| {
+        (
+            uid.clone(),
+            modality.clone(),
+            description.clone(),
+            number,
+            s,
+        )
+    };
+    if frames == 1 {
+        return Ok(Ok(vec![key(base)]));
+    }
+    // Enhanced multi-frame: geometry and rescale per frame from the functional groups
+    // (per-frame first, then shared).
+    let per_frame = obj
+        .get(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE)
+        .and_then(|e| e.items())
+        .ok_or_else(|| {
+            VolumeError::unsupported(
+                path,
+                format!(
+                    "a multi-frame object ({frames} frames) without per-frame functional groups \
+                     (only enhanced CT/MR multi-frame objects place their frames in space)"
+                ),
+            )
+        })?;
+    if per_frame.len() != frames as usize {
+        return Err(fmt(format!(
+            "NumberOfFrames is {frames} but the per-frame functional groups list {}",
+            per_frame.len()
+        )));
+    }
+    let shared = obj
+        .get(tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE)
+        .and_then(|e| e.items())
+        .and_then(|i| i.first());
+    let mut planes = Vec::with_capacity(frames as usize);
+    for (f, item) in per_frame.iter().enumerate() {
+        let group = |seq: Tag, tag: Tag| -> Option<Vec<f64>> {
+            [Some(item), shared].into_iter().flatten().find_map(|g| {
+                let inner = g.get(seq)?.items()?.first()?;
+                inner.get(tag)?.to_multi_float64().ok()
+            })
+        };
+        let arr = |v: Option<Vec<f64>>| -> Option<Vec<f64>> {
+            v.filter(|v| v.iter().all(|x| x.is_finite()))
+        };
+        let mut s = base.clone();
+        s.frame = f as u32;
+        if let Some(v) = arr(group(
+            tags::PLANE_POSITION_SEQUENCE,
+            tags::IMAGE_POSITION_PATIENT,
+        ))
+        .filter(|v| v.len() >= 3)
+        {
+            s.ipp = Some([v[0], v[1], v[2]]);
+        }
+        if let Some(v) = arr(group(
+            tags::PLANE_ORIENTATION_SEQUENCE,
+            tags::IMAGE_ORIENTATION_PATIENT,
+        ))
+        .filter(|v| v.len() >= 6)
+        {
+            s.iop = Some([v[0], v[1], v[2], v[3], v[4], v[5]]);
+        }
+        if let Some(v) =
+            arr(group(tags::PIXEL_MEASURES_SEQUENCE, tags::PIXEL_SPACING)).filter(|v| v.len() >= 2)
+        {
+            s.pixel_spacing = Some([v[0], v[1]]);
+        }
+        if let Some(v) = arr(group(tags::PIXEL_MEASURES_SEQUENCE, tags::SLICE_THICKNESS)) {
+            s.slice_thickness = v.first().copied();
+        }
+        if let Some(v) = arr(group(
+            tags::PIXEL_MEASURES_SEQUENCE,
+            tags::SPACING_BETWEEN_SLICES,
+        )) {
+            s.spacing_between = v.first().copied();
+        }
+        if let Some(v) = arr(group(
+            tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
+            tags::RESCALE_SLOPE,
+        )) {
+            s.slope = v.first().copied().unwrap_or(1.0);
+        }
+        if let Some(v) = arr(group(
+            tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
+            tags::RESCALE_INTERCEPT,
+        )) {
+            s.intercept = v.first().copied().unwrap_or(0.0);
+        }
+        planes.push(key(s));
+    }
+    Ok(Ok(planes))
+}
+
+fn text(obj: &InMemDicomObject, tag: Tag) -> Option<String> {
+    let s = obj.get(tag)?.to_str().ok()?;
+    let s = s.trim_matches(|c: char| c.is_whitespace() || c == '\0');
+    Some(s.to_string())
+}
+
+fn int(obj: &InMemDicomObject, tag: Tag) -> Option<i64> {
+    obj.get(tag)?.to_int::<i64>().ok()
+}
+
+/// The first `N` numbers of a numeric element, if it has at least `N` finite ones.
+fn floats<const N: usize>(obj: &InMemDicomObject, tag: Tag) -> Option<[f64; N]> {
+    let v = obj.get(tag)?.to_multi_float64().ok()?;
+    if v.len() < N || v[..N].iter().any(|x| !x.is_finite()) {
+        return None;
+    }
+    let mut a = [0.0; N];
+    a.copy_from_slice(&v[..N]);
+    Some(a)
+}
+
+/// Loads a DICOM series directory. With several series in it, `pick` chooses one (else the
+/// error lists them).
+pub fn load_series(dir: &Path, pick: Option<&Pick>) -> Result<Volume, VolumeError> {
+    let scan = scan(dir)?;
+    let series = scan.choose(pick)?;
+    load_chosen(dir, series)
+}
+
+/// Loads the DICOM series that `spec` (`DIR`, `DIR#N`, `DIR#UID`) names.
+pub fn load_spec(spec: &str) -> Result<Volume, VolumeError> {
+    let (dir, pick) = parse_spec(spec);
+    load_series(&dir, pick.as_ref())
+}
+
+/// Geometry of a sorted series.
+struct Geometry {
+    /// Slices in k order.
+    order: Vec<usize>,
+    spacing: [f64; 3],
+    directions: DMat3,
+    origin: DVec3,
+}
+
+fn name_of(p: &Path) -> String {
+    p.display().to_string()
+}
+
+/// Checks that every slice shares the first one's pixel format and plane geometry, sorts them
+/// along the slice normal and measures the spacing.
+fn geometry(series: &Series) -> Result<Geometry, VolumeError> {
+    let sl = &series.slices;
+    let first = &sl[0];
+    let p0 = &first.path;
+    // pixel format first: a colour series fails here with the clearest message
+    if first.samples != 1 || first.photometric.starts_with("PALETTE") {
+        return Err(VolumeError::unsupported(
+            p0,
+            format!(
+                "{} samples per pixel ({}): only greyscale images (1 sample per pixel, \
+                 MONOCHROME1/2) make a volume",
+                first.samples,
+                if first.photometric.is_empty() {
+                    "no PhotometricInterpretation"
+                } else {
+                    &first.photometric
+                }
+            ),
+        ));
+    }
+    if !matches!(first.bits_allocated, 8 | 16) {
+        return Err(VolumeError::unsupported(
+            p0,
+            format!(
+                "BitsAllocated {}: only 8- and 16-bit samples are read",
+                first.bits_allocated
+            ),
+        ));
+    }
+    if first.bits_stored == 0
+        || first.bits_stored > first.bits_allocated
+        || first.high_bit >= first.bits_allocated
+        || first.high_bit + 1 < first.bits_stored
+    {
+        return Err(VolumeError::format(
+            p0,
+            format!(
+                "inconsistent BitsAllocated {} / BitsStored {} / HighBit {}",
+                first.bits_allocated, first.bits_stored, first.high_bit
+            ),
+        ));
+    }
+    let clash = |s: &Slice, what: &str, a: String, b: String| {
+        VolumeError::format(
+            &s.path,
+            format!(
+                "mixed series {}: {what} is {b} here but {a} in {} (one series must share one \
+                 geometry and pixel format)",
+                series.uid,
+                name_of(p0)
+            ),
+        )
+    };
+    let close = |a: &[f64], b: &[f64], tol: f64| a.iter().zip(b).all(|(x, y)| (x - y).abs() <= tol);
+    for s in &sl[1..] {
+        if (s.rows, s.cols) != (first.rows, first.cols) {
+            return Err(clash(
+                s,
+                "Rows x Columns",
+                format!("{} x {}", first.rows, first.cols),
+                format!("{} x {}", s.rows, s.cols),
+            ));
+        }
+        if (
+            s.samples,
+            s.bits_allocated,
+            s.bits_stored,
+            s.high_bit,
+            s.signed,
+        ) != (
+            first.samples,
+            first.bits_allocated,
+            first.bits_stored,
+            first.high_bit,
+            first.signed,
+        ) {
+            let f = |x: &Slice| {
+                format!(
+                    "{} sample(s) of {}/{} bits (high bit {}, {})",
+                    x.samples,
+                    x.bits_stored,
+                    x.bits_allocated,
+                    x.high_bit,
+                    if x.signed { "signed" } else { "unsigned" }
+                )
+            };
+            return Err(clash(s, "the pixel format", f(first), f(s)));
+        }
+        let ps = |x: &Slice| x.pixel_spacing.map_or("none".into(), |v| format!("{v:?}"));
+        match (first.pixel_spacing, s.pixel_spacing) {
+            (Some(a), Some(b)) if close(&a, &b, 1e-4 * a[0].abs().max(1.0)) => {}
+            (None, None) => {}
+            _ => return Err(clash(s, "PixelSpacing", ps(first), ps(s))),
+        }
+        let io = |x: &Slice| x.iop.map_or("none".into(), |v| format!("{v:?}"));
+        match (first.iop, s.iop) {
+            (Some(a), Some(b)) if close(&a, &b, 1e-4) => {}
+            (None, None) => {}
+            _ => return Err(clash(s, "ImageOrientationPatient", io(first), io(s))),
+        }
+        if s.ipp.is_some() != first.ipp.is_some() {
+            return Err(clash(
+                s,
+                "ImagePositionPatient",
+                if first.ipp.is_some() {
+                    "present"
+                } else {
+                    "absent"
+                }
+                .into(),
+                if s.ipp.is_some() { "present" } else { "absent" }.into(),
+            ));
+        }
+    }
+    let [row_sp, col_sp] = match first.pixel_spacing {
+        Some(v) if v[0] > 0.0 && v[1] > 0.0 => v,
+        Some(v) => {
+            return Err(VolumeError::format(
+                p0,
+                format!("PixelSpacing {v:?} is not positive"),
+            ))
+        }
+        // no spacing at all (e.g. secondary capture): unit pixels
+        None => [1.0, 1.0],
+    };
+    let single_spacing = || {
+        [first.spacing_between, first.slice_thickness]
+            .into_iter()
+            .flatten()
+            .find(|v| *v > 0.0)
+            .unwrap_or(1.0)
+    };
+    let (row_dir, col_dir) = match first.iop {
+        Some(v) => {
+            let r = DVec3::new(v[0], v[1], v[2]);
+            let c = DVec3::new(v[3], v[4], v[5]);
+            if r.length() < 0.5 || c.length() < 0.5 || r.normalize().dot(c.normalize()).abs() > 1e-2
+            {
+                return Err(VolumeError::format(
+                    p0,
+                    format!("ImageOrientationPatient {v:?} is not two orthogonal unit vectors"),
+                ));
+            }
+            let r = r.normalize();
+            // re-orthogonalise the rounding in the file away
+            let c = (c - r * r.dot(c)).normalize();
+            (r, c)
+        }
+        None if first.ipp.is_none() => (DVec3::X, DVec3::Y),
+        None => {
+            return Err(VolumeError::format(
+                p0,
+                "ImagePositionPatient without ImageOrientationPatient: cannot place the slices",
+            ))
+        }
+    };
+    let normal = row_dir.cross(col_dir);
+    let n = sl.len();
+    let Some(_) = first.ipp else {
+        // No positions anywhere: stack by InstanceNumber, spacing from the header.
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by_key(|&i| (sl[i].instance, sl[i].frame));
+        for w in order.windows(2) {
+            let (a, b) = (&sl[w[0]], &sl[w[1]]);
+            if n > 1 && (a.instance.is_none() || (a.instance == b.instance && a.frame == b.frame)) {
+                return Err(VolumeError::format(
+                    &b.path,
+                    format!(
+                        "no ImagePositionPatient and no distinct InstanceNumber (clashes with \
+                         {}): cannot order the slices",
+                        name_of(&a.path)
+                    ),
+                ));
+            }
+        }
+        return Ok(Geometry {
+            order,
+            spacing: [col_sp, row_sp, single_spacing()],
+            directions: DMat3::from_cols(row_dir, col_dir, normal),
+            origin: DVec3::ZERO,
+        });
+    };
+    let pos = |i: usize| DVec3::from(sl[i].ipp.unwrap_or_default());
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by(|&a, &b| pos(a).dot(normal).total_cmp(&pos(b).dot(normal)));
+    let d: Vec<f64> = order
+        .windows(2)
+        .map(|w| (pos(w[1]) - pos(w[0])).dot(normal))
+        .collect();
+    let at = |k: usize| {
+        format!(
+            "{}{}",
+            name_of(&sl[order[k]].path),
+            frame_tag(&sl[order[k]])
+        )
+    };
+    // two planes at one position: several acquisitions/echoes/phases in one series
+    let min_pix = row_sp.min(col_sp);
+    for (k, &step) in d.iter().enumerate() {
+        if step.abs() < 1e-3 * min_pix.max(0.1) {
+            return Err(VolumeError::format(
+                &sl[order[k + 1]].path,
+                format!(
+                    "mixed series {}: {} and {} lie at the same position ({:.3} mm along the \
+                     slice normal): several acquisitions, echoes or time points in one series \
+                     cannot make one volume",
+                    series.uid,
+                    at(k + 1),
+                    at(k),
+                    pos(order[k]).dot(normal)
+                ),
+            ));
+        }
+    }
+    let origin = pos(order[0]);
+    if n == 1 {
+        return Ok(Geometry {
+            order,
+            spacing: [col_sp, row_sp, single_spacing()],
+            directions: DMat3::from_cols(row_dir, col_dir, normal),
+            origin,
+        });
+    }
+    let mut sorted = d.clone();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted[sorted.len() / 2];
+    // positions are written with a few decimals: allow rounding, not a missing slice
+    let tol = 0.05 * median + 0.01;
+    for (k, &step) in d.iter().enumerate() {
+        if (step - median).abs() > tol {
+            return Err(VolumeError::format(
+                &sl[order[k + 1]].path,
+                format!(
+                    "slices are not evenly spaced: {:.4} mm from {} to {}, where the usual step \
+                     is {:.4} mm (a missing slice, or slices from different stacks?)",
+                    step,
+                    at(k),
+                    at(k + 1),
+                    median
+                ),
+            ));
+        }
+    }
+    // The mean step over the whole stack; it leaves the normal only under gantry tilt, where
+    // k follows the tilted stack (a sheared grid) so the anatomy keeps its true shape.
+    let step = (pos(order[n - 1]) - origin) / (n - 1) as f64;
+    for (k, &i) in order.iter().enumerate() {
+        let off = pos(i) - (origin + step * k as f64);
+        if off.length() > tol {
+            return Err(VolumeError::format(
+                &sl[i].path,
+                format!(
+                    "slice positions do not lie on one line: {} is {:.3} mm off the line \
+                     through the first and last slice",
+                    at(k),
+                    off.length()
+                ),
+            ));
+        }
+    }
+    let along = step.dot(normal);
+    let lateral = (step - normal * along).length();
+    let (k_dir, k_sp) = if lateral <= 1e-3 * along {
+        (normal, along)
+    } else {
+        (step.normalize(), step.length())
+    };
+    Ok(Geometry {
+        order,
+        spacing: [col_sp, row_sp, k_sp],
+        directions: DMat3::from_cols(row_dir, col_dir, k_dir),
+        origin,
+    })
+}
+
+fn frame_tag(s: &Slice) -> String {
+    if s.frames_in_file > 1 {
+        format!(" (frame {})", s.frame + 1)
+    } else {
+        String::new()
+    }
+}
+
+/// Decoded stored values of one plane as raw bit patterns (masked to BitsStored, shifted from
+/// HighBit; sign extension happens in [`to_voxels`]).
+fn decode_planes(
+    path: &Path,
+    frames: Vec<(u32, &mut [u16])>,
+    fmt: &Slice,
+) -> Result<(), VolumeError> {
+    use dicom_pixeldata::PixelDecoder;
+    let obj = dicom_object::open_file(path)
+        .map_err(|e| VolumeError::format(path, format!("cannot read the DICOM file: {e}")))?;
+    check_transfer_syntax(path, obj.meta().transfer_syntax())?;
+    let px_count = fmt.rows as usize * fmt.cols as usize;
+    let bytes = (fmt.bits_allocated / 8) as usize;
+    let pixel_data = obj
+        .get(tags::PIXEL_DATA)
+        .ok_or_else(|| VolumeError::format(path, "no pixel data (PixelData element missing)"))?;
+    // native data: the header must not promise more pixels than the element holds
+    if let Some(p) = pixel_data.value().primitive() {
+        let have = p.calculate_byte_len() as u64;
+        let need = px_count as u64 * bytes as u64 * fmt.frames_in_file as u64;
+        if have < need {
+            return Err(VolumeError::format(
+                path,
+                format!(
+                    "pixel data holds {have} bytes; {} frame(s) of {} x {} pixels of {} bits \
+                     need {need} (Rows/Columns/BitsAllocated do not match the data)",
+                    fmt.frames_in_file, fmt.cols, fmt.rows, fmt.bits_allocated
+                ),
+            ));
+        }
+    }
+    let shift = fmt.high_bit + 1 - fmt.bits_stored;
+    let mask: u32 = if fmt.bits_stored >= 16 {
+        0xffff
+    } else {
+        (1u32 << fmt.bits_stored) - 1
+    };
+    for (frame, out) in frames {
+        let decoded = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            obj.decode_pixel_data_frame(frame)
+        }))
+        .map_err(|_| VolumeError::format(path, "the pixel data decoder failed (corrupt data?)"))?
+        .map_err(|e| {
+            VolumeError::format(
+                path,
+                format!(
+                    "cannot decode the pixel data{}: {e}",
+                    frame_tag_n(fmt, frame)
+                ),
+            )
+        })?;
+        let data = decoded.data();
+        let need = px_count * bytes;
+        if data.len() < need {
+            return Err(VolumeError::format(
+                path,
+                format!(
+                    "pixel data{} holds {} bytes; {} x {} pixels of {} bits need {}",
+                    frame_tag_n(fmt, frame),
+                    data.len(),
+                    fmt.cols,
+                    fmt.rows,
+                    fmt.bits_allocated,
+                    need
+                ),
+            ));
+        }
+        match bytes {
+            1 => {
+                for (o, &b) in out.iter_mut().zip(&data[..need]) {
+                    *o = ((b as u32 >> shift) & mask) as u16;
+                }
+            }
+            _ => {
+                for (o, c) in out.iter_mut().zip(data[..need].chunks_exact(2)) {
+                    let v = u16::from_ne_bytes([c[0], c[1]]) as u32;
+                    *o = ((v >> shift) & mask) as u16;
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Refuses transfer syntaxes that no compiled-in decoder reads (JPEG-LS, JPEG XL, unknown).
+fn check_transfer_syntax(path: &Path, uid: &str) -> Result<(), VolumeError> {
+    use dicom_encoding::transfer_syntax::TransferSyntaxIndex;
+    use dicom_transfer_syntax_registry::TransferSyntaxRegistry;
+    let uid = uid.trim_end_matches('\0');
+    match TransferSyntaxRegistry.get(uid) {
+        None => Err(VolumeError::unsupported(
+            path,
+            format!("unknown transfer syntax {uid}"),
+        )),
+        Some(ts) if !ts.can_decode_all() => Err(VolumeError::unsupported(
+            path,
+            format!(
+                "transfer syntax {uid} ({}) has no pure-Rust decoder here; convert the series \
+                 to an uncompressed, RLE, JPEG or JPEG 2000 syntax first (e.g. with dcmtk's \
+                 dcmdjpls or gdcmconv --raw)",
+                ts.name()
+            ),
+        )),
+        Some(_) => Ok(()),
+    }
+}
+
+fn frame_tag_n(s: &Slice, frame: u32) -> String {
+    if s.frames_in_file > 1 {
+        format!(" (frame {})", frame + 1)
+    } else {
+        String::new()
+    }
+}
+
+/// Stored values -> voxel values: sign extension from `bits_stored`, then `v * slope +
+/// intercept` per plane (`rescale[k]` for plane k), typed by [`voxels_from_values`] (int16 or
+/// uint16 when every value is an integer that fits, float32 otherwise).
+fn to_voxels(
+    path: &Path,
+    raw: Vec<u16>,
+    dims: [usize; 3],
+    bits_stored: u16,
+    signed: bool,
+    rescale: &[(f64, f64)],
+) -> Result<Voxels, VolumeError> {
+    let sign_bit = 1u32 << (bits_stored.clamp(1, 16) - 1);
+    let stored = move |r: u16| -> i32 {
+        let r = r as u32;
+        if signed && r & sign_bit != 0 {
+            r as i32 - (sign_bit << 1) as i32
+        } else {
+            r as i32
+        }
+    };
+    let plane = (dims[0] * dims[1]).max(1);
+    voxels_from_values(path, dims, |n| {
+        let (slope, inter) = rescale[n / plane];
+        stored(raw[n]) as f64 * slope + inter
+    })
+}
+
+/// Loads one scanned series: geometry, then every plane decoded into its place.
+fn load_chosen(dir: &Path, series: &Series) -> Result<Volume, VolumeError> {
+    let g = geometry(series)?;
+    let sl = &series.slices;
+    let first = &sl[0];
+    let dims = [first.cols as u64, first.rows as u64, sl.len() as u64];
+    let (count, _) = checked_size(dir, dims, 2)?;
+    for s in sl {
+        if !(s.slope.is_finite() && s.intercept.is_finite() && s.slope != 0.0) {
+            return Err(VolumeError::format(
+                &s.path,
+                format!(
+                    "invalid RescaleSlope {} / RescaleIntercept {}",
+                    s.slope, s.intercept
+                ),
+            ));
+        }
+    }
+    let mut checked = std::collections::BTreeSet::new();
+    for s in sl {
+        if checked.insert(s.transfer_syntax.as_str()) {
+            check_transfer_syntax(&s.path, &s.transfer_syntax)?;
+        }
+    }
+    let plane = first.cols as usize * first.rows as usize;
+    let mut raw = vec![0u16; count];
+    // each plane's slot, grouped by file so a multi-frame file is opened once
+    let mut by_file: BTreeMap<&Path, PlaneSlots> = BTreeMap::new();
+    for (k, chunk) in raw.chunks_mut(plane).enumerate() {
+        let s = &sl[g.order[k]];
+        by_file
+            .entry(&s.path)
+            .or_insert_with(|| (s, Vec::new()))
+            .1
+            .push((s.frame, chunk));
+    }
+    by_file
+        .into_par_iter()
+        .try_for_each(|(path, (s, frames))| decode_planes(path, frames, s))?;
+    let rescale: Vec<(f64, f64)> = g
+        .order
+        .iter()
+        .map(|&i| (sl[i].slope, sl[i].intercept))
+        .collect();
+    let voxels = to_voxels(
+        dir,
+        raw,
+        dims.map(|d| d as usize),
+        first.bits_stored,
+        first.signed,
+        &rescale,
+    )?;
+    let modality = match series.modality.as_str() {
+        "CT" => Modality::Ct,
+        "MR" => Modality::Mr,
+        _ => Modality::Unknown,
+    };
+    let base = dir
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "dicom".into());
+    let name = if series.description.is_empty() {
+        base
+    } else {
+        format!("{base} ({})", series.description)
+    };
+    Ok(Volume {
+        name,
+        dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize],
+        spacing: g.spacing,
+        directions: g.directions,
+        origin: g.origin,
+        modality,
+        voxels,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn picks_parse_from_the_volume_argument() {
+        assert_eq!(
+            parse_spec("/no/such/dir#3"),
+            (PathBuf::from("/no/such/dir"), Some(Pick::Index(3)))
+        );
+        assert_eq!(
+            parse_spec("/no/such/dir#1.2.840.99"),
+            (
+                PathBuf::from("/no/such/dir"),
+                Some(Pick::Uid("1.2.840.99".into()))
+            )
+        );
+        assert_eq!(
+            parse_spec("/no/such/dir"),
+            (PathBuf::from("/no/such/dir"), None)
+        );
+        assert_eq!(
+            parse_spec("/no/such/dir#"),
+            (PathBuf::from("/no/such/dir#"), None)
+        );
+        // an existing path with '#' in its name is taken whole
+        let s = super::super::test_scratch::Scratch::new("dicom#pick");
+        let whole = s.0.to_str().unwrap().to_string();
+        assert_eq!(parse_spec(&whole), (s.0.clone(), None));
+    }
+
+    #[test]
+    fn stored_values_are_sign_extended_and_rescaled_per_slice() {
+        let p = Path::new("x");
+        // 12-bit signed: 0xfff is -1, 0x800 is -2048
+        let v = to_voxels(
+            p,
+            vec![0xfff, 0x800, 5, 7],
+            [2, 1, 2],
+            12,
+            true,
+            &[(1.0, 0.0), (2.0, -3.0)],
+        )
+        .unwrap();
+        assert_eq!(v, Voxels::I16(vec![-1, -2048, 7, 11]));
+        // beyond int16 but non-negative: uint16
+        let v = to_voxels(p, vec![60000, 1], [2, 1, 1], 16, false, &[(1.0, 10.0)]).unwrap();
+        assert_eq!(v, Voxels::U16(vec![60010, 11]));
+        // non-integral after rescale (e.g. PET, scaled MR): float32
+        let v = to_voxels(p, vec![1, 2], [2, 1, 1], 16, false, &[(0.5, 0.0)]).unwrap();
+        assert_eq!(v, Voxels::F32(vec![0.5, 1.0]));
+        let v = to_voxels(p, vec![65535, 0], [2, 1, 1], 16, false, &[(2.0, 0.0)]).unwrap();
+        assert_eq!(v, Voxels::F32(vec![131070.0, 0.0]));
+    }
+}
