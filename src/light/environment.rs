@@ -656,12 +656,12 @@ mod tests {
         let env = Environment::from_spec("constant:0.25, 1.5,3").unwrap();
         for m in rotations() {
             let l = env.project(m);
-            for ch in 0..3 {
-                let want = c[ch] as f64 * SQRT_4PI;
-                let got = l.coeffs[ch][0] as f64;
+            for (lc, c) in l.coeffs.iter().zip(c) {
+                let want = c as f64 * SQRT_4PI;
+                let got = lc[0] as f64;
                 assert!((got - want).abs() <= 1e-6 * want, "{got} vs {want}");
-                for k in 1..COEFFS_MAX {
-                    assert!((l.coeffs[ch][k] as f64).abs() <= 1e-6 * want, "k = {k}");
+                for (k, v) in lc.iter().enumerate().skip(1) {
+                    assert!((*v as f64).abs() <= 1e-6 * want, "k = {k}");
                 }
             }
             // An empty volume: V_k = Y_0 delta_k0, so E / albedo = c exactly.
@@ -721,10 +721,10 @@ mod tests {
         for m in rotations() {
             let l = env.project(m);
             let y = sh::eval(m * dir);
-            for ch in 0..3 {
-                for k in 0..COEFFS_MAX {
-                    let want = hot[ch] as f64 * omega * y[k];
-                    let got = l.coeffs[ch][k] as f64;
+            for (lc, hot) in l.coeffs.iter().zip(hot) {
+                for (k, (got, y)) in lc.iter().zip(y).enumerate() {
+                    let want = hot as f64 * omega * y;
+                    let got = *got as f64;
                     assert!((got - want).abs() < 1e-6, "k = {k}: {got} vs {want}");
                 }
             }
@@ -738,9 +738,9 @@ mod tests {
         let m = rotations()[4];
         let l = env.project(m);
         let y = sh::eval(m * dir);
-        for k in 0..COEFFS_MAX {
-            let want = hot[0] as f64 * omega * y[k];
-            assert!((l.coeffs[0][k] as f64 - want).abs() < 1e-7, "k = {k}");
+        for (k, (got, y)) in l.coeffs[0].iter().zip(y).enumerate() {
+            let want = hot[0] as f64 * omega * y;
+            assert!((*got as f64 - want).abs() < 1e-7, "k = {k}");
         }
     }
 
@@ -782,12 +782,11 @@ mod tests {
             let mut vis = [0.0f32; COEFFS_MAX];
             vis[0] = sh::Y0 as f32;
             let e = env.project(rot(DVec3::Z, 1.0)).dot(&vis);
-            for ch in 0..3 {
+            for (ch, e) in e.into_iter().enumerate() {
                 let mean = sh::project_fn(|w| env.radiance(w)[ch] as f64, 200_000)[0] / SQRT_4PI;
                 assert!(
-                    (e[ch] as f64 - mean).abs() < 2e-3 * mean,
-                    "{env:?} channel {ch}: {} vs {mean}",
-                    e[ch]
+                    (e as f64 - mean).abs() < 2e-3 * mean,
+                    "{env:?} channel {ch}: {e} vs {mean}"
                 );
                 assert!((0.3..2.0).contains(&mean), "{env:?}: mean radiance {mean}");
             }
