@@ -271,8 +271,9 @@ fn mix3(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {
     [0, 1, 2].map(|c| a[c] + (b[c] - a[c]) * t)
 }
 
-/// Studio radiance in world direction `w` (unit). Normalised so that a surface facing the key
-/// light sees a mean radiance near 1 and the sphere's mean is about 0.6.
+/// Studio radiance in world direction `w` (unit). The sphere's mean radiance is about 1.2; an
+/// unshadowed surface (half-space visibility) facing the key gets E / albedo of about 0.9, one
+/// facing away about 0.3.
 fn studio(w: DVec3) -> [f64; 3] {
     // The key comes from up, front (towards the viewer, +Z) and left.
     let key = DVec3::new(-1.0, 1.2, 1.0).normalize();
@@ -288,18 +289,19 @@ fn studio(w: DVec3) -> [f64; 3] {
     ]
 }
 
-/// Sky radiance in world direction `w` (unit).
+/// Sky radiance in world direction `w` (unit). The sphere's mean radiance is about 0.9; an
+/// unshadowed surface facing the sun gets E / albedo of about 0.7, one facing away about 0.2.
 fn sky(w: DVec3) -> [f64; 3] {
     let sun = DVec3::new(0.45, 0.75, 0.35).normalize();
     let horizon = [0.95, 0.97, 1.0];
     let zenith = [0.35, 0.55, 1.0];
     let ground = [0.30, 0.21, 0.13];
     let up = w.y.max(0.0);
-    let dome = mix3(horizon, zenith, up.sqrt()).map(|c| c * 0.9);
+    let dome = mix3(horizon, zenith, up.sqrt()).map(|c| c * 1.1);
     // Blend to the ground over a few degrees below the horizon.
     let base = mix3(dome, ground, smoothstep(0.0, 0.06, -w.y));
     let c = w.dot(sun);
-    let glow = 40.0 * ((c - 1.0) / 0.01).exp() + 1.5 * ((c - 1.0) / 0.15).exp();
+    let glow = 55.0 * ((c - 1.0) / 0.01).exp() + 2.0 * ((c - 1.0) / 0.15).exp();
     let sun_colour = [1.0, 0.93, 0.78];
     [0, 1, 2].map(|i| base[i] + glow * sun_colour[i])
 }
@@ -530,7 +532,8 @@ fn parse_hdr(data: &[u8]) -> Result<(usize, usize, Vec<[f32; 3]>), HdrError> {
 
     let truncated = |j: usize| Format(format!("truncated at scanline {j} of {h}"));
     let mut rgbe = vec![[0u8; 4]; w];
-    let mut px = vec![[0.0f32; 3]; w * h];
+    // Grown row by row, so a header promising a huge image on a short file fails cheaply.
+    let mut px: Vec<[f32; 3]> = Vec::new();
     for j in 0..h {
         let head = data.get(pos..pos + 4).ok_or_else(|| truncated(j))?;
         if (8..=0x7fff).contains(&w) && head[0] == 2 && head[1] == 2 && head[2] & 0x80 == 0 {
@@ -593,11 +596,16 @@ fn parse_hdr(data: &[u8]) -> Result<(usize, usize, Vec<[f32; 3]>), HdrError> {
                 }
             }
         }
-        let row = if flip_y { h - 1 - j } else { j };
-        for (x, p) in rgbe.iter().enumerate() {
-            let col = if flip_x { w - 1 - x } else { x };
-            px[row * w + col] = rgbe_to_f32(*p);
+        let start = px.len();
+        px.extend(rgbe.iter().map(|p| rgbe_to_f32(*p)));
+        if flip_x {
+            px[start..].reverse();
         }
+    }
+    if flip_y {
+        // Rows were read bottom-up.
+        let rows: Vec<&[[f32; 3]]> = px.chunks(w).rev().collect();
+        px = rows.concat();
     }
     Ok((w, h, px))
 }
@@ -1012,18 +1020,24 @@ mod tests {
             assert_eq!(img.pixels()[0], [2.0, 1.0, 0.5]);
             assert_eq!(img.pixels()[w + 6], [1.5, 0.25, 3.0 / 64.0]);
         }
-        // Bottom-up rows: the same image read back the right way up.
-        let mut flipped = Vec::new();
-        for j in (0..h).rev() {
-            flipped.extend_from_slice(&px[j * w..(j + 1) * w]);
+        // Bottom-up rows, or right-to-left columns: the same image read back the right way.
+        let reference = EquirectImage::load_hdr(&dir.file("rle.hdr")).unwrap();
+        let mut up = Vec::new();
+        let mut mirrored = Vec::new();
+        for j in 0..h {
+            up.extend_from_slice(&px[(h - 1 - j) * w..(h - j) * w]);
+            mirrored.extend(px[j * w..(j + 1) * w].iter().rev());
         }
-        let path = dir.file("up.hdr");
-        std::fs::write(
-            &path,
-            write_hdr(w, h, &flipped, true, &format!("+Y {h} +X {w}")),
-        )
-        .unwrap();
-        let img = EquirectImage::load_hdr(&path).unwrap();
+        for (name, data, res) in [
+            ("up.hdr", &up, format!("+Y {h} +X {w}")),
+            ("mirrored.hdr", &mirrored, format!("-Y {h} -X {w}")),
+        ] {
+            let path = dir.file(name);
+            std::fs::write(&path, write_hdr(w, h, data, true, &res)).unwrap();
+            let img = EquirectImage::load_hdr(&path).unwrap();
+            assert_eq!(img.pixels(), reference.pixels(), "{name}");
+        }
+        let img = &reference;
         assert_eq!(img.pixels()[w + 6], [1.5, 0.25, 3.0 / 64.0]);
         // Old-style runs: a pixel, then (1, 1, 1, n) repeats it n times.
         let mut data = b"#?RGBE\n\n-Y 4 +X 8\n".to_vec();
