@@ -1,5 +1,6 @@
-// Real spherical harmonics, bands 0..3, the GLSL twin of src/light/sh.rs (Sloan's convention:
-// k = l*(l+1)+m, Condon-Shortley phase, z the polar axis, orthonormal over the sphere).
+// Real spherical harmonics, bands 0..3, the GLSL twin of src/light/sh.rs (k = l*(l+1)+m, z the
+// polar axis, orthonormal over the sphere, Sloan's constants with every sign positive: no
+// Condon-Shortley phase, the same basis as src/ao/sh.rs).
 // A unit test in sh.rs reads this file and checks every SH_C* constant against the Rust ones,
 // so keep the `const float NAME = VALUE;` lines one per line.
 //
@@ -22,21 +23,21 @@ void sh_eval(vec3 d, out float y[16]) {
     float x = d.x, yy = d.y, z = d.z;
     float x2 = x * x, y2 = yy * yy, z2 = z * z;
     y[0] = SH_C0;
-    y[1] = -SH_C1 * yy;
+    y[1] = SH_C1 * yy;
     y[2] = SH_C1 * z;
-    y[3] = -SH_C1 * x;
+    y[3] = SH_C1 * x;
     y[4] = SH_C2A * x * yy;
-    y[5] = -SH_C2A * yy * z;
+    y[5] = SH_C2A * yy * z;
     y[6] = SH_C2B * (3.0 * z2 - 1.0);
-    y[7] = -SH_C2A * x * z;
+    y[7] = SH_C2A * x * z;
     y[8] = SH_C2C * (x2 - y2);
-    y[9] = -SH_C3A * yy * (3.0 * x2 - y2);
+    y[9] = SH_C3A * yy * (3.0 * x2 - y2);
     y[10] = SH_C3B * x * yy * z;
-    y[11] = -SH_C3C * yy * (5.0 * z2 - 1.0);
+    y[11] = SH_C3C * yy * (5.0 * z2 - 1.0);
     y[12] = SH_C3D * z * (5.0 * z2 - 3.0);
-    y[13] = -SH_C3C * x * (5.0 * z2 - 1.0);
+    y[13] = SH_C3C * x * (5.0 * z2 - 1.0);
     y[14] = SH_C3E * z * (x2 - y2);
-    y[15] = -SH_C3A * x * (x2 - 3.0 * y2);
+    y[15] = SH_C3A * x * (x2 - 3.0 * y2);
 }
 
 // 8-bit visibility coefficient k of value v (sh.rs, "quantisation"): u = V_0 / Y_0 for k = 0,

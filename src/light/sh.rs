@@ -1,7 +1,10 @@
-//! Real spherical harmonics, bands 0..3 (16 coefficients), in the graphics convention of Sloan's
-//! "Stupid Spherical Harmonics (SH) Tricks": coefficient index k = l*(l+1)+m, the Condon-Shortley
-//! phase included (odd m carry a minus sign), z the polar axis, orthonormal over the sphere:
-//! integral of Y_k * Y_k' over the sphere = delta(k, k').
+//! Real spherical harmonics, bands 0..3 (16 coefficients), in the usual graphics convention:
+//! coefficient index k = l*(l+1)+m, z the polar axis, orthonormal over the sphere (integral of
+//! Y_k * Y_k' over the sphere = delta(k, k')), the constants of Sloan's "Stupid Spherical
+//! Harmonics (SH) Tricks" but every sign positive (no Condon-Shortley phase, as in Ramamoorthi and
+//! Hanrahan), e.g. Y_1,-1 = +0.4886 y. This is the basis of the visibility volume
+//! (`crate::ao::sh::sh_basis`, tested equal below): V_k and L_k must share it, since the signs
+//! of the odd-m coefficients would otherwise flip.
 //!
 //! `shaders/include/sh.glsl` is the GLSL twin of [`eval`] and [`dequant_scale_bias`]; a unit test
 //! below reads it and checks that its constants are these.
@@ -30,6 +33,9 @@
 //! for the others. Note that 0 sits on a tie (u = 0.5, 127.5 / 255) for k >= 1: it is stored as
 //! 128 and reads back as +Y_0 / 255, half a step; a constant light has L_k = 0 for k >= 1, so
 //! the empty-volume identity E = rho * c is not affected.
+//!
+//! (The GPU volume of `crate::ao::sh` stores snorm8 of V_k / Y_0 instead, with its own
+//! `quantize`/`dequantize`, which keeps 0 exact; the helpers here are the unorm variant.)
 
 use glam::{DVec3, Vec3};
 
@@ -57,21 +63,21 @@ pub fn eval(d: DVec3) -> [f64; COEFFS_MAX] {
     let (x2, y2, z2) = (x * x, y * y, z * z);
     [
         Y0,
-        -C1 * y,
+        C1 * y,
         C1 * z,
-        -C1 * x,
+        C1 * x,
         C2A * x * y,
-        -C2A * y * z,
+        C2A * y * z,
         C2B * (3.0 * z2 - 1.0),
-        -C2A * x * z,
+        C2A * x * z,
         C2C * (x2 - y2),
-        -C3A * y * (3.0 * x2 - y2),
+        C3A * y * (3.0 * x2 - y2),
         C3B * x * y * z,
-        -C3C * y * (5.0 * z2 - 1.0),
+        C3C * y * (5.0 * z2 - 1.0),
         C3D * z * (5.0 * z2 - 3.0),
-        -C3C * x * (5.0 * z2 - 1.0),
+        C3C * x * (5.0 * z2 - 1.0),
         C3E * z * (x2 - y2),
-        -C3A * x * (x2 - 3.0 * y2),
+        C3A * x * (x2 - 3.0 * y2),
     ]
 }
 
@@ -266,13 +272,13 @@ mod tests {
 
     #[test]
     fn known_values_fix_the_sign_convention() {
-        // Sloan's table at +x, +y, +z.
+        // The table at +x, +y, +z: no Condon-Shortley phase, so x, y, z give positive l = 1 terms.
         let x = eval(DVec3::X);
-        assert!((x[3] + C1).abs() < 1e-15 && x[1] == 0.0 && x[2] == 0.0);
+        assert!((x[3] - C1).abs() < 1e-15 && x[1] == 0.0 && x[2] == 0.0);
         assert!((x[8] - C2C).abs() < 1e-15 && (x[6] + C2B).abs() < 1e-15);
-        assert!((x[15] + C3A).abs() < 1e-15 && (x[13] - C3C).abs() < 1e-15);
+        assert!((x[15] - C3A).abs() < 1e-15 && (x[13] + C3C).abs() < 1e-15);
         let y = eval(DVec3::Y);
-        assert!((y[1] + C1).abs() < 1e-15 && (y[9] - C3A).abs() < 1e-15);
+        assert!((y[1] - C1).abs() < 1e-15 && (y[9] + C3A).abs() < 1e-15);
         let z = eval(DVec3::Z);
         assert!((z[2] - C1).abs() < 1e-15 && (z[6] - 2.0 * C2B).abs() < 1e-15);
         assert!((z[12] - 2.0 * C3D).abs() < 1e-15);
@@ -290,6 +296,24 @@ mod tests {
         for k in 0..COEFFS_MAX {
             assert!((f[k] as f64 - d[k]).abs() < 1e-6);
         }
+    }
+
+    #[test]
+    fn same_basis_as_the_visibility_volume() {
+        let mut rng = Rng::new(31);
+        for _ in 0..50 {
+            let d = rng.unit();
+            let (a, b) = (eval(d), crate::ao::sh::sh_basis(d));
+            for k in 0..COEFFS_MAX {
+                assert!(
+                    (a[k] - b[k]).abs() < 1e-15,
+                    "k = {k} at {d}: {} vs {}",
+                    a[k],
+                    b[k]
+                );
+            }
+        }
+        assert_eq!(Y0, crate::ao::sh::Y0);
     }
 
     #[test]
