@@ -8,6 +8,7 @@ pub mod app;
 pub mod clip;
 pub mod gpu;
 pub mod input;
+pub mod light;
 pub mod render;
 pub mod scene;
 pub mod volume;
