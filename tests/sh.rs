@@ -133,7 +133,7 @@ fn half_space(n: DVec3) -> [f64; 16] {
         0.746_352_665_180_230_8,
     ];
     let int_p = [1.0, 0.5, 0.0, -0.125];
-    let y = sh::sh_basis(n);
+    let y = cao_xr::light::sh::eval(n);
     let mut v = [0.0; 16];
     for l in 0..4 {
         let zonal = 0.5 * c[l] * int_p[l];

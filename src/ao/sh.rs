@@ -26,11 +26,12 @@ use super::cao::{Cao, VoxelBox};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Image, ImageDesc, Result};
 use crate::volume::Volume;
 use ash::vk;
+use crate::light::sh::eval;
 use glam::DVec3;
 use gpu_allocator::MemoryLocation;
 use rayon::prelude::*;
 
-pub const Y0: f64 = 0.282_094_791_773_878_14;
+pub use crate::light::sh::Y0;
 /// Marches stop once the transmittance falls below this.
 pub const T_MIN: f64 = 1.0 / 1024.0;
 
@@ -183,29 +184,6 @@ impl ShGrid {
         let diag = 3f64.sqrt() * s;
         (p.length_mm as f64 + 1.5 * diag * (1u64 << self.top) as f64 + diag) * 1.01
     }
-}
-
-/// Real spherical harmonics, bands 0-3, index l(l+1)+m, orthonormal on the sphere.
-pub fn sh_basis(d: DVec3) -> [f64; 16] {
-    let (x, y, z) = (d.x, d.y, d.z);
-    [
-        Y0,
-        0.488_602_511_902_919_9 * y,
-        0.488_602_511_902_919_9 * z,
-        0.488_602_511_902_919_9 * x,
-        1.092_548_430_592_079_2 * x * y,
-        1.092_548_430_592_079_2 * y * z,
-        0.315_391_565_252_520_05 * (3.0 * z * z - 1.0),
-        1.092_548_430_592_079_2 * x * z,
-        0.546_274_215_296_039_6 * (x * x - y * y),
-        0.590_043_589_926_643_5 * y * (3.0 * x * x - y * y),
-        2.890_611_442_640_554 * x * y * z,
-        0.457_045_799_464_465_8 * y * (5.0 * z * z - 1.0),
-        0.373_176_332_590_115_4 * z * (5.0 * z * z - 3.0),
-        0.457_045_799_464_465_8 * x * (5.0 * z * z - 1.0),
-        1.445_305_721_320_277 * z * (x * x - y * y),
-        0.590_043_589_926_643_5 * x * (x * x - 3.0 * y * y),
-    ]
 }
 
 /// SplitMix64: a tiny deterministic generator for the direction patterns.
@@ -369,7 +347,7 @@ pub fn cpu_reference(
     let pyr = pyramid(opacity, &grid);
     let dirs = patterns(p);
     let steps = index_dirs(&dirs, spacing);
-    let basis: Vec<[f64; 16]> = dirs.iter().map(|d| sh_basis(*d)).collect();
+    let basis: Vec<[f64; 16]> = dirs.iter().map(|d| eval(*d)).collect();
     let n = p.directions as usize;
     let s = grid.scale();
     let d = grid.dims;
@@ -517,7 +495,7 @@ impl ShVolume {
         let dirs = Buffer::from_slice(gpu, &dirs, b_usage(), "sh-dirs")?;
         let basis: Vec<f32> = dirs_mm
             .iter()
-            .flat_map(|d| sh_basis(*d).map(|y| y as f32))
+            .flat_map(|d| eval(*d).map(|y| y as f32))
             .collect();
         let basis = Buffer::from_slice(gpu, &basis, b_usage(), "sh-basis")?;
         let bytes = (grid.count() * params.groups() * 4) as u64;
@@ -815,7 +793,7 @@ mod tests {
         let mut gram = [[0.0; 16]; 16];
         for d in &dirs {
             assert!((d.length() - 1.0).abs() < 1e-12);
-            let y = sh_basis(*d);
+            let y = eval(*d);
             for (row, yj) in gram.iter_mut().zip(y) {
                 for (g, yk) in row.iter_mut().zip(y) {
                     *g += yj * yk * 4.0 * std::f64::consts::PI / dirs.len() as f64;

@@ -1,7 +1,7 @@
 //! Lighting by a distant environment through spherical harmonics (Ritschel 2007, section 3):
-//! the SH basis and the visibility quantisation ([`sh`]), and the environment light and its
-//! projection to SH per colour channel ([`environment`]). Pure CPU; the GPU side evaluates the
-//! same basis through `shaders/include/sh.glsl`.
+//! the SH basis ([`sh`]), and the environment light and its projection to SH per colour channel
+//! ([`environment`]). Pure CPU: the visibility volume (`crate::ao::sh`) takes its basis from
+//! here, and the ray caster only dots stored coefficients with [`ShLight`]`::coeffs`.
 //!
 //! The emission of a voxel with albedo rho is E = rho * sum_k V_k L_k, with V_k the voxel's
 //! visibility coefficients and L_k = [`ShLight`]`::coeffs` (see [`sh`] for the conventions: an

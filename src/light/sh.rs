@@ -2,12 +2,9 @@
 //! coefficient index k = l*(l+1)+m, z the polar axis, orthonormal over the sphere (integral of
 //! Y_k * Y_k' over the sphere = delta(k, k')), the constants of Sloan's "Stupid Spherical
 //! Harmonics (SH) Tricks" but every sign positive (no Condon-Shortley phase, as in Ramamoorthi and
-//! Hanrahan), e.g. Y_1,-1 = +0.4886 y. This is the basis of the visibility volume
-//! (`crate::ao::sh::sh_basis`, tested equal below): V_k and L_k must share it, since the signs
-//! of the odd-m coefficients would otherwise flip.
-//!
-//! `shaders/include/sh.glsl` is the GLSL twin of [`eval`] and [`dequant_scale_bias`]; a unit test
-//! below reads it and checks that its constants are these.
+//! Hanrahan), e.g. Y_1,-1 = +0.4886 y. The visibility volume (`crate::ao::sh`) and the light
+//! both use it: V_k and L_k must share it, since the signs of the odd-m coefficients would
+//! otherwise flip.
 //!
 //! # Conventions shared by the visibility volume and the light
 //!
@@ -21,21 +18,8 @@
 //! V_k = Y_0 delta_k0) under a constant environment L = c gives L_0 = c * 4pi * Y_0 and
 //! E = rho * Y_0 * c * 4pi * Y_0 = rho * c exactly, since Y_0^2 = 1/(4pi).
 //!
-//! # 8-bit quantisation of visibility coefficients
-//!
-//! V in [0, 1] and Cauchy-Schwarz give |V_k| <= (1/4pi) * sqrt(4pi) * 1 = 1/sqrt(4pi) = Y_0, and
-//! V_0 = (1/4pi) * Y_0 * integral of V lies in [0, Y_0]. So coefficient 0 is stored as the unorm
-//! u = V_0 / Y_0 and coefficients 1..15 as u = 0.5 + V_k / (2 Y_0), clamped to [0, 1] (a Monte
-//! Carlo estimate may overshoot the bound slightly) and rounded to byte = floor(255 u + 0.5)
-//! (ties up, the same on every GPU, unlike GLSL `round`; `sh_quantize` in sh.glsl is the twin).
-//! Reading back: value = scale * (byte / 255) + bias with (scale, bias) =
-//! [`dequant_scale_bias`]`(k)`. The worst error is half a step: Y_0 / 510 for k = 0, Y_0 / 255
-//! for the others. Note that 0 sits on a tie (u = 0.5, 127.5 / 255) for k >= 1: it is stored as
-//! 128 and reads back as +Y_0 / 255, half a step; a constant light has L_k = 0 for k >= 1, so
-//! the empty-volume identity E = rho * c is not affected.
-//!
-//! (The GPU volume of `crate::ao::sh` stores snorm8 of V_k / Y_0 instead, with its own
-//! `quantize`/`dequantize`, which keeps 0 exact; the helpers here are the unorm variant.)
+//! The volume stores each V_k as snorm8 of V_k / Y_0 (see `crate::ao::sh::quantize`): by
+//! Cauchy-Schwarz |V_k| <= (1/4pi) * sqrt(4pi) = Y_0, so that range is the whole of it.
 
 use glam::{DVec3, Vec3};
 
@@ -94,33 +78,6 @@ pub fn band(k: usize) -> usize {
         4..=8 => 2,
         _ => 3,
     }
-}
-
-/// (scale, bias) with value = scale * (byte / 255) + bias for visibility coefficient `k`.
-pub fn dequant_scale_bias(k: usize) -> (f32, f32) {
-    let y0 = Y0 as f32;
-    if k == 0 {
-        (y0, 0.0)
-    } else {
-        (2.0 * y0, -y0)
-    }
-}
-
-/// Visibility coefficient `v` of index `k` to a byte (see the module doc). NaN maps to the value
-/// of "no information": 0 for k = 0, 128 (zero, see the module doc) for the others.
-pub fn quantize(k: usize, v: f32) -> u8 {
-    let (scale, bias) = dequant_scale_bias(k);
-    let u = (v - bias) / scale;
-    if u.is_nan() {
-        return if k == 0 { 0 } else { 128 };
-    }
-    (u.clamp(0.0, 1.0) * 255.0 + 0.5).floor() as u8
-}
-
-/// The value a byte of coefficient `k` stands for.
-pub fn dequantize(k: usize, b: u8) -> f32 {
-    let (scale, bias) = dequant_scale_bias(k);
-    scale * (b as f32 / 255.0) + bias
 }
 
 /// A deterministic product quadrature over the sphere: Gauss-Legendre nodes in z = cos(theta)
@@ -299,24 +256,6 @@ mod tests {
     }
 
     #[test]
-    fn same_basis_as_the_visibility_volume() {
-        let mut rng = Rng::new(31);
-        for _ in 0..50 {
-            let d = rng.unit();
-            let (a, b) = (eval(d), crate::ao::sh::sh_basis(d));
-            for k in 0..COEFFS_MAX {
-                assert!(
-                    (a[k] - b[k]).abs() < 1e-15,
-                    "k = {k} at {d}: {} vs {}",
-                    a[k],
-                    b[k]
-                );
-            }
-        }
-        assert_eq!(Y0, crate::ao::sh::Y0);
-    }
-
-    #[test]
     fn projection_of_one_is_band_zero() {
         let p = project_fn(|_| 1.0, 8192);
         assert!((p[0] - (4.0 * PI).sqrt()).abs() < 1e-10, "{}", p[0]);
@@ -371,39 +310,6 @@ mod tests {
     }
 
     #[test]
-    fn quantisation_round_trips_within_half_a_step() {
-        let mut rng = Rng::new(11);
-        for k in 0..COEFFS_MAX {
-            let (scale, bias) = dequant_scale_bias(k);
-            let half_step = scale / 255.0 / 2.0;
-            let (lo, hi) = if k == 0 { (0.0, Y0) } else { (-Y0, Y0) };
-            // Both ends exactly, then random values in range.
-            assert_eq!(quantize(k, lo as f32), 0);
-            assert_eq!(quantize(k, hi as f32), 255);
-            assert!((dequantize(k, 0) - lo as f32).abs() < 1e-7);
-            assert!((dequantize(k, 255) - hi as f32).abs() < 1e-7);
-            for _ in 0..1000 {
-                let v = (lo + (hi - lo) * rng.f64()) as f32;
-                let b = quantize(k, v);
-                let back = dequantize(k, b);
-                assert!(
-                    (back - v).abs() <= half_step * 1.0001,
-                    "k = {k}: {v} -> {b} -> {back}"
-                );
-                assert_eq!(back, scale * (b as f32 / 255.0) + bias);
-            }
-            // Out of range clamps, never wraps.
-            assert_eq!(quantize(k, 1.0), 255);
-            assert_eq!(quantize(k, -1.0), 0);
-        }
-        assert_eq!(quantize(0, f32::NAN), 0);
-        assert_eq!(quantize(5, f32::NAN), 128);
-        // Zero is a tie for the signed coefficients: 128, half a step above.
-        assert_eq!(quantize(3, 0.0), 128);
-        assert!((dequantize(3, 128) - Y0 as f32 / 255.0).abs() < 1e-7);
-    }
-
-    #[test]
     fn visibility_coefficients_respect_the_bound() {
         // Random visibility functions: a few random opaque caps, plus a random smooth
         // semi-transparent attenuation. The bound |V_k| <= Y_0 (and V_0 in [0, Y_0]) must hold.
@@ -434,264 +340,14 @@ mod tests {
             for (k, c) in v.iter().enumerate() {
                 assert!(c.abs() <= Y0 + 1e-9, "k = {k}: {c}");
                 closest = closest.max(c.abs() / Y0);
-                let (scale, _) = dequant_scale_bias(k);
-                let back = dequantize(k, quantize(k, *c as f32));
-                assert!((back - *c as f32).abs() <= scale / 510.0 * 1.0001);
             }
         }
         // Visibility 1 everywhere reaches the bound exactly for k = 0.
         let full = project_fn(|_| 1.0, 4096)[0] / (4.0 * PI);
         assert!((full - Y0).abs() < 1e-12);
-        assert_eq!(quantize(0, full as f32), 255);
         assert!(
             closest > 0.5,
             "the random functions span the range: {closest}"
         );
-    }
-
-    /// Evaluates the right-hand sides of `shaders/include/sh.glsl` (constants, `y[k] = ...;`
-    /// lines and the dequantisation) with a tiny expression evaluator, so the GLSL twin is
-    /// checked against this module without a GPU.
-    mod glsl_twin {
-        use super::*;
-        use std::collections::HashMap;
-
-        const SRC: &str = include_str!("../../shaders/include/sh.glsl");
-
-        fn tokens(s: &str) -> Vec<String> {
-            let mut out = Vec::new();
-            let cs: Vec<char> = s.chars().collect();
-            let mut i = 0;
-            while i < cs.len() {
-                let c = cs[i];
-                if c.is_whitespace() {
-                    i += 1;
-                } else if c.is_ascii_alphanumeric() || c == '_' || c == '.' {
-                    let st = i;
-                    while i < cs.len() && (cs[i].is_ascii_alphanumeric() || "_.".contains(cs[i])) {
-                        i += 1;
-                    }
-                    out.push(cs[st..i].iter().collect());
-                } else {
-                    out.push(c.to_string());
-                    i += 1;
-                }
-            }
-            out
-        }
-
-        /// expr := term (('+'|'-') term)*, term := unary (('*'|'/') unary)*,
-        /// unary := '-' unary | atom, atom := number | name | '(' expr ')' | call.
-        fn expr(t: &[String], i: &mut usize, vars: &HashMap<String, f64>) -> f64 {
-            let mut v = term(t, i, vars);
-            while *i < t.len() && (t[*i] == "+" || t[*i] == "-") {
-                let neg = t[*i] == "-";
-                *i += 1;
-                let r = term(t, i, vars);
-                v = if neg { v - r } else { v + r };
-            }
-            v
-        }
-        fn term(t: &[String], i: &mut usize, vars: &HashMap<String, f64>) -> f64 {
-            let mut v = unary(t, i, vars);
-            while *i < t.len() && (t[*i] == "*" || t[*i] == "/") {
-                let div = t[*i] == "/";
-                *i += 1;
-                let r = unary(t, i, vars);
-                v = if div { v / r } else { v * r };
-            }
-            v
-        }
-        fn unary(t: &[String], i: &mut usize, vars: &HashMap<String, f64>) -> f64 {
-            let tok = t[*i].clone();
-            *i += 1;
-            match tok.as_str() {
-                "-" => -unary(t, i, vars),
-                "(" => {
-                    let v = expr(t, i, vars);
-                    assert_eq!(t[*i], ")", "unbalanced parenthesis in sh.glsl");
-                    *i += 1;
-                    v
-                }
-                "clamp" | "floor" | "float" | "uint" => {
-                    assert_eq!(t[*i], "(", "sh.glsl: call of {tok}");
-                    *i += 1;
-                    let mut args = vec![expr(t, i, vars)];
-                    while t[*i] == "," {
-                        *i += 1;
-                        args.push(expr(t, i, vars));
-                    }
-                    assert_eq!(t[*i], ")", "sh.glsl: call of {tok}");
-                    *i += 1;
-                    match (tok.as_str(), &args[..]) {
-                        ("clamp", [x, lo, hi]) => x.clamp(*lo, *hi),
-                        ("floor", [x]) => x.floor(),
-                        ("float", [x]) => *x,
-                        ("uint", [x]) => x.trunc(),
-                        _ => panic!("sh.glsl: {tok} with {} arguments", args.len()),
-                    }
-                }
-                _ => tok.parse::<f64>().unwrap_or_else(|_| {
-                    *vars
-                        .get(&tok)
-                        .unwrap_or_else(|| panic!("sh.glsl: unknown name {tok}"))
-                }),
-            }
-        }
-        fn eval_str(s: &str, vars: &HashMap<String, f64>) -> f64 {
-            let t = tokens(s);
-            let mut i = 0;
-            let v = expr(&t, &mut i, vars);
-            assert_eq!(i, t.len(), "sh.glsl: trailing tokens in '{s}'");
-            v
-        }
-
-        fn constants() -> HashMap<String, f64> {
-            let mut vars = HashMap::new();
-            for line in SRC.lines() {
-                if let Some(rest) = line.trim().strip_prefix("const float ") {
-                    let (name, val) = rest.split_once('=').unwrap();
-                    let val = val.split(';').next().unwrap();
-                    vars.insert(name.trim().to_string(), eval_str(val, &vars));
-                }
-            }
-            vars
-        }
-
-        #[test]
-        fn constants_equal_the_rust_ones() {
-            let c = constants();
-            let want = [
-                ("SH_C0", Y0),
-                ("SH_C1", C1),
-                ("SH_C2A", C2A),
-                ("SH_C2B", C2B),
-                ("SH_C2C", C2C),
-                ("SH_C3A", C3A),
-                ("SH_C3B", C3B),
-                ("SH_C3C", C3C),
-                ("SH_C3D", C3D),
-                ("SH_C3E", C3E),
-            ];
-            assert_eq!(c.len(), want.len(), "{c:?}");
-            for (name, v) in want {
-                assert_eq!(c[name], v, "{name}");
-            }
-        }
-
-        #[test]
-        fn sh_eval_equals_eval() {
-            let mut lines: Vec<(usize, &str)> = SRC
-                .lines()
-                .filter_map(|l| {
-                    let rest = l.trim().strip_prefix("y[")?;
-                    let (k, rhs) = rest.split_once("] =")?;
-                    Some((k.parse().unwrap(), rhs.trim().trim_end_matches(';')))
-                })
-                .collect();
-            lines.sort_by_key(|l| l.0);
-            assert_eq!(
-                lines.iter().map(|l| l.0).collect::<Vec<_>>(),
-                (0..COEFFS_MAX).collect::<Vec<_>>()
-            );
-            let mut rng = Rng::new(5);
-            let mut dirs = vec![DVec3::X, DVec3::Y, DVec3::Z];
-            dirs.extend((0..20).map(|_| rng.unit()));
-            for d in dirs {
-                let mut vars = constants();
-                for (n, v) in [
-                    ("x", d.x),
-                    ("yy", d.y),
-                    ("z", d.z),
-                    ("x2", d.x * d.x),
-                    ("y2", d.y * d.y),
-                    ("z2", d.z * d.z),
-                ] {
-                    vars.insert(n.into(), v);
-                }
-                let want = eval(d);
-                for (k, rhs) in &lines {
-                    let got = eval_str(rhs, &vars);
-                    assert!(
-                        (got - want[*k]).abs() < 1e-12,
-                        "y[{k}] at {d}: {got} vs {}",
-                        want[*k]
-                    );
-                }
-            }
-        }
-
-        #[test]
-        fn sh_quantize_equals_quantize() {
-            let body = SRC.split("uint sh_quantize").nth(1).unwrap();
-            let unorm = body
-                .split("float u = ")
-                .nth(1)
-                .unwrap()
-                .split(';')
-                .next()
-                .unwrap();
-            let (_, arms) = unorm.split_once('?').unwrap();
-            let (zero, rest) = arms.split_once(':').unwrap();
-            let byte = body
-                .split("return ")
-                .nth(1)
-                .unwrap()
-                .split(';')
-                .next()
-                .unwrap();
-            let mut rng = Rng::new(9);
-            for k in 0..COEFFS_MAX {
-                let mut vals = vec![0.0, Y0, -Y0, 2.0 * Y0, -1.0];
-                vals.extend((0..200).map(|_| (2.0 * rng.f64() - 1.0) * Y0));
-                // Exact ties of 255 u + 0.5 for this k.
-                let (scale, bias) = dequant_scale_bias(k);
-                vals.extend((0..255).map(|b| ((b as f32 + 0.5) / 255.0 * scale + bias) as f64));
-                for v in vals {
-                    let v = v as f32 as f64;
-                    let mut vars = constants();
-                    vars.insert("v".into(), v);
-                    let u = eval_str(if k == 0 { zero } else { rest }, &vars);
-                    vars.insert("u".into(), u as f32 as f64);
-                    let got = eval_str(byte, &vars);
-                    let want = quantize(k, v as f32) as f64;
-                    // f32 vs f64 arithmetic may split an exact tie; nothing else may differ.
-                    assert!(
-                        (got - want).abs() <= 1.0,
-                        "k = {k}, v = {v}: {got} vs {want}"
-                    );
-                    let f = (u * 255.0 + 0.5).fract();
-                    if f.min(1.0 - f) > 1e-4 {
-                        assert_eq!(got, want, "k = {k}, v = {v}");
-                    }
-                }
-            }
-        }
-
-        #[test]
-        fn sh_dequant_equals_dequantize() {
-            let body = SRC.split("float sh_dequant").nth(1).unwrap();
-            let ret = body
-                .split("return ")
-                .nth(1)
-                .unwrap()
-                .split(';')
-                .next()
-                .unwrap();
-            let (_, arms) = ret.split_once('?').unwrap();
-            let (zero, rest) = arms.split_once(':').unwrap();
-            for b in [0u8, 1, 77, 128, 254, 255] {
-                let mut vars = constants();
-                vars.insert("unorm".into(), b as f64 / 255.0);
-                for k in 0..COEFFS_MAX {
-                    let got = eval_str(if k == 0 { zero } else { rest }, &vars);
-                    let want = dequantize(k, b) as f64;
-                    assert!(
-                        (got - want).abs() < 1e-6,
-                        "k = {k}, byte {b}: {got} vs {want}"
-                    );
-                }
-            }
-        }
     }
 }
