@@ -142,7 +142,7 @@ pub fn replay(
         let m = &f.metrics;
         writeln!(
             csv,
-            "{i},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{:.4},{},{:.4},{:.3}",
+            "{i},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{:.4},{},{},{:.3}",
             frames[i].time,
             f.frame_ms,
             m.gpu_ms(),
@@ -153,9 +153,11 @@ pub fn replay(
             m.clipped,
             m.recomputed,
             m.percent_recomputed(),
-            // The TF this frame showed; tf_progress is 1 when no switch is in flight.
+            // The TF this frame showed; tf_progress is empty when no switch is in flight.
             fl.shown_tf().name,
-            f.tf_progress.as_ref().map_or(1.0, |p| p.fraction),
+            f.tf_progress
+                .as_ref()
+                .map_or(String::new(), |p| format!("{:.4}", p.fraction)),
             f.tf_ms
         )
         .map_err(|e| out_err(&csv_path, e))?;
