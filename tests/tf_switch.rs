@@ -235,3 +235,42 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
     assert!(first_diff(&pao.unwrap(), &read(&still.cao.ao)).is_some());
     common::assert_no_validation_messages(&gpu);
 }
+
+/// Pressing menu back to the TF on screen mid-way drops the recompute (its buffers freed after
+/// the frame's wait, validation silent) and nothing changes.
+#[test]
+fn cycling_back_to_the_shown_tf_cancels_the_switch() {
+    let gpu = common::gpu();
+    let vol = phantom::head(24);
+    let tfs = vec![
+        TransferFunction::preset("ct-bone").unwrap(),
+        TransferFunction::preset("ct-skin").unwrap(),
+    ];
+    let mut fl = new_loop(&gpu, &vol, tfs.clone(), Mode::Contextual);
+    let mut still = new_loop(&gpu, &vol, tfs, Mode::Contextual);
+    let c = Placement::default().center;
+    let mut slabs = 0;
+    let mut i = 0;
+    // Menu, then a second press once a slab ran: back to ct-bone.
+    while slabs == 0 {
+        assert!(i < 100, "no slab ever ran");
+        let a = frame(&mut fl, &vol, tool(c, i, true), i == 0, i);
+        let p = a.tf_progress.expect("in flight until the second press");
+        assert_eq!(p.name, "ct-skin");
+        slabs += (p.fraction > 0.0) as usize;
+        frame(&mut still, &vol, tool(c, i, true), false, i);
+        i += 1;
+    }
+    for k in 0..3 {
+        let a = frame(&mut fl, &vol, tool(c, i, true), k == 0, i);
+        let b = frame(&mut still, &vol, tool(c, i, true), false, i);
+        assert!(a.tf_progress.is_none(), "frame {i}: dropped");
+        assert_eq!(fl.scene.tf_index, 0);
+        assert_eq!(fl.shown_tf().name, "ct-bone");
+        let d = first_diff(&read(&fl.cao.ao), &read(&still.cao.ao));
+        assert!(d.is_none(), "frame {i}: V_AO changed at {d:?}");
+        assert!(a.image == b.image, "frame {i}");
+        i += 1;
+    }
+    common::assert_no_validation_messages(&gpu);
+}
