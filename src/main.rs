@@ -182,7 +182,7 @@ enum Cmd {
     },
     /// Generate a scripted pose stream (JSON Lines) for replay and tests.
     Script {
-        /// sphere-sweep, box-push-pull, torus-pass, two-tools, grab-scale or tremor.
+        /// sphere-sweep, box-push-pull, torus-pass, two-tools, grab-scale, tremor or tf-switch.
         kind: String,
         #[arg(long)]
         out: PathBuf,

@@ -419,6 +419,73 @@ fn replay_writes_frames_metrics_and_preview() {
     );
 }
 
+/// The menu press of `tf-switch` starts a progressive recompute: the old TF stays until it is
+/// done, metrics.csv and the stats lines show the progress, then the new TF is shown.
+#[test]
+fn replay_switches_the_transfer_function_on_menu() {
+    let dir = tmp("tf-switch");
+    let script = dir.join("tf.jsonl");
+    let out = cao(&[
+        "script",
+        "tf-switch",
+        "--frames",
+        "24",
+        "--out",
+        script.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let frames = dir.join("frames");
+    let out = cao(&[
+        "replay",
+        script.to_str().unwrap(),
+        "phantom:24",
+        "--rays",
+        "6",
+        "--steps",
+        "3",
+        "--size",
+        "16x16",
+        "--every",
+        "1000",
+        "--out",
+        frames.to_str().unwrap(),
+    ]);
+    let stats = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stats}");
+    let csv = std::fs::read_to_string(frames.join("metrics.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert!(
+        lines.next().unwrap().ends_with(",tf,tf_progress,tf_ms"),
+        "{csv}"
+    );
+    // (tf shown, progress of a switch in flight)
+    let rows: Vec<(String, Option<f32>)> = lines
+        .map(|l| {
+            let c: Vec<&str> = l.split(',').collect();
+            (c[11].to_string(), c[12].parse().ok())
+        })
+        .collect();
+    assert_eq!(rows.len(), 24);
+    let first_new = rows.iter().position(|r| r.0 == "ct-skin").expect(&csv);
+    assert!(
+        rows[first_new..]
+            .iter()
+            .all(|r| r == &("ct-skin".into(), None)),
+        "{csv}"
+    );
+    assert!(rows[..first_new].iter().all(|r| r.0 == "ct-bone"), "{csv}");
+    // The press (at 25 %) starts it; it runs until the frame before the switch.
+    let started = rows.iter().position(|r| r.1.is_some()).expect(&csv);
+    assert!((5..first_new).contains(&started), "{csv}");
+    let progress: Vec<f32> = rows[started..first_new]
+        .iter()
+        .map(|r| r.1.unwrap())
+        .collect();
+    assert!(progress.windows(2).all(|w| w[0] <= w[1]), "{csv}");
+    assert_eq!(*progress.last().unwrap(), 1.0, "{csv}");
+    assert!(stats.contains("TF ct-skin 100%"), "{stats}");
+}
+
 #[test]
 fn every_committed_script_replays_without_validation_messages() {
     let scripts = Path::new(env!("CARGO_MANIFEST_DIR")).join("controllers/scripts");
@@ -456,7 +523,7 @@ fn every_committed_script_replays_without_validation_messages() {
         );
         n += 1;
     }
-    assert!(n >= 6, "expected the six scripts, found {n}");
+    assert!(n >= 7, "expected the seven scripts, found {n}");
 }
 
 #[test]

@@ -273,6 +273,31 @@ impl Cao {
         Ok(cao)
     }
 
+    /// Swaps in a new O, its V_PAO and skipping data (a transfer-function switch) and makes the
+    /// next [`Cao::record_frame`] restore the whole volume from them first, so its clip and
+    /// update passes (over the current tools' boxes) start from exactly the state a fresh
+    /// [`Cao::new`] has. The old buffers are dropped here: call it only when no submitted
+    /// command buffer still uses them (after the frame's wait).
+    pub fn replace_precomputed(
+        &mut self,
+        opacity: Buffer,
+        pao: Buffer,
+        skip: SkipBuffers,
+    ) -> Result<()> {
+        let bytes = (self.dims[0] * self.dims[1] * self.dims[2] * 4) as u64;
+        if opacity.size != bytes || pao.size != bytes {
+            return Err(GpuError::Other(format!(
+                "{}: new opacity ({} bytes) or V_PAO ({} bytes) does not match the {:?} volume ({bytes} bytes)",
+                self.geometry.name, opacity.size, pao.size, self.dims
+            )));
+        }
+        self.opacity = opacity;
+        self.pao = pao;
+        self.skip = skip;
+        self.prev_boxes = vec![self.whole()];
+        Ok(())
+    }
+
     fn whole(&self) -> VoxelBox {
         VoxelBox {
             min: [0; 3],

@@ -171,6 +171,27 @@ pub struct SkipBuffers {
     pub bricks: Buffer,
 }
 
+/// The host side of [`SkipBuffers`]: pure host work, so it can run on a worker thread.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SkipData {
+    pub clear: Vec<u32>,
+    pub bricks: Vec<u32>,
+}
+
+impl SkipData {
+    pub fn new(
+        opacity: &[f32],
+        dims: [usize; 3],
+        spacing: [f64; 3],
+        params: &LaoParams,
+    ) -> SkipData {
+        SkipData {
+            clear: clear_mask(opacity, dims, reach_voxels(params, spacing)),
+            bricks: brick_occupancy(opacity, dims),
+        }
+    }
+}
+
 /// The LAO compute pipeline.
 pub struct LaoGpu {
     gpu: Gpu,
@@ -203,10 +224,6 @@ impl LaoGpu {
         })
     }
 
-    /// Full LAO of the opacity volume (device buffer, x fastest) into a new device buffer;
-    /// `skip` is its [`LaoGpu::skip_buffers`].
-    /// Works slab by slab so a large volume never stalls a GPU for long and progress can be
-    /// reported through `progress(done_slices, total_slices)`.
     /// The [`clear_mask`] and [`brick_occupancy`] of a host opacity volume, uploaded for
     /// [`LaoGpu::compute`].
     pub fn skip_buffers(
@@ -216,15 +233,94 @@ impl LaoGpu {
         spacing: [f64; 3],
         params: &LaoParams,
     ) -> Result<SkipBuffers> {
+        self.upload_skip(&SkipData::new(opacity, dims, spacing, params))
+    }
+
+    /// Uploads skipping data computed on the host (possibly on another thread).
+    pub fn upload_skip(&self, data: &SkipData) -> Result<SkipBuffers> {
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
-        let bits = clear_mask(opacity, dims, reach_voxels(params, spacing));
-        let bricks = brick_occupancy(opacity, dims);
         Ok(SkipBuffers {
-            clear: Buffer::device_local(&self.gpu, &bits, usage, "lao-clear")?,
-            bricks: Buffer::device_local(&self.gpu, &bricks, usage, "lao-bricks")?,
+            clear: Buffer::device_local(&self.gpu, &data.clear, usage, "lao-clear")?,
+            bricks: Buffer::device_local(&self.gpu, &data.bricks, usage, "lao-bricks")?,
         })
     }
 
+    /// An uninitialised device buffer for one f32 per voxel, as [`LaoGpu::compute`] fills.
+    pub fn output_buffer(&self, dims: [usize; 3]) -> Result<Buffer> {
+        let n = dims[0] * dims[1] * dims[2];
+        Buffer::new(
+            &self.gpu,
+            (n.max(1) * 4) as u64,
+            vk::BufferUsageFlags::STORAGE_BUFFER
+                | vk::BufferUsageFlags::TRANSFER_SRC
+                | vk::BufferUsageFlags::TRANSFER_DST,
+            gpu_allocator::MemoryLocation::GpuOnly,
+            "lao",
+        )
+    }
+
+    /// The K ray steps in index units, as the kernel reads them.
+    pub fn directions_buffer(&self, params: &LaoParams, spacing: [f64; 3]) -> Result<Buffer> {
+        let dirs: Vec<[f32; 4]> = index_steps(params, spacing)
+            .iter()
+            .map(|s| [s.x as f32, s.y as f32, s.z as f32, 0.0])
+            .collect();
+        Buffer::from_slice(
+            &self.gpu,
+            &dirs,
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "lao-dirs",
+        )
+    }
+
+    /// Records the LAO of slices `z0..z1` of `opacity` into the same slices of `out`
+    /// (`dirs` from [`LaoGpu::directions_buffer`]). Each voxel's value depends only on O, so
+    /// any split into slabs gives the same volume bit for bit. Records no barrier: the caller
+    /// orders `out` against its readers.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_slab(
+        &self,
+        cmd: vk::CommandBuffer,
+        opacity: &Buffer,
+        dirs: &Buffer,
+        skip: &SkipBuffers,
+        out: &Buffer,
+        dims: [usize; 3],
+        params: &LaoParams,
+        z: std::ops::Range<usize>,
+    ) {
+        let push = Push {
+            dims: [dims[0] as i32, dims[1] as i32, dims[2] as i32, 0],
+            rays: params.rays,
+            steps: params.steps,
+            exponent: params.step_mm,
+            z0: z.start as u32,
+            z1: z.end as u32,
+        };
+        self.pipeline.bind(
+            cmd,
+            &[opacity, dirs, out, &skip.clear, &skip.bricks],
+            bytemuck::bytes_of(&push),
+        );
+        self.pipeline.dispatch(
+            cmd,
+            [
+                dims[0].div_ceil(4) as u32,
+                dims[1].div_ceil(4) as u32,
+                z.len().div_ceil(4) as u32,
+            ],
+        );
+    }
+
+    /// Opacity samples one z-slice costs at most (K*M per voxel), for sizing slabs.
+    pub fn samples_per_slice(dims: [usize; 3], params: &LaoParams) -> f64 {
+        (dims[0] * dims[1]) as f64 * params.rays as f64 * params.steps as f64
+    }
+
+    /// Full LAO of the opacity volume (device buffer, x fastest) into a new device buffer;
+    /// `skip` is its [`LaoGpu::skip_buffers`].
+    /// Works slab by slab so a large volume never stalls a GPU for long and progress can be
+    /// reported through `progress(done_slices, total_slices)`.
     pub fn compute(
         &self,
         opacity: &Buffer,
@@ -235,28 +331,11 @@ impl LaoGpu {
         progress: &mut dyn FnMut(usize, usize),
     ) -> Result<(Buffer, LaoTiming)> {
         let n = dims[0] * dims[1] * dims[2];
-        let out = Buffer::new(
-            &self.gpu,
-            (n * 4) as u64,
-            vk::BufferUsageFlags::STORAGE_BUFFER
-                | vk::BufferUsageFlags::TRANSFER_SRC
-                | vk::BufferUsageFlags::TRANSFER_DST,
-            gpu_allocator::MemoryLocation::GpuOnly,
-            "lao",
-        )?;
-        let dirs: Vec<[f32; 4]> = index_steps(params, spacing)
-            .iter()
-            .map(|s| [s.x as f32, s.y as f32, s.z as f32, 0.0])
-            .collect();
-        let dir_buf = Buffer::from_slice(
-            &self.gpu,
-            &dirs,
-            vk::BufferUsageFlags::STORAGE_BUFFER,
-            "lao-dirs",
-        )?;
+        let out = self.output_buffer(dims)?;
+        let dir_buf = self.directions_buffer(params, spacing)?;
         // About 2e8 samples a submission on a CPU device, 4e9 on a GPU.
         let budget = if self.gpu.is_cpu() { 2e8 } else { 4e9 };
-        let per_slice = (dims[0] * dims[1]) as f64 * params.rays as f64 * params.steps as f64;
+        let per_slice = Self::samples_per_slice(dims, params);
         let slab = ((budget / per_slice) as usize).clamp(4, dims[2].max(4)) / 4 * 4;
         let mut timer = GpuTimer::new(&self.gpu, 2)?;
         let mut timing = LaoTiming::default();
@@ -265,29 +344,9 @@ impl LaoGpu {
         progress(0, dims[2]);
         while z0 < dims[2] {
             let z1 = (z0 + slab).min(dims[2]);
-            let push = Push {
-                dims: [dims[0] as i32, dims[1] as i32, dims[2] as i32, 0],
-                rays: params.rays,
-                steps: params.steps,
-                exponent: params.step_mm,
-                z0: z0 as u32,
-                z1: z1 as u32,
-            };
             self.gpu.submit_and_wait(|cmd| {
                 timer.begin(cmd);
-                self.pipeline.bind(
-                    cmd,
-                    &[opacity, &dir_buf, &out, &skip.clear, &skip.bricks],
-                    bytemuck::bytes_of(&push),
-                );
-                self.pipeline.dispatch(
-                    cmd,
-                    [
-                        dims[0].div_ceil(4) as u32,
-                        dims[1].div_ceil(4) as u32,
-                        (z1 - z0).div_ceil(4) as u32,
-                    ],
-                );
+                self.record_slab(cmd, opacity, &dir_buf, skip, &out, dims, params, z0..z1);
                 timer.mark(cmd, "lao");
             })?;
             timing.gpu_ms += timer.read()?.iter().map(|t| t.1).sum::<f64>();

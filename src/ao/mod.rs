@@ -3,6 +3,7 @@
 pub mod cao;
 pub mod cpu;
 pub mod lao;
+pub mod progressive;
 pub mod sh;
 
 pub use lao::{directions, LaoGpu, LaoParams};

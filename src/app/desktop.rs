@@ -1,7 +1,7 @@
 //! `cao-xr view`: the desktop window. winit gives the window and the events, the one frame loop
 //! renders both eyes, and a blit puts one eye or both side by side on an X11 swapchain.
 
-use super::frame_loop::FrameLoop;
+use super::frame_loop::{tf_cycle, FrameLoop};
 use super::{AppError, Result};
 use crate::ao::LaoParams;
 use crate::gpu::{cmd_image_barrier, Buffer, Gpu, GpuError};
@@ -566,8 +566,13 @@ impl App {
         let m = &stats.metrics;
         let carving = self.fl.scene.tools.first().is_some_and(|t| t.active);
         if let Some(w) = &self.window {
+            // The TF shown, or the one being computed and how far ("TF ct-skin 40%").
+            let tf = match &stats.tf_progress {
+                Some(p) => p.to_string(),
+                None => format!("TF {}", self.fl.shown_tf().name),
+            };
             w.set_title(&format!(
-                "cao-xr | {:.1} fps | AO {:.1} ms | {:.2} % recomputed | carving {} | {:?}",
+                "cao-xr | {:.1} fps | AO {:.1} ms | {:.2} % recomputed | carving {} | {:?} | {tf}",
                 self.fps,
                 m.gpu_ms(),
                 m.percent_recomputed(),
@@ -703,7 +708,7 @@ pub fn run(
     let fl = FrameLoop::new(
         &gpu,
         vol,
-        tf,
+        tf_cycle(tf, vol),
         params,
         opts.size,
         desktop_interaction(),

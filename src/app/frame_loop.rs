@@ -1,11 +1,19 @@
 //! The one frame loop: FrameInput -> interaction -> Scene -> one GPU command buffer (CAO clip +
 //! mask + update, AO into the texture, both eyes) -> images and metrics. Replay drives it from a
 //! pose stream; the desktop window and OpenXR feed it the same FrameInput.
+//!
+//! A transfer-function switch (`scene.tf_index` changed by the menu button) is progressive: O'
+//! and its skipping data are classified on a worker thread, then each frame records one slab of
+//! V_PAO' (bounded by [`FrameLoop::tf_samples_per_frame`]) ahead of its CAO passes, while the
+//! frame still shows the old TF and AO. The frame after the last slab switches the LUT and the
+//! CAO state over at once.
 
-use super::{precompute_ao, Result};
+use super::{precompute_ao, AppError, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
+use crate::ao::lao::{SkipBuffers, SkipData};
+use crate::ao::progressive::{HostTask, SlabScheduler};
 use crate::ao::{LaoGpu, LaoParams};
-use crate::gpu::{Gpu, GpuTimer};
+use crate::gpu::{Buffer, Gpu, GpuTimer};
 use crate::input::{FrameInput, Interaction, InteractionSettings};
 use crate::render::{scene_overlay, OverlayRenderer};
 use crate::render::{
@@ -13,8 +21,84 @@ use crate::render::{
     VolumeTextures,
 };
 use crate::scene::Scene;
-use crate::volume::transfer::TransferFunction;
-use crate::volume::Volume;
+use crate::volume::transfer::{Domain, TransferFunction, PRESETS};
+use crate::volume::{Modality, Volume};
+use ash::vk;
+use std::sync::Arc;
+
+/// How far a transfer-function switch has come: V_PAO' of `name` is `fraction` done (0 while
+/// the host still classifies). Shown as "TF ct-skin 40%".
+#[derive(Clone, Debug, PartialEq)]
+pub struct TfProgress {
+    pub name: String,
+    pub fraction: f32,
+}
+
+impl std::fmt::Display for TfProgress {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "TF {} {:.0}%", self.name, 100.0 * self.fraction)
+    }
+}
+
+/// The transfer functions the menu cycles through: `first` (the one asked for), then the
+/// built-in presets for the volume's kind of values (data-value presets for CT, normalised ones
+/// otherwise), each once.
+// TODO(lead): swap the preset choice for transfer::presets_for(modality) once it lands.
+pub fn tf_cycle(first: &TransferFunction, vol: &Volume) -> Vec<TransferFunction> {
+    let domain = match vol.modality {
+        Modality::Ct => Domain::Data,
+        _ => Domain::Normalized,
+    };
+    let mut tfs = vec![first.clone()];
+    for name in PRESETS {
+        if let Some(tf) = TransferFunction::preset(name) {
+            if tf.domain == domain && !tfs.iter().any(|t| t.name == tf.name) {
+                tfs.push(tf);
+            }
+        }
+    }
+    tfs
+}
+
+/// Default V_PAO' budget per frame, in opacity samples (K*M per voxel): a few ms on a GPU; on a
+/// CPU device (lavapipe, ~20 M samples/s) about a tenth of a second.
+pub fn default_tf_samples_per_frame(gpu: &Gpu) -> f64 {
+    if gpu.is_cpu() {
+        2e6
+    } else {
+        2e8
+    }
+}
+
+/// A transfer-function switch in flight.
+struct TfSwitch {
+    /// Index into [`FrameLoop::tfs`] of the TF being computed.
+    index: usize,
+    stage: SwitchStage,
+}
+
+// At most one exists per loop: its size does not matter.
+#[allow(clippy::large_enum_variant)]
+enum SwitchStage {
+    /// O' and its skipping data, on a worker thread.
+    Classifying(HostTask<(Vec<f32>, SkipData)>),
+    /// One slab of V_PAO' per frame.
+    Computing {
+        opacity: Buffer,
+        skip: SkipBuffers,
+        pao: Buffer,
+        slabs: SlabScheduler,
+    },
+}
+
+impl TfSwitch {
+    fn fraction(&self) -> f32 {
+        match &self.stage {
+            SwitchStage::Classifying(_) => 0.0,
+            SwitchStage::Computing { slabs, .. } => slabs.fraction(),
+        }
+    }
+}
 
 /// What one frame produced.
 pub struct FrameOutput {
@@ -24,6 +108,10 @@ pub struct FrameOutput {
     pub render_ms: f64,
     /// Wall time of the whole frame on the host, read-back included.
     pub frame_ms: f64,
+    /// GPU time of this frame's slab of a transfer-function switch (0 without one).
+    pub tf_ms: f64,
+    /// A transfer-function switch in flight (the frame still shows the old TF); None otherwise.
+    pub tf_progress: Option<TfProgress>,
 }
 
 /// What one frame cost, without its pictures.
@@ -31,6 +119,8 @@ pub struct FrameStats {
     pub metrics: FrameMetrics,
     pub render_ms: f64,
     pub frame_ms: f64,
+    pub tf_ms: f64,
+    pub tf_progress: Option<TfProgress>,
 }
 
 pub struct FrameLoop {
@@ -46,22 +136,41 @@ pub struct FrameLoop {
     pub mode: Mode,
     pub settings: RenderSettings,
     timer: GpuTimer,
+    /// The transfer functions `scene.tf_index` picks from.
+    tfs: Vec<TransferFunction>,
+    /// Index of the TF whose LUT and AO are shown.
+    shown_tf: usize,
+    /// The volume's voxels, for classifying on a worker thread (only with more than one TF).
+    source: Option<Arc<Volume>>,
+    lao: LaoGpu,
+    lao_dirs: Buffer,
+    switch: Option<TfSwitch>,
+    tf_timer: GpuTimer,
+    /// Opacity samples (K*M per voxel) of V_PAO' one frame may record during a switch.
+    pub tf_samples_per_frame: f64,
 }
 
 impl FrameLoop {
-    /// Classifies the volume, precomputes V_PAO (with a progress bar when asked) and sets up
-    /// CAO and the renderer for `size` pixels per eye.
+    /// Classifies the volume with the first of `tfs`, precomputes V_PAO (with a progress bar
+    /// when asked) and sets up CAO and the renderer for `size` pixels per eye. The menu button
+    /// cycles through `tfs` ([`tf_cycle`] makes the usual list).
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         gpu: &Gpu,
         vol: &Volume,
-        tf: &TransferFunction,
+        tfs: Vec<TransferFunction>,
         params: LaoParams,
         size: (u32, u32),
-        interaction: InteractionSettings,
+        mut interaction: InteractionSettings,
         show_progress: bool,
     ) -> Result<FrameLoop> {
+        let tf = tfs.first().ok_or_else(|| {
+            AppError::Usage(format!("{}: no transfer function to show", vol.name))
+        })?;
+        interaction.tf_presets = tfs.len();
         let lao = LaoGpu::new(gpu)?;
         let ao = precompute_ao(gpu, &lao, vol, tf, &params, show_progress)?;
+        let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
         Ok(FrameLoop {
             gpu: gpu.clone(),
             geometry: vol.clone_geometry(),
@@ -75,6 +184,111 @@ impl FrameLoop {
             mode: Mode::Contextual,
             settings: RenderSettings::default(),
             timer: GpuTimer::new(gpu, 2)?,
+            source: (tfs.len() > 1).then(|| Arc::new(vol.clone())),
+            tfs,
+            shown_tf: 0,
+            lao,
+            lao_dirs,
+            switch: None,
+            tf_timer: GpuTimer::new(gpu, 2)?,
+            tf_samples_per_frame: default_tf_samples_per_frame(gpu),
+        })
+    }
+
+    /// The transfer functions the menu cycles through.
+    pub fn transfer_functions(&self) -> &[TransferFunction] {
+        &self.tfs
+    }
+
+    /// The transfer function whose colours and AO the frames show.
+    pub fn shown_tf(&self) -> &TransferFunction {
+        &self.tfs[self.shown_tf]
+    }
+
+    /// Follows `scene.tf_index`: starts, restarts or drops a switch, hands finished host work to
+    /// the GPU, and switches over once every slab of V_PAO' has executed. Runs before the frame
+    /// is recorded, after the previous frame's wait, so no submitted work uses what it drops.
+    fn advance_tf_switch(&mut self) -> Result<()> {
+        let want = self.scene.tf_index % self.tfs.len();
+        let target = self.switch.as_ref().map_or(self.shown_tf, |s| s.index);
+        if want != target {
+            // Dropping the switch in flight frees O', V_PAO' and skip': safe, because every
+            // frame waits for its command buffer, so none of them is in use any more; an
+            // unfinished classification thread is detached and its result discarded.
+            self.switch = None;
+            if want != self.shown_tf {
+                self.switch = Some(self.start_tf_switch(want)?);
+            }
+        }
+        let Some(sw) = self.switch.as_mut() else {
+            return Ok(());
+        };
+        if let SwitchStage::Classifying(task) = &mut sw.stage {
+            let Some(done) = task.poll() else {
+                return Ok(());
+            };
+            let name = &self.tfs[sw.index].name;
+            let (opacity, skip) = done.map_err(|msg| {
+                AppError::Usage(format!(
+                    "{}: classifying with transfer function '{name}' failed: {msg}",
+                    self.geometry.name
+                ))
+            })?;
+            let dims = self.geometry.dims;
+            sw.stage = SwitchStage::Computing {
+                opacity: Buffer::device_local(
+                    &self.gpu,
+                    &opacity,
+                    vk::BufferUsageFlags::STORAGE_BUFFER,
+                    "opacity",
+                )?,
+                skip: self.lao.upload_skip(&skip)?,
+                pao: self.lao.output_buffer(dims)?,
+                slabs: SlabScheduler::with_budget(
+                    dims[2],
+                    LaoGpu::samples_per_slice(dims, &self.cao.params),
+                    self.tf_samples_per_frame,
+                ),
+            };
+        }
+        let finished =
+            matches!(&sw.stage, SwitchStage::Computing { slabs, .. } if slabs.is_finished());
+        if finished {
+            let sw = self.switch.take().expect("checked above");
+            let SwitchStage::Computing {
+                opacity, skip, pao, ..
+            } = sw.stage
+            else {
+                unreachable!("finished implies computing")
+            };
+            self.tex.set_transfer_function(&self.tfs[sw.index])?;
+            self.cao.replace_precomputed(opacity, pao, skip)?;
+            self.shown_tf = sw.index;
+        }
+        Ok(())
+    }
+
+    fn start_tf_switch(&self, index: usize) -> Result<TfSwitch> {
+        let vol = self
+            .source
+            .clone()
+            .expect("more than one TF keeps the voxels");
+        let tf = self.tfs[index].clone();
+        let params = self.cao.params;
+        let task = HostTask::spawn("cao-xr-classify", move || {
+            let opacity = tf.opacity_volume(&vol);
+            let skip = SkipData::new(&opacity, vol.dims, vol.spacing, &params);
+            (opacity, skip)
+        })
+        .map_err(|e| {
+            AppError::Usage(format!(
+                "{}: cannot start a thread to classify with transfer function '{}': {e}",
+                self.geometry.name, self.tfs[index].name
+            ))
+        })?;
+        Ok(TfSwitch {
+            index,
+            stage: SwitchStage::Classifying(task),
         })
     }
 
@@ -88,6 +302,8 @@ impl FrameLoop {
             metrics: stats.metrics,
             render_ms: stats.render_ms,
             frame_ms: t0.elapsed().as_secs_f64() * 1e3,
+            tf_ms: stats.tf_ms,
+            tf_progress: stats.tf_progress,
         })
     }
 
@@ -112,6 +328,7 @@ impl FrameLoop {
     ) -> Result<FrameStats> {
         let t0 = std::time::Instant::now();
         self.interaction.update(input, &mut self.scene);
+        self.advance_tf_switch()?;
         let FrameLoop {
             gpu,
             geometry,
@@ -125,6 +342,10 @@ impl FrameLoop {
             mode,
             settings,
             timer,
+            lao,
+            lao_dirs,
+            switch,
+            tf_timer,
             ..
         } = self;
         let model = world_from_tex(geometry, &scene.volume);
@@ -132,6 +353,28 @@ impl FrameLoop {
         let mut recorded = Ok(None);
         gpu.submit_and_wait(|cmd| {
             recorded = (|| {
+                // One slab of V_PAO' for a TF switch: it writes only its own buffer, which no
+                // other pass of this frame reads, so it needs no barrier here.
+                let mut slab = false;
+                if let Some(TfSwitch {
+                    stage:
+                        SwitchStage::Computing {
+                            opacity,
+                            skip,
+                            pao,
+                            slabs,
+                        },
+                    ..
+                }) = switch.as_mut()
+                {
+                    if let Some(z) = slabs.next_slab() {
+                        tf_timer.begin(cmd);
+                        let dims = geometry.dims;
+                        lao.record_slab(cmd, opacity, lao_dirs, skip, pao, dims, &cao.params, z);
+                        tf_timer.mark(cmd, "tf-slab");
+                        slab = true;
+                    }
+                }
                 let pending = cao.record_frame(cmd, &scene.tools, &scene.volume, *mode)?;
                 tex.cmd_update_ambient(cmd, &cao.ao);
                 let (tools, maps) = cao.clip_buffers();
@@ -154,16 +397,27 @@ impl FrameLoop {
                 overlay.record(cmd, target, &input.views, &items)?;
                 target.cmd_finish(cmd);
                 after(cmd, target);
-                Ok::<_, crate::gpu::GpuError>(Some(pending))
+                Ok::<_, crate::gpu::GpuError>(Some((pending, slab)))
             })();
         })?;
-        let pending = recorded?.expect("recorded");
+        let (pending, slab) = recorded?.expect("recorded");
         let metrics = cao.read_metrics(pending)?;
         let render_ms = timer.read()?.first().map_or(0.0, |t| t.1);
+        let tf_ms = if slab {
+            tf_timer.read()?.first().map_or(0.0, |t| t.1)
+        } else {
+            0.0
+        };
+        let tf_progress = self.switch.as_ref().map(|sw| TfProgress {
+            name: self.tfs[sw.index].name.clone(),
+            fraction: sw.fraction(),
+        });
         Ok(FrameStats {
             metrics,
             render_ms,
             frame_ms: t0.elapsed().as_secs_f64() * 1e3,
+            tf_ms,
+            tf_progress,
         })
     }
 }

@@ -1,7 +1,7 @@
 //! `cao-xr replay`: renders every frame of a pose stream headless through the one frame loop,
 //! writing side-by-side PNGs, per-frame metrics (CSV) and an optional animated PNG preview.
 
-use super::frame_loop::FrameLoop;
+use super::frame_loop::{tf_cycle, FrameLoop};
 use super::{AppError, Result};
 use crate::ao::cao::Mode;
 use crate::ao::LaoParams;
@@ -95,7 +95,15 @@ pub fn replay(
     } else {
         InteractionSettings::default()
     };
-    let mut fl = FrameLoop::new(gpu, vol, tf, params, opts.size, interaction, true)?;
+    let mut fl = FrameLoop::new(
+        gpu,
+        vol,
+        tf_cycle(tf, vol),
+        params,
+        opts.size,
+        interaction,
+        true,
+    )?;
     fl.mode = opts.mode;
     fl.scene.tools.push(Tool {
         shape: opts
@@ -114,7 +122,7 @@ pub fn replay(
     );
     writeln!(
         csv,
-        "frame,time_s,frame_ms,ao_update_ms,restore_ms,clip_ms,update_ms,render_ms,clipped,recomputed,percent_recomputed"
+        "frame,time_s,frame_ms,ao_update_ms,restore_ms,clip_ms,update_ms,render_ms,clipped,recomputed,percent_recomputed,tf,tf_progress,tf_ms"
     )
     .map_err(|e| out_err(&csv_path, e))?;
     let every = opts.every.max(1);
@@ -134,7 +142,7 @@ pub fn replay(
         let m = &f.metrics;
         writeln!(
             csv,
-            "{i},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{:.4}",
+            "{i},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{:.4},{},{},{:.3}",
             frames[i].time,
             f.frame_ms,
             m.gpu_ms(),
@@ -144,11 +152,21 @@ pub fn replay(
             f.render_ms,
             m.clipped,
             m.recomputed,
-            m.percent_recomputed()
+            m.percent_recomputed(),
+            // The TF this frame showed; tf_progress is empty when no switch is in flight.
+            fl.shown_tf().name,
+            f.tf_progress
+                .as_ref()
+                .map_or(String::new(), |p| format!("{:.4}", p.fraction)),
+            f.tf_ms
         )
         .map_err(|e| out_err(&csv_path, e))?;
+        let tf = f
+            .tf_progress
+            .as_ref()
+            .map_or(String::new(), |p| format!("  {p}"));
         eprintln!(
-            "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {:>8.1} ms  render {:>8.1} ms  recomputed {:>6.2} %",
+            "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {:>8.1} ms  render {:>8.1} ms  recomputed {:>6.2} %{tf}",
             frames.len(),
             frames[i].time,
             f.frame_ms,

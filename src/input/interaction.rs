@@ -1590,6 +1590,13 @@ mod tests {
                             .fold(0.0, f32::max);
                         assert!(max_step < 0.01, "{kind}: the volume jumped {max_step} m");
                     }
+                    ScriptKind::TfSwitch => {
+                        assert!(active(RIGHT_TOOL) > 0.9, "{kind}");
+                        let tf: Vec<usize> = scenes.iter().map(|s| s.tf_index).collect();
+                        let switches = tf.windows(2).filter(|w| w[0] != w[1]).count();
+                        assert_eq!((tf[0], *tf.last().unwrap(), switches), (0, 1, 1), "{kind}");
+                        assert!(unmoved, "{kind}");
+                    }
                     ScriptKind::Tremor => {
                         assert!(active(RIGHT_TOOL) > 0.9, "{kind}");
                         let expect = c + settings.tool_offset;

@@ -38,16 +38,20 @@ pub enum ScriptKind {
     GrabScale,
     /// A still right hand with physiological tremor (8-12 Hz, under 1 mm), trigger pressed.
     Tremor,
+    /// The sphere sweep, and the left hand presses menu once a quarter of the way through (the
+    /// next transfer function, recomputed progressively while the sweep goes on).
+    TfSwitch,
 }
 
 impl ScriptKind {
-    pub const ALL: [ScriptKind; 6] = [
+    pub const ALL: [ScriptKind; 7] = [
         ScriptKind::SphereSweep,
         ScriptKind::BoxPushPull,
         ScriptKind::TorusPass,
         ScriptKind::TwoTools,
         ScriptKind::GrabScale,
         ScriptKind::Tremor,
+        ScriptKind::TfSwitch,
     ];
 
     /// The kebab-case name, as parsed by `FromStr` and used for `controllers/scripts/<name>.jsonl`.
@@ -59,6 +63,7 @@ impl ScriptKind {
             ScriptKind::TwoTools => "two-tools",
             ScriptKind::GrabScale => "grab-scale",
             ScriptKind::Tremor => "tremor",
+            ScriptKind::TfSwitch => "tf-switch",
         }
     }
 
@@ -88,6 +93,10 @@ impl ScriptKind {
             ScriptKind::Tremor => {
                 "sphere tool: a still right hand at the volume centre with physiological tremor \
                  (8-12 Hz, under 1 mm), trigger pressed"
+            }
+            ScriptKind::TfSwitch => {
+                "sphere tool: right hand sweeps left to right through the volume centre, \
+                 trigger pressed; the left hand presses menu (next transfer function) at 25 %"
             }
         }
     }
@@ -209,6 +218,7 @@ pub fn generate(kind: ScriptKind, params: &ScriptParams) -> Vec<FrameInput> {
                 ScriptKind::TwoTools => stage.two_tools(s),
                 ScriptKind::GrabScale => stage.grab_scale(s),
                 ScriptKind::Tremor => stage.tremor(&tremor, time),
+                ScriptKind::TfSwitch => stage.tf_switch(s),
             };
             FrameInput {
                 time,
@@ -470,6 +480,13 @@ impl Stage {
         let right_grip = phase(s, 0.52, 0.57) * release;
         let right = self.hand(right_pos, Quat::IDENTITY, right_grip, 0.0);
         [left, right]
+    }
+
+    fn tf_switch(&self, s: f64) -> [HandInput; 2] {
+        let mut hands = self.sphere_sweep(s);
+        // Held for a few frames (a real press), counted once.
+        hands[LEFT].buttons.menu = (0.25..0.28).contains(&s);
+        hands
     }
 
     fn tremor(&self, tremor: &Tremor, t: f64) -> [HandInput; 2] {

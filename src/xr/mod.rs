@@ -315,7 +315,7 @@ pub fn run(
     let fl = FrameLoop::new(
         &gpu,
         vol,
-        tf,
+        crate::app::frame_loop::tf_cycle(tf, vol),
         params,
         extent,
         InteractionSettings::default(),

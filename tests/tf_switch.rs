@@ -1,0 +1,276 @@
+//! Run-time transfer-function switch through the one frame loop, on lavapipe with validation on:
+//! the menu button starts a progressive V_PAO recompute (one slab per frame), frames keep the old
+//! TF and AO until the last slab, then switch over to exactly what a loop started with the new TF
+//! shows, tools carving.
+
+mod common;
+
+use cao_xr::ao::cao::Mode;
+use cao_xr::ao::{LaoGpu, LaoParams};
+use cao_xr::app::frame_loop::{FrameLoop, FrameOutput};
+use cao_xr::gpu::{Buffer, Gpu};
+use cao_xr::input::{FrameInput, InteractionSettings};
+use cao_xr::render::{default_stereo_views, Placement, Pose};
+use cao_xr::scene::{Shape, Tool, ToolMode};
+use cao_xr::volume::transfer::TransferFunction;
+use cao_xr::volume::{phantom, Volume};
+use glam::{Quat, Vec3};
+
+const N: usize = 32;
+const PARAMS: LaoParams = LaoParams {
+    rays: 6,
+    steps: 6,
+    step_mm: 4.0,
+};
+/// Slices per slab the budget below buys.
+const SLAB: usize = 4;
+
+fn read(b: &Buffer) -> Vec<f32> {
+    bytemuck::cast_slice(&b.read_back().unwrap()).to_vec()
+}
+
+/// A third TF for the restart: ct-skin with denser soft tissue.
+fn soft() -> TransferFunction {
+    let mut tf = TransferFunction::preset("ct-skin").unwrap();
+    tf.name = "ct-soft".into();
+    for p in &mut tf.points {
+        if p.alpha > 0.0 && p.alpha < 0.1 {
+            p.alpha = 0.3;
+        }
+    }
+    tf.validate().unwrap();
+    tf
+}
+
+fn new_loop(gpu: &Gpu, vol: &Volume, tfs: Vec<TransferFunction>, mode: Mode) -> FrameLoop {
+    let mut fl = FrameLoop::new(
+        gpu,
+        vol,
+        tfs,
+        PARAMS,
+        (48, 48),
+        InteractionSettings::default(),
+        false,
+    )
+    .unwrap();
+    fl.mode = mode;
+    fl.tf_samples_per_frame = LaoGpu::samples_per_slice(vol.dims, &PARAMS) * SLAB as f64;
+    fl
+}
+
+/// Frame `i`'s tool: a carving sphere sweeping across the front of the head (inactive on
+/// frames where `carve` says so).
+fn tool(c: Vec3, i: usize, carve: bool) -> Tool {
+    Tool {
+        shape: Shape::Sphere,
+        pose: Pose {
+            position: c + Vec3::new(-0.05 + 0.01 * (i % 10) as f32, 0.03, 0.07),
+            orientation: Quat::IDENTITY,
+        },
+        size: 0.035,
+        mode: ToolMode::Carve,
+        active: carve,
+    }
+}
+
+/// One frame with the given tool and the menu button (left hand, untracked: buttons still act,
+/// the tool stays where the scene put it).
+fn frame(fl: &mut FrameLoop, vol: &Volume, tool: Tool, menu: bool, i: usize) -> FrameOutput {
+    let views = default_stereo_views(vol, &Placement::default(), 0.064);
+    let mut input = FrameInput::without_hands(i as f64 / 60.0, views);
+    input.hands[0].buttons.menu = menu;
+    fl.scene.tools = vec![tool];
+    fl.frame(&input).unwrap()
+}
+
+fn first_diff(a: &[f32], b: &[f32]) -> Option<usize> {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .position(|(x, y)| x.to_bits() != y.to_bits())
+}
+
+#[test]
+fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
+    let gpu = common::gpu();
+    let vol = phantom::head(N);
+    let (bone, skin) = (
+        TransferFunction::preset("ct-bone").unwrap(),
+        TransferFunction::preset("ct-skin").unwrap(),
+    );
+    let tfs = vec![bone.clone(), skin.clone(), soft()];
+    let mut fl = new_loop(&gpu, &vol, tfs.clone(), Mode::Contextual);
+    // The same frames, never switched.
+    let mut still = new_loop(&gpu, &vol, tfs.clone(), Mode::Contextual);
+    assert_eq!(fl.interaction.settings().tf_presets, 3);
+    let c = Placement::default().center;
+
+    // Menu once (-> ct-skin), then again after three slabs (-> ct-soft): the second press
+    // restarts the recompute for the newest TF.
+    let mut i = 0;
+    let mut progress: Vec<(String, f32)> = Vec::new();
+    let mut slab_frames = 0;
+    let mut pressed_twice = false;
+    let (switch_frame, switch_tool) = loop {
+        assert!(i < 200, "the switch never finished: {progress:?}");
+        let menu = i == 0 || (slab_frames == 3 && !pressed_twice);
+        if menu && i > 0 {
+            pressed_twice = true;
+            slab_frames = 0;
+        }
+        let t = tool(c, i, i % 5 != 4);
+        let a = frame(&mut fl, &vol, t, menu, i);
+        let Some(p) = a.tf_progress.clone() else {
+            break (a, t);
+        };
+        // (a) Still the old TF and AO, bit for bit, while CAO goes on.
+        let b = frame(&mut still, &vol, t, false, i);
+        assert!(b.tf_progress.is_none());
+        assert_eq!(fl.shown_tf().name, "ct-bone", "frame {i}");
+        let d = first_diff(&read(&fl.cao.ao), &read(&still.cao.ao));
+        assert!(
+            d.is_none(),
+            "frame {i}: V_AO changed during the recompute at {d:?}"
+        );
+        assert!(
+            a.image == b.image,
+            "frame {i}: image changed during the recompute"
+        );
+        assert_eq!(a.metrics.recomputed, b.metrics.recomputed, "frame {i}");
+        assert!(
+            a.metrics.recomputed > 0 || !t.active,
+            "frame {i}: the tool carves"
+        );
+        // A slab ran this frame when this TF's fraction grew.
+        let before = progress
+            .last()
+            .filter(|l| l.0 == p.name)
+            .map_or(0.0, |l| l.1);
+        assert!(
+            p.fraction >= before,
+            "frame {i}: progress went back: {progress:?}"
+        );
+        if p.fraction > before {
+            slab_frames += 1;
+        } else {
+            assert_eq!(a.tf_ms, 0.0, "frame {i}: no slab, no slab time");
+        }
+        progress.push((p.name.clone(), p.fraction));
+        i += 1;
+    };
+    assert!(pressed_twice);
+    let switched_at = i;
+
+    // (b) The first TF got three slabs before the restart; the restarted one took exactly
+    // ceil(N / SLAB) slab frames, SLAB / N each, and the switch came on the frame after the last.
+    let steps = |name: &str| -> Vec<f32> {
+        let mut v: Vec<f32> = progress
+            .iter()
+            .filter(|p| p.0 == name && p.1 > 0.0)
+            .map(|p| p.1)
+            .collect();
+        v.dedup();
+        v
+    };
+    let frac = |s: usize| (s * SLAB) as f32 / N as f32;
+    assert_eq!(
+        steps("ct-skin"),
+        [frac(1), frac(2), frac(3)],
+        "{progress:?}"
+    );
+    let expect: Vec<f32> = (1..=N.div_ceil(SLAB)).map(frac).collect();
+    assert_eq!(steps("ct-soft"), expect, "{progress:?}");
+    assert_eq!(slab_frames, N.div_ceil(SLAB));
+    assert_eq!(progress.last().unwrap(), &("ct-soft".to_string(), 1.0));
+    assert_eq!(fl.shown_tf().name, "ct-soft");
+    assert_eq!(fl.scene.tf_index, 2);
+
+    // (c) From the switch on: the same V_AO and images as a loop started with ct-soft, the same
+    // V_AO as the naive full recompute, tools carving; with the tool off, V_AO is V_PAO'.
+    let mut fresh = new_loop(&gpu, &vol, vec![soft(), bone, skin], Mode::Contextual);
+    let mut naive = new_loop(&gpu, &vol, vec![soft()], Mode::Naive);
+    let mut pao = None;
+    let mut switch_frame = Some((switch_frame, switch_tool));
+    for k in 0..3 {
+        let i = switched_at + k;
+        // k = 0: the switch frame the loop above rendered; then one more carving, one without.
+        let (a, t) = switch_frame.take().unwrap_or_else(|| {
+            let t = tool(c, i, k == 1);
+            (frame(&mut fl, &vol, t, false, i), t)
+        });
+        let carve = t.active;
+        let f = frame(&mut fresh, &vol, t, false, i);
+        let n = frame(&mut naive, &vol, t, false, i);
+        let ao = read(&fl.cao.ao);
+        let d = first_diff(&ao, &read(&fresh.cao.ao));
+        assert!(
+            d.is_none(),
+            "frame {i}: V_AO differs from a fresh loop at {d:?}"
+        );
+        let d = first_diff(&ao, &read(&naive.cao.ao));
+        assert!(
+            d.is_none(),
+            "frame {i}: V_AO differs from the naive recompute at {d:?}"
+        );
+        assert!(a.tf_progress.is_none());
+        assert!(
+            a.image == f.image,
+            "frame {i}: image differs from a fresh loop"
+        );
+        assert_eq!(a.metrics.clipped, f.metrics.clipped, "frame {i}");
+        assert_eq!(a.metrics.recomputed, f.metrics.recomputed, "frame {i}");
+        assert!(
+            carve == (a.metrics.recomputed > 0),
+            "frame {i}: {:?}",
+            a.metrics
+        );
+        assert_eq!(n.metrics.clipped, f.metrics.clipped, "frame {i}");
+        if !carve {
+            pao = Some(ao);
+        }
+    }
+    // V_PAO' differs from the old V_PAO (the switch did something).
+    let old = frame(&mut still, &vol, tool(c, 0, false), false, 0);
+    assert!(old.tf_progress.is_none());
+    assert!(first_diff(&pao.unwrap(), &read(&still.cao.ao)).is_some());
+    common::assert_no_validation_messages(&gpu);
+}
+
+/// Pressing menu back to the TF on screen mid-way drops the recompute (its buffers freed after
+/// the frame's wait, validation silent) and nothing changes.
+#[test]
+fn cycling_back_to_the_shown_tf_cancels_the_switch() {
+    let gpu = common::gpu();
+    let vol = phantom::head(24);
+    let tfs = vec![
+        TransferFunction::preset("ct-bone").unwrap(),
+        TransferFunction::preset("ct-skin").unwrap(),
+    ];
+    let mut fl = new_loop(&gpu, &vol, tfs.clone(), Mode::Contextual);
+    let mut still = new_loop(&gpu, &vol, tfs, Mode::Contextual);
+    let c = Placement::default().center;
+    let mut slabs = 0;
+    let mut i = 0;
+    // Menu, then a second press once a slab ran: back to ct-bone.
+    while slabs == 0 {
+        assert!(i < 100, "no slab ever ran");
+        let a = frame(&mut fl, &vol, tool(c, i, true), i == 0, i);
+        let p = a.tf_progress.expect("in flight until the second press");
+        assert_eq!(p.name, "ct-skin");
+        slabs += (p.fraction > 0.0) as usize;
+        frame(&mut still, &vol, tool(c, i, true), false, i);
+        i += 1;
+    }
+    for k in 0..3 {
+        let a = frame(&mut fl, &vol, tool(c, i, true), k == 0, i);
+        let b = frame(&mut still, &vol, tool(c, i, true), false, i);
+        assert!(a.tf_progress.is_none(), "frame {i}: dropped");
+        assert_eq!(fl.scene.tf_index, 0);
+        assert_eq!(fl.shown_tf().name, "ct-bone");
+        let d = first_diff(&read(&fl.cao.ao), &read(&still.cao.ao));
+        assert!(d.is_none(), "frame {i}: V_AO changed at {d:?}");
+        assert!(a.image == b.image, "frame {i}");
+        i += 1;
+    }
+    common::assert_no_validation_messages(&gpu);
+}
