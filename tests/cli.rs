@@ -466,11 +466,11 @@ fn replay_switches_the_transfer_function_on_menu() {
         })
         .collect();
     assert_eq!(rows.len(), 24);
-    let first_new = rows.iter().position(|r| r.0 == "ct-skin").expect(&csv);
+    let first_new = rows.iter().position(|r| r.0 == "ct-soft-tissue").expect(&csv);
     assert!(
         rows[first_new..]
             .iter()
-            .all(|r| r == &("ct-skin".into(), None)),
+            .all(|r| r == &("ct-soft-tissue".into(), None)),
         "{csv}"
     );
     assert!(rows[..first_new].iter().all(|r| r.0 == "ct-bone"), "{csv}");
@@ -483,7 +483,7 @@ fn replay_switches_the_transfer_function_on_menu() {
         .collect();
     assert!(progress.windows(2).all(|w| w[0] <= w[1]), "{csv}");
     assert_eq!(*progress.last().unwrap(), 1.0, "{csv}");
-    assert!(stats.contains("TF ct-skin 100%"), "{stats}");
+    assert!(stats.contains("TF ct-soft-tissue 100%"), "{stats}");
 }
 
 #[test]

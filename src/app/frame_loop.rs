@@ -21,8 +21,8 @@ use crate::render::{
     VolumeTextures,
 };
 use crate::scene::Scene;
-use crate::volume::transfer::{Domain, TransferFunction, PRESETS};
-use crate::volume::{Modality, Volume};
+use crate::volume::transfer::{presets_for_volume, TransferFunction};
+use crate::volume::Volume;
 use ash::vk;
 use std::sync::Arc;
 
@@ -41,20 +41,15 @@ impl std::fmt::Display for TfProgress {
 }
 
 /// The transfer functions the menu cycles through: `first` (the one asked for), then the
-/// built-in presets for the volume's kind of values (data-value presets for CT, normalised ones
-/// otherwise), each once.
-// TODO(lead): swap the preset choice for transfer::presets_for(modality) once it lands.
+/// presets suited to the volume ([`presets_for_volume`]: CT or MR), each once.
 pub fn tf_cycle(first: &TransferFunction, vol: &Volume) -> Vec<TransferFunction> {
-    let domain = match vol.modality {
-        Modality::Ct => Domain::Data,
-        _ => Domain::Normalized,
-    };
     let mut tfs = vec![first.clone()];
-    for name in PRESETS {
-        if let Some(tf) = TransferFunction::preset(name) {
-            if tf.domain == domain && !tfs.iter().any(|t| t.name == tf.name) {
-                tfs.push(tf);
-            }
+    for tf in presets_for_volume(vol)
+        .into_iter()
+        .filter_map(TransferFunction::preset)
+    {
+        if !tfs.iter().any(|t| t.name == tf.name) {
+            tfs.push(tf);
         }
     }
     tfs
