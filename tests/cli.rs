@@ -466,7 +466,10 @@ fn replay_switches_the_transfer_function_on_menu() {
         })
         .collect();
     assert_eq!(rows.len(), 24);
-    let first_new = rows.iter().position(|r| r.0 == "ct-soft-tissue").expect(&csv);
+    let first_new = rows
+        .iter()
+        .position(|r| r.0 == "ct-soft-tissue")
+        .expect(&csv);
     assert!(
         rows[first_new..]
             .iter()

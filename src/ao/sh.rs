@@ -24,9 +24,9 @@
 
 use super::cao::{Cao, VoxelBox};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Image, ImageDesc, Result};
+use crate::light::sh::eval;
 use crate::volume::Volume;
 use ash::vk;
-use crate::light::sh::eval;
 use glam::DVec3;
 use gpu_allocator::MemoryLocation;
 use rayon::prelude::*;
