@@ -2,6 +2,7 @@
 
 use anyhow::{bail, Context, Result};
 use cao_xr::ao::sh::ShParams;
+use cao_xr::app::lighting::{LightingMode, LightingOptions};
 use cao_xr::ao::LaoParams;
 use cao_xr::app;
 use cao_xr::gpu::{Gpu, GpuOptions};
@@ -36,6 +37,8 @@ enum Cmd {
         vol: VolumeArgs,
         #[command(flatten)]
         lao: LaoArgs,
+        #[command(flatten)]
+        light: LightArgs,
     },
     /// Render both eyes of a volume (LAO-lit) to DIR/left.png, right.png and stereo.png.
     Render {
@@ -43,6 +46,8 @@ enum Cmd {
         vol: VolumeArgs,
         #[command(flatten)]
         lao: LaoArgs,
+        #[command(flatten)]
+        light: LightArgs,
         /// Output directory.
         #[arg(long, default_value = "out/render")]
         out: PathBuf,
@@ -105,6 +110,8 @@ enum Cmd {
         vol: VolumeArgs,
         #[command(flatten)]
         lao: LaoArgs,
+        #[command(flatten)]
+        light: LightArgs,
         #[arg(long, default_value = "out/replay")]
         out: PathBuf,
         /// Keep one frame in N as PNG.
@@ -132,6 +139,8 @@ enum Cmd {
         vol: VolumeArgs,
         #[command(flatten)]
         lao: LaoArgs,
+        #[command(flatten)]
+        light: LightArgs,
         /// Pixels per eye, WIDTHxHEIGHT (the window shows both eyes side by side).
         #[arg(long, default_value = "480x480", value_parser = parse_size)]
         size: (u32, u32),
@@ -158,6 +167,8 @@ enum Cmd {
         vol: VolumeArgs,
         #[command(flatten)]
         lao: LaoArgs,
+        #[command(flatten)]
+        light: LightArgs,
         /// Submit this many frames, then end the session cleanly.
         #[arg(long)]
         frames: Option<usize>,
@@ -325,6 +336,55 @@ struct VolumeArgs {
 }
 
 #[derive(Args)]
+struct LightArgs {
+    /// ao: ambient occlusion and a headlight; sh: an environment light through the SH
+    /// visibility volume (E = albedo * (L . V)); ao+sh: both, the environment times the AO.
+    #[arg(long, default_value = "ao")]
+    lighting: LightingMode,
+    /// The environment for sh lighting: studio, sky, white, constant:R,G,B (linear), or an
+    /// equirectangular .png or .hdr image (top row up).
+    #[arg(long, default_value = "studio")]
+    light: String,
+    /// Turn of the environment about the up axis in degrees (the desktop's [ and ] keys turn it
+    /// at run time, with no recompute).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    light_yaw: f32,
+    /// SH visibility volume rate 1:N (1, 2, 4 or 8 volume voxels per SH voxel and axis).
+    #[arg(long, default_value_t = ShParams::default().downsample)]
+    sh_downsample: u32,
+    /// SH coefficients: 4 (bands 0-1) or 16 (bands 0-3).
+    #[arg(long, default_value_t = ShParams::default().coeffs)]
+    sh_coeffs: u32,
+    /// Monte Carlo directions per SH voxel.
+    #[arg(long, default_value_t = ShParams::default().directions)]
+    sh_directions: u32,
+    /// Visibility ray length in mm.
+    #[arg(long, default_value_t = ShParams::default().length_mm)]
+    sh_length: f32,
+    /// March the full-resolution opacity instead of the expected-opacity pyramid.
+    #[arg(long)]
+    sh_no_hierarchy: bool,
+}
+
+impl LightArgs {
+    fn options(&self) -> LightingOptions {
+        LightingOptions {
+            mode: self.lighting,
+            environment: self.light.clone(),
+            sh: ShParams {
+                downsample: self.sh_downsample,
+                coeffs: self.sh_coeffs,
+                directions: self.sh_directions,
+                length_mm: self.sh_length,
+                hierarchy: !self.sh_no_hierarchy,
+                ..Default::default()
+            },
+            yaw_deg: self.light_yaw,
+        }
+    }
+}
+
+#[derive(Args)]
 struct LaoArgs {
     /// Rays per voxel K (6, 14, 26 use the neighbour directions; others a Fibonacci sphere).
     #[arg(long, default_value_t = LaoParams::default().rays)]
@@ -445,11 +505,14 @@ fn main() -> std::process::ExitCode {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
-        Cmd::Start { vol, lao } => {
+        Cmd::Start { vol, lao, light } => {
             let (v, tf) = vol.load()?;
             if cao_xr::xr::available() {
                 eprintln!("start: an OpenXR runtime answered: starting the headset session");
-                let opts = cao_xr::xr::XrOptions::default();
+                let opts = cao_xr::xr::XrOptions {
+                    lighting: light.options(),
+                    ..Default::default()
+                };
                 let s = cao_xr::xr::run(&v, &tf, lao.params(), opts)?;
                 println!("headset session ended cleanly after {} frames", s.frames);
             } else if std::env::var_os("DISPLAY").is_some() {
@@ -458,6 +521,7 @@ fn run(cli: Cli) -> Result<()> {
                 );
                 let opts = app::desktop::ViewOptions {
                     size: (480, 480),
+                    lighting: light.options(),
                     ..Default::default()
                 };
                 app::desktop::run(&v, &tf, lao.params(), opts)?;
@@ -479,6 +543,7 @@ fn run(cli: Cli) -> Result<()> {
                     &tools,
                     (640, 640),
                     &settings,
+                    &light.options(),
                     &out,
                 )?;
                 println!(
@@ -490,6 +555,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Render {
             vol,
             lao,
+            light,
             out,
             size,
             no_ao,
@@ -513,8 +579,17 @@ fn run(cli: Cli) -> Result<()> {
                 .map(|t| app::parse_tool(t, &placement))
                 .collect::<Result<Vec<_>, _>>()?;
             let t0 = std::time::Instant::now();
-            let m =
-                app::render_to_dir(&gpu, &v, &tf, &lao.params(), &tools, size, &settings, &out)?;
+            let m = app::render_to_dir(
+                &gpu,
+                &v,
+                &tf,
+                &lao.params(),
+                &tools,
+                size,
+                &settings,
+                &light.options(),
+                &out,
+            )?;
             if let Some(m) = m {
                 println!(
                     "CAO: {} clipped, {} recomputed ({:.2} %), GPU restore {:.1} ms, clip {:.1} ms, update {:.1} ms",
@@ -640,6 +715,7 @@ fn run(cli: Cli) -> Result<()> {
             script,
             vol,
             lao,
+            light,
             out,
             every,
             preview,
@@ -665,6 +741,7 @@ fn run(cli: Cli) -> Result<()> {
                 },
                 realtime,
                 shape,
+                lighting: light.options(),
             };
             let s = app::replay::replay(&gpu, &script, &v, &tf, lao.params(), &out, &opts)?;
             println!(
@@ -679,6 +756,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::View {
             vol,
             lao,
+            light,
             size,
             frames,
             record,
@@ -694,6 +772,7 @@ fn run(cli: Cli) -> Result<()> {
                 demo,
                 screenshot,
                 dump,
+                lighting: light.options(),
             };
             let n = app::desktop::run(&v, &tf, lao.params(), opts)?;
             println!("closed after {n} frames");
@@ -701,6 +780,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Xr {
             vol,
             lao,
+            light,
             frames,
             record,
             size,
@@ -718,6 +798,7 @@ fn run(cli: Cli) -> Result<()> {
                 carve,
                 volume_at,
                 mirror,
+                lighting: light.options(),
             };
             let s = cao_xr::xr::run(&v, &tf, lao.params(), opts)?;
             println!(

@@ -622,6 +622,11 @@ impl Cao {
     }
 
     /// The tools (as uploaded for the last frame) and their maps, for the ray caster's clipping.
+    /// O, the unclipped opacity the precomputed volumes were computed from.
+    pub fn opacity(&self) -> &Buffer {
+        &self.opacity
+    }
+
     pub fn clip_buffers(&self) -> (&Buffer, &Buffer) {
         (&self.tools, self.maps.as_ref().unwrap_or(&self.tools))
     }

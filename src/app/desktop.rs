@@ -2,6 +2,7 @@
 //! renders both eyes, and a blit puts one eye or both side by side on an X11 swapchain.
 
 use super::frame_loop::{tf_cycle, FrameLoop};
+use super::lighting::LightingOptions;
 use super::{AppError, Result};
 use crate::ao::LaoParams;
 use crate::gpu::{cmd_image_barrier, Buffer, Gpu, GpuError};
@@ -36,6 +37,7 @@ pub struct ViewOptions {
     pub screenshot: Option<PathBuf>,
     /// Also write every frame shown (both eyes side by side) as DIR/frame-00000.png ...
     pub dump: Option<PathBuf>,
+    pub lighting: LightingOptions,
 }
 
 /// Interaction settings of desktop sessions (and of their replays): the emulated grip is the
@@ -571,8 +573,16 @@ impl App {
                 Some(p) => p.to_string(),
                 None => format!("TF {}", self.fl.shown_tf().name),
             };
+            let sh = match &self.fl.lighting {
+                Some(l) => format!(
+                    " | SH {:.1} ms, light {:.0} deg",
+                    stats.sh.gpu_ms,
+                    l.yaw.to_degrees()
+                ),
+                None => String::new(),
+            };
             w.set_title(&format!(
-                "cao-xr | {:.1} fps | AO {:.1} ms | {:.2} % recomputed | carving {} | {:?} | {tf}",
+                "cao-xr | {:.1} fps | AO {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}",
                 self.fps,
                 m.gpu_ms(),
                 m.percent_recomputed(),
@@ -628,6 +638,13 @@ impl ApplicationHandler for App {
                     KeyCode::Escape if down => el.exit(),
                     KeyCode::Digit1 if down => self.both_eyes = false,
                     KeyCode::Digit2 if down => self.both_eyes = true,
+                    // Turn the environment light: a new projection, no visibility recompute.
+                    KeyCode::BracketLeft | KeyCode::BracketRight if down => {
+                        if let Some(l) = &mut self.fl.lighting {
+                            let turn = if code == KeyCode::BracketLeft { -1.0 } else { 1.0 };
+                            l.yaw += turn * 15f32.to_radians();
+                        }
+                    }
                     _ => {
                         if let Some(k) = key_of(code) {
                             if down {
@@ -705,7 +722,7 @@ pub fn run(
     );
     let event_loop = EventLoop::new()
         .map_err(|e| AppError::Usage(format!("cannot open the display: {e} (is DISPLAY set?)")))?;
-    let fl = FrameLoop::new(
+    let mut fl = FrameLoop::new(
         &gpu,
         vol,
         tf_cycle(tf, vol),
@@ -714,6 +731,7 @@ pub fn run(
         desktop_interaction(),
         true,
     )?;
+    fl.set_lighting(&opts.lighting, true)?;
     let recorder = match &opts.record {
         Some(p) => Some(
             PoseStreamWriter::create(

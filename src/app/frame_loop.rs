@@ -8,6 +8,7 @@
 //! frame still shows the old TF and AO. The frame after the last slab switches the LUT and the
 //! CAO state over at once.
 
+use super::lighting::{LightingOptions, ShLighting};
 use super::{precompute_ao, AppError, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
 use crate::ao::lao::{SkipBuffers, SkipData};
@@ -107,6 +108,8 @@ pub struct FrameOutput {
     pub tf_ms: f64,
     /// A transfer-function switch in flight (the frame still shows the old TF); None otherwise.
     pub tf_progress: Option<TfProgress>,
+    /// The SH visibility update (zero without SH lighting or without a tool).
+    pub sh: ShStats,
 }
 
 /// What one frame cost, without its pictures.
@@ -116,6 +119,15 @@ pub struct FrameStats {
     pub frame_ms: f64,
     pub tf_ms: f64,
     pub tf_progress: Option<TfProgress>,
+    pub sh: ShStats,
+}
+
+/// One frame's clip-aware SH visibility update.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ShStats {
+    /// SH voxels visited (recomputed where the clip reaches, copied elsewhere in the boxes).
+    pub voxels: u64,
+    pub gpu_ms: f64,
 }
 
 pub struct FrameLoop {
@@ -143,6 +155,8 @@ pub struct FrameLoop {
     tf_timer: GpuTimer,
     /// Opacity samples (K*M per voxel) of V_PAO' one frame may record during a switch.
     pub tf_samples_per_frame: f64,
+    /// Environment lighting through the SH visibility volume ([`FrameLoop::set_lighting`]).
+    pub lighting: Option<ShLighting>,
 }
 
 impl FrameLoop {
@@ -187,7 +201,26 @@ impl FrameLoop {
             switch: None,
             tf_timer: GpuTimer::new(gpu, 2)?,
             tf_samples_per_frame: default_tf_samples_per_frame(gpu),
+            lighting: None,
         })
+    }
+
+    /// Lights the frames as `opts` says: with SH, precomputes the shared SH visibility volume
+    /// of the shown TF's opacity (a progress bar when asked).
+    pub fn set_lighting(&mut self, opts: &LightingOptions, show_progress: bool) -> Result<()> {
+        opts.apply(&mut self.settings);
+        self.lighting = None;
+        self.cao.sh_radius_mm = None;
+        if opts.uses_sh() {
+            self.lighting = Some(ShLighting::new(
+                &self.gpu,
+                &self.geometry,
+                opts,
+                &mut self.cao,
+                show_progress,
+            )?);
+        }
+        Ok(())
     }
 
     /// The transfer functions the menu cycles through.
@@ -299,6 +332,7 @@ impl FrameLoop {
             frame_ms: t0.elapsed().as_secs_f64() * 1e3,
             tf_ms: stats.tf_ms,
             tf_progress: stats.tf_progress,
+            sh: stats.sh,
         })
     }
 
@@ -341,9 +375,13 @@ impl FrameLoop {
             lao_dirs,
             switch,
             tf_timer,
+            lighting,
             ..
         } = self;
         let model = world_from_tex(geometry, &scene.volume);
+        if let Some(l) = lighting.as_mut() {
+            l.update_light(geometry, &scene.volume);
+        }
         let count = scene.tools.iter().filter(|t| t.active).count() as u32;
         let mut recorded = Ok(None);
         gpu.submit_and_wait(|cmd| {
@@ -372,12 +410,13 @@ impl FrameLoop {
                 }
                 let pending = cao.record_frame(cmd, &scene.tools, &scene.volume, *mode)?;
                 tex.cmd_update_ambient(cmd, &cao.ao);
+                let sh = lighting.as_mut().map(|l| l.record_frame(gpu, cmd, cao));
                 let (tools, maps) = cao.clip_buffers();
                 let frame = FrameViews {
                     views: &input.views,
                     model,
                     clip: (count > 0).then_some(ClipBinding { tools, maps, count }),
-                    sh: None,
+                    sh: lighting.as_ref().map(|l| l.binding()),
                 };
                 timer.begin(cmd);
                 renderer.record(cmd, target, tex, &frame, settings)?;
@@ -392,11 +431,18 @@ impl FrameLoop {
                 overlay.record(cmd, target, &input.views, &items)?;
                 target.cmd_finish(cmd);
                 after(cmd, target);
-                Ok::<_, crate::gpu::GpuError>(Some((pending, slab)))
+                Ok::<_, crate::gpu::GpuError>(Some((pending, slab, sh)))
             })();
         })?;
-        let (pending, slab) = recorded?.expect("recorded");
+        let (pending, slab, sh) = recorded?.expect("recorded");
         let metrics = cao.read_metrics(pending)?;
+        let sh = match (sh, lighting.as_ref()) {
+            (Some(m), Some(l)) => ShStats {
+                voxels: m.visited,
+                gpu_ms: l.volume.read_frame_ms(&m)?,
+            },
+            _ => ShStats::default(),
+        };
         let render_ms = timer.read()?.first().map_or(0.0, |t| t.1);
         let tf_ms = if slab {
             tf_timer.read()?.first().map_or(0.0, |t| t.1)
@@ -413,6 +459,7 @@ impl FrameLoop {
             frame_ms: t0.elapsed().as_secs_f64() * 1e3,
             tf_ms,
             tf_progress,
+            sh,
         })
     }
 }

@@ -4,6 +4,7 @@
 pub mod bench;
 pub mod desktop;
 pub mod frame_loop;
+pub mod lighting;
 pub mod replay;
 
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
@@ -16,6 +17,7 @@ use crate::render::{
     Renderer, StereoImage, StereoTarget, VolumeTextures,
 };
 use crate::scene::Tool;
+use lighting::{LightingOptions, ShLighting};
 use crate::volume::nrrd::{self, NrrdData};
 use crate::volume::raw::RawSpec;
 use crate::volume::transfer::{TfError, TransferFunction};
@@ -268,8 +270,9 @@ impl HeadlessRenderer {
     }
 }
 
-/// `cao-xr render`: LAO, then (with tools) one CAO frame, then both eyes from the default pair
-/// of eye poses, as PNGs in `out`. Returns the CAO metrics when tools clipped.
+/// `cao-xr render`: LAO, then (with tools, or with SH lighting) one CAO frame, then both eyes
+/// from the default pair of eye poses, as PNGs in `out`. Returns the CAO metrics when tools
+/// clipped.
 #[allow(clippy::too_many_arguments)]
 pub fn render_to_dir(
     gpu: &Gpu,
@@ -279,6 +282,7 @@ pub fn render_to_dir(
     tools: &[Tool],
     size: (u32, u32),
     settings: &RenderSettings,
+    lighting: &LightingOptions,
     out: &Path,
 ) -> Result<Option<FrameMetrics>> {
     let mut hr = HeadlessRenderer::new(gpu)?;
@@ -286,34 +290,44 @@ pub fn render_to_dir(
     let tex = VolumeTextures::new(gpu, vol, tf)?;
     let placement = Placement::default();
     let views = default_stereo_views(vol, &placement, 0.064);
-    let model = world_from_tex(vol, &placement);
-    let (img, metrics) = if tools.is_empty() {
+    let mut settings = *settings;
+    lighting.apply(&mut settings);
+    let (img, metrics) = if tools.is_empty() && !lighting.uses_sh() {
         let frame = FrameViews {
             views: &views,
-            model,
+            model: world_from_tex(vol, &placement),
             clip: None,
             sh: None,
         };
-        let img = hr.render(&tex, Some(&ao.ao_buf), &frame, size, settings)?;
+        let img = hr.render(&tex, Some(&ao.ao_buf), &frame, size, &settings)?;
         (img, None)
     } else {
         let mut cao = ao.into_cao(gpu, vol, *params)?;
+        let mut sh = lighting
+            .uses_sh()
+            .then(|| ShLighting::new(gpu, vol, lighting, &mut cao, true))
+            .transpose()?;
         let m = cao.run_frame(tools, &placement, Mode::Contextual)?;
+        if let Some(sh) = &mut sh {
+            gpu.submit_and_wait(|cmd| {
+                sh.record_frame(gpu, cmd, &cao);
+            })?;
+            sh.update_light(vol, &placement);
+        }
         let (t, maps) = cao.clip_buffers();
         let count = tools.iter().filter(|t| t.active).count() as u32;
-        let clip = ClipBinding {
-            tools: t,
-            maps,
-            count,
-        };
         let frame = FrameViews {
             views: &views,
-            model,
-            clip: Some(clip),
-            sh: None,
+            model: world_from_tex(vol, &placement),
+            clip: (count > 0).then_some(ClipBinding {
+                tools: t,
+                maps,
+                count,
+            }),
+            sh: sh.as_ref().map(|l| l.binding()),
         };
-        let img = hr.render(&tex, Some(&cao.ao), &frame, size, settings)?;
-        (img, Some(m))
+        let img = hr.render(&tex, Some(&cao.ao), &frame, size, &settings)?;
+        (img, (!tools.is_empty()).then_some(m))
     };
     img.write_pngs(out)?;
     Ok(metrics)

@@ -2,6 +2,7 @@
 //! writing side-by-side PNGs, per-frame metrics (CSV) and an optional animated PNG preview.
 
 use super::frame_loop::{tf_cycle, FrameLoop};
+use super::lighting::LightingOptions;
 use super::{AppError, Result};
 use crate::ao::cao::Mode;
 use crate::ao::LaoParams;
@@ -27,6 +28,7 @@ pub struct ReplayOptions {
     pub realtime: bool,
     /// The right hand's tool shape; by default from the stream's description ("box tool: ...").
     pub shape: Option<Shape>,
+    pub lighting: LightingOptions,
 }
 
 impl Default for ReplayOptions {
@@ -38,6 +40,7 @@ impl Default for ReplayOptions {
             mode: Mode::Contextual,
             realtime: false,
             shape: None,
+            lighting: LightingOptions::default(),
         }
     }
 }
@@ -105,6 +108,7 @@ pub fn replay(
         true,
     )?;
     fl.mode = opts.mode;
+    fl.set_lighting(&opts.lighting, true)?;
     fl.scene.tools.push(Tool {
         shape: opts
             .shape
@@ -122,7 +126,7 @@ pub fn replay(
     );
     writeln!(
         csv,
-        "frame,time_s,frame_ms,ao_update_ms,restore_ms,clip_ms,update_ms,render_ms,clipped,recomputed,percent_recomputed,tf,tf_progress,tf_ms"
+        "frame,time_s,frame_ms,ao_update_ms,restore_ms,clip_ms,update_ms,render_ms,clipped,recomputed,percent_recomputed,tf,tf_progress,tf_ms,sh_voxels,sh_ms"
     )
     .map_err(|e| out_err(&csv_path, e))?;
     let every = opts.every.max(1);
@@ -142,7 +146,7 @@ pub fn replay(
         let m = &f.metrics;
         writeln!(
             csv,
-            "{i},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{:.4},{},{},{:.3}",
+            "{i},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{:.4},{},{},{:.3},{},{:.3}",
             frames[i].time,
             f.frame_ms,
             m.gpu_ms(),
@@ -158,15 +162,22 @@ pub fn replay(
             f.tf_progress
                 .as_ref()
                 .map_or(String::new(), |p| format!("{:.4}", p.fraction)),
-            f.tf_ms
+            f.tf_ms,
+            f.sh.voxels,
+            f.sh.gpu_ms
         )
         .map_err(|e| out_err(&csv_path, e))?;
         let tf = f
             .tf_progress
             .as_ref()
             .map_or(String::new(), |p| format!("  {p}"));
+        let sh = if fl.lighting.is_some() {
+            format!("  SH {:>8.1} ms", f.sh.gpu_ms)
+        } else {
+            String::new()
+        };
         eprintln!(
-            "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {:>8.1} ms  render {:>8.1} ms  recomputed {:>6.2} %{tf}",
+            "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {:>8.1} ms{sh}  render {:>8.1} ms  recomputed {:>6.2} %{tf}",
             frames.len(),
             frames[i].time,
             f.frame_ms,

@@ -70,6 +70,7 @@ pub struct XrOptions {
     pub volume_at: Option<Vec3>,
     /// Also show the left eye in a desktop window (X11), presented after each headset frame.
     pub mirror: bool,
+    pub lighting: crate::app::lighting::LightingOptions,
 }
 
 /// What a session did.
@@ -322,6 +323,7 @@ pub fn run(
         false,
     )?;
     let mut fl = fl;
+    fl.set_lighting(&opts.lighting, false)?;
     if let Some(c) = opts.volume_at {
         fl.scene.volume.center = c;
     }

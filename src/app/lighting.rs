@@ -1,0 +1,163 @@
+//! Environment lighting through the SH visibility volume (Ritschel 2007): what the command line
+//! asks for, the one SH volume every view shares, and the light projected into the volume's
+//! data frame each frame (so turning the light or the volume never recomputes visibility).
+
+use super::{progress_bar, AppError, Result};
+use crate::ao::cao::Cao;
+use crate::ao::sh::{ShFrameMetrics, ShParams, ShVolume};
+use crate::gpu::Gpu;
+use crate::light::environment::{Environment, ShLight};
+use crate::render::view::world_from_lps;
+use crate::render::{Placement, RenderSettings, ShBinding};
+use crate::volume::Volume;
+use glam::{DMat3, DQuat};
+
+/// Which terms light the volume.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum LightingMode {
+    /// Ambient occlusion (k * AO) plus the gradient headlight.
+    #[default]
+    Ao,
+    /// The environment through the SH visibility volume alone: E = albedo * (L . V).
+    Sh,
+    /// Both: a dimmer AO ambient term plus the environment term multiplied by the AO (the
+    /// exact local occlusion darkens creases the coarser SH visibility misses), and the headlight.
+    AoSh,
+}
+
+impl std::str::FromStr for LightingMode {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "ao" => Ok(LightingMode::Ao),
+            "sh" => Ok(LightingMode::Sh),
+            "ao+sh" | "sh+ao" => Ok(LightingMode::AoSh),
+            _ => Err(format!("unknown lighting '{s}' (ao, sh or ao+sh)")),
+        }
+    }
+}
+
+/// How a session is lit.
+#[derive(Clone, Debug)]
+pub struct LightingOptions {
+    pub mode: LightingMode,
+    /// A built-in environment name, `constant:R,G,B` or an equirectangular .png/.hdr.
+    pub environment: String,
+    pub sh: ShParams,
+    /// Turn of the environment about the world's up axis, degrees.
+    pub yaw_deg: f32,
+}
+
+impl Default for LightingOptions {
+    fn default() -> Self {
+        LightingOptions {
+            mode: LightingMode::Ao,
+            environment: "studio".into(),
+            sh: ShParams::default(),
+            yaw_deg: 0.0,
+        }
+    }
+}
+
+impl LightingOptions {
+    pub fn uses_sh(&self) -> bool {
+        self.mode != LightingMode::Ao
+    }
+
+    /// Sets the ray caster's weights for this mode.
+    pub fn apply(&self, s: &mut RenderSettings) {
+        match self.mode {
+            LightingMode::Ao => s.sh_weight = 0.0,
+            LightingMode::Sh => {
+                s.ambient = 0.0;
+                s.diffuse = 0.0;
+                s.sh_weight = 1.0;
+                s.sh_times_ao = false;
+            }
+            LightingMode::AoSh => {
+                s.ambient *= 0.4;
+                s.sh_weight = 1.0;
+                s.sh_times_ao = true;
+            }
+        }
+    }
+}
+
+/// The shared SH visibility volume and the environment lighting it.
+pub struct ShLighting {
+    pub volume: ShVolume,
+    pub environment: Environment,
+    /// Turn of the environment about the world's up axis (radians); changing it costs one
+    /// projection of the light, no visibility.
+    pub yaw: f32,
+    light: ShLight,
+}
+
+impl ShLighting {
+    /// Loads the environment, precomputes V_PSH of `cao`'s opacity O (of `vol`'s geometry; a
+    /// progress bar when asked) and gives `cao` the SH dilation radius, so its tools get SH
+    /// dilation maps.
+    pub fn new(
+        gpu: &Gpu,
+        vol: &Volume,
+        opts: &LightingOptions,
+        cao: &mut Cao,
+        show_progress: bool,
+    ) -> Result<ShLighting> {
+        let environment = Environment::from_spec(&opts.environment)
+            .map_err(|e| AppError::Usage(format!("--light {}: {e}", opts.environment)))?;
+        opts.sh
+            .validate()
+            .map_err(|e| AppError::Usage(format!("SH visibility: {e}")))?;
+        let mut volume = ShVolume::new(gpu, vol, opts.sh)?;
+        let slices = volume.grid.dims[2] as u64;
+        let bar = show_progress.then(|| progress_bar(slices, "SH visibility"));
+        volume.precompute(cao.opacity(), &mut |done, _| {
+            if let Some(b) = &bar {
+                b.set_position(done as u64)
+            }
+        })?;
+        if let Some(b) = bar {
+            b.finish_and_clear();
+        }
+        cao.sh_radius_mm = Some(volume.grid.radius_mm(&opts.sh));
+        Ok(ShLighting {
+            volume,
+            environment,
+            yaw: opts.yaw_deg.to_radians(),
+            light: ShLight {
+                coeffs: [[0.0; 16]; 3],
+            },
+        })
+    }
+
+    /// Projects the environment into the data frame of `vol` placed by `placement`.
+    pub fn update_light(&mut self, vol: &Volume, placement: &Placement) {
+        self.light = self
+            .environment
+            .project(data_from_environment(vol, placement, self.yaw));
+    }
+
+    /// Records this frame's clip-aware SH update (after CAO's, which it reads).
+    pub fn record_frame(&mut self, gpu: &Gpu, cmd: ash::vk::CommandBuffer, cao: &Cao) -> ShFrameMetrics {
+        gpu.barrier(cmd);
+        self.volume.record_frame(cmd, cao, false)
+    }
+
+    /// What the ray caster binds: the volume's textures and the current light.
+    pub fn binding(&self) -> ShBinding<'_> {
+        ShBinding {
+            images: &self.volume.images,
+            light: &self.light.coeffs,
+        }
+    }
+}
+
+/// The rotation taking environment directions (world axes turned by `yaw` about +Y) to the
+/// volume's data frame (voxel axes in mm, where the visibility rays were cast).
+pub fn data_from_environment(vol: &Volume, placement: &Placement, yaw: f32) -> DMat3 {
+    let world_from_data = DMat3::from_quat(placement.rotation.as_dquat())
+        * world_from_lps().as_dmat3()
+        * vol.directions;
+    world_from_data.inverse() * DMat3::from_quat(DQuat::from_rotation_y(yaw as f64))
+}
