@@ -2,9 +2,9 @@
 
 use anyhow::{bail, Context, Result};
 use cao_xr::ao::sh::ShParams;
-use cao_xr::app::lighting::{LightingMode, LightingOptions};
 use cao_xr::ao::LaoParams;
 use cao_xr::app;
+use cao_xr::app::lighting::{LightingMode, LightingOptions};
 use cao_xr::gpu::{Gpu, GpuOptions};
 use cao_xr::input::{write_script, ScriptKind, ScriptParams};
 use cao_xr::render::RenderSettings;

@@ -654,6 +654,42 @@ impl ShVolume {
         }
     }
 
+    /// Opacity samples one SH slice costs (voxels x directions x about 24 samples a ray), the
+    /// unit of [`crate::ao::progressive::slab_slices`] budgets.
+    pub fn samples_per_slice(&self) -> f64 {
+        let d = self.grid.dims;
+        (d[0] * d[1]) as f64 * self.params.directions as f64 * 24.0
+    }
+
+    /// Records V_PSH of SH slices `z` into the precomputed buffer. [`ShVolume::record_pyramid`]
+    /// of the unclipped opacity must have executed first; the textures keep their values until
+    /// [`ShVolume::record_publish`].
+    pub fn record_precompute_slab(&self, cmd: vk::CommandBuffer, z: std::ops::Range<usize>) {
+        let d = self.grid.dims;
+        let b = VoxelBox {
+            min: [0, 0, z.start as i32],
+            max: [d[0] as i32, d[1] as i32, z.end as i32],
+        };
+        // No tools: the clip bindings are unused stand-ins.
+        let clip = (&self.levels, &self.levels, 0);
+        self.record_pass(cmd, &b, Pass::Compute, clip, &self.pre);
+    }
+
+    /// Records making the precomputed V_PSH the current volume and the textures' content (no
+    /// clip boxes to restore afterwards).
+    pub fn record_publish(&mut self, cmd: vk::CommandBuffer) {
+        self.gpu.barrier(cmd);
+        let region = [vk::BufferCopy::default().size(self.pre.size)];
+        unsafe {
+            self.gpu
+                .device
+                .cmd_copy_buffer(cmd, self.pre.raw, self.cur.raw, &region)
+        };
+        self.gpu.barrier(cmd);
+        self.record_upload(cmd);
+        self.prev_boxes.clear();
+    }
+
     /// Computes V_PSH of the unclipped opacity O in z-slabs (progress in SH slices) and makes it
     /// the current volume.
     pub fn precompute(
@@ -666,40 +702,25 @@ impl ShVolume {
         let mut timer = GpuTimer::new(&self.gpu, 2)?;
         self.gpu
             .submit_and_wait(|cmd| self.record_pyramid(cmd, opacity))?;
-        let d = self.grid.dims;
         let budget = if self.gpu.is_cpu() { 5e7 } else { 2e9 };
-        let per_slice = (d[0] * d[1]) as f64 * self.params.directions as f64 * 24.0;
-        let slab = ((budget / per_slice) as usize).clamp(1, d[2]);
-        let mut z0 = 0;
-        progress(0, d[2]);
-        while z0 < d[2] {
-            let z1 = (z0 + slab).min(d[2]);
-            let b = VoxelBox {
-                min: [0, 0, z0 as i32],
-                max: [d[0] as i32, d[1] as i32, z1 as i32],
-            };
+        let total = self.grid.dims[2];
+        let mut slabs = crate::ao::progressive::SlabScheduler::with_budget(
+            total,
+            self.samples_per_slice(),
+            budget,
+        );
+        progress(0, total);
+        while let Some(z) = slabs.next_slab() {
             self.gpu.submit_and_wait(|cmd| {
                 timer.begin(cmd);
-                // No tools: the clip bindings are unused stand-ins.
-                let clip = (&self.levels, &self.levels, 0);
-                self.record_pass(cmd, &b, Pass::Compute, clip, &self.pre);
+                self.record_precompute_slab(cmd, z.clone());
                 timer.mark(cmd, "sh");
             })?;
             timing.gpu_ms += timer.read()?.iter().map(|t| t.1).sum::<f64>();
-            z0 = z1;
-            progress(z0, d[2]);
+            progress(z.end, total);
         }
-        self.gpu.submit_and_wait(|cmd| {
-            let region = [vk::BufferCopy::default().size(self.pre.size)];
-            unsafe {
-                self.gpu
-                    .device
-                    .cmd_copy_buffer(cmd, self.pre.raw, self.cur.raw, &region)
-            };
-            self.gpu.barrier(cmd);
-            self.record_upload(cmd);
-        })?;
-        self.prev_boxes.clear();
+        let gpu = self.gpu.clone();
+        gpu.submit_and_wait(|cmd| self.record_publish(cmd))?;
         timing.wall_ms = t0.elapsed().as_secs_f64() * 1e3;
         Ok(timing)
     }

@@ -641,7 +641,11 @@ impl ApplicationHandler for App {
                     // Turn the environment light: a new projection, no visibility recompute.
                     KeyCode::BracketLeft | KeyCode::BracketRight if down => {
                         if let Some(l) = &mut self.fl.lighting {
-                            let turn = if code == KeyCode::BracketLeft { -1.0 } else { 1.0 };
+                            let turn = if code == KeyCode::BracketLeft {
+                                -1.0
+                            } else {
+                                1.0
+                            };
                             l.yaw += turn * 15f32.to_radians();
                         }
                     }

@@ -13,6 +13,7 @@ use super::{precompute_ao, AppError, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
 use crate::ao::lao::{SkipBuffers, SkipData};
 use crate::ao::progressive::{HostTask, SlabScheduler};
+use crate::ao::sh::ShVolume;
 use crate::ao::{LaoGpu, LaoParams};
 use crate::gpu::{Buffer, Gpu, GpuTimer};
 use crate::input::{FrameInput, Interaction, InteractionSettings};
@@ -78,12 +79,13 @@ struct TfSwitch {
 enum SwitchStage {
     /// O' and its skipping data, on a worker thread.
     Classifying(HostTask<(Vec<f32>, SkipData)>),
-    /// One slab of V_PAO' per frame.
+    /// One slab of V_PAO' per frame, then (with SH lighting) one slab of V_PSH'.
     Computing {
         opacity: Buffer,
         skip: SkipBuffers,
         pao: Buffer,
         slabs: SlabScheduler,
+        sh: Option<(ShVolume, SlabScheduler)>,
     },
 }
 
@@ -91,7 +93,14 @@ impl TfSwitch {
     fn fraction(&self) -> f32 {
         match &self.stage {
             SwitchStage::Classifying(_) => 0.0,
-            SwitchStage::Computing { slabs, .. } => slabs.fraction(),
+            SwitchStage::Computing {
+                slabs, sh: None, ..
+            } => slabs.fraction(),
+            SwitchStage::Computing {
+                slabs,
+                sh: Some((_, sh_slabs)),
+                ..
+            } => 0.5 * (slabs.fraction() + sh_slabs.fraction()),
         }
     }
 }
@@ -263,7 +272,20 @@ impl FrameLoop {
                 ))
             })?;
             let dims = self.geometry.dims;
+            let sh = match &self.lighting {
+                Some(l) => {
+                    let v = ShVolume::new(&self.gpu, &self.geometry, l.volume.params)?;
+                    let slabs = SlabScheduler::with_budget(
+                        v.grid.dims[2],
+                        v.samples_per_slice(),
+                        self.tf_samples_per_frame,
+                    );
+                    Some((v, slabs))
+                }
+                None => None,
+            };
             sw.stage = SwitchStage::Computing {
+                sh,
                 opacity: Buffer::device_local(
                     &self.gpu,
                     &opacity,
@@ -279,18 +301,26 @@ impl FrameLoop {
                 ),
             };
         }
-        let finished =
-            matches!(&sw.stage, SwitchStage::Computing { slabs, .. } if slabs.is_finished());
+        let finished = matches!(&sw.stage, SwitchStage::Computing { slabs, sh, .. }
+            if slabs.is_finished() && sh.as_ref().is_none_or(|s| s.1.is_finished()));
         if finished {
             let sw = self.switch.take().expect("checked above");
             let SwitchStage::Computing {
-                opacity, skip, pao, ..
+                opacity,
+                skip,
+                pao,
+                sh,
+                ..
             } = sw.stage
             else {
                 unreachable!("finished implies computing")
             };
             self.tex.set_transfer_function(&self.tfs[sw.index])?;
             self.cao.replace_precomputed(opacity, pao, skip)?;
+            if let (Some((mut v, _)), Some(l)) = (sh, self.lighting.as_mut()) {
+                self.gpu.submit_and_wait(|cmd| v.record_publish(cmd))?;
+                l.volume = v;
+            }
             self.shown_tf = sw.index;
         }
         Ok(())
@@ -386,8 +416,9 @@ impl FrameLoop {
         let mut recorded = Ok(None);
         gpu.submit_and_wait(|cmd| {
             recorded = (|| {
-                // One slab of V_PAO' for a TF switch: it writes only its own buffer, which no
-                // other pass of this frame reads, so it needs no barrier here.
+                // One slab of V_PAO' (or, once those are done, of V_PSH') for a TF switch: it
+                // writes only buffers of its own, which no other pass of this frame reads, so
+                // it needs no barrier here.
                 let mut slab = false;
                 if let Some(TfSwitch {
                     stage:
@@ -396,6 +427,7 @@ impl FrameLoop {
                             skip,
                             pao,
                             slabs,
+                            sh,
                         },
                     ..
                 }) = switch.as_mut()
@@ -406,6 +438,16 @@ impl FrameLoop {
                         lao.record_slab(cmd, opacity, lao_dirs, skip, pao, dims, &cao.params, z);
                         tf_timer.mark(cmd, "tf-slab");
                         slab = true;
+                    } else if let Some((v, sh_slabs)) = sh.as_mut() {
+                        if sh_slabs.done() == 0 {
+                            v.record_pyramid(cmd, opacity);
+                        }
+                        if let Some(z) = sh_slabs.next_slab() {
+                            tf_timer.begin(cmd);
+                            v.record_precompute_slab(cmd, z);
+                            tf_timer.mark(cmd, "tf-slab");
+                            slab = true;
+                        }
                     }
                 }
                 let pending = cao.record_frame(cmd, &scene.tools, &scene.volume, *mode)?;

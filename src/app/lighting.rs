@@ -139,7 +139,12 @@ impl ShLighting {
     }
 
     /// Records this frame's clip-aware SH update (after CAO's, which it reads).
-    pub fn record_frame(&mut self, gpu: &Gpu, cmd: ash::vk::CommandBuffer, cao: &Cao) -> ShFrameMetrics {
+    pub fn record_frame(
+        &mut self,
+        gpu: &Gpu,
+        cmd: ash::vk::CommandBuffer,
+        cao: &Cao,
+    ) -> ShFrameMetrics {
         gpu.barrier(cmd);
         self.volume.record_frame(cmd, cao, false)
     }

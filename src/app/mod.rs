@@ -17,12 +17,12 @@ use crate::render::{
     Renderer, StereoImage, StereoTarget, VolumeTextures,
 };
 use crate::scene::Tool;
-use lighting::{LightingOptions, ShLighting};
 use crate::volume::nrrd::{self, NrrdData};
 use crate::volume::raw::RawSpec;
 use crate::volume::transfer::{TfError, TransferFunction};
 use crate::volume::{ct_head, phantom, Volume, VolumeError};
 use ash::vk;
+use lighting::{LightingOptions, ShLighting};
 use std::path::Path;
 
 #[derive(Debug, thiserror::Error)]
