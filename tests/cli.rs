@@ -353,6 +353,78 @@ fn render_with_a_tool_reports_the_cut() {
 }
 
 #[test]
+fn render_lit_by_an_environment_through_the_sh_volume() {
+    let dir = tmp("sh");
+    let render = |name: &str, extra: &[&str]| {
+        let out_dir = dir.join(name);
+        let mut args = vec![
+            "render",
+            "phantom:24",
+            "--size",
+            "32x32",
+            "--rays",
+            "6",
+            "--steps",
+            "4",
+            "--tool",
+            "sphere:40",
+            "--sh-directions",
+            "16",
+            "--sh-downsample",
+            "2",
+            "--out",
+            out_dir.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let out = cao(&args);
+        (out, out_dir.join("left.png"))
+    };
+    let (ao, ao_png) = render("ao", &[]);
+    assert!(
+        ao.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ao.stderr)
+    );
+    let (sh, sh_png) = render("sh", &["--lighting", "sh", "--light", "sky"]);
+    assert!(
+        sh.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sh.stderr)
+    );
+    let (turned, turned_png) = render(
+        "turned",
+        &["--lighting", "sh", "--light", "sky", "--light-yaw", "-90"],
+    );
+    assert!(turned.status.success());
+    let read = |p: &Path| std::fs::read(p).unwrap();
+    assert_ne!(
+        read(&ao_png),
+        read(&sh_png),
+        "SH lighting changes the picture"
+    );
+    assert_ne!(
+        read(&sh_png),
+        read(&turned_png),
+        "so does turning the light"
+    );
+
+    let missing = dir.join("no-such-room.hdr");
+    let (bad, _) = render(
+        "bad",
+        &["--lighting", "ao+sh", "--light", missing.to_str().unwrap()],
+    );
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(err.contains("no-such-room.hdr"), "{err}");
+    let (bad, _) = render("bad", &["--lighting", "sunny"]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("ao, sh or ao+sh"));
+    let (bad, _) = render("bad", &["--lighting", "sh", "--sh-coeffs", "9"]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("SH"));
+}
+
+#[test]
 fn replay_writes_frames_metrics_and_preview() {
     let dir = tmp("replay");
     let script = dir.join("sweep.jsonl");

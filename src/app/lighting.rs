@@ -105,7 +105,7 @@ impl ShLighting {
         show_progress: bool,
     ) -> Result<ShLighting> {
         let environment = Environment::from_spec(&opts.environment)
-            .map_err(|e| AppError::Usage(format!("--light {}: {e}", opts.environment)))?;
+            .map_err(|e| AppError::Usage(format!("--light: {e}")))?;
         opts.sh
             .validate()
             .map_err(|e| AppError::Usage(format!("SH visibility: {e}")))?;
