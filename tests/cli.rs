@@ -425,6 +425,71 @@ fn render_lit_by_an_environment_through_the_sh_volume() {
 }
 
 #[test]
+fn replay_with_sh_lighting_updates_the_sh_volume_where_the_tool_carves() {
+    let dir = tmp("replay-sh");
+    let script = dir.join("sweep.jsonl");
+    let out = cao(&[
+        "script",
+        "sphere-sweep",
+        "--frames",
+        "8",
+        "--out",
+        script.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let frames = dir.join("frames");
+    let out = cao(&[
+        "replay",
+        script.to_str().unwrap(),
+        "phantom:24",
+        "--rays",
+        "6",
+        "--steps",
+        "3",
+        "--size",
+        "16x16",
+        "--every",
+        "1000",
+        "--lighting",
+        "ao+sh",
+        "--sh-directions",
+        "16",
+        "--sh-downsample",
+        "2",
+        "--out",
+        frames.to_str().unwrap(),
+    ]);
+    let stats = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stats}");
+    assert!(
+        stats
+            .lines()
+            .filter(|l| l.starts_with("frame "))
+            .all(|l| l.contains(" SH ")),
+        "{stats}"
+    );
+    let csv = std::fs::read_to_string(frames.join("metrics.csv")).unwrap();
+    // (voxels recomputed by CAO, SH voxels updated) per frame
+    let rows: Vec<(u64, u64)> = csv
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let c: Vec<&str> = l.split(',').collect();
+            (c[9].parse().unwrap(), c[14].parse().unwrap())
+        })
+        .collect();
+    assert_eq!(rows.len(), 8);
+    assert!(rows.iter().any(|r| r.0 > 0), "the sweep carves: {csv}");
+    for r in &rows {
+        assert_eq!(
+            r.0 > 0,
+            r.1 > 0,
+            "SH updates exactly on carving frames: {csv}"
+        );
+    }
+}
+
+#[test]
 fn replay_writes_frames_metrics_and_preview() {
     let dir = tmp("replay");
     let script = dir.join("sweep.jsonl");
@@ -527,7 +592,10 @@ fn replay_switches_the_transfer_function_on_menu() {
     let csv = std::fs::read_to_string(frames.join("metrics.csv")).unwrap();
     let mut lines = csv.lines();
     assert!(
-        lines.next().unwrap().ends_with(",tf,tf_progress,tf_ms"),
+        lines
+            .next()
+            .unwrap()
+            .ends_with(",tf,tf_progress,tf_ms,sh_voxels,sh_ms"),
         "{csv}"
     );
     // (tf shown, progress of a switch in flight)

@@ -5,8 +5,12 @@
 //! A transfer-function switch (`scene.tf_index` changed by the menu button) is progressive: O'
 //! and its skipping data are classified on a worker thread, then each frame records one slab of
 //! V_PAO' (bounded by [`FrameLoop::tf_samples_per_frame`]) ahead of its CAO passes, while the
-//! frame still shows the old TF and AO. The frame after the last slab switches the LUT and the
-//! CAO state over at once.
+//! frame still shows the old TF and AO; with SH lighting, slabs of V_PSH' follow. The frame after
+//! the last slab switches the LUT, the CAO state and the SH volume over at once.
+//!
+//! With SH lighting ([`FrameLoop::set_lighting`]) one SH visibility volume serves both eyes: its
+//! clip-aware update is recorded right after CAO's, and the environment is projected into the
+//! volume's data frame every frame (turning it costs no recompute).
 
 use super::lighting::{LightingOptions, ShLighting};
 use super::{precompute_ao, AppError, Result};
@@ -28,8 +32,8 @@ use crate::volume::Volume;
 use ash::vk;
 use std::sync::Arc;
 
-/// How far a transfer-function switch has come: V_PAO' of `name` is `fraction` done (0 while
-/// the host still classifies). Shown as "TF ct-skin 40%".
+/// How far a transfer-function switch has come: V_PAO' (and V_PSH', half each) of `name` is
+/// `fraction` done (0 while the host still classifies). Shown as "TF ct-skin 40%".
 #[derive(Clone, Debug, PartialEq)]
 pub struct TfProgress {
     pub name: String,

@@ -48,27 +48,24 @@ impl LightError {
     }
 }
 
-/// A small deterministic generator (SplitMix64) for the tests, so they need no crate.
+/// Random unit vectors for the tests, from the project's fixed SplitMix64.
 #[cfg(test)]
 pub(crate) mod test_rng {
+    use crate::input::script::SplitMix64;
     use glam::DVec3;
     use std::f64::consts::PI;
 
-    pub(crate) struct Rng(u64);
+    pub(crate) struct Rng(SplitMix64);
     impl Rng {
         pub(crate) fn new(seed: u64) -> Self {
-            Rng(seed)
+            Rng(SplitMix64(seed))
         }
         pub(crate) fn next_u64(&mut self) -> u64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^ (z >> 31)
+            self.0.next_u64()
         }
         /// Uniform in [0, 1).
         pub(crate) fn f64(&mut self) -> f64 {
-            (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+            self.0.unit()
         }
         pub(crate) fn unit(&mut self) -> DVec3 {
             let z = 2.0 * self.f64() - 1.0;

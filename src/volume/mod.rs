@@ -581,49 +581,52 @@ pub(crate) fn write_voxels(
     v: &Voxels,
     big_endian: bool,
 ) -> std::io::Result<()> {
-    const CHUNK: usize = 1 << 16;
-    let mut buf = Vec::with_capacity(CHUNK * 4);
     match v {
-        Voxels::U8(v) => w.write_all(v)?,
-        Voxels::U16(v) => {
-            for c in v.chunks(CHUNK) {
-                buf.clear();
-                for &x in c {
-                    buf.extend_from_slice(&if big_endian {
-                        x.to_be_bytes()
-                    } else {
-                        x.to_le_bytes()
-                    });
-                }
-                w.write_all(&buf)?;
-            }
+        Voxels::U8(v) => w.write_all(v),
+        Voxels::U16(v) => write_words(
+            w,
+            v,
+            if big_endian {
+                u16::to_be_bytes
+            } else {
+                u16::to_le_bytes
+            },
+        ),
+        Voxels::I16(v) => write_words(
+            w,
+            v,
+            if big_endian {
+                i16::to_be_bytes
+            } else {
+                i16::to_le_bytes
+            },
+        ),
+        Voxels::F32(v) => write_words(
+            w,
+            v,
+            if big_endian {
+                f32::to_be_bytes
+            } else {
+                f32::to_le_bytes
+            },
+        ),
+    }
+}
+
+/// Writes `v` as bytes in chunks (no copy of the whole volume).
+fn write_words<T: Copy, const N: usize>(
+    w: &mut dyn std::io::Write,
+    v: &[T],
+    bytes: impl Fn(T) -> [u8; N],
+) -> std::io::Result<()> {
+    const CHUNK: usize = 1 << 16;
+    let mut buf = Vec::with_capacity(CHUNK * N);
+    for c in v.chunks(CHUNK) {
+        buf.clear();
+        for &x in c {
+            buf.extend_from_slice(&bytes(x));
         }
-        Voxels::I16(v) => {
-            for c in v.chunks(CHUNK) {
-                buf.clear();
-                for &x in c {
-                    buf.extend_from_slice(&if big_endian {
-                        x.to_be_bytes()
-                    } else {
-                        x.to_le_bytes()
-                    });
-                }
-                w.write_all(&buf)?;
-            }
-        }
-        Voxels::F32(v) => {
-            for c in v.chunks(CHUNK) {
-                buf.clear();
-                for &x in c {
-                    buf.extend_from_slice(&if big_endian {
-                        x.to_be_bytes()
-                    } else {
-                        x.to_le_bytes()
-                    });
-                }
-                w.write_all(&buf)?;
-            }
-        }
+        w.write_all(&buf)?;
     }
     Ok(())
 }
