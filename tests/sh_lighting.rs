@@ -111,6 +111,15 @@ fn turning_the_light_changes_the_image_but_no_visibility() {
     fl.lighting.as_mut().unwrap().yaw = 0.0;
     let c = frame(&mut fl, &vol, None, false, 2);
     assert!(c.image == a.image);
+    // The sideways stick turns it too (any hand; a tenth of a second at full stick).
+    let views = default_stereo_views(&vol, &Placement::default(), 0.064);
+    let mut input = FrameInput::without_hands(3.0 / 60.0 + 0.1, views);
+    input.hands[1].buttons.thumbstick.x = 1.0;
+    let d = fl.frame(&input).unwrap();
+    assert!(fl.scene.light_yaw > 0.1, "{}", fl.scene.light_yaw);
+    assert_eq!(d.sh.voxels, 0);
+    assert!(d.image != c.image);
+    assert_eq!(sh_words(&fl), before);
 }
 
 #[test]

@@ -512,6 +512,8 @@ fn key_of(code: KeyCode) -> Option<Key> {
         KeyCode::Equal | KeyCode::NumpadAdd => Key::Grow,
         KeyCode::Minus | KeyCode::NumpadSubtract => Key::Shrink,
         KeyCode::KeyM => Key::Menu,
+        KeyCode::BracketLeft => Key::LightLeft,
+        KeyCode::BracketRight => Key::LightRight,
         _ => return None,
     })
 }
@@ -577,7 +579,7 @@ impl App {
                 Some(l) => format!(
                     " | SH {:.1} ms, light {:.0} deg",
                     stats.sh.gpu_ms,
-                    l.yaw.to_degrees()
+                    (l.yaw + self.fl.scene.light_yaw).to_degrees()
                 ),
                 None => String::new(),
             };
@@ -638,17 +640,6 @@ impl ApplicationHandler for App {
                     KeyCode::Escape if down => el.exit(),
                     KeyCode::Digit1 if down => self.both_eyes = false,
                     KeyCode::Digit2 if down => self.both_eyes = true,
-                    // Turn the environment light: a new projection, no visibility recompute.
-                    KeyCode::BracketLeft | KeyCode::BracketRight if down => {
-                        if let Some(l) = &mut self.fl.lighting {
-                            let turn = if code == KeyCode::BracketLeft {
-                                -1.0
-                            } else {
-                                1.0
-                            };
-                            l.yaw += turn * 15f32.to_radians();
-                        }
-                    }
                     _ => {
                         if let Some(k) = key_of(code) {
                             if down {

@@ -414,7 +414,7 @@ impl FrameLoop {
         } = self;
         let model = world_from_tex(geometry, &scene.volume);
         if let Some(l) = lighting.as_mut() {
-            l.update_light(geometry, &scene.volume);
+            l.update_light(geometry, &scene.volume, scene.light_yaw);
         }
         let count = scene.tools.iter().filter(|t| t.active).count() as u32;
         let mut recorded = Ok(None);

@@ -131,11 +131,12 @@ impl ShLighting {
         })
     }
 
-    /// Projects the environment into the data frame of `vol` placed by `placement`.
-    pub fn update_light(&mut self, vol: &Volume, placement: &Placement) {
-        self.light = self
-            .environment
-            .project(data_from_environment(vol, placement, self.yaw));
+    /// Projects the environment, turned by `turn` (radians) more than [`ShLighting::yaw`],
+    /// into the data frame of `vol` placed by `placement`.
+    pub fn update_light(&mut self, vol: &Volume, placement: &Placement, turn: f32) {
+        self.light =
+            self.environment
+                .project(data_from_environment(vol, placement, self.yaw + turn));
     }
 
     /// Records this frame's clip-aware SH update (after CAO's, which it reads).

@@ -312,7 +312,7 @@ pub fn render_to_dir(
             gpu.submit_and_wait(|cmd| {
                 sh.record_frame(gpu, cmd, &cao);
             })?;
-            sh.update_light(vol, &placement);
+            sh.update_light(vol, &placement, 0.0);
         }
         let (t, maps) = cao.clip_buffers();
         let count = tools.iter().filter(|t| t.active).count() as u32;

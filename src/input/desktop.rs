@@ -24,6 +24,9 @@ pub enum Key {
     Grow,
     Shrink,
     Menu,
+    /// Sideways stick: turn the environment light.
+    LightLeft,
+    LightRight,
 }
 
 /// The emulated head and right hand.
@@ -123,7 +126,7 @@ impl DesktopInput {
                 secondary: pressed(Key::ToggleProbe),
                 menu: pressed(Key::Menu),
                 thumbstick: Vec2::new(
-                    0.0,
+                    (pressed(Key::LightRight) as i32 - pressed(Key::LightLeft) as i32) as f32,
                     (pressed(Key::Grow) as i32 - pressed(Key::Shrink) as i32) as f32,
                 ),
                 ..Default::default()

@@ -16,6 +16,7 @@
 //! | left grip               | grabs the volume: it moves and turns with the hand            |
 //! | both grips              | scale (hand distance), move (midpoint), turn (hand axis)      |
 //! | menu (either hand)      | next transfer-function preset                                 |
+//! | thumbstick left/right   | turns the environment light about the up axis (SH lighting)   |
 //!
 //! The left hand gets a tool of its own (tool 1) the first time its trigger is pulled, so a
 //! two-handed carve (the `two-tools` script) works while a surgeon who only grabs with the left
@@ -90,6 +91,8 @@ pub struct InteractionSettings {
     /// Thumbstick values with |y| below this are ignored (sticks rarely rest at exactly 0);
     /// beyond it the deflection is rescaled so that full stick is still full rate.
     pub stick_dead_zone: f32,
+    /// Light turn speed (rad/s) at full sideways stick, either hand.
+    pub light_turn_rate: f32,
     /// Number of transfer-function presets the menu button cycles through (0: it does nothing).
     pub tf_presets: usize,
     /// Number of loaded meshes ([`Shape::Mesh`]) that the primary button cycles through after
@@ -113,6 +116,7 @@ impl Default for InteractionSettings {
             max_size: 0.15,
             resize_rate: 1.0,
             stick_dead_zone: 0.15,
+            light_turn_rate: 1.5,
             tf_presets: crate::volume::transfer::PRESETS.len(),
             mesh_count: 0,
             min_scale: 0.1,
@@ -514,6 +518,12 @@ impl Interaction {
         self.update_tools(input, &pressed, dt, scene);
         self.update_grab(scene);
 
+        // Sideways stick turns the environment light (both hands add up).
+        for hand in &input.hands {
+            let x = self.deflection(hand.buttons.thumbstick.x);
+            scene.light_yaw = (scene.light_yaw + self.settings.light_turn_rate * x * dt) % TAU;
+        }
+
         // Menu: either hand (both on the same frame count once).
         if (pressed[LEFT].menu || pressed[RIGHT].menu) && self.settings.tf_presets > 0 {
             scene.tf_index =
@@ -602,16 +612,10 @@ impl Interaction {
         } else {
             s.tool_size
         };
-        let dead = clamp(s.stick_dead_zone, 0.0, 0.99);
-        let y = if y.is_finite() {
-            clamp(y, -1.0, 1.0)
-        } else {
-            0.0
-        };
-        if y.abs() <= dead || dt <= 0.0 {
+        let deflection = self.deflection(y);
+        if deflection == 0.0 || dt <= 0.0 {
             return size;
         }
-        let deflection = y.signum() * (y.abs() - dead) / (1.0 - dead);
         let resized = clamp(
             size * (s.resize_rate * deflection * dt).exp(),
             s.min_size,
@@ -622,6 +626,21 @@ impl Interaction {
         } else {
             size
         }
+    }
+
+    /// A stick axis after the dead zone, rescaled so that full stick is still 1 (0 for
+    /// non-numbers).
+    fn deflection(&self, v: f32) -> f32 {
+        let dead = clamp(self.settings.stick_dead_zone, 0.0, 0.99);
+        let v = if v.is_finite() {
+            clamp(v, -1.0, 1.0)
+        } else {
+            0.0
+        };
+        if v.abs() <= dead {
+            return 0.0;
+        }
+        v.signum() * (v.abs() - dead) / (1.0 - dead)
     }
 
     /// The grab state machine. Whenever who holds the volume changes (a grab starts, the
@@ -1258,6 +1277,43 @@ mod tests {
         assert_eq!(scene.tools[RIGHT_TOOL].size, 0.15);
         run(&mut ix, &mut scene, i, (0..900).map(|_| stick(-1.0)));
         assert_eq!(scene.tools[RIGHT_TOOL].size, 0.005);
+    }
+
+    #[test]
+    fn the_stick_sideways_turns_the_light_and_leaves_the_tool() {
+        let mut ix = Interaction::default();
+        let mut scene = Scene::default();
+        let r = Vec3::new(0.1, 1.3, -0.4);
+        let stick = |x: f32, left_x: f32| {
+            let mut h = at(r);
+            h.buttons.thumbstick.x = x;
+            let mut l = idle_left();
+            l.buttons.thumbstick.x = left_x;
+            (l, h)
+        };
+        // Inside the dead zone: nothing.
+        let mut i = run(&mut ix, &mut scene, 0, (0..90).map(|_| stick(0.14, -0.1)));
+        assert_eq!(scene.light_yaw, 0.0);
+        // Full stick right for 0.5 s (45 frames of 1/90 s): rate * 0.5 rad; the tool keeps its size.
+        i = run(&mut ix, &mut scene, i, (0..45).map(|_| stick(1.0, 0.0)));
+        let turned = scene.light_yaw;
+        assert!((turned - 0.75).abs() < 1e-4, "{turned}");
+        assert_eq!(scene.tools[RIGHT_TOOL].size, 0.025);
+        // Both hands add up: left full left cancels right full right.
+        i = run(&mut ix, &mut scene, i, (0..45).map(|_| stick(1.0, -1.0)));
+        assert!((scene.light_yaw - turned).abs() < 1e-6);
+        // Left alone, half-way past the dead zone: half the rate, the other way.
+        run(
+            &mut ix,
+            &mut scene,
+            i,
+            (0..45).map(|_| stick(0.0, -(0.15 + 0.85 / 2.0))),
+        );
+        assert!(
+            (scene.light_yaw - (turned - 0.375)).abs() < 1e-4,
+            "{}",
+            scene.light_yaw
+        );
     }
 
     #[test]
