@@ -528,6 +528,24 @@ fn bad_series_are_refused_with_the_file_and_problem_named() {
     let e = err_of(dicom::load_series(&d, None));
     assert!(e.contains("pixel data") && e.contains("bytes"), "{e}");
 
+    // an element whose length claims gigabytes the file does not hold: refused before the
+    // parser allocates it
+    let d = root.join("claims-gigabytes");
+    let files = spec.write(&d);
+    let mut bytes = std::fs::read(&files[5]).unwrap();
+    let at = bytes
+        .windows(6)
+        .position(|w| w == b"\xe0\x7f\x10\x00OW")
+        .expect("explicit VR little endian PixelData header");
+    bytes[at + 8..at + 12].copy_from_slice(&0xF000_0000u32.to_le_bytes());
+    std::fs::write(&files[5], &bytes).unwrap();
+    let e = err_of(dicom::load_series(&d, None));
+    let name = files[5].file_name().unwrap().to_str().unwrap();
+    assert!(
+        e.contains(name) && e.contains("(7FE0,0010) declares 4026531840 bytes"),
+        "{e}"
+    );
+
     // mixed geometry inside one series
     let d = root.join("mixed");
     let files = spec.write(&d);

@@ -291,6 +291,112 @@ type Planes = Vec<(String, String, String, Option<i64>, Slice)>;
 /// A file's format (its first plane) and where each of its frames goes in the volume.
 type PlaneSlots<'a> = (&'a Slice, Vec<(u32, &'a mut [u16])>);
 
+/// Refuses a file whose top-level data elements declare more bytes than the file still holds
+/// (truncated, or a lying header): dicom-rs allocates (and zeroes) the declared length, up to
+/// 4 GiB, before it finds out. Walks the file meta group and the top-level data set, seeking
+/// past the values, up to the first element of undefined length (a sequence or encapsulated
+/// pixel data, whose items the parser bounds as it reads them) or anything it does not
+/// recognise (left to the parser). Deflated data sets are not walked.
+fn check_declared_lengths(path: &Path) -> Result<(), VolumeError> {
+    use std::io::{BufReader, Read, Seek};
+    let io = |e: std::io::Error| VolumeError::io(path, e);
+    let file = std::fs::File::open(path).map_err(io)?;
+    let mut left = file.metadata().map_err(io)?.len().saturating_sub(132);
+    let mut r = BufReader::new(file);
+    r.seek(std::io::SeekFrom::Start(132)).map_err(io)?;
+    // (little endian, explicit VR) for the meta group, then as its transfer syntax says
+    let (mut little, mut explicit, mut in_meta) = (true, true, true);
+    let mut data_set = (true, true);
+    loop {
+        let mut head = [0u8; 8];
+        if left < 8 || r.read_exact(&mut head).is_err() {
+            return Ok(());
+        }
+        left -= 8;
+        let u16_at = |b: &[u8]| {
+            let b = [b[0], b[1]];
+            if little {
+                u16::from_le_bytes(b)
+            } else {
+                u16::from_be_bytes(b)
+            }
+        };
+        let (group, element) = (u16_at(&head[0..2]), u16_at(&head[2..4]));
+        if in_meta && group != 0x0002 {
+            // The data set starts here; re-read this header in its own encoding.
+            in_meta = false;
+            (little, explicit) = data_set;
+            r.seek_relative(-8).map_err(io)?;
+            left += 8;
+            continue;
+        }
+        let vr = [head[4], head[5]];
+        let len = if !explicit {
+            let b = [head[4], head[5], head[6], head[7]];
+            if little {
+                u32::from_le_bytes(b)
+            } else {
+                u32::from_be_bytes(b)
+            }
+        } else if !vr.iter().all(u8::is_ascii_uppercase) {
+            return Ok(());
+        } else if matches!(
+            &vr,
+            b"OB"
+                | b"OD"
+                | b"OF"
+                | b"OL"
+                | b"OV"
+                | b"OW"
+                | b"SQ"
+                | b"SV"
+                | b"UC"
+                | b"UN"
+                | b"UR"
+                | b"UT"
+                | b"UV"
+        ) {
+            let mut b = [0u8; 4];
+            if left < 4 || r.read_exact(&mut b).is_err() {
+                return Ok(());
+            }
+            left -= 4;
+            if little {
+                u32::from_le_bytes(b)
+            } else {
+                u32::from_be_bytes(b)
+            }
+        } else {
+            u16_at(&head[6..8]) as u32
+        };
+        if len == u32::MAX {
+            return Ok(());
+        }
+        if len as u64 > left {
+            return Err(VolumeError::format(
+                path,
+                format!(
+                    "element ({group:04X},{element:04X}) declares {len} bytes but the file holds \
+                     only {left} more (truncated, or a header that lies about a length)"
+                ),
+            ));
+        }
+        if in_meta && (group, element) == (0x0002, 0x0010) && len <= 64 {
+            let mut uid = vec![0u8; len as usize];
+            r.read_exact(&mut uid).map_err(io)?;
+            match String::from_utf8_lossy(&uid).trim_end_matches(['\0', ' ']) {
+                "1.2.840.10008.1.2" => data_set = (true, false),
+                "1.2.840.10008.1.2.2" => data_set = (false, true),
+                "1.2.840.10008.1.2.1.99" => return Ok(()),
+                _ => {}
+            }
+        } else {
+            r.seek_relative(len as i64).map_err(io)?;
+        }
+        left -= len as u64;
+    }
+}
+
 /// The image planes of one file with their series keys; `Ok(Err(reason))` for a file that is
 /// not a DICOM image (skipped); `Err` for a DICOM file whose header is broken.
 fn read_header(path: &Path) -> Result<Result<Planes, String>, VolumeError> {
@@ -309,6 +415,7 @@ fn read_header(path: &Path) -> Result<Result<Planes, String>, VolumeError> {
     if file_name.is_some_and(|n| n.starts_with("DICOMDIR")) {
         return Ok(Err("DICOMDIR".into()));
     }
+    check_declared_lengths(path)?;
     let obj = OpenFileOptions::new()
         .read_until(tags::PIXEL_DATA)
         .open_file(path)
