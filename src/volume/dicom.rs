@@ -291,14 +291,18 @@ type Planes = Vec<(String, String, String, Option<i64>, Slice)>;
 /// A file's format (its first plane) and where each of its frames goes in the volume.
 type PlaneSlots<'a> = (&'a Slice, Vec<(u32, &'a mut [u16])>);
 
-/// Refuses a file whose top-level data elements declare more bytes than the file still holds
+/// Refuses a file with a data element that declares more bytes than the file still holds
 /// (truncated, or a lying header): dicom-rs allocates (and zeroes) the declared length, up to
-/// 4 GiB, before it finds out. Walks the file meta group and the top-level data set, seeking
-/// past the values, up to the first element of undefined length (a sequence or encapsulated
-/// pixel data, whose items the parser bounds as it reads them) or anything it does not
-/// recognise (left to the parser). Deflated data sets are not walked.
+/// 4 GiB, before it finds out. Walks the element headers as dicom-rs reads them (an unknown VR
+/// is UN, with a 32-bit length), seeking past values and stepping into sequences and their
+/// items; encapsulated pixel-data fragments are checked and skipped. Deflated data sets, and
+/// undefined-length UN elements (implicit-VR sequences), end the walk: the parser has them.
 fn check_declared_lengths(path: &Path) -> Result<(), VolumeError> {
     use std::io::{BufReader, Read, Seek};
+    const SHORT_VRS: [&[u8; 2]; 21] = [
+        b"AE", b"AS", b"AT", b"CS", b"DA", b"DS", b"DT", b"FL", b"FD", b"IS", b"LO", b"LT", b"PN",
+        b"SH", b"SL", b"SS", b"ST", b"TM", b"UI", b"UL", b"US",
+    ];
     let io = |e: std::io::Error| VolumeError::io(path, e);
     let file = std::fs::File::open(path).map_err(io)?;
     let mut left = file.metadata().map_err(io)?.len().saturating_sub(132);
@@ -307,21 +311,36 @@ fn check_declared_lengths(path: &Path) -> Result<(), VolumeError> {
     // (little endian, explicit VR) for the meta group, then as its transfer syntax says
     let (mut little, mut explicit, mut in_meta) = (true, true, true);
     let mut data_set = (true, true);
+    let mut fragments = false;
+    // `buf` from the file, if it still holds that much
+    fn read(r: &mut impl Read, left: &mut u64, buf: &mut [u8]) -> bool {
+        if *left < buf.len() as u64 || r.read_exact(buf).is_err() {
+            return false;
+        }
+        *left -= buf.len() as u64;
+        true
+    }
     loop {
         let mut head = [0u8; 8];
-        if left < 8 || r.read_exact(&mut head).is_err() {
+        if !read(&mut r, &mut left, &mut head) {
             return Ok(());
         }
-        left -= 8;
-        let u16_at = |b: &[u8]| {
-            let b = [b[0], b[1]];
+        let u16_at = |i: usize| {
+            let b = [head[i], head[i + 1]];
             if little {
                 u16::from_le_bytes(b)
             } else {
                 u16::from_be_bytes(b)
             }
         };
-        let (group, element) = (u16_at(&head[0..2]), u16_at(&head[2..4]));
+        let u32_of = |b: [u8; 4]| {
+            if little {
+                u32::from_le_bytes(b)
+            } else {
+                u32::from_be_bytes(b)
+            }
+        };
+        let (group, element) = (u16_at(0), u16_at(2));
         if in_meta && group != 0x0002 {
             // The data set starts here; re-read this header in its own encoding.
             in_meta = false;
@@ -331,46 +350,30 @@ fn check_declared_lengths(path: &Path) -> Result<(), VolumeError> {
             continue;
         }
         let vr = [head[4], head[5]];
-        let len = if !explicit {
-            let b = [head[4], head[5], head[6], head[7]];
-            if little {
-                u32::from_le_bytes(b)
-            } else {
-                u32::from_be_bytes(b)
-            }
-        } else if !vr.iter().all(u8::is_ascii_uppercase) {
-            return Ok(());
-        } else if matches!(
-            &vr,
-            b"OB"
-                | b"OD"
-                | b"OF"
-                | b"OL"
-                | b"OV"
-                | b"OW"
-                | b"SQ"
-                | b"SV"
-                | b"UC"
-                | b"UN"
-                | b"UR"
-                | b"UT"
-                | b"UV"
-        ) {
+        let (len, sequence) = if group == 0xFFFE || !explicit {
+            // items and delimiters have no VR, implicit VR elements neither
+            (
+                u32_of([head[4], head[5], head[6], head[7]]),
+                group == 0xFFFE,
+            )
+        } else if SHORT_VRS.contains(&&vr) {
+            (u16_at(6) as u32, false)
+        } else {
             let mut b = [0u8; 4];
-            if left < 4 || r.read_exact(&mut b).is_err() {
+            if !read(&mut r, &mut left, &mut b) {
                 return Ok(());
             }
-            left -= 4;
-            if little {
-                u32::from_le_bytes(b)
-            } else {
-                u32::from_be_bytes(b)
-            }
-        } else {
-            u16_at(&head[6..8]) as u32
+            (u32_of(b), &vr == b"SQ")
         };
+        let pixel_data = (group, element) == (0x7FE0, 0x0010);
         if len == u32::MAX {
-            return Ok(());
+            match () {
+                _ if pixel_data => fragments = true,
+                // an implicit-VR sequence: its items are read in implicit VR
+                _ if explicit && &vr == b"UN" => return Ok(()),
+                _ => {}
+            }
+            continue;
         }
         if len as u64 > left {
             return Err(VolumeError::format(
@@ -381,19 +384,23 @@ fn check_declared_lengths(path: &Path) -> Result<(), VolumeError> {
                 ),
             ));
         }
+        if (group, element) == (0xFFFE, 0xE0DD) {
+            fragments = false;
+        }
         if in_meta && (group, element) == (0x0002, 0x0010) && len <= 64 {
             let mut uid = vec![0u8; len as usize];
-            r.read_exact(&mut uid).map_err(io)?;
+            read(&mut r, &mut left, &mut uid);
             match String::from_utf8_lossy(&uid).trim_end_matches(['\0', ' ']) {
                 "1.2.840.10008.1.2" => data_set = (true, false),
                 "1.2.840.10008.1.2.2" => data_set = (false, true),
                 "1.2.840.10008.1.2.1.99" => return Ok(()),
                 _ => {}
             }
-        } else {
+        } else if !(sequence && !fragments) {
+            // a value (or a fragment): skip it; sequences and items are stepped into
             r.seek_relative(len as i64).map_err(io)?;
+            left -= len as u64;
         }
-        left -= len as u64;
     }
 }
 
