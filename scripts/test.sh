@@ -4,10 +4,12 @@
 # Set CAO_XR_TEST_DEVICE=native to test on the machine's own GPU driver instead.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-# The desktop-window test runs under Xvfb; the DICOM tests write their series with dcmtk.
-CAO_XR_EXTRA_PACKAGES="xvfb xauth dcmtk" source scripts/setup.sh
+# The desktop-window test runs under Xvfb; the DICOM tests write their series with dcmtk and
+# read the real sample files pydicom ships.
+CAO_XR_EXTRA_PACKAGES="xvfb xauth dcmtk python3-pydicom" source scripts/setup.sh
 export CAO_XR_REQUIRE_XVFB=1
 export CAO_XR_REQUIRE_DCMTK=1
+export CAO_XR_REQUIRE_PYDICOM=1
 if [ "${CAO_XR_TEST_DEVICE:-lavapipe}" = "lavapipe" ]; then
   [ -n "$LVP_ICD" ] || { echo "lavapipe (mesa-vulkan-drivers) is not installed" >&2; exit 1; }
   export VK_DRIVER_FILES="$LVP_ICD"

@@ -816,3 +816,19 @@ fn bad_voxels_and_lying_headers_are_refused_by_the_cli() {
     assert!(err.contains("too large"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_dicom_file_that_trips_a_codec_gets_an_error_not_a_panic() {
+    // An RLE slice the dicom fuzz target found: the RLE decoder unwraps on it.
+    let dir = tmp("rle-panic");
+    let seed =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/dicom/bad-rle-decoder-panic.dcm");
+    std::fs::copy(&seed, dir.join("slice.dcm")).unwrap();
+    let out = cao(&["info", dir.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("slice.dcm") && err.contains("decoder failed"),
+        "{err}"
+    );
+}

@@ -396,7 +396,7 @@ fn check_declared_lengths(path: &Path) -> Result<(), VolumeError> {
                 "1.2.840.10008.1.2.1.99" => return Ok(()),
                 _ => {}
             }
-        } else if !(sequence && !fragments) {
+        } else if !sequence || fragments {
             // a value (or a fragment): skip it; sequences and items are stepped into
             r.seek_relative(len as i64).map_err(io)?;
             left -= len as u64;
@@ -957,19 +957,19 @@ fn decode_planes(
         (1u32 << fmt.bits_stored) - 1
     };
     for (frame, out) in frames {
-        let decoded = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            obj.decode_pixel_data_frame(frame)
-        }))
-        .map_err(|_| VolumeError::format(path, "the pixel data decoder failed (corrupt data?)"))?
-        .map_err(|e| {
-            VolumeError::format(
-                path,
-                format!(
-                    "cannot decode the pixel data{}: {e}",
-                    frame_tag_n(fmt, frame)
-                ),
-            )
-        })?;
+        let decoded = quietly(|| obj.decode_pixel_data_frame(frame))
+            .ok_or_else(|| {
+                VolumeError::format(path, "the pixel data decoder failed (corrupt data?)")
+            })?
+            .map_err(|e| {
+                VolumeError::format(
+                    path,
+                    format!(
+                        "cannot decode the pixel data{}: {e}",
+                        frame_tag_n(fmt, frame)
+                    ),
+                )
+            })?;
         let data = decoded.data();
         let need = px_count * bytes;
         if data.len() < need {
@@ -1024,6 +1024,29 @@ fn check_transfer_syntax(path: &Path, uid: &str) -> Result<(), VolumeError> {
         )),
         Some(_) => Ok(()),
     }
+}
+
+thread_local! {
+    static IN_CODEC: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Runs a codec on untrusted data, with a panic inside it (some pure-Rust decoders unwrap on
+/// corrupt input) turned into None and its message kept off stderr: the caller names the file
+/// instead. Panics anywhere else still reach the previous panic hook.
+fn quietly<T>(f: impl FnOnce() -> T) -> Option<T> {
+    static HOOK: std::sync::Once = std::sync::Once::new();
+    HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if !IN_CODEC.with(std::cell::Cell::get) {
+                previous(info)
+            }
+        }));
+    });
+    IN_CODEC.with(|c| c.set(true));
+    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
+    IN_CODEC.with(|c| c.set(false));
+    r.ok()
 }
 
 fn frame_tag_n(s: &Slice, frame: u32) -> String {
