@@ -935,6 +935,33 @@ fn decode_planes(
     let pixel_data = obj
         .get(tags::PIXEL_DATA)
         .ok_or_else(|| VolumeError::format(path, "no pixel data (PixelData element missing)"))?;
+    // RLE: dicom-rs trusts each fragment's header (it allocates the segment count it reads
+    // and slices by its offsets); PS3.5 G.3.1 allows at most 15 segments in a 64-byte header.
+    if obj.meta().transfer_syntax().trim_end_matches(['\0', ' ']) == "1.2.840.10008.1.2.5" {
+        for (i, f) in pixel_data
+            .value()
+            .fragments()
+            .unwrap_or_default()
+            .iter()
+            .enumerate()
+        {
+            let segments = f
+                .get(0..4)
+                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+            if f.len() < 64 || !matches!(segments, Some(1..=15)) {
+                return Err(VolumeError::format(
+                    path,
+                    format!(
+                        "RLE fragment {} is not an RLE frame ({} bytes, {} segments; a 64-byte \
+                         header with 1 to 15 segments is required)",
+                        i + 1,
+                        f.len(),
+                        segments.unwrap_or(0)
+                    ),
+                ));
+            }
+        }
+    }
     // native data: the header must not promise more pixels than the element holds
     if let Some(p) = pixel_data.value().primitive() {
         let have = p.calculate_byte_len() as u64;
