@@ -293,115 +293,145 @@ type PlaneSlots<'a> = (&'a Slice, Vec<(u32, &'a mut [u16])>);
 
 /// Refuses a file with a data element that declares more bytes than the file still holds
 /// (truncated, or a lying header): dicom-rs allocates (and zeroes) the declared length, up to
-/// 4 GiB, before it finds out. Walks the element headers as dicom-rs reads them (an unknown VR
-/// is UN, with a 32-bit length), seeking past values and stepping into sequences and their
-/// items; encapsulated pixel-data fragments are checked and skipped. Deflated data sets, and
-/// undefined-length UN elements (implicit-VR sequences), end the walk: the parser has them.
+/// 4 GiB, before it finds out. Reads the element headers as dicom-rs does: the file meta group
+/// in explicit VR little endian for as many bytes as (0002,0000) says, then the data set in its
+/// transfer syntax, an unknown VR being UN with a 32-bit length. Values are sought past;
+/// sequences and their items are stepped into; encapsulated pixel-data fragments are checked
+/// and skipped. Deflated data sets, undefined-length UN elements (implicit-VR sequences) and
+/// anything dicom-rs itself refuses end the walk: the parser has them.
 fn check_declared_lengths(path: &Path) -> Result<(), VolumeError> {
     use std::io::{BufReader, Read, Seek};
     const SHORT_VRS: [&[u8; 2]; 21] = [
         b"AE", b"AS", b"AT", b"CS", b"DA", b"DS", b"DT", b"FL", b"FD", b"IS", b"LO", b"LT", b"PN",
         b"SH", b"SL", b"SS", b"ST", b"TM", b"UI", b"UL", b"US",
     ];
+    /// An element header: (group, element, VR or zeros, length, header bytes).
+    type Header = (u16, u16, [u8; 2], u32, u64);
+    struct Walk {
+        r: BufReader<std::fs::File>,
+        /// Bytes of the file after the read position.
+        left: u64,
+    }
+    impl Walk {
+        fn read(&mut self, buf: &mut [u8]) -> bool {
+            if self.left < buf.len() as u64 || self.r.read_exact(buf).is_err() {
+                return false;
+            }
+            self.left -= buf.len() as u64;
+            true
+        }
+        fn header(&mut self, little: bool, explicit: bool) -> Option<Header> {
+            let u16_of = |b: [u8; 2]| {
+                if little {
+                    u16::from_le_bytes(b)
+                } else {
+                    u16::from_be_bytes(b)
+                }
+            };
+            let u32_of = |b: [u8; 4]| {
+                if little {
+                    u32::from_le_bytes(b)
+                } else {
+                    u32::from_be_bytes(b)
+                }
+            };
+            let mut h = [0u8; 8];
+            if !self.read(&mut h) {
+                return None;
+            }
+            let (group, element) = (u16_of([h[0], h[1]]), u16_of([h[2], h[3]]));
+            let vr = [h[4], h[5]];
+            if group == 0xFFFE || !explicit {
+                // items and delimiters have no VR, implicit VR elements neither
+                return Some((group, element, [0; 2], u32_of([h[4], h[5], h[6], h[7]]), 8));
+            }
+            if SHORT_VRS.contains(&&vr) {
+                return Some((group, element, vr, u16_of([h[6], h[7]]) as u32, 8));
+            }
+            let mut b = [0u8; 4];
+            self.read(&mut b)
+                .then(|| (group, element, vr, u32_of(b), 12))
+        }
+        fn skip(&mut self, len: u32) -> std::io::Result<()> {
+            self.r.seek_relative(len as i64)?;
+            self.left -= len as u64;
+            Ok(())
+        }
+    }
     let io = |e: std::io::Error| VolumeError::io(path, e);
     let file = std::fs::File::open(path).map_err(io)?;
-    let mut left = file.metadata().map_err(io)?.len().saturating_sub(132);
+    let left = file.metadata().map_err(io)?.len().saturating_sub(132);
     let mut r = BufReader::new(file);
     r.seek(std::io::SeekFrom::Start(132)).map_err(io)?;
-    // (little endian, explicit VR) for the meta group, then as its transfer syntax says
-    let (mut little, mut explicit, mut in_meta) = (true, true, true);
-    let mut data_set = (true, true);
-    let mut fragments = false;
-    // `buf` from the file, if it still holds that much
-    fn read(r: &mut impl Read, left: &mut u64, buf: &mut [u8]) -> bool {
-        if *left < buf.len() as u64 || r.read_exact(buf).is_err() {
-            return false;
-        }
-        *left -= buf.len() as u64;
-        true
+    let mut w = Walk { r, left };
+    let too_long = |group: u16, element: u16, len: u32, left: u64| {
+        VolumeError::format(
+            path,
+            format!(
+                "element ({group:04X},{element:04X}) declares {len} bytes but the file holds \
+                 only {left} more (truncated, or a header that lies about a length)"
+            ),
+        )
+    };
+
+    // File meta group: (0002,0000) first, then as many bytes as it says.
+    let mut group_length = [0u8; 4];
+    match w.header(true, true) {
+        Some((2, 0, _, 4, _)) if w.read(&mut group_length) => {}
+        _ => return Ok(()),
     }
-    loop {
-        let mut head = [0u8; 8];
-        if !read(&mut r, &mut left, &mut head) {
+    let mut meta = u32::from_le_bytes(group_length) as u64;
+    let (mut little, mut explicit) = (true, true);
+    while meta > 0 {
+        let Some((group, element, _, len, head)) = w.header(true, true) else {
+            return Ok(());
+        };
+        if len == u32::MAX {
             return Ok(());
         }
-        let u16_at = |i: usize| {
-            let b = [head[i], head[i + 1]];
-            if little {
-                u16::from_le_bytes(b)
-            } else {
-                u16::from_be_bytes(b)
-            }
-        };
-        let u32_of = |b: [u8; 4]| {
-            if little {
-                u32::from_le_bytes(b)
-            } else {
-                u32::from_be_bytes(b)
-            }
-        };
-        let (group, element) = (u16_at(0), u16_at(2));
-        if in_meta && group != 0x0002 {
-            // The data set starts here; re-read this header in its own encoding.
-            in_meta = false;
-            (little, explicit) = data_set;
-            r.seek_relative(-8).map_err(io)?;
-            left += 8;
-            continue;
+        if len as u64 > w.left {
+            return Err(too_long(group, element, len, w.left));
         }
-        let vr = [head[4], head[5]];
-        let (len, sequence) = if group == 0xFFFE || !explicit {
-            // items and delimiters have no VR, implicit VR elements neither
-            (
-                u32_of([head[4], head[5], head[6], head[7]]),
-                group == 0xFFFE,
-            )
-        } else if SHORT_VRS.contains(&&vr) {
-            (u16_at(6) as u32, false)
-        } else {
-            let mut b = [0u8; 4];
-            if !read(&mut r, &mut left, &mut b) {
-                return Ok(());
-            }
-            (u32_of(b), &vr == b"SQ")
-        };
-        let pixel_data = (group, element) == (0x7FE0, 0x0010);
-        if len == u32::MAX {
-            match () {
-                _ if pixel_data => fragments = true,
-                // an implicit-VR sequence: its items are read in implicit VR
-                _ if explicit && &vr == b"UN" => return Ok(()),
+        if (group, element) == (0x0002, 0x0010) && len <= 64 {
+            let mut uid = vec![0u8; len as usize];
+            w.read(&mut uid);
+            match String::from_utf8_lossy(&uid).trim_end_matches(['\0', ' ']) {
+                "1.2.840.10008.1.2" => explicit = false,
+                "1.2.840.10008.1.2.2" => little = false,
+                "1.2.840.10008.1.2.1.99" => return Ok(()),
                 _ => {}
             }
+        } else {
+            w.skip(len).map_err(io)?;
+        }
+        meta = meta.saturating_sub(head + len as u64);
+    }
+
+    // The data set.
+    let mut fragments = false;
+    while let Some((group, element, vr, len, _)) = w.header(little, explicit) {
+        if len == u32::MAX {
+            if (group, element) == (0x7FE0, 0x0010) {
+                fragments = true;
+            } else if &vr == b"UN" {
+                // an implicit-VR sequence inside explicit VR
+                return Ok(());
+            }
             continue;
         }
-        if len as u64 > left {
-            return Err(VolumeError::format(
-                path,
-                format!(
-                    "element ({group:04X},{element:04X}) declares {len} bytes but the file holds \
-                     only {left} more (truncated, or a header that lies about a length)"
-                ),
-            ));
+        if len as u64 > w.left {
+            return Err(too_long(group, element, len, w.left));
         }
         if (group, element) == (0xFFFE, 0xE0DD) {
             fragments = false;
         }
-        if in_meta && (group, element) == (0x0002, 0x0010) && len <= 64 {
-            let mut uid = vec![0u8; len as usize];
-            read(&mut r, &mut left, &mut uid);
-            match String::from_utf8_lossy(&uid).trim_end_matches(['\0', ' ']) {
-                "1.2.840.10008.1.2" => data_set = (true, false),
-                "1.2.840.10008.1.2.2" => data_set = (false, true),
-                "1.2.840.10008.1.2.1.99" => return Ok(()),
-                _ => {}
-            }
-        } else if !sequence || fragments {
-            // a value (or a fragment): skip it; sequences and items are stepped into
-            r.seek_relative(len as i64).map_err(io)?;
-            left -= len as u64;
+        let steps_into = &vr == b"SQ" || (group == 0xFFFE && !fragments);
+        if !steps_into {
+            // a value (or a fragment)
+            w.skip(len).map_err(io)?;
         }
     }
+    Ok(())
 }
 
 /// The image planes of one file with their series keys; `Ok(Err(reason))` for a file that is
