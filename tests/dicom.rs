@@ -546,6 +546,21 @@ fn bad_series_are_refused_with_the_file_and_problem_named() {
         "{e}"
     );
 
+    // a header promising a 4000 x 4000 image in a 2 kB file: refused from the header, before
+    // a volume is allocated for it
+    let d = root.join("huge-rows");
+    let files = spec.write(&d);
+    for f in &files {
+        run(Command::new("dcmodify")
+            .args(["-nb", "-m", "(0028,0010)=4000", "-m", "(0028,0011)=4000"])
+            .arg(f));
+    }
+    let e = err_of(dicom::load_series(&d, None));
+    assert!(
+        e.contains("4000 x 4000") && e.contains("lies about the image size"),
+        "{e}"
+    );
+
     // mixed geometry inside one series
     let d = root.join("mixed");
     let files = spec.write(&d);

@@ -520,6 +520,24 @@ fn read_header(path: &Path) -> Result<Result<Planes, String>, VolumeError> {
             .trim_end_matches('\0')
             .to_string(),
     };
+    // Native pixel data must fit in the file; checked before the volume is allocated for it.
+    // (Grey-scale only: colour, subsampled and 1-bit data are refused later as unsupported.)
+    let native = [
+        "1.2.840.10008.1.2",
+        "1.2.840.10008.1.2.1",
+        "1.2.840.10008.1.2.2",
+    ];
+    if native.contains(&base.transfer_syntax.trim_end()) && base.samples == 1 {
+        let need = (rows as u64 * cols as u64 * frames as u64 * bits_allocated as u64).div_ceil(8);
+        let have = std::fs::metadata(path).map_or(u64::MAX, |m| m.len());
+        if need > have {
+            return Err(fmt(format!(
+                "{frames} frame(s) of {cols} x {rows} pixels of {bits_allocated} bits need {need} \
+                 bytes of pixel data but the file holds {have} (truncated, or a header that lies \
+                 about the image size)"
+            )));
+        }
+    }
     let key = |s: Slice| {
         (
             uid.clone(),
