@@ -236,9 +236,9 @@ enum BenchCmd {
     Sh {
         #[command(flatten)]
         common: BenchArgs,
-        /// SH volume rates 1:N.
+        /// SH volume rates 1:N (volume voxels per SH voxel and axis).
         #[arg(long, value_delimiter = ',', default_value = "1,2,4,8")]
-        downsample: Vec<u32>,
+        sh_downsample: Vec<u32>,
         /// Coefficient counts (4 = bands 0-1, 16 = bands 0-3).
         #[arg(long, value_delimiter = ',', default_value = "4,16")]
         coeffs: Vec<u32>,
@@ -640,7 +640,7 @@ fn run(cli: Cli) -> Result<()> {
             what:
                 BenchCmd::Sh {
                     common,
-                    downsample,
+                    sh_downsample,
                     coeffs,
                     directions,
                     sh_length,
@@ -663,7 +663,7 @@ fn run(cli: Cli) -> Result<()> {
                 &b.gpu,
                 &b.volumes,
                 &b.tf,
-                &downsample,
+                &sh_downsample,
                 &coeffs,
                 &directions,
                 &base,

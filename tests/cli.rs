@@ -832,3 +832,32 @@ fn a_dicom_file_that_trips_a_codec_gets_an_error_not_a_panic() {
         "{err}"
     );
 }
+
+#[test]
+fn every_subcommand_has_consistent_help() {
+    // clap checks a command's arguments (unique names, defaults that parse) when it builds it.
+    for cmd in [
+        &["start"][..],
+        &["render"],
+        &["replay"],
+        &["view"],
+        &["xr"],
+        &["ao"],
+        &["info"],
+        &["bench", "lao"],
+        &["bench", "cao"],
+        &["bench", "sh"],
+        &["fetch-ct"],
+        &["phantom"],
+        &["script"],
+    ] {
+        let mut args = cmd.to_vec();
+        args.push("--help");
+        let out = cao(&args);
+        assert!(
+            out.status.success(),
+            "{cmd:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+}
