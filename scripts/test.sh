@@ -5,11 +5,17 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # The desktop-window test runs under Xvfb; the DICOM tests write their series with dcmtk and
-# read the real sample files pydicom ships.
-CAO_XR_EXTRA_PACKAGES="xvfb xauth dcmtk python3-pydicom" source scripts/setup.sh
+# read the real sample files pydicom ships; tests/foreign.rs checks volumes nobody here wrote
+# against niftilib (nifti-bin), dcm2niix and teem (teem-apps).
+CAO_XR_EXTRA_PACKAGES="xvfb xauth dcmtk python3-pydicom nifti-bin dcm2niix teem-apps" source scripts/setup.sh
 export CAO_XR_REQUIRE_XVFB=1
 export CAO_XR_REQUIRE_DCMTK=1
 export CAO_XR_REQUIRE_PYDICOM=1
+# nibabel's and mricron's NIfTI files (downloaded once, cached) and the CT head (fetched by the
+# test itself when it is not cached yet): required, so a failed download fails CI.
+export CAO_XR_FOREIGN_DATA="${CAO_XR_FOREIGN_DATA:-$HOME/.cache/cao-xr/foreign}"
+scripts/foreign-data.sh "$CAO_XR_FOREIGN_DATA"
+export CAO_XR_REQUIRE_FOREIGN=1
 if [ "${CAO_XR_TEST_DEVICE:-lavapipe}" = "lavapipe" ]; then
   [ -n "$LVP_ICD" ] || { echo "lavapipe (mesa-vulkan-drivers) is not installed" >&2; exit 1; }
   export VK_DRIVER_FILES="$LVP_ICD"
