@@ -306,8 +306,8 @@ impl BenchArgs {
 
 #[derive(Args)]
 struct VolumeArgs {
-    /// A .nrrd/.nhdr/.nii/.mha file, a DICOM series directory (DIR, or DIR#N / DIR#UID to pick
-    /// one of several series), a raw file (with --raw-dims), `phantom[:N]` or `ct-head`.
+    /// A .nrrd/.nhdr/.nii/.mha file (FILE.nii#T: volume T of a 4-D NIfTI), a DICOM series
+    /// directory (DIR, or DIR#N / DIR#UID to pick one of several series), a raw file (with --raw-dims), `phantom[:N]` or `ct-head`.
     /// Default: the CT head if fetched (cao-xr fetch-ct), else the phantom.
     volume: Option<String>,
     /// Transfer function: a preset (CT: ct-bone, ct-soft-tissue, ct-muscle-bone, ct-lung,
@@ -485,6 +485,13 @@ fn gpu(cli_validation: bool) -> Result<Gpu> {
 }
 
 fn main() -> std::process::ExitCode {
+    // Output piped into `head` and closed early ends the process quietly, as Unix tools do,
+    // instead of panicking in println!.
+    // SAFETY: called before any other thread exists; SIG_DFL is a valid disposition.
+    #[cfg(unix)]
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     match run(Cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {

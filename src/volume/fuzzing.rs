@@ -74,14 +74,17 @@ pub fn nrrd(bytes: &[u8]) -> Result<Volume, VolumeError> {
     load_file("fuzz.nrrd", bytes, nrrd::load)
 }
 
-/// NIfTI-1: `.nii.gz` when the bytes start with the gzip magic, else `.nii`.
+/// NIfTI-1 or NIfTI-2: `.nii.gz` when the bytes start with the gzip magic, else `.nii`; a 4-D
+/// file's second volume when it holds several.
 pub fn nifti(bytes: &[u8]) -> Result<Volume, VolumeError> {
     let name = if bytes.starts_with(&[0x1f, 0x8b]) {
         "fuzz.nii.gz"
     } else {
         "fuzz.nii"
     };
-    load_file(name, bytes, nifti::load)
+    load_file(name, bytes, |p| {
+        nifti::load(p).or_else(|_| nifti::load_frame(p, Some(1)))
+    })
 }
 
 /// MetaImage (`.mha`, local or detached data, raw or zlib).

@@ -1,11 +1,14 @@
-//! NIfTI-1 reader and writer: single-file `.nii`, or `.nii.gz` (gzip of the same bytes).
+//! NIfTI reader (NIfTI-1 and NIfTI-2) and NIfTI-1 writer: single-file `.nii`, or `.nii.gz`
+//! (gzip of the same bytes).
 //!
-//! Reads 3-D scalar volumes (a 4-D file with one time point counts as 3-D) of either byte order.
-//! 8/16-bit integers are kept as they are; 32-bit integers, floats and scaled data
-//! (`scl_slope`/`scl_inter`) become int16/uint16 when every value is an integer that fits, else
-//! float32 (NaN and infinities are refused). The geometry comes from the sform
-//! (preferred), the qform, or the voxel sizes alone, and is converted from NIfTI's RAS+ world
-//! into LPS. The writer stores both an sform and (for rotations) a qform.
+//! Reads 3-D scalar volumes of either byte order, and one chosen volume of a 4-D series (a
+//! 4-D file with one time point counts as 3-D). NIfTI-2 differs only in its 540-byte layout
+//! (64-bit dims and offsets, double-precision geometry). 8/16-bit integers are kept as they are;
+//! 32-bit integers, floats and scaled data (`scl_slope`/`scl_inter`) become int16/uint16 when
+//! every value is an integer that fits, else float32 (NaN and infinities are refused). The
+//! geometry comes from the sform (preferred), the qform, or the voxel sizes alone, and is
+//! converted from NIfTI's RAS+ world into LPS. The writer stores both an sform and (for
+//! rotations) a qform.
 
 use super::{
     checked_size, read_wide, split_axes, write_atomically, write_voxels, Modality, Volume,
@@ -21,6 +24,8 @@ use std::path::Path;
 
 /// Size of the NIfTI-1 header proper.
 const HEADER_BYTES: usize = 348;
+/// Size of the NIfTI-2 header proper.
+const HEADER2_BYTES: usize = 540;
 /// Where the writer puts the data: header + the 4-byte (empty) extension flag.
 const WRITE_OFFSET: usize = 352;
 /// RAS <-> LPS: NIfTI's world x points right and y anterior; ours left and posterior.
@@ -35,34 +40,99 @@ fn is_gzip_name(path: &Path) -> bool {
 
 /// Field access into a header of either byte order.
 struct Fields<'a> {
-    b: &'a [u8; HEADER_BYTES],
+    b: &'a [u8],
     be: bool,
 }
 
 impl Fields<'_> {
-    fn i16(&self, off: usize) -> i16 {
-        let a = [self.b[off], self.b[off + 1]];
+    fn bytes<const N: usize>(&self, off: usize) -> [u8; N] {
+        let mut a: [u8; N] = self.b[off..off + N].try_into().unwrap();
         if self.be {
-            i16::from_be_bytes(a)
-        } else {
-            i16::from_le_bytes(a)
+            a.reverse();
         }
+        a
+    }
+    fn i16(&self, off: usize) -> i16 {
+        i16::from_le_bytes(self.bytes(off))
+    }
+    fn i32(&self, off: usize) -> i32 {
+        i32::from_le_bytes(self.bytes(off))
+    }
+    fn i64(&self, off: usize) -> i64 {
+        i64::from_le_bytes(self.bytes(off))
     }
     fn f32(&self, off: usize) -> f64 {
-        let a = [
-            self.b[off],
-            self.b[off + 1],
-            self.b[off + 2],
-            self.b[off + 3],
-        ];
-        (if self.be {
-            f32::from_be_bytes(a)
-        } else {
-            f32::from_le_bytes(a)
-        }) as f64
+        f32::from_le_bytes(self.bytes(off)) as f64
     }
-    fn vec3(&self, off: usize) -> DVec3 {
-        DVec3::new(self.f32(off), self.f32(off + 4), self.f32(off + 8))
+    fn f64(&self, off: usize) -> f64 {
+        f64::from_le_bytes(self.bytes(off))
+    }
+}
+
+/// The fields of a NIfTI-1 or NIfTI-2 header the loader uses, widened to one layout.
+struct Header {
+    /// 1 or 2.
+    version: u8,
+    /// Bytes of the header proper (348 or 540): the smallest vox_offset.
+    bytes: usize,
+    dim: [i64; 8],
+    datatype: i16,
+    bitpix: i16,
+    pixdim: [f64; 8],
+    vox_offset: f64,
+    slope: f64,
+    inter: f64,
+    xyzt_units: u8,
+    qform_code: i32,
+    sform_code: i32,
+    /// quatern_b, c, d.
+    quatern: DVec3,
+    qoffset: DVec3,
+    srow: [[f64; 4]; 3],
+}
+
+impl Header {
+    /// NIfTI-1: 348 bytes, 16-bit dims, 32-bit floats, magic at 344.
+    fn v1(f: &Fields) -> Header {
+        let v3 = |off| DVec3::new(f.f32(off), f.f32(off + 4), f.f32(off + 8));
+        Header {
+            version: 1,
+            bytes: 348,
+            dim: std::array::from_fn(|i| f.i16(40 + 2 * i) as i64),
+            datatype: f.i16(70),
+            bitpix: f.i16(72),
+            pixdim: std::array::from_fn(|i| f.f32(76 + 4 * i)),
+            vox_offset: f.f32(108),
+            slope: f.f32(112),
+            inter: f.f32(116),
+            xyzt_units: f.b[123],
+            qform_code: f.i16(252) as i32,
+            sform_code: f.i16(254) as i32,
+            quatern: v3(256),
+            qoffset: v3(268),
+            srow: std::array::from_fn(|r| std::array::from_fn(|c| f.f32(280 + 16 * r + 4 * c))),
+        }
+    }
+    /// NIfTI-2: 540 bytes, 64-bit dims and offsets, doubles, magic at 4.
+    fn v2(f: &Fields) -> Header {
+        let v3 = |off| DVec3::new(f.f64(off), f.f64(off + 8), f.f64(off + 16));
+        Header {
+            version: 2,
+            bytes: 540,
+            dim: std::array::from_fn(|i| f.i64(16 + 8 * i)),
+            datatype: f.i16(12),
+            bitpix: f.i16(14),
+            pixdim: std::array::from_fn(|i| f.f64(104 + 8 * i)),
+            vox_offset: f.i64(168) as f64,
+            slope: f.f64(176),
+            inter: f.f64(184),
+            xyzt_units: f.i32(500) as u8,
+            qform_code: f.i32(344),
+            sform_code: f.i32(348),
+            quatern: v3(352),
+            qoffset: v3(376),
+            srow: std::array::from_fn(|r| std::array::from_fn(|c| f.f64(400 + 32 * r + 8 * c))),
+        }
     }
 }
 
@@ -118,8 +188,15 @@ fn quaternion_matrix(b: f64, c: f64, d: f64) -> DMat3 {
     )
 }
 
-/// Loads a NIfTI-1 volume from `.nii` or `.nii.gz`.
+/// Loads a NIfTI-1 or NIfTI-2 volume from `.nii` or `.nii.gz`; a 4-D file only when it holds
+/// one volume (see [`load_frame`]).
 pub fn load(path: &Path) -> Result<Volume, VolumeError> {
+    load_frame(path, None)
+}
+
+/// Loads volume `frame` (0-based) of a 4-D NIfTI file; `None` wants a 3-D file (or a 4-D one
+/// holding one volume) and names the choice otherwise.
+pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError> {
     let file = File::open(path).map_err(|e| VolumeError::io(path, e))?;
     let gzip = is_gzip_name(path);
     let mut reader: Box<dyn Read> = if gzip {
@@ -130,66 +207,76 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     let fmt = |m: String| VolumeError::format(path, m);
     let what = if gzip { "gzip " } else { "" };
 
-    let mut hdr = [0u8; HEADER_BYTES];
+    // sizeof_hdr (348: NIfTI-1, 540: NIfTI-2) gives the version and the byte order
+    let mut hdr = vec![0u8; HEADER2_BYTES];
     let mut got = 0;
-    while got < HEADER_BYTES {
-        match reader.read(&mut hdr[got..]) {
+    let mut want = 4;
+    while got < want {
+        match reader.read(&mut hdr[got..want]) {
             Ok(0) => break,
             Ok(n) => got += n,
             Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
             Err(e) => return Err(fmt(format!("{what}read error in the header: {e}"))),
         }
-    }
-    let first = i32::from_le_bytes([hdr[0], hdr[1], hdr[2], hdr[3]]);
-    if got < HEADER_BYTES {
-        if got >= 4 && (first == 540 || first.swap_bytes() == 540) {
-            return Err(VolumeError::unsupported(path, "NIfTI-2 (only NIfTI-1)"));
+        if got == 4 && want == 4 {
+            let first = i32::from_le_bytes([hdr[0], hdr[1], hdr[2], hdr[3]]);
+            want = match first {
+                348 | 540 => first as usize,
+                _ if first.swap_bytes() == 348 || first.swap_bytes() == 540 => {
+                    first.swap_bytes() as usize
+                }
+                _ => {
+                    return Err(fmt(format!(
+                        "not a NIfTI file: sizeof_hdr is {first}, expected 348 (NIfTI-1) or 540 \
+                         (NIfTI-2)"
+                    )))
+                }
+            };
         }
+    }
+    if got < want || want == 4 {
         return Err(fmt(format!(
-            "truncated header: {got} of {HEADER_BYTES} bytes, not a NIfTI-1 file"
+            "truncated header: {got} of {} bytes, not a NIfTI file",
+            want.max(HEADER_BYTES)
         )));
     }
-    let be = match first {
-        348 => false,
-        _ if first.swap_bytes() == 348 => true,
-        540 => return Err(VolumeError::unsupported(path, "NIfTI-2 (only NIfTI-1)")),
-        _ if first.swap_bytes() == 540 => {
-            return Err(VolumeError::unsupported(path, "NIfTI-2 (only NIfTI-1)"))
-        }
-        _ => {
-            return Err(fmt(format!(
-                "not a NIfTI-1 file: sizeof_hdr is {first}, expected 348"
-            )))
-        }
-    };
+    let be = i32::from_le_bytes([hdr[0], hdr[1], hdr[2], hdr[3]]) as usize != want;
     let f = Fields { b: &hdr, be };
-    match &hdr[344..348] {
-        b"n+1\0" => {}
-        b"ni1\0" => {
-            return Err(VolumeError::unsupported(
-                path,
-                "a two-file NIfTI header (.hdr/.img, magic \"ni1\"); convert it to a single .nii",
-            ))
-        }
-        m => {
-            return Err(fmt(format!(
-                "bad magic {:?}, expected \"n+1\\0\" for a single-file .nii",
-                String::from_utf8_lossy(m)
-            )))
-        }
+    let (h, magic, single, pair) = if want == HEADER_BYTES {
+        (Header::v1(&f), &hdr[344..348], &b"n+1\0"[..], &b"ni1\0"[..])
+    } else {
+        (
+            Header::v2(&f),
+            &hdr[4..12],
+            &b"n+2\0\r\n\x1a\n"[..],
+            &b"ni2\0\r\n\x1a\n"[..],
+        )
+    };
+    let v = h.version;
+    if magic == pair {
+        return Err(VolumeError::unsupported(
+            path,
+            format!(
+                "a two-file NIfTI-{v} header (.hdr/.img, magic \"ni{v}\"); convert it to a single .nii"
+            ),
+        ));
+    }
+    if magic != single {
+        return Err(fmt(format!(
+            "bad magic {:?}, expected \"n+{v}\" for a single-file NIfTI-{v} .nii",
+            String::from_utf8_lossy(magic)
+        )));
     }
 
     // dimensions
-    let dim: Vec<i16> = (0..8).map(|i| f.i16(40 + 2 * i)).collect();
+    let dim = h.dim;
     let ndim = dim[0];
-    let ok = ndim == 3 || (ndim == 4 && dim[4] == 1);
-    if !ok {
-        return Err(if (1..=7).contains(&ndim) {
+    if !(3..=7).contains(&ndim) {
+        return Err(if (1..=2).contains(&ndim) {
             VolumeError::unsupported(
                 path,
                 format!(
-                    "{ndim}-dimensional data (dim {:?}); only 3-D volumes (or 4-D with one time \
-                     point) are supported",
+                    "{ndim}-dimensional data (dim {:?}); a volume needs 3",
                     &dim[1..=ndim as usize]
                 ),
             )
@@ -197,6 +284,42 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
             fmt(format!("invalid dim[0] = {ndim} (must be 1..7)"))
         });
     }
+    // a 4-D file is a series of 3-D volumes (time points, echoes, phases): one is shown
+    let frames = if ndim >= 4 { dim[4] } else { 1 };
+    if frames < 1 || (ndim > 4 && dim[5..=ndim as usize].iter().any(|&d| d != 1)) {
+        return Err(VolumeError::unsupported(
+            path,
+            format!(
+                "{ndim}-dimensional data (dim {:?}); only 3-D volumes and 4-D series of them \
+                 are supported",
+                &dim[1..=ndim as usize]
+            ),
+        ));
+    }
+    let frame = match frame {
+        None if frames > 1 => {
+            return Err(VolumeError::unsupported(
+                path,
+                format!(
+                    "4-dimensional data: {frames} volumes of {} x {} x {}; pick one with \
+                     {}#T (T = 0..{})",
+                    dim[1],
+                    dim[2],
+                    dim[3],
+                    path.display(),
+                    frames - 1
+                ),
+            ))
+        }
+        None => 0,
+        Some(t) if t >= frames as u64 => {
+            return Err(fmt(format!(
+                "volume #{t} asked for, but the file holds {frames} (#0..#{})",
+                frames - 1
+            )))
+        }
+        Some(t) => t,
+    };
     if dim[1..=3].iter().any(|&d| d < 1) {
         return Err(fmt(format!(
             "invalid sizes {} {} {} (must be positive)",
@@ -206,7 +329,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     let dims = [dim[1] as u64, dim[2] as u64, dim[3] as u64];
 
     // samples
-    let code = f.i16(70);
+    let code = h.datatype;
     let ty = parse_datatype(code).map_err(|t| {
         VolumeError::unsupported(
             path,
@@ -216,7 +339,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
             ),
         )
     })?;
-    let bitpix = f.i16(72);
+    let bitpix = h.bitpix;
     if bitpix as u64 != ty.bytes() * 8 {
         return Err(fmt(format!(
             "bitpix {bitpix} does not match datatype {code} ({} bits)",
@@ -225,8 +348,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     }
     let (_, data_bytes) = checked_size(path, dims, ty.bytes())?;
     let udims = dims.map(|d| d as usize);
-    let slope = f.f32(112);
-    let inter = f.f32(116);
+    let (slope, inter) = (h.slope, h.inter);
     let scale = if slope == 0.0 || !slope.is_finite() || (slope == 1.0 && inter == 0.0) {
         None // "scl_slope = 0: no scaling", as the standard says
     } else if !inter.is_finite() {
@@ -234,23 +356,23 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     } else {
         Some((slope, inter))
     };
-    let vox_offset = f.f32(108);
-    if !(vox_offset.is_finite() && vox_offset >= HEADER_BYTES as f64) || vox_offset.fract() != 0.0 {
+    let vox_offset = h.vox_offset;
+    if !(vox_offset.is_finite() && vox_offset >= h.bytes as f64) || vox_offset.fract() != 0.0 {
         return Err(fmt(format!(
-            "invalid vox_offset {vox_offset} (must be a whole number >= 348)"
+            "invalid vox_offset {vox_offset} (must be a whole number >= {})",
+            h.bytes
         )));
     }
     let vox_offset = vox_offset as u64;
 
     // geometry: NIfTI's spatial unit (xyzt_units & 7) is metres, mm or microns; we work in mm.
-    let unit = match hdr[123] & 7 {
+    let unit = match h.xyzt_units & 7 {
         1 => 1000.0,
         3 => 0.001,
         _ => 1.0, // mm, or unknown (taken as mm, as most readers do)
     };
-    let pixdim: Vec<f64> = (0..8).map(|i| f.f32(76 + 4 * i)).collect();
-    let sform_code = f.i16(254);
-    let qform_code = f.i16(252);
+    let pixdim = h.pixdim;
+    let (sform_code, qform_code) = (h.sform_code, h.qform_code);
     let pix = |a: usize| {
         let p = pixdim[a].abs();
         if p.is_finite() && p > 0.0 {
@@ -260,26 +382,19 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         }
     };
     let (steps_ras, origin_ras) = if sform_code > 0 {
-        let row = |r: usize| {
-            DVec3::new(
-                f.f32(280 + 16 * r),
-                f.f32(284 + 16 * r),
-                f.f32(288 + 16 * r),
-            )
-        };
-        let (rx, ry, rz) = (row(0), row(1), row(2));
-        let m = DMat3::from_cols(rx, ry, rz).transpose();
-        let o = DVec3::new(f.f32(292), f.f32(308), f.f32(324));
+        let row = |r: usize| DVec3::from_slice(&h.srow[r]);
+        let m = DMat3::from_cols(row(0), row(1), row(2)).transpose();
+        let o = DVec3::new(h.srow[0][3], h.srow[1][3], h.srow[2][3]);
         (m, o)
     } else if qform_code > 0 {
-        let r = quaternion_matrix(f.f32(256), f.f32(260), f.f32(264));
+        let r = quaternion_matrix(h.quatern.x, h.quatern.y, h.quatern.z);
         let qfac = if pixdim[0] < 0.0 { -1.0 } else { 1.0 };
         let m = DMat3::from_cols(
             r.x_axis * pix(1),
             r.y_axis * pix(2),
             r.z_axis * (pix(3) * qfac),
         );
-        (m, f.vec3(268))
+        (m, h.qoffset)
     } else {
         // "method 1" of the standard: voxel sizes only, axes along RAS.
         (
@@ -295,9 +410,14 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     let origin = origin_ras * RAS_TO_LPS * unit;
 
     // data
+    // the chosen volume's samples follow the earlier volumes'
+    let vox_offset = frame
+        .checked_mul(data_bytes)
+        .and_then(|b| b.checked_add(vox_offset))
+        .ok_or_else(|| fmt(format!("volume #{frame} lies beyond any file size")))?;
     let exact;
     if gzip {
-        let skip = vox_offset - HEADER_BYTES as u64;
+        let skip = vox_offset - h.bytes as u64;
         let skipped = std::io::copy(&mut (&mut reader).take(skip), &mut std::io::sink())
             .map_err(|e| fmt(format!("gzip data are corrupt: {e}")))?;
         if skipped < skip {
@@ -838,6 +958,103 @@ mod tests {
             let p = s.file("mangled.nii");
             std::fs::write(&p, &b).unwrap();
             let _ = load(&p);
+        }
+    }
+
+    /// A NIfTI-2 file laid out by hand from the standard (nifti2.h): int16, 3 x 2 x 2 (x `t`
+    /// volumes), 0.5/2/3 mm, an sform with a 90-degree turn, big- or little-endian.
+    fn nifti2_bytes(t: i64, be: bool) -> Vec<u8> {
+        let mut h = vec![0u8; 544];
+        let mut put = |off: usize, b: &[u8]| {
+            let mut b = b.to_vec();
+            if be {
+                b.reverse();
+            }
+            h[off..off + b.len()].copy_from_slice(&b);
+        };
+        put(0, &540i32.to_le_bytes());
+        put(12, &4i16.to_le_bytes());
+        put(14, &16i16.to_le_bytes());
+        for (i, d) in [4, 3, 2, 2, t, 1, 1, 1].iter().enumerate() {
+            put(16 + 8 * i, &d.to_le_bytes());
+        }
+        for (i, p) in [1.0, 0.5, 2.0, 3.0, 1.0, 1.0, 1.0, 1.0].iter().enumerate() {
+            put(104 + 8 * i, &f64::to_le_bytes(*p));
+        }
+        put(168, &544i64.to_le_bytes());
+        put(348, &1i32.to_le_bytes()); // sform_code
+                                       // RAS x = -2 j + 10, y = 0.5 i - 20, z = 3 k + 30
+        let srow: [[f64; 4]; 3] = [
+            [0.0, -2.0, 0.0, 10.0],
+            [0.5, 0.0, 0.0, -20.0],
+            [0.0, 0.0, 3.0, 30.0],
+        ];
+        for (r, row) in srow.iter().enumerate() {
+            for (c, x) in row.iter().enumerate() {
+                put(400 + 32 * r + 8 * c, &f64::to_le_bytes(*x));
+            }
+        }
+        put(500, &2i32.to_le_bytes()); // mm
+        h[4..12].copy_from_slice(b"n+2\0\r\n\x1a\n");
+        for n in 0..12 * t as i16 {
+            h.extend_from_slice(&if be {
+                (n * 7).to_be_bytes()
+            } else {
+                (n * 7).to_le_bytes()
+            });
+        }
+        h
+    }
+
+    #[test]
+    fn nifti2_geometry_frames_and_bad_headers() {
+        let s = scratch("nifti2");
+        for be in [false, true] {
+            let p = s.file("two.nii");
+            std::fs::write(&p, nifti2_bytes(1, be)).unwrap();
+            let v = load(&p).unwrap();
+            assert_eq!(v.dims, [3, 2, 2]);
+            assert_eq!(v.spacing, [0.5, 2.0, 3.0]);
+            // RAS columns i = (0, 0.5, 0), j = (-2, 0, 0), origin (10, -20, 30), in LPS:
+            assert_eq!(v.directions.x_axis, DVec3::new(0.0, -1.0, 0.0));
+            assert_eq!(v.directions.y_axis, DVec3::new(1.0, 0.0, 0.0));
+            assert_eq!(v.origin, DVec3::new(-10.0, 20.0, 30.0));
+            assert_eq!(v.voxels, Voxels::I16((0..12).map(|n| n * 7).collect()));
+        }
+        // volume 2 of a 3-volume series; a missing pick and one out of range are refused
+        let p = s.file("series.nii");
+        std::fs::write(&p, nifti2_bytes(3, false)).unwrap();
+        let v = load_frame(&p, Some(2)).unwrap();
+        assert_eq!(v.voxels, Voxels::I16((24..36).map(|n| n * 7).collect()));
+        assert!(err_of(&p).contains("3 volumes of 3 x 2 x 2"));
+        let e = load_frame(&p, Some(3)).unwrap_err().to_string();
+        assert!(e.contains("series.nii") && e.contains("holds 3"), "{e}");
+        // truncated header, pair magic, short data; mangled headers never panic
+        let good = nifti2_bytes(1, false);
+        let case = |name: &str, f: &dyn Fn(&mut Vec<u8>)| {
+            let p = s.file(name);
+            let mut b = good.clone();
+            f(&mut b);
+            std::fs::write(&p, &b).unwrap();
+            err_of(&p)
+        };
+        let e = case("short2.nii", &|b| b.truncate(400));
+        assert!(e.contains("truncated header: 400 of 540"), "{e}");
+        assert!(case("pair2.nii", &|b| b[4..7].copy_from_slice(b"ni2")).contains("NIfTI-2"));
+        assert!(case("data2.nii", &|b| b.truncate(550)).contains("truncated data"));
+        let e = case("huge2.nii", &|b| {
+            for a in 1..4 {
+                b[16 + 8 * a..24 + 8 * a].copy_from_slice(&(1i64 << 40).to_le_bytes());
+            }
+        });
+        assert!(e.contains("too large"), "{e}");
+        for i in 0..544 {
+            let mut b = good.clone();
+            b[i] ^= 0xA5;
+            let p = s.file("mangled2.nii");
+            std::fs::write(&p, &b).unwrap();
+            let _ = load(&p);
+            let _ = load_frame(&p, Some(u64::MAX));
         }
     }
 }
