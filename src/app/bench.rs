@@ -305,7 +305,13 @@ pub fn bench_sh(
                         let mut dims = [0; 3];
                         for _ in 0..runs.max(1) {
                             let mut shv = ShVolume::new(gpu, vol, p)?;
-                            ms.push(shv.precompute(&obuf, &mut |_, _| {})?.gpu_ms);
+                            // a run can take minutes on lavapipe: show it, then clear it
+                            let label = if hierarchy { "hierarchy" } else { "full march" };
+                            let bar = super::progress_bar(shv.grid.dims[2] as u64, label);
+                            let t =
+                                shv.precompute(&obuf, &mut |done, _| bar.set_position(done as u64));
+                            bar.finish_and_clear();
+                            ms.push(t?.gpu_ms);
                             packed = shv.read_back()?;
                             dims = shv.grid.dims;
                         }
