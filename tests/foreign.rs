@@ -339,7 +339,11 @@ fn a_pydicom_ct_series_matches_dcm2niix_and_teem_in_patient_space() {
     let dcm = dicom::load_series(&series, None).unwrap();
     assert_eq!(dcm.dims, [16, 16, 5]);
     // it renders: soft tissue (its values span -888..85 HU) is drawn
-    let img = render(&dcm, &TransferFunction::preset("ct-soft-tissue").unwrap(), 64);
+    let img = render(
+        &dcm,
+        &TransferFunction::preset("ct-soft-tissue").unwrap(),
+        64,
+    );
     assert!(centroid(&img).is_some(), "the CT series rendered nothing");
 
     run(Command::new("dcm2niix")

@@ -136,6 +136,20 @@ impl Header {
     }
 }
 
+/// Reads into `buf` until it is full or the input ends; the count read.
+fn fill(r: &mut dyn Read, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut got = 0;
+    while got < buf.len() {
+        match r.read(&mut buf[got..]) {
+            Ok(0) => break,
+            Ok(n) => got += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(got)
+}
+
 /// Maps the NIfTI datatype code; `Err` names the type for the message.
 fn parse_datatype(code: i16) -> Result<WideType, String> {
     Ok(match code {
@@ -208,36 +222,26 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
     let what = if gzip { "gzip " } else { "" };
 
     // sizeof_hdr (348: NIfTI-1, 540: NIfTI-2) gives the version and the byte order
+    let read_err = |e: std::io::Error| fmt(format!("{what}read error in the header: {e}"));
     let mut hdr = vec![0u8; HEADER2_BYTES];
-    let mut got = 0;
-    let mut want = 4;
-    while got < want {
-        match reader.read(&mut hdr[got..want]) {
-            Ok(0) => break,
-            Ok(n) => got += n,
-            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-            Err(e) => return Err(fmt(format!("{what}read error in the header: {e}"))),
+    let mut got = fill(&mut reader, &mut hdr[..4]).map_err(read_err)?;
+    let first = i32::from_le_bytes([hdr[0], hdr[1], hdr[2], hdr[3]]);
+    let want = match (first, first.swap_bytes()) {
+        _ if got < 4 => HEADER_BYTES,
+        (348 | 540, _) => first as usize,
+        (_, s @ (348 | 540)) => s as usize,
+        _ => {
+            return Err(fmt(format!(
+                "not a NIfTI file: sizeof_hdr is {first}, expected 348 (NIfTI-1) or 540 (NIfTI-2)"
+            )))
         }
-        if got == 4 && want == 4 {
-            let first = i32::from_le_bytes([hdr[0], hdr[1], hdr[2], hdr[3]]);
-            want = match first {
-                348 | 540 => first as usize,
-                _ if first.swap_bytes() == 348 || first.swap_bytes() == 540 => {
-                    first.swap_bytes() as usize
-                }
-                _ => {
-                    return Err(fmt(format!(
-                        "not a NIfTI file: sizeof_hdr is {first}, expected 348 (NIfTI-1) or 540 \
-                         (NIfTI-2)"
-                    )))
-                }
-            };
-        }
+    };
+    if got == 4 {
+        got += fill(&mut reader, &mut hdr[4..want]).map_err(read_err)?;
     }
-    if got < want || want == 4 {
+    if got < want {
         return Err(fmt(format!(
-            "truncated header: {got} of {} bytes, not a NIfTI file",
-            want.max(HEADER_BYTES)
+            "truncated header: {got} of {want} bytes, not a NIfTI file"
         )));
     }
     let be = i32::from_le_bytes([hdr[0], hdr[1], hdr[2], hdr[3]]) as usize != want;
