@@ -1,7 +1,8 @@
 //! Volumes that nobody on this project wrote load with the size, spacing, orientation and
 //! voxels that other people's tools give them, and render:
-//! - NIfTI files from nibabel's test data and mricron's Colin27 MRI template, checked against
-//!   niftilib's `nifti_tool` (the NIfTI reference library) for every corner and whole slices;
+//! - NIfTI files from nibabel's test data, ITK's examples and mricron's Colin27 MRI template,
+//!   checked against niftilib's `nifti_tool` (the NIfTI reference library) for every corner and
+//!   whole slices; ITK's example MetaImage with detached data;
 //! - a CT series from pydicom's sample files against dcm2niix's NIfTI and NRRD conversions of
 //!   it and teem's (`unu`) permuted, flipped, detached gzip big-endian and float re-encodings,
 //!   voxel for voxel in patient space;
@@ -19,7 +20,7 @@ use cao_xr::render::{
     VolumeTextures,
 };
 use cao_xr::volume::transfer::TransferFunction;
-use cao_xr::volume::{ct_head, dicom, Volume};
+use cao_xr::volume::{ct_head, dicom, Volume, Voxels};
 use glam::{DMat4, DVec3, DVec4};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -275,6 +276,7 @@ fn nifti_files_from_nibabel_and_mricron_match_niftilib() {
         ("example4d.nii.gz", Some(1)),
         ("example_nifti2.nii.gz", Some(0)),
         ("example_nifti2.nii.gz", Some(1)),
+        ("KmeansTest_T1UCharRaw.nii.gz", None), // written by ITK
         ("ch2bet.nii.gz", None),
     ] {
         let Some(p) = present(dir.join(f), how) else {
@@ -316,6 +318,23 @@ fn nifti_files_from_nibabel_and_mricron_match_niftilib() {
             "{e}"
         );
     }
+}
+
+#[test]
+fn an_itk_metaimage_with_detached_data_loads_whole() {
+    // ITK's example: three 181 x 217 MRI slices, uchar, 1 mm, data in a separate .raw
+    let dir = foreign_dir();
+    let how = "scripts/foreign-data.sh fetches it";
+    let (Some(mha), Some(raw)) = (
+        present(dir.join("BrainProtonDensity3Slices.mha"), how),
+        present(dir.join("BrainProtonDensity3Slices.raw"), how),
+    ) else {
+        return;
+    };
+    let v = open(&mha);
+    assert_eq!(v.dims, [181, 217, 3]);
+    assert_eq!(v.spacing, [1.0; 3]);
+    assert_eq!(v.voxels, Voxels::U8(std::fs::read(&raw).unwrap()));
 }
 
 #[test]
