@@ -393,6 +393,17 @@ fn a_pydicom_ct_series_matches_dcm2niix_and_teem_in_patient_space() {
         "big.nhdr",
     );
     unu(&["convert", "-t", "float"], "flipped.nrrd", "float.nrrd");
+    // a 4-D series of two volumes, the second one HU higher (teem's join keeps no geometry)
+    run(Command::new("teem-unu")
+        .args(["2op", "+"])
+        .arg(root.join("ctn.nrrd"))
+        .args(["1", "-t", "short", "-o"])
+        .arg(root.join("plus1.nrrd")));
+    run(Command::new("teem-unu")
+        .args(["join", "-a", "3", "-incr", "-i"])
+        .args([root.join("ctn.nrrd"), root.join("plus1.nrrd")])
+        .arg("-o")
+        .arg(root.join("series.nrrd")));
 
     for f in [
         "ct.nii",
@@ -439,6 +450,21 @@ fn a_pydicom_ct_series_matches_dcm2niix_and_teem_in_patient_space() {
             }
         }
     }
+    let ctn = open(&root.join("ctn.nrrd"));
+    let series = root.join("series.nrrd").display().to_string();
+    for t in 0..2 {
+        let v = open(Path::new(&format!("{series}#{t}")));
+        assert_eq!(v.dims, ctn.dims);
+        for n in 0..v.voxel_count() {
+            assert_eq!(
+                v.voxels.get(n),
+                ctn.voxels.get(n) + t as f32,
+                "{series}#{t}"
+            );
+        }
+    }
+    let e = load_volume(Some(&series), None).unwrap_err().to_string();
+    assert!(e.contains("2 volumes") && e.contains("#T"), "{e}");
     let _ = std::fs::remove_dir_all(&root);
 }
 

@@ -85,16 +85,22 @@ pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>) -> Result<Volume> 
             if let Some(spec) = raw {
                 return Ok(crate::volume::raw::load(p, spec)?);
             }
-            // FILE.nii#T: volume T of a 4-D NIfTI file
-            if let Some((file, t)) = path.rsplit_once('#') {
+            // FILE#T: volume T of a 4-D NIfTI or NRRD file
+            if let Some((file, t)) = path.rsplit_once('#').filter(|_| !p.exists()) {
                 let l = file.to_lowercase();
-                if !p.exists() && (l.ends_with(".nii") || l.ends_with(".nii.gz")) {
+                let nifti = l.ends_with(".nii") || l.ends_with(".nii.gz");
+                if nifti || l.ends_with(".nrrd") || l.ends_with(".nhdr") {
                     let t = t.parse::<u64>().map_err(|_| {
                         AppError::Usage(format!(
                             "'{path}': after # comes the volume number of a 4-D file, e.g. {file}#0"
                         ))
                     })?;
-                    return Ok(crate::volume::nifti::load_frame(Path::new(file), Some(t))?);
+                    let file = Path::new(file);
+                    return Ok(if nifti {
+                        crate::volume::nifti::load_frame(file, Some(t))?
+                    } else {
+                        nrrd::load_frame(file, Some(t))?
+                    });
                 }
             }
             let ext = p

@@ -69,9 +69,12 @@ fn check_volume(v: &Volume) {
     assert!(lo.is_finite() && hi.is_finite() && lo <= hi, "{lo} .. {hi}");
 }
 
-/// NRRD (`.nrrd`, attached or naming a detached data file).
+/// NRRD (`.nrrd`, attached or naming a detached data file); a 4-D series' second volume when
+/// it holds several.
 pub fn nrrd(bytes: &[u8]) -> Result<Volume, VolumeError> {
-    load_file("fuzz.nrrd", bytes, nrrd::load)
+    load_file("fuzz.nrrd", bytes, |p| {
+        nrrd::load(p).or_else(|_| nrrd::load_frame(p, Some(1)))
+    })
 }
 
 /// NIfTI-1 or NIfTI-2: `.nii.gz` when the bytes start with the gzip magic, else `.nii`; a 4-D

@@ -105,6 +105,77 @@ fn split_vectors(s: &str) -> Option<Vec<String>> {
     Some(out)
 }
 
+/// The volume to read of a file with `sizes` and how many it holds: (0, 1) for 3-D data; for
+/// 4-D data the last axis must be a series (a `none` space direction or a non-spatial kind),
+/// and a series of several needs `frame`.
+fn series_frame(
+    path: &Path,
+    h: &Header,
+    sizes: &[u64],
+    frame: Option<u64>,
+) -> Result<(u64, u64), VolumeError> {
+    if sizes.len() == 3 {
+        return Ok((0, 1));
+    }
+    // which axes are spatial: from the space directions, else the kinds
+    let spatial: Vec<bool> = if let Some(sd) = &h.space_directions {
+        split_vectors(sd)
+            .unwrap_or_default()
+            .iter()
+            .map(|v| v != "none")
+            .collect()
+    } else if let Some(k) = &h.kinds {
+        k.split_whitespace()
+            .map(|k| matches!(k.to_ascii_lowercase().as_str(), "domain" | "space"))
+            .collect()
+    } else {
+        vec![true, true, true, false] // nothing says otherwise: the last axis is the series
+    };
+    if spatial.len() != 4 || spatial.iter().filter(|&&s| s).count() != 3 {
+        return Err(VolumeError::unsupported(
+            path,
+            "4-D data with other than three spatial axes",
+        ));
+    }
+    if !spatial[..3].iter().all(|&s| s) {
+        return Err(VolumeError::unsupported(
+            path,
+            "4-D data whose non-spatial axis is not the last one (interleaved samples, such as \
+             vectors or diffusion directions); only series of whole volumes are supported",
+        ));
+    }
+    let frames = sizes[3];
+    if frames == 0 {
+        return Err(VolumeError::format(
+            path,
+            "sizes: the series axis has size 0",
+        ));
+    }
+    match frame {
+        None if frames > 1 => Err(VolumeError::unsupported(
+            path,
+            format!(
+                "4-dimensional data: {frames} volumes of {} x {} x {}; pick one with {}#T \
+                 (T = 0..{})",
+                sizes[0],
+                sizes[1],
+                sizes[2],
+                path.display(),
+                frames - 1
+            ),
+        )),
+        None => Ok((0, frames)),
+        Some(t) if t >= frames => Err(VolumeError::format(
+            path,
+            format!(
+                "volume #{t} asked for, but the file holds {frames} (#0..#{})",
+                frames.saturating_sub(1)
+            ),
+        )),
+        Some(t) => Ok((t, frames)),
+    }
+}
+
 /// The fields of a header that matter here, as written.
 #[derive(Default)]
 struct Header {
@@ -121,6 +192,7 @@ struct Header {
     byte_skip: Option<String>,
     line_skip: Option<String>,
     data_file: Option<String>,
+    kinds: Option<String>,
     modality: Option<String>,
 }
 
@@ -216,7 +288,8 @@ fn read_header<R: BufRead>(path: &Path, r: &mut R) -> Result<(Header, bool), Vol
                 }
             }
             "cao-xr modality" => h.modality = value,
-            // kinds, content, centers, units, min/max, measurement frame, ...: not needed.
+            "kinds" => h.kinds = value,
+            // content, centers, units, min/max, measurement frame, ...: not needed.
             _ => {}
         }
     }
@@ -224,6 +297,13 @@ fn read_header<R: BufRead>(path: &Path, r: &mut R) -> Result<(Header, bool), Vol
 
 /// Loads a 3-D NRRD (`.nrrd` with attached data or `.nhdr` with a detached data file).
 pub fn load(path: &Path) -> Result<Volume, VolumeError> {
+    load_frame(path, None)
+}
+
+/// Loads volume `frame` (0-based) of a 4-D NRRD whose last axis is a series (time, phases,
+/// echoes: a `none` space direction, or a non-spatial kind); `None` wants a 3-D file (or a
+/// series of one) and names the choice otherwise.
+pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError> {
     let file = File::open(path).map_err(|e| VolumeError::io(path, e))?;
     let mut reader = BufReader::new(file);
     let (h, terminated) = read_header(path, &mut reader)?;
@@ -250,10 +330,10 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     let dim: u64 = dim_s
         .parse()
         .map_err(|_| fmt(format!("invalid dimension {dim_s:?}")))?;
-    if dim != 3 {
+    if dim != 3 && dim != 4 {
         return Err(VolumeError::unsupported(
             path,
-            format!("dimension {dim}: only 3-dimensional volumes are supported"),
+            format!("dimension {dim}: only 3-dimensional volumes and 4-D series are supported"),
         ));
     }
     let sizes_s = required(&h.sizes, "sizes")?;
@@ -262,13 +342,24 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         .map(|s| s.parse::<u64>())
         .collect::<Result<_, _>>()
         .map_err(|_| fmt(format!("invalid sizes {sizes_s:?}")))?;
-    if sizes.len() != 3 {
+    if sizes.len() as u64 != dim {
         return Err(fmt(format!(
-            "sizes {sizes_s:?} must have 3 entries (dimension 3)"
+            "sizes {sizes_s:?} must have {dim} entries (dimension {dim})"
         )));
     }
     let dims = [sizes[0], sizes[1], sizes[2]];
     let (_, data_bytes) = checked_size(path, dims, ty.bytes())?;
+    let (frame, frames) = series_frame(path, &h, &sizes, frame)?;
+    // every volume of a series is checked to be in the file; the chosen one is read
+    let total_bytes = data_bytes
+        .checked_mul(frames)
+        .filter(|&b| b <= super::MAX_DATA_BYTES.saturating_mul(64))
+        .ok_or_else(|| {
+            fmt(format!(
+                "{frames} volumes of {data_bytes} bytes are too large"
+            ))
+        })?;
+    let frame_skip = frame * data_bytes;
     let udims = dims.map(|d| d as usize);
 
     // encoding, endian
@@ -314,10 +405,14 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     let mut directions = DMat3::IDENTITY;
     if let Some(sd) = &h.space_directions {
         let items = split_vectors(sd)
-            .filter(|v| v.len() == 3)
-            .ok_or_else(|| fmt(format!("space directions {sd:?} must be three vectors")))?;
+            .filter(|v| v.len() as u64 == dim && (dim == 3 || v[3] == "none"))
+            .ok_or_else(|| {
+                fmt(format!(
+                    "space directions {sd:?} must be three vectors (and `none` for a series axis)"
+                ))
+            })?;
         let mut cols = [DVec3::ZERO; 3];
-        for (a, item) in items.iter().enumerate() {
+        for (a, item) in items.iter().take(3).enumerate() {
             let v = parse_vector(item).ok_or_else(|| {
                 fmt(format!(
                     "space directions: axis {a} has {item:?}, expected (x,y,z)"
@@ -342,10 +437,10 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
             .map(|s| s.parse::<f64>())
             .collect::<Result<_, _>>()
             .map_err(|_| fmt(format!("invalid spacings {sp:?}")))?;
-        if vals.len() != 3 {
-            return Err(fmt(format!("spacings {sp:?} must have 3 entries")));
+        if vals.len() as u64 != dim {
+            return Err(fmt(format!("spacings {sp:?} must have {dim} entries")));
         }
-        for (a, &v) in vals.iter().enumerate() {
+        for (a, &v) in vals.iter().take(3).enumerate() {
             if v.is_nan() {
                 continue; // "nan": no spacing known, keep 1 mm
             }
@@ -468,7 +563,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     let voxels = if gzip {
         let mut dec = MultiGzDecoder::new(data);
         let gz_err = |e: std::io::Error| dfmt(format!("gzip data are corrupt: {e}"));
-        let skip = byte_skip as u64;
+        let skip = byte_skip as u64 + frame_skip;
         let skipped =
             std::io::copy(&mut (&mut dec).take(skip), &mut std::io::sink()).map_err(gz_err)?;
         if skipped < skip {
@@ -481,33 +576,38 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         let pos = data.stream_position().map_err(dio)?;
         let len = data.get_ref().metadata().map_err(dio)?.len();
         let start = if byte_skip == -1 {
-            if len < pos.saturating_add(data_bytes) {
+            if len < pos.saturating_add(total_bytes) {
                 return Err(dfmt(format!(
-                    "truncated data: expected {data_bytes} bytes at the end of the file, found {}",
+                    "truncated data: expected {total_bytes} bytes at the end of the file, found {}",
                     len.saturating_sub(pos)
                 )));
             }
-            len - data_bytes
+            len - total_bytes
         } else {
             pos.saturating_add(byte_skip as u64)
         };
         let avail = len.saturating_sub(start);
-        if avail < data_bytes {
+        if avail < total_bytes {
             return Err(dfmt(format!(
-                "truncated data: expected {data_bytes} bytes, found {avail}"
+                "truncated data: expected {total_bytes} bytes, found {avail}"
             )));
         }
         // A detached raw file holds the samples and nothing else: more bytes than the header
         // describes means the sizes or the type are wrong. (Attached data may be followed by
         // anything, as teem allows; `byte skip: -1` takes the last bytes on purpose.)
-        if data_path != path && byte_skip != -1 && avail > data_bytes {
+        if data_path != path && byte_skip != -1 && avail > total_bytes {
             return Err(dfmt(format!(
                 "the data file holds {avail} bytes after the skips but the header describes \
-                 {data_bytes} ({} x {} x {} {ty_s}): wrong sizes or type?",
-                dims[0], dims[1], dims[2]
+                 {total_bytes} ({} {ty_s}): wrong sizes or type?",
+                sizes
+                    .iter()
+                    .map(u64::to_string)
+                    .collect::<Vec<_>>()
+                    .join(" x ")
             )));
         }
-        data.seek(SeekFrom::Start(start)).map_err(dio)?;
+        data.seek(SeekFrom::Start(start + frame_skip))
+            .map_err(dio)?;
         read_wide(path, &what, &mut data, ty, udims, big_endian, None, true)?
     };
     let name = path
@@ -1326,5 +1426,89 @@ mod tests {
         }
         std::fs::write(&p, &file).unwrap();
         assert!(load(&p).is_ok());
+    }
+
+    #[test]
+    fn four_d_series_pick_a_volume() {
+        let s = scratch("series");
+        let samples: Vec<i16> = (0..72).collect();
+        let le: Vec<u8> = samples.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let head = |dims: &str, extra: &str| {
+            format!(
+                "NRRD0004\ntype: short\ndimension: {}\nsizes: {dims}\nendian: little\n{extra}",
+                dims.split_whitespace().count()
+            )
+        };
+        let seq =
+            "space: left-posterior-superior\nspace directions: (1,0,0) (0,2,0) (0,0,3) none\n\
+                   kinds: domain domain domain list\n";
+        let attached = |name: &str, hdr: String, data: &[u8]| {
+            let p = s.file(name);
+            let mut b = hdr.into_bytes();
+            b.push(b'\n');
+            b.extend_from_slice(data);
+            std::fs::write(&p, b).unwrap();
+            p
+        };
+        let want = |t: i16| Voxels::I16((24 * t..24 * t + 24).collect());
+        // raw and gzip: volume 2 of 3
+        let raw = attached(
+            "seq.nrrd",
+            head("2 3 4 3", &format!("{seq}encoding: raw\n")),
+            &le,
+        );
+        let mut gz = GzEncoder::new(Vec::new(), Compression::fast());
+        gz.write_all(&le).unwrap();
+        let gzp = attached(
+            "seqgz.nrrd",
+            head("2 3 4 3", &format!("{seq}encoding: gzip\n")),
+            &gz.finish().unwrap(),
+        );
+        for p in [&raw, &gzp] {
+            let v = load_frame(p, Some(2)).unwrap();
+            assert_eq!((v.dims, v.spacing), ([2, 3, 4], [1.0, 2.0, 3.0]));
+            assert_eq!(v.voxels, want(2));
+            let e = err_of(p);
+            assert!(
+                e.contains("3 volumes of 2 x 3 x 4") && e.contains("#T"),
+                "{e}"
+            );
+            let e = load_frame(p, Some(3)).unwrap_err().to_string();
+            assert!(e.contains("holds 3"), "{e}");
+        }
+        // by kinds alone, and a series of one (spacings with nan for the series axis)
+        let p = attached(
+            "kinds.nrrd",
+            head("2 3 4 3", "kinds: space space space time\nencoding: raw\n"),
+            &le,
+        );
+        assert_eq!(load_frame(&p, Some(1)).unwrap().voxels, want(1));
+        let p = attached(
+            "one.nrrd",
+            head("2 3 4 1", "spacings: 1 2 3 nan\nencoding: raw\n"),
+            &le[..48],
+        );
+        assert_eq!(load(&p).unwrap().voxels, want(0));
+        // a series must be in the file whole, even when an early volume is picked
+        let p = attached(
+            "cut.nrrd",
+            head("2 3 4 3", &format!("{seq}encoding: raw\n")),
+            &le[..100],
+        );
+        let e = load_frame(&p, Some(0)).unwrap_err().to_string();
+        assert!(e.contains("truncated data: expected 144 bytes"), "{e}");
+        // interleaved samples (a vector or diffusion axis first) are refused
+        let dwi =
+            "space directions: none (1,0,0) (0,2,0) (0,0,3)\nkinds: list domain domain domain\n";
+        let p = attached(
+            "dwi.nrrd",
+            head("3 2 3 4", &format!("{dwi}encoding: raw\n")),
+            &le,
+        );
+        assert!(err_of(&p).contains("interleaved"));
+        let p = attached("zero.nrrd", head("2 3 4 0", "encoding: raw\n"), &[]);
+        assert!(err_of(&p).contains("size 0"));
+        let p = attached("five.nrrd", head("2 3 4 3 1", "encoding: raw\n"), &le);
+        assert!(err_of(&p).contains("dimension 5"));
     }
 }
