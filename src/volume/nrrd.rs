@@ -1,8 +1,9 @@
 //! NRRD reader and writer (teem's "nearly raw raster data", magic NRRD0001..NRRD0005).
 //!
 //! Reads 3-D scalar volumes of 8-, 16- and 32-bit integers, float and double, attached
-//! (`.nrrd`) or detached (`.nhdr` + `data file:`), raw or gzip encoded, with `space directions`/`spacings`, and
-//! converts the geometry into LPS. Writes NRRD0004 in LPS, raw or gzip.
+//! (`.nrrd`) or detached (`.nhdr` + `data file:`), raw or gzip encoded, with `space
+//! directions`/`spacings`, and converts the geometry into LPS; and one volume of a 4-D series
+//! whose last axis is not spatial. Writes NRRD0004 in LPS, raw or gzip.
 
 use super::{checked_size, read_wide, Modality, Volume, VolumeError, Voxels, WideType};
 use flate2::read::MultiGzDecoder;
