@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Runs every fuzz target (fuzz/fuzz_targets: nrrd, nifti, metaimage, transfer_json, dicom,
-# pose_stream) for a bounded time each: scripts/fuzz.sh [SECONDS_PER_TARGET] (default 60).
+# Runs every fuzz target (fuzz/fuzz_targets: nrrd, nifti, metaimage, transfer_json, dicom, mesh,
+# environment_hdr, pose_stream) for a bounded time each: scripts/fuzz.sh [SECONDS_PER_TARGET] (default 60).
 # Installs cargo-fuzz if missing. cargo fuzz needs nightly-only rustc flags; on the stable
 # toolchain RUSTC_BOOTSTRAP=1 allows them. New inputs go to fuzz/corpus/TARGET (not committed),
 # the committed seeds in fuzz/seeds/TARGET are read too, and a crash stops the script with the
@@ -17,7 +17,7 @@ if ! cargo fuzz --version >/dev/null 2>&1; then
     cargo install cargo-fuzz --locked
 fi
 export RUSTC_BOOTSTRAP=1
-targets=(nrrd nifti metaimage transfer_json pose_stream dicom)
+targets=(nrrd nifti metaimage transfer_json pose_stream dicom mesh environment_hdr)
 # One build for all targets (ASan on: out-of-bounds and use-after-free would show too).
 cargo fuzz build -O
 for t in "${targets[@]}"; do

@@ -6,6 +6,7 @@
 pub mod ao;
 pub mod app;
 pub mod clip;
+pub mod fuzzing;
 pub mod gpu;
 pub mod input;
 pub mod light;

@@ -4,7 +4,6 @@
 pub mod ct_head;
 pub mod dicom;
 #[doc(hidden)]
-pub mod fuzzing;
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;

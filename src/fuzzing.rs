@@ -1,13 +1,16 @@
-//! Entry points of the fuzz targets in `fuzz/` (one per parser of outside data), kept in the
-//! library so that a unit test runs them on the committed seeds and they cannot rot.
+//! Entry points of the fuzz targets in `fuzz/`, one per parser of outside data (volumes,
+//! transfer functions, pose streams, tool meshes, environment images), kept in the library so
+//! that a unit test runs them on the committed seeds and they cannot rot.
 //!
 //! Each takes arbitrary bytes, runs the real parser, and checks what a parser of untrusted input
 //! promises: it returns (never panics), and what it accepts is whole and consistent (a volume's
 //! voxel count matches its sizes and every value is finite; a transfer function evaluates to
 //! colours and opacities in [0,1]). A broken promise panics, which the fuzzer reports.
 
-use super::transfer::TransferFunction;
-use super::{dicom, metaimage, nifti, nrrd, Volume, VolumeError};
+use crate::clip::TriMesh;
+use crate::light::EquirectImage;
+use crate::volume::transfer::TransferFunction;
+use crate::volume::{dicom, metaimage, nifti, nrrd, Volume, VolumeError};
 use std::path::PathBuf;
 
 /// A per-thread scratch file named `name` (in /dev/shm when there is one: no disk traffic).
@@ -26,37 +29,41 @@ fn scratch(name: &str) -> PathBuf {
     dir.join(name)
 }
 
-/// Loads `bytes` as the file `name` with `load` (the loaders read files: detached data and
-/// byte offsets are part of what they parse) and checks the result.
+/// Runs `parse` on `bytes` written to the scratch file `name` (the parsers read files: detached
+/// data and byte offsets are part of what they parse), then removes it. An error must name the
+/// file (or, for a DICOM series, the directory it is in).
+fn with_file<T, E: std::fmt::Display>(
+    name: &str,
+    bytes: &[u8],
+    parse: impl FnOnce(&std::path::Path) -> Result<T, E>,
+) -> Result<T, String> {
+    let path = scratch(name);
+    if std::fs::write(&path, bytes).is_err() {
+        return Err(format!("fuzz: cannot write {}", path.display()));
+    }
+    let r = parse(&path).map_err(|e| e.to_string());
+    let dir = path.parent().map(|d| d.display().to_string());
+    if let Some(dir) = path.parent() {
+        let _ = std::fs::remove_dir_all(dir);
+    }
+    if let Err(msg) = &r {
+        assert!(
+            msg.contains(name) || dir.is_some_and(|d| msg.contains(&d)),
+            "error does not name the file: {msg}"
+        );
+    }
+    r
+}
+
+/// Loads `bytes` as the volume file `name` with `load` and checks what it accepts.
 fn load_file(
     name: &str,
     bytes: &[u8],
     load: fn(&std::path::Path) -> Result<Volume, VolumeError>,
-) -> Result<Volume, VolumeError> {
-    let path = scratch(name);
-    if std::fs::write(&path, bytes).is_err() {
-        return Err(VolumeError::format(
-            &path,
-            "fuzz: cannot write the scratch file",
-        ));
-    }
-    let r = load(&path);
-    if let Some(dir) = path.parent() {
-        let _ = std::fs::remove_dir_all(dir);
-    }
-    match &r {
-        Ok(v) => check_volume(v),
-        Err(e) => {
-            // the file, or for a DICOM series the directory it is in
-            let msg = e.to_string();
-            let dir = path.parent().map(|d| d.display().to_string());
-            assert!(
-                msg.contains(name) || dir.is_some_and(|d| msg.contains(&d)),
-                "error does not name the file: {msg}"
-            );
-        }
-    }
-    r
+) -> Result<Volume, String> {
+    let v = with_file(name, bytes, load)?;
+    check_volume(&v);
+    Ok(v)
 }
 
 /// What every loaded volume must satisfy.
@@ -71,7 +78,7 @@ fn check_volume(v: &Volume) {
 
 /// NRRD (`.nrrd`, attached or naming a detached data file); a 4-D series' second volume when
 /// it holds several.
-pub fn nrrd(bytes: &[u8]) -> Result<Volume, VolumeError> {
+pub fn nrrd(bytes: &[u8]) -> Result<Volume, String> {
     load_file("fuzz.nrrd", bytes, |p| {
         nrrd::load(p).or_else(|_| nrrd::load_frame(p, Some(1)))
     })
@@ -79,7 +86,7 @@ pub fn nrrd(bytes: &[u8]) -> Result<Volume, VolumeError> {
 
 /// NIfTI-1 or NIfTI-2: `.nii.gz` when the bytes start with the gzip magic, else `.nii`; a 4-D
 /// file's second volume when it holds several.
-pub fn nifti(bytes: &[u8]) -> Result<Volume, VolumeError> {
+pub fn nifti(bytes: &[u8]) -> Result<Volume, String> {
     let name = if bytes.starts_with(&[0x1f, 0x8b]) {
         "fuzz.nii.gz"
     } else {
@@ -91,13 +98,13 @@ pub fn nifti(bytes: &[u8]) -> Result<Volume, VolumeError> {
 }
 
 /// MetaImage (`.mha`, local or detached data, raw or zlib).
-pub fn metaimage(bytes: &[u8]) -> Result<Volume, VolumeError> {
+pub fn metaimage(bytes: &[u8]) -> Result<Volume, String> {
     load_file("fuzz.mha", bytes, metaimage::load)
 }
 
 /// DICOM: the bytes as the one file of a series directory, loaded as that directory (a
 /// single-slice series is a volume one voxel deep).
-pub fn dicom(bytes: &[u8]) -> Result<Volume, VolumeError> {
+pub fn dicom(bytes: &[u8]) -> Result<Volume, String> {
     load_file("fuzz.dcm", bytes, |path| {
         dicom::load_series(path.parent().unwrap_or(path), None)
     })
@@ -134,6 +141,38 @@ pub fn pose_stream(bytes: &[u8]) -> Result<usize, String> {
         frames += 1;
     }
     Ok(frames)
+}
+
+/// A clipping-tool mesh: PLY when the bytes start with its magic, else OBJ; an accepted mesh
+/// has finite vertices within the unit box it is scaled to and triangles that index them.
+pub fn mesh(bytes: &[u8]) -> Result<TriMesh, String> {
+    let name = if bytes.starts_with(b"ply") {
+        "fuzz.ply"
+    } else {
+        "fuzz.obj"
+    };
+    let m = with_file(name, bytes, TriMesh::load)?;
+    assert!(!m.triangles.is_empty());
+    assert!(m
+        .vertices
+        .iter()
+        .all(|v| v.is_finite() && v.abs().max_element() <= 1.0 + 1e-5));
+    let n = m.vertices.len() as u32;
+    assert!(m.triangles.iter().flatten().all(|&i| i < n));
+    Ok(m)
+}
+
+/// A Radiance `.hdr` environment image; an accepted one has every texel, finite and
+/// non-negative.
+pub fn environment_hdr(bytes: &[u8]) -> Result<EquirectImage, String> {
+    let img = with_file("fuzz.hdr", bytes, EquirectImage::load_hdr)?;
+    assert_eq!(img.pixels().len(), img.width() * img.height());
+    assert!(img
+        .pixels()
+        .iter()
+        .flatten()
+        .all(|c| c.is_finite() && *c >= 0.0));
+    Ok(img)
 }
 
 #[cfg(test)]
@@ -180,6 +219,8 @@ mod tests {
         check("dicom", dicom);
         check("transfer_json", transfer_json);
         check("pose_stream", pose_stream);
+        check("mesh", mesh);
+        check("environment_hdr", environment_hdr);
     }
 
     /// Writes the volume seeds (run once with --ignored; the files are committed).
