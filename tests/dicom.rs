@@ -87,6 +87,10 @@ struct Spec {
     rescale: Vec<(f64, f64)>,
     /// Stored values, x fastest, slice by slice (in slice order k).
     stored: Vec<i32>,
+    /// TriggerTime (ms) of every slice, for one phase of a multi-phase series.
+    trigger_ms: Option<f64>,
+    /// Added to the InstanceNumber (and SOP instance UID) of every slice.
+    instance_base: usize,
 }
 
 impl Spec {
@@ -123,6 +127,8 @@ impl Spec {
             number: 3,
             rescale: vec![(1.0, -1024.0); slices],
             stored,
+            trigger_ms: None,
+            instance_base: 0,
         }
     }
 
@@ -176,6 +182,7 @@ impl Spec {
              (0020,000e) UI [{uid}]\n\
              (0020,0011) IS [{number}]\n\
              (0020,0013) IS [{k1}]\n\
+             {trigger}\
              (0020,0032) DS [{ipp}]\n\
              (0020,0037) DS [{iop}]\n\
              (0028,0002) US 1\n\
@@ -192,7 +199,10 @@ impl Spec {
              (0028,1053) DS [{slope}]\n\
              (7fe0,0010) OW ={raw}\n",
             uid = self.uid,
-            k1 = k + 1,
+            k1 = self.instance_base + k + 1,
+            trigger = self
+                .trigger_ms
+                .map_or(String::new(), |t| format!("(0018,1060) DS [{}]\n", ds(t))),
             modality = self.modality,
             desc = self.description,
             number = self.number,
@@ -395,6 +405,52 @@ fn twelve_bit_unsigned_with_per_slice_rescale_and_junk_high_bits() {
     let got = dicom::load_series(&d, None).unwrap();
     assert_same(&got, &want, "12-bit");
     assert_eq!(got.modality, Modality::Mr);
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+#[test]
+fn phases_at_the_same_positions_are_listed_as_volumes_and_picked() {
+    if !have_dcmtk() {
+        return;
+    }
+    // a cardiac-style series: one SeriesInstanceUID, 4 positions, 2 phases (TriggerTime 400 ms
+    // with the lower InstanceNumbers, 0 ms with the higher: the trigger time orders them)
+    let root = tmp("phases");
+    let mut late = Spec::oblique();
+    late.slices = 4;
+    late.rescale.truncate(4);
+    late.stored.truncate(4 * late.cols * late.rows);
+    late.trigger_ms = Some(400.0);
+    let mut early = late.clone();
+    early.trigger_ms = Some(0.0);
+    early.instance_base = 100;
+    early.stored.iter_mut().for_each(|v| *v += 5);
+    late.write(&root.join("late"));
+    let early_files = early.write(&root.join("early"));
+    let scan = dicom::scan(&root).unwrap();
+    assert_eq!(scan.series.len(), 2, "{}", scan.listing());
+    let listing = scan.listing();
+    assert!(
+        listing.contains("oblique test [volume 1 of 2]")
+            && listing.contains("oblique test [volume 2 of 2]"),
+        "{listing}"
+    );
+    for (n, want) in [(1, &early), (2, &late)] {
+        let v = dicom::load_series(&root, Some(&Pick::Index(n))).unwrap();
+        assert_same(&v, &want.expected(), &format!("volume {n}"));
+        assert!(v.name.contains(&format!("[volume {n} of 2]")), "{}", v.name);
+    }
+    let e = err_of(dicom::load_series(&root, None));
+    assert!(e.contains("2 DICOM series") && e.contains("#N"), "{e}");
+    let e = err_of(dicom::load_series(
+        &root,
+        Some(&Pick::Uid(late.uid.clone())),
+    ));
+    assert!(e.contains("holds 2 volumes at the same positions"), "{e}");
+    // a phase missing one slice is not split: the duplicate positions are refused by name
+    std::fs::remove_file(&early_files[1]).unwrap();
+    let e = err_of(dicom::load_series(&root, None));
+    assert!(e.contains("same position"), "{e}");
     let _ = std::fs::remove_dir_all(&root);
 }
 
@@ -663,6 +719,8 @@ fn phantom_series_has_the_geometry_of_its_nrrd() {
         number: 1,
         rescale: vec![(1.0, 0.0); 32],
         stored: v.iter().map(|&x| x as i32).collect(),
+        trigger_ms: None,
+        instance_base: 0,
     };
     let d = root.join("head");
     spec.write(&d);

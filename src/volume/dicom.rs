@@ -78,8 +78,14 @@ struct Slice {
     slope: f64,
     intercept: f64,
     instance: Option<i64>,
+    /// What tells the volumes of a 4-D series apart: TemporalPositionIdentifier, TriggerTime,
+    /// AcquisitionNumber, EchoNumbers (compared in that order).
+    phase_key: PhaseKey,
     transfer_syntax: String,
 }
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, PartialOrd)]
+struct PhaseKey(Option<i64>, Option<f64>, Option<i64>, Option<i64>);
 
 /// One series found in a directory.
 #[derive(Clone, Debug)]
@@ -88,6 +94,9 @@ pub struct Series {
     pub modality: String,
     pub description: String,
     pub number: Option<i64>,
+    /// (t, P): volume t (1-based) of a series that holds P volumes at the same positions
+    /// (cardiac phases, time points, echoes), split by [`split_phases`].
+    pub phase: Option<(usize, usize)>,
     slices: Vec<Slice>,
 }
 
@@ -95,6 +104,18 @@ impl Series {
     /// Image planes (slices or frames) in the series.
     pub fn slice_count(&self) -> usize {
         self.slices.len()
+    }
+    /// The description, with "volume t of P" for one volume of a 4-D series.
+    pub fn label(&self) -> String {
+        let d = if self.description.is_empty() {
+            "(no description)"
+        } else {
+            &self.description
+        };
+        match self.phase {
+            Some((t, p)) => format!("{d} [volume {t} of {p}]"),
+            None => d.to_string(),
+        }
     }
     /// (rows, columns) of the first slice.
     pub fn rows_cols(&self) -> (u16, u16) {
@@ -133,11 +154,7 @@ impl Scan {
                 se.slice_count(),
                 r,
                 c,
-                if se.description.is_empty() {
-                    "(no description)"
-                } else {
-                    &se.description
-                },
+                se.label(),
                 se.uid
             );
         }
@@ -188,16 +205,30 @@ impl Scan {
                     ),
                 )
             }),
-            Some(Pick::Uid(u)) => self.series.iter().find(|s| &s.uid == u).ok_or_else(|| {
-                VolumeError::format(
-                    &self.dir,
-                    format!(
-                        "no series with SeriesInstanceUID {u}:\n{}{}",
-                        self.listing(),
-                        how()
-                    ),
-                )
-            }),
+            Some(Pick::Uid(u)) => {
+                let found: Vec<&Series> = self.series.iter().filter(|s| &s.uid == u).collect();
+                match found[..] {
+                    [one] => Ok(one),
+                    [] => Err(VolumeError::format(
+                        &self.dir,
+                        format!(
+                            "no series with SeriesInstanceUID {u}:\n{}{}",
+                            self.listing(),
+                            how()
+                        ),
+                    )),
+                    _ => Err(VolumeError::format(
+                        &self.dir,
+                        format!(
+                            "SeriesInstanceUID {u} holds {} volumes at the same positions:\n{}\
+                             pick one as {}#N",
+                            found.len(),
+                            self.listing(),
+                            self.dir.display()
+                        ),
+                    )),
+                }
+            }
         }
     }
 }
@@ -232,6 +263,7 @@ pub fn scan(dir: &Path) -> Result<Scan, VolumeError> {
                             modality,
                             description,
                             number,
+                            phase: None,
                             slices: Vec::new(),
                         })
                         .slices
@@ -258,15 +290,72 @@ pub fn scan(dir: &Path) -> Result<Scan, VolumeError> {
             ),
         ));
     }
-    let mut series: Vec<Series> = by_uid.into_values().collect();
+    let mut series: Vec<Series> = by_uid.into_values().flat_map(split_phases).collect();
     series.sort_by(|a, b| {
-        (a.number.is_none(), a.number, &a.uid).cmp(&(b.number.is_none(), b.number, &b.uid))
+        (a.number.is_none(), a.number, &a.uid, a.phase).cmp(&(
+            b.number.is_none(),
+            b.number,
+            &b.uid,
+            b.phase,
+        ))
     });
     Ok(Scan {
         dir: dir.to_path_buf(),
         series,
         skipped,
     })
+}
+
+/// A series whose single-frame slices lie P > 1 times at every one of its positions (cardiac
+/// phases, time points or echoes under one SeriesInstanceUID) becomes P series: at each
+/// position the slices are ordered by their [`PhaseKey`] (then InstanceNumber), and series t
+/// takes the t-th. Anything else is returned whole (a stray duplicate is refused later, by name).
+fn split_phases(series: Series) -> Vec<Series> {
+    let sl = &series.slices;
+    let Some(iop) = sl[0].iop else {
+        return vec![series];
+    };
+    let normal = DVec3::new(iop[0], iop[1], iop[2]).cross(DVec3::new(iop[3], iop[4], iop[5]));
+    if sl.len() < 2
+        || normal.length() < 0.5
+        || sl.iter().any(|s| s.ipp.is_none() || s.frames_in_file > 1)
+    {
+        return vec![series];
+    }
+    // positions along the normal, grouped to within 1 micrometre
+    let along =
+        |s: &Slice| (DVec3::from(s.ipp.unwrap_or_default()).dot(normal) * 1e3).round() as i64;
+    let mut at: BTreeMap<i64, Vec<usize>> = BTreeMap::new();
+    for (i, s) in sl.iter().enumerate() {
+        at.entry(along(s)).or_default().push(i);
+    }
+    let p = at.values().next().map_or(1, Vec::len);
+    if p < 2 || at.values().any(|v| v.len() != p) {
+        return vec![series];
+    }
+    let mut phases: Vec<Vec<Slice>> = vec![Vec::new(); p];
+    for idx in at.values_mut() {
+        idx.sort_by(|&a, &b| {
+            (sl[a].phase_key, sl[a].instance)
+                .partial_cmp(&(sl[b].phase_key, sl[b].instance))
+                .unwrap_or(std::cmp::Ordering::Equal)
+        });
+        for (t, &i) in idx.iter().enumerate() {
+            phases[t].push(sl[i].clone());
+        }
+    }
+    phases
+        .into_iter()
+        .enumerate()
+        .map(|(t, slices)| Series {
+            uid: series.uid.clone(),
+            modality: series.modality.clone(),
+            description: series.description.clone(),
+            number: series.number,
+            phase: Some((t + 1, p)),
+            slices,
+        })
+        .collect()
 }
 
 fn collect_files(dir: &Path, depth: usize, out: &mut Vec<PathBuf>) -> Result<(), VolumeError> {
@@ -514,6 +603,12 @@ fn read_header(path: &Path) -> Result<Result<Planes, String>, VolumeError> {
         slope: floats::<1>(&obj, tags::RESCALE_SLOPE).map_or(1.0, |v| v[0]),
         intercept: floats::<1>(&obj, tags::RESCALE_INTERCEPT).map_or(0.0, |v| v[0]),
         instance: int(&obj, tags::INSTANCE_NUMBER),
+        phase_key: PhaseKey(
+            int(&obj, tags::TEMPORAL_POSITION_IDENTIFIER),
+            floats::<1>(&obj, tags::TRIGGER_TIME).map(|v| v[0]),
+            int(&obj, tags::ACQUISITION_NUMBER),
+            int(&obj, tags::ECHO_NUMBERS),
+        ),
         transfer_syntax: obj
             .meta()
             .transfer_syntax()
@@ -1220,10 +1315,10 @@ fn load_chosen(dir: &Path, series: &Series) -> Result<Volume, VolumeError> {
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "dicom".into());
-    let name = if series.description.is_empty() {
+    let name = if series.description.is_empty() && series.phase.is_none() {
         base
     } else {
-        format!("{base} ({})", series.description)
+        format!("{base} ({})", series.label())
     };
     Ok(Volume {
         name,
