@@ -130,6 +130,10 @@ impl TriMesh {
         if m.triangles.is_empty() {
             return Err(err("no triangles".into()));
         }
+        // (NaN would slip through the min/max below; found by the mesh fuzz target)
+        if let Some((i, v)) = m.vertices.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+            return Err(err(format!("vertex {i} has a non-finite coordinate {v}")));
+        }
         let (lo, hi) = m
             .vertices
             .iter()
@@ -357,6 +361,29 @@ mod tests {
         std::fs::write(&bad, "v 0 0 0\nf 1 2 3\n").unwrap();
         let e = TriMesh::load(&bad).unwrap_err().to_string();
         assert!(e.contains("bad.obj") && e.contains("vertex 1"), "{e}");
+        // non-finite coordinates: OBJ refuses them as it parses, binary PLY after reading
+        let nan = dir.join("nan.obj");
+        std::fs::write(&nan, "v 0 0 0\nv NaN 1 0\nv 0 0 1\nf 1 2 3\n").unwrap();
+        let e = TriMesh::load(&nan).unwrap_err().to_string();
+        assert!(e.contains("nan.obj") && e.contains("line 2"), "{e}");
+        let nan = dir.join("nan.ply");
+        let mut b = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n\
+            property float y\nproperty float z\nelement face 1\n\
+            property list uchar int vertex_indices\nend_header\n"
+            .to_vec();
+        for x in [0.0, 0.0, 0.0, f32::NAN, 1.0, 0.0, 0.0, 0.0, 1.0] {
+            b.extend(f32::to_le_bytes(x));
+        }
+        b.push(3);
+        for i in [0i32, 1, 2] {
+            b.extend(i.to_le_bytes());
+        }
+        std::fs::write(&nan, b).unwrap();
+        let e = TriMesh::load(&nan).unwrap_err().to_string();
+        assert!(
+            e.contains("nan.ply") && e.contains("vertex 1 has a non-finite"),
+            "{e}"
+        );
     }
 
     #[test]
