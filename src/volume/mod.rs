@@ -235,6 +235,39 @@ pub(crate) const MAX_VOXELS: u64 = 1 << 31;
 /// Largest amount of sample data (bytes) any loader accepts.
 pub(crate) const MAX_DATA_BYTES: u64 = 8 << 30;
 
+/// Which volume of a 4-D series of `frames` volumes of `dims` to read: `frame`, or the only
+/// one; a series of several without a pick is refused with the `FILE#T` syntax that picks one.
+pub(crate) fn pick_frame(
+    path: &Path,
+    frames: u64,
+    dims: [u64; 3],
+    frame: Option<u64>,
+) -> Result<u64, VolumeError> {
+    match frame {
+        None if frames > 1 => Err(VolumeError::unsupported(
+            path,
+            format!(
+                "4-dimensional data: {frames} volumes of {} x {} x {}; pick one with {}#T \
+                 (T = 0..{})",
+                dims[0],
+                dims[1],
+                dims[2],
+                path.display(),
+                frames - 1
+            ),
+        )),
+        None => Ok(0),
+        Some(t) if t >= frames => Err(VolumeError::format(
+            path,
+            format!(
+                "volume #{t} asked for, but the file holds {frames} (#0..#{})",
+                frames.saturating_sub(1)
+            ),
+        )),
+        Some(t) => Ok(t),
+    }
+}
+
 /// Checks `dims` against [`MAX_VOXELS`] / [`MAX_DATA_BYTES`]; returns (voxel count, data bytes).
 pub(crate) fn checked_size(
     path: &Path,

@@ -11,8 +11,8 @@
 //! rotations) a qform.
 
 use super::{
-    checked_size, read_wide, split_axes, write_atomically, write_voxels, Modality, Volume,
-    VolumeError, Voxels, WideType,
+    checked_size, pick_frame, read_wide, split_axes, write_atomically, write_voxels, Modality,
+    Volume, VolumeError, Voxels, WideType,
 };
 use flate2::read::MultiGzDecoder;
 use flate2::write::GzEncoder;
@@ -300,30 +300,12 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
             ),
         ));
     }
-    let frame = match frame {
-        None if frames > 1 => {
-            return Err(VolumeError::unsupported(
-                path,
-                format!(
-                    "4-dimensional data: {frames} volumes of {} x {} x {}; pick one with \
-                     {}#T (T = 0..{})",
-                    dim[1],
-                    dim[2],
-                    dim[3],
-                    path.display(),
-                    frames - 1
-                ),
-            ))
-        }
-        None => 0,
-        Some(t) if t >= frames as u64 => {
-            return Err(fmt(format!(
-                "volume #{t} asked for, but the file holds {frames} (#0..#{})",
-                frames - 1
-            )))
-        }
-        Some(t) => t,
-    };
+    let frame = pick_frame(
+        path,
+        frames as u64,
+        [dim[1], dim[2], dim[3]].map(|d| d as u64),
+        frame,
+    )?;
     if dim[1..=3].iter().any(|&d| d < 1) {
         return Err(fmt(format!(
             "invalid sizes {} {} {} (must be positive)",

@@ -5,7 +5,7 @@
 //! directions`/`spacings`, and converts the geometry into LPS; and one volume of a 4-D series
 //! whose last axis is not spatial. Writes NRRD0004 in LPS, raw or gzip.
 
-use super::{checked_size, read_wide, Modality, Volume, VolumeError, Voxels, WideType};
+use super::{checked_size, pick_frame, read_wide, Modality, Volume, VolumeError, Voxels, WideType};
 use flate2::read::MultiGzDecoder;
 use flate2::write::GzEncoder;
 use flate2::Compression;
@@ -152,29 +152,8 @@ fn series_frame(
             "sizes: the series axis has size 0",
         ));
     }
-    match frame {
-        None if frames > 1 => Err(VolumeError::unsupported(
-            path,
-            format!(
-                "4-dimensional data: {frames} volumes of {} x {} x {}; pick one with {}#T \
-                 (T = 0..{})",
-                sizes[0],
-                sizes[1],
-                sizes[2],
-                path.display(),
-                frames - 1
-            ),
-        )),
-        None => Ok((0, frames)),
-        Some(t) if t >= frames => Err(VolumeError::format(
-            path,
-            format!(
-                "volume #{t} asked for, but the file holds {frames} (#0..#{})",
-                frames.saturating_sub(1)
-            ),
-        )),
-        Some(t) => Ok((t, frames)),
-    }
+    let frame = pick_frame(path, frames, [sizes[0], sizes[1], sizes[2]], frame)?;
+    Ok((frame, frames))
 }
 
 /// The fields of a header that matter here, as written.
