@@ -746,16 +746,8 @@ fn enhanced_multi_frame_places_each_frame_by_its_functional_groups() {
         return;
     }
     let root = tmp("enhanced");
-    let (cols, rows, frames) = (4usize, 3usize, 5usize);
-    // frame f lies at z = z_of[f] (shuffled); intercept differs per frame
-    let z_of: [f64; 5] = [4.0, 0.0, 8.0, 2.0, 6.0];
+    let (cols, rows) = (4usize, 3usize);
     let stored = |f: usize, n: usize| (f * 100 + n * 7) as i32 - 150;
-    let raw = root.join("px.raw");
-    let bytes: Vec<u8> = (0..frames)
-        .flat_map(|f| (0..cols * rows).map(move |n| stored(f, n)))
-        .flat_map(|s| (s as i16).to_le_bytes())
-        .collect();
-    std::fs::write(&raw, bytes).unwrap();
     let item = |body: String| {
         format!(
             "(fffe,e000) na (Item with undefined length #=1)\n{body}(fffe,e00d) na (ItemDelimitationItem)\n"
@@ -766,65 +758,98 @@ fn enhanced_multi_frame_places_each_frame_by_its_functional_groups() {
             "({tag}) SQ (Sequence with undefined length #=1)\n{items}(fffe,e0dd) na (SequenceDelimitationItem)\n"
         )
     };
-    let shared = seq(
-        "5200,9229",
-        item(
-            seq(
-                "0020,9116",
-                item("(0020,0037) DS [1\\0\\0\\0\\1\\0]\n".into()),
-            ) + &seq("0028,9110", item("(0028,0030) DS [0.8\\0.6]\n".into())),
-        ),
-    );
-    let per_frame = seq(
-        "5200,9230",
-        (0..frames)
-            .map(|f| {
-                item(
-                    seq(
-                        "0020,9113",
-                        item(format!("(0020,0032) DS [-5\\7\\{}]\n", z_of[f])),
-                    ) + &seq(
-                        "0028,9145",
-                        item(format!(
-                            "(0028,1052) DS [{}]\n(0028,1053) DS [1]\n",
-                            -(f as i32) * 10
-                        )),
-                    ),
-                )
-            })
-            .collect(),
-    );
-    let dump = format!(
-        "(0008,0016) UI =EnhancedCTImageStorage\n(0008,0018) UI [1.2.826.0.1.3680043.2.1143.9.1]\n\
-         (0008,0060) CS [CT]\n(0020,000e) UI [1.2.826.0.1.3680043.2.1143.9]\n\
-         (0028,0002) US 1\n(0028,0004) CS [MONOCHROME2]\n(0028,0008) IS [{frames}]\n\
-         (0028,0010) US {rows}\n(0028,0011) US {cols}\n(0028,0100) US 16\n(0028,0101) US 16\n\
-         (0028,0102) US 15\n(0028,0103) US 1\n{shared}{per_frame}(7fe0,0010) OW ={}\n",
-        raw.display()
-    );
-    let txt = root.join("mf.txt");
-    std::fs::write(&txt, dump).unwrap();
+    // One enhanced CT file in `dir`: frame f at z = z_of[f], intercept -10 f, and with
+    // `temporal` its TemporalPositionIndex.
+    let write = |dir: &Path, z_of: &[f64], temporal: Option<&[u32]>| {
+        let frames = z_of.len();
+        let raw = root.join("px.raw");
+        let bytes: Vec<u8> = (0..frames)
+            .flat_map(|f| (0..cols * rows).map(move |n| stored(f, n)))
+            .flat_map(|s| (s as i16).to_le_bytes())
+            .collect();
+        std::fs::write(&raw, bytes).unwrap();
+        let shared = seq(
+            "5200,9229",
+            item(
+                seq(
+                    "0020,9116",
+                    item("(0020,0037) DS [1\\0\\0\\0\\1\\0]\n".into()),
+                ) + &seq("0028,9110", item("(0028,0030) DS [0.8\\0.6]\n".into())),
+            ),
+        );
+        let per_frame = seq(
+            "5200,9230",
+            (0..frames)
+                .map(|f| {
+                    let content = temporal.map_or(String::new(), |t| {
+                        seq("0020,9111", item(format!("(0020,9128) UL {}\n", t[f])))
+                    });
+                    item(
+                        content
+                            + &seq(
+                                "0020,9113",
+                                item(format!("(0020,0032) DS [-5\\7\\{}]\n", z_of[f])),
+                            )
+                            + &seq(
+                                "0028,9145",
+                                item(format!(
+                                    "(0028,1052) DS [{}]\n(0028,1053) DS [1]\n",
+                                    -(f as i32) * 10
+                                )),
+                            ),
+                    )
+                })
+                .collect(),
+        );
+        let dump = format!(
+            "(0008,0016) UI =EnhancedCTImageStorage\n(0008,0018) UI [1.2.826.0.1.3680043.2.1143.9.1]\n\
+             (0008,0060) CS [CT]\n(0020,000e) UI [1.2.826.0.1.3680043.2.1143.9]\n\
+             (0028,0002) US 1\n(0028,0004) CS [MONOCHROME2]\n(0028,0008) IS [{frames}]\n\
+             (0028,0010) US {rows}\n(0028,0011) US {cols}\n(0028,0100) US 16\n(0028,0101) US 16\n\
+             (0028,0102) US 15\n(0028,0103) US 1\n{shared}{per_frame}(7fe0,0010) OW ={}\n",
+            raw.display()
+        );
+        let txt = root.join("mf.txt");
+        std::fs::write(&txt, dump).unwrap();
+        std::fs::create_dir_all(dir).unwrap();
+        run(Command::new("dump2dcm")
+            .arg("+te")
+            .arg(&txt)
+            .arg(dir.join("enhanced.dcm")));
+    };
+    // what frames `order` hold, in that order (rescaled)
+    let planes = |order: &[usize]| -> Voxels {
+        Voxels::I16(
+            order
+                .iter()
+                .flat_map(|&f| (0..cols * rows).map(move |n| (stored(f, n) - f as i32 * 10) as i16))
+                .collect(),
+        )
+    };
+    // two temporal positions at two z: frames (z, t) = (0, 2) (0, 1) (2, 1) (2, 2)
+    let phases = root.join("phases");
+    write(&phases, &[0.0, 0.0, 2.0, 2.0], Some(&[2, 1, 1, 2]));
+    for (n, order) in [(1, [1, 2]), (2, [0, 3])] {
+        let v = dicom::load_series(&phases, Some(&Pick::Index(n))).unwrap();
+        assert_eq!((v.dims, v.spacing[2]), ([4, 3, 2], 2.0));
+        assert_eq!(v.voxels, planes(&order), "temporal position {n}");
+    }
+    // frame f lies at z = z_of[f] (shuffled)
+    let z_of: [f64; 5] = [4.0, 0.0, 8.0, 2.0, 6.0];
     let plain = root.join("plain");
-    std::fs::create_dir_all(&plain).unwrap();
-    run(Command::new("dump2dcm")
-        .arg("+te")
-        .arg(&txt)
-        .arg(plain.join("enhanced.dcm")));
+    write(&plain, &z_of, None);
     let rle = root.join("rle");
     convert(&plain, &rle, "dcmcrle", &[]);
-    let mut order: Vec<usize> = (0..frames).collect();
+    let mut order: Vec<usize> = (0..z_of.len()).collect();
     order.sort_by(|&a, &b| z_of[a].total_cmp(&z_of[b]));
-    let want: Vec<i16> = order
-        .iter()
-        .flat_map(|&f| (0..cols * rows).map(move |n| (stored(f, n) - f as i32 * 10) as i16))
-        .collect();
+    let want = planes(&order);
     for d in [&plain, &rle] {
         let v = dicom::load_series(d, None).unwrap_or_else(|e| panic!("{}: {e}", d.display()));
         assert_eq!(v.dims, [4, 3, 5]);
         assert_eq!(v.spacing, [0.6, 0.8, 2.0]);
         assert_eq!(v.directions, DMat3::IDENTITY);
         assert_eq!(v.origin, DVec3::new(-5.0, 7.0, 0.0));
-        assert_eq!(v.voxels, Voxels::I16(want.clone()), "{}", d.display());
+        assert_eq!(v.voxels, want, "{}", d.display());
     }
     let _ = std::fs::remove_dir_all(&root);
 }

@@ -316,10 +316,7 @@ fn split_phases(series: Series) -> Vec<Series> {
         return vec![series];
     };
     let normal = DVec3::new(iop[0], iop[1], iop[2]).cross(DVec3::new(iop[3], iop[4], iop[5]));
-    if sl.len() < 2
-        || normal.length() < 0.5
-        || sl.iter().any(|s| s.ipp.is_none() || s.frames_in_file > 1)
-    {
+    if sl.len() < 2 || normal.length() < 0.5 || sl.iter().any(|s| s.ipp.is_none()) {
         return vec![series];
     }
     // positions along the normal, grouped to within 1 micrometre
@@ -336,8 +333,8 @@ fn split_phases(series: Series) -> Vec<Series> {
     let mut phases: Vec<Vec<Slice>> = vec![Vec::new(); p];
     for idx in at.values_mut() {
         idx.sort_by(|&a, &b| {
-            (sl[a].phase_key, sl[a].instance)
-                .partial_cmp(&(sl[b].phase_key, sl[b].instance))
+            (sl[a].phase_key, sl[a].instance, sl[a].frame)
+                .partial_cmp(&(sl[b].phase_key, sl[b].instance, sl[b].frame))
                 .unwrap_or(std::cmp::Ordering::Equal)
         });
         for (t, &i) in idx.iter().enumerate() {
@@ -682,6 +679,12 @@ fn read_header(path: &Path) -> Result<Result<Planes, String>, VolumeError> {
         };
         let mut s = base.clone();
         s.frame = f as u32;
+        if let Some(v) = arr(group(
+            tags::FRAME_CONTENT_SEQUENCE,
+            tags::TEMPORAL_POSITION_INDEX,
+        )) {
+            s.phase_key.0 = v.first().map(|&t| t as i64);
+        }
         if let Some(v) = arr(group(
             tags::PLANE_POSITION_SEQUENCE,
             tags::IMAGE_POSITION_PATIENT,
