@@ -306,10 +306,11 @@ pub fn scan(dir: &Path) -> Result<Scan, VolumeError> {
     })
 }
 
-/// A series whose single-frame slices lie P > 1 times at every one of its positions (cardiac
-/// phases, time points or echoes under one SeriesInstanceUID) becomes P series: at each
-/// position the slices are ordered by their [`PhaseKey`] (then InstanceNumber), and series t
-/// takes the t-th. Anything else is returned whole (a stray duplicate is refused later, by name).
+/// A series whose planes (slices, or frames of enhanced multi-frame files) lie P > 1 times at
+/// every one of its positions (cardiac phases, time points or echoes under one
+/// SeriesInstanceUID) becomes P series: at each position the planes are ordered by their
+/// [`PhaseKey`] (then InstanceNumber and frame), and series t takes the t-th. Anything else is
+/// returned whole (a stray duplicate is refused later, by name).
 fn split_phases(series: Series) -> Vec<Series> {
     let sl = &series.slices;
     let Some(iop) = sl[0].iop else {
@@ -319,19 +320,23 @@ fn split_phases(series: Series) -> Vec<Series> {
     if sl.len() < 2 || normal.length() < 0.5 || sl.iter().any(|s| s.ipp.is_none()) {
         return vec![series];
     }
-    // positions along the normal, grouped to within 1 micrometre
-    let along =
-        |s: &Slice| (DVec3::from(s.ipp.unwrap_or_default()).dot(normal) * 1e3).round() as i64;
-    let mut at: BTreeMap<i64, Vec<usize>> = BTreeMap::new();
-    for (i, s) in sl.iter().enumerate() {
-        at.entry(along(s)).or_default().push(i);
+    // positions along the normal; planes within 0.01 mm of a position's first share it
+    let along = |i: usize| DVec3::from(sl[i].ipp.unwrap_or_default()).dot(normal);
+    let mut by_pos: Vec<usize> = (0..sl.len()).collect();
+    by_pos.sort_by(|&a, &b| along(a).total_cmp(&along(b)));
+    let mut at: Vec<Vec<usize>> = Vec::new();
+    for i in by_pos {
+        match at.last_mut() {
+            Some(g) if along(i) - along(g[0]) < 0.01 => g.push(i),
+            _ => at.push(vec![i]),
+        }
     }
-    let p = at.values().next().map_or(1, Vec::len);
-    if p < 2 || at.values().any(|v| v.len() != p) {
+    let p = at[0].len();
+    if p < 2 || at.iter().any(|v| v.len() != p) {
         return vec![series];
     }
     let mut phases: Vec<Vec<Slice>> = vec![Vec::new(); p];
-    for idx in at.values_mut() {
+    for idx in &mut at {
         idx.sort_by(|&a, &b| {
             (sl[a].phase_key, sl[a].instance, sl[a].frame)
                 .partial_cmp(&(sl[b].phase_key, sl[b].instance, sl[b].frame))
