@@ -6,6 +6,7 @@
 pub mod ao;
 pub mod app;
 pub mod clip;
+#[doc(hidden)]
 pub mod fuzzing;
 pub mod gpu;
 pub mod input;

@@ -307,7 +307,8 @@ impl BenchArgs {
 #[derive(Args)]
 struct VolumeArgs {
     /// A .nrrd/.nhdr/.nii/.mha file (FILE#T: volume T of a 4-D NIfTI or NRRD), a DICOM series
-    /// directory (DIR, or DIR#N / DIR#UID to pick one of several series), a raw file (with --raw-dims), `phantom[:N]` or `ct-head`.
+    /// directory (DIR, or DIR#N / DIR#UID to pick one of several series), a raw file (with
+    /// --raw-dims), `phantom[:N]` or `ct-head`.
     /// Default: the CT head if fetched (cao-xr fetch-ct), else the phantom.
     volume: Option<String>,
     /// Transfer function: a preset (CT: ct-bone, ct-soft-tissue, ct-muscle-bone, ct-lung,

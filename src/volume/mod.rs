@@ -3,7 +3,6 @@
 
 pub mod ct_head;
 pub mod dicom;
-#[doc(hidden)]
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;
