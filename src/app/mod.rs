@@ -85,34 +85,36 @@ pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>) -> Result<Volume> 
             if let Some(spec) = raw {
                 return Ok(crate::volume::raw::load(p, spec)?);
             }
-            // FILE#T: volume T of a 4-D NIfTI or NRRD file
-            if let Some((file, t)) = path.rsplit_once('#').filter(|_| !p.exists()) {
-                let l = file.to_lowercase();
-                let nifti = l.ends_with(".nii") || l.ends_with(".nii.gz");
-                if nifti || l.ends_with(".nrrd") || l.ends_with(".nhdr") {
+            // FILE#T: volume T of a 4-D NIfTI or NRRD file (a file named so exists wins)
+            let four_d = |f: &str| {
+                let l = f.to_lowercase();
+                [".nii", ".nii.gz", ".nrrd", ".nhdr"]
+                    .iter()
+                    .any(|e| l.ends_with(e))
+            };
+            let (p, frame) = match path.rsplit_once('#') {
+                Some((file, t)) if !p.exists() && four_d(file) => {
                     let t = t.parse::<u64>().map_err(|_| {
                         AppError::Usage(format!(
                             "'{path}': after # comes the volume number of a 4-D file, e.g. {file}#0"
                         ))
                     })?;
-                    let file = Path::new(file);
-                    return Ok(if nifti {
-                        crate::volume::nifti::load_frame(file, Some(t))?
-                    } else {
-                        nrrd::load_frame(file, Some(t))?
-                    });
+                    (Path::new(file), Some(t))
                 }
-            }
+                _ => (p, None),
+            };
             let ext = p
                 .extension()
                 .and_then(|e| e.to_str())
                 .unwrap_or("")
                 .to_lowercase();
-            let lower = path.to_lowercase();
+            let lower = p.to_string_lossy().to_lowercase();
             match ext.as_str() {
-                "nrrd" | "nhdr" => Ok(nrrd::load(p)?),
-                "nii" => Ok(crate::volume::nifti::load(p)?),
-                "gz" if lower.ends_with(".nii.gz") => Ok(crate::volume::nifti::load(p)?),
+                "nrrd" | "nhdr" => Ok(nrrd::load_frame(p, frame)?),
+                "nii" => Ok(crate::volume::nifti::load_frame(p, frame)?),
+                "gz" if lower.ends_with(".nii.gz") => {
+                    Ok(crate::volume::nifti::load_frame(p, frame)?)
+                }
                 "mha" | "mhd" => Ok(crate::volume::metaimage::load(p)?),
                 "raw" | "dat" | "bin" => Err(AppError::Usage(format!(
                     "{path}: a raw volume needs --raw-dims X,Y,Z (and --raw-type, --raw-spacing)"
