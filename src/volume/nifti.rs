@@ -629,6 +629,20 @@ mod tests {
         );
     }
 
+    /// The load error of `good` edited by `f`, written as `name` in `s`.
+    fn err_of_edited(
+        s: &crate::volume::test_scratch::Scratch,
+        name: &str,
+        good: &[u8],
+        f: &dyn Fn(&mut Vec<u8>),
+    ) -> String {
+        let p = s.file(name);
+        let mut b = good.to_vec();
+        f(&mut b);
+        std::fs::write(&p, &b).unwrap();
+        err_of(&p)
+    }
+
     fn err_of(path: &Path) -> String {
         let e = load(path).expect_err("load should fail").to_string();
         let name = path.file_name().unwrap().to_string_lossy().into_owned();
@@ -872,13 +886,7 @@ mod tests {
         let good = s.file("good.nii");
         write(&good, &vol, false).unwrap();
         let bytes = std::fs::read(&good).unwrap();
-        let case = |name: &str, f: &dyn Fn(&mut Vec<u8>)| {
-            let p = s.file(name);
-            let mut b = bytes.clone();
-            f(&mut b);
-            std::fs::write(&p, &b).unwrap();
-            err_of(&p)
-        };
+        let case = |name: &str, f: &dyn Fn(&mut Vec<u8>)| err_of_edited(&s, name, &bytes, f);
         assert!(case("short.nii", &|b| b.truncate(100)).contains("truncated header"));
         assert!(case("data.nii", &|b| b.truncate(352 + 50)).contains("truncated data"));
         assert!(case("magic.nii", &|b| b[344..348].copy_from_slice(b"xyz\0")).contains("magic"));
@@ -1017,13 +1025,7 @@ mod tests {
         assert!(e.contains("series.nii") && e.contains("holds 3"), "{e}");
         // truncated header, pair magic, short data; mangled headers never panic
         let good = nifti2_bytes(1, false);
-        let case = |name: &str, f: &dyn Fn(&mut Vec<u8>)| {
-            let p = s.file(name);
-            let mut b = good.clone();
-            f(&mut b);
-            std::fs::write(&p, &b).unwrap();
-            err_of(&p)
-        };
+        let case = |name: &str, f: &dyn Fn(&mut Vec<u8>)| err_of_edited(&s, name, &good, f);
         let e = case("short2.nii", &|b| b.truncate(400));
         assert!(e.contains("truncated header: 400 of 540"), "{e}");
         assert!(case("pair2.nii", &|b| b[4..7].copy_from_slice(b"ni2")).contains("NIfTI-2"));
