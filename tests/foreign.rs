@@ -243,20 +243,6 @@ fn render(vol: &Volume, tf: &TransferFunction, size: u32) -> StereoImage {
     img
 }
 
-/// Alpha-weighted mean (column, row) of the left eye, in pixels from the top left; None when
-/// nothing was drawn.
-fn centroid(img: &StereoImage) -> Option<(f64, f64)> {
-    let w = img.width as usize;
-    let (mut sx, mut sy, mut sw) = (0.0, 0.0, 0.0);
-    for (i, px) in img.rgba[0].chunks_exact(4).enumerate() {
-        let a = px[3] as f64;
-        sx += a * ((i % w) as f64 + 0.5);
-        sy += a * ((i / w) as f64 + 0.5);
-        sw += a;
-    }
-    (sw > 0.0).then(|| (sx / sw, sy / sw))
-}
-
 #[test]
 fn nifti_files_from_nibabel_and_mricron_match_niftilib() {
     let dir = foreign_dir();
@@ -300,7 +286,7 @@ fn nifti_files_from_nibabel_and_mricron_match_niftilib() {
         &TransferFunction::preset("mr-default").unwrap(),
         96,
     );
-    let (cx, cy) = centroid(&img).expect("the brain template rendered nothing");
+    let (cx, cy) = common::centroid(&img, 0).expect("the brain template rendered nothing");
     assert!(
         (cx - 48.0).abs() < 12.0 && (cy - 48.0).abs() < 12.0,
         "{cx} {cy}"
@@ -363,7 +349,10 @@ fn a_pydicom_ct_series_matches_dcm2niix_and_teem_in_patient_space() {
         &TransferFunction::preset("ct-soft-tissue").unwrap(),
         64,
     );
-    assert!(centroid(&img).is_some(), "the CT series rendered nothing");
+    assert!(
+        common::centroid(&img, 0).is_some(),
+        "the CT series rendered nothing"
+    );
 
     run(Command::new("dcm2niix")
         .args(["-z", "n", "-f", "ct", "-o"])
@@ -534,8 +523,8 @@ fn the_ct_head_loads_from_its_nrrd_conversion_and_stands_upright() {
     let small = vol.downsample(2);
     let bone = render(&small, &TransferFunction::preset("ct-bone").unwrap(), 128);
     let enamel = render(&small, &above(1800.0), 128);
-    let (bx, by) = centroid(&bone).expect("the CT head rendered nothing");
-    let (tx, ty) = centroid(&enamel).expect("no enamel rendered");
+    let (bx, by) = common::centroid(&bone, 0).expect("the CT head rendered nothing");
+    let (tx, ty) = common::centroid(&enamel, 0).expect("no enamel rendered");
     assert!(ty > by + 10.0, "teeth drawn at row {ty}, skull at row {by}");
     assert!(
         (tx - bx).abs() < 10.0,

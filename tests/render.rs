@@ -48,19 +48,6 @@ fn render(vol: &Volume, settings: &RenderSettings) -> (StereoImage, [View; 2]) {
     (img, v)
 }
 
-/// Alpha-weighted centroid (x, y) in pixels of one eye.
-fn centroid(img: &StereoImage, eye: usize) -> (f64, f64) {
-    let (mut sx, mut sy, mut sw) = (0.0, 0.0, 0.0);
-    for (i, px) in img.rgba[eye].chunks_exact(4).enumerate() {
-        let a = px[3] as f64;
-        sx += a * ((i % W as usize) as f64 + 0.5);
-        sy += a * ((i / W as usize) as f64 + 0.5);
-        sw += a;
-    }
-    assert!(sw > 0.0, "eye {eye} saw nothing");
-    (sx / sw, sy / sw)
-}
-
 #[test]
 fn rendering_twice_is_bit_identical() {
     let vol = common::ball();
@@ -77,8 +64,8 @@ fn eyes_differ_by_the_parallax_of_their_offset() {
         img.rgba[0], img.rgba[1],
         "left and right images must differ"
     );
-    let (lx, ly) = centroid(&img, 0);
-    let (rx, ry) = centroid(&img, 1);
+    let (lx, ly) = common::centroid(&img, 0).expect("the left eye saw nothing");
+    let (rx, ry) = common::centroid(&img, 1).expect("the right eye saw nothing");
     // The ball is centred between the eyes at distance DIST: it appears right of centre in the
     // left eye and left of centre in the right eye, by (IPD/2)/DIST / tan(HALF) half-widths.
     let expect = (IPD as f64 / 2.0 / DIST as f64) / (HALF as f64).tan() * W as f64 / 2.0;

@@ -52,3 +52,17 @@ pub fn ball() -> cao_xr::volume::Volume {
         voxels: Voxels::I16(v),
     }
 }
+
+/// Alpha-weighted mean (column, row) of one eye, in pixels from the top left; None when that eye
+/// drew nothing.
+pub fn centroid(img: &cao_xr::render::StereoImage, eye: usize) -> Option<(f64, f64)> {
+    let w = img.width as usize;
+    let (mut sx, mut sy, mut sw) = (0.0, 0.0, 0.0);
+    for (i, px) in img.rgba[eye].chunks_exact(4).enumerate() {
+        let a = px[3] as f64;
+        sx += a * ((i % w) as f64 + 0.5);
+        sy += a * ((i / w) as f64 + 0.5);
+        sw += a;
+    }
+    (sw > 0.0).then(|| (sx / sw, sy / sw))
+}
