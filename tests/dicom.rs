@@ -132,6 +132,14 @@ impl Spec {
         }
     }
 
+    /// The same series cut to its first `n` slices.
+    fn first_slices(mut self, n: usize) -> Spec {
+        self.slices = n;
+        self.rescale.truncate(n);
+        self.stored.truncate(n * self.cols * self.rows);
+        self
+    }
+
     fn normal(&self) -> DVec3 {
         self.row_dir.cross(self.col_dir)
     }
@@ -416,10 +424,7 @@ fn phases_at_the_same_positions_are_listed_as_volumes_and_picked() {
     // a cardiac-style series: one SeriesInstanceUID, 4 positions, 2 phases (TriggerTime 400 ms
     // with the lower InstanceNumbers, 0 ms with the higher: the trigger time orders them)
     let root = tmp("phases");
-    let mut late = Spec::oblique();
-    late.slices = 4;
-    late.rescale.truncate(4);
-    late.stored.truncate(4 * late.cols * late.rows);
+    let mut late = Spec::oblique().first_slices(4);
     late.trigger_ms = Some(400.0);
     let mut early = late.clone();
     early.trigger_ms = Some(0.0);
@@ -461,13 +466,10 @@ fn several_series_are_listed_and_picked() {
     }
     let root = tmp("pick");
     let a = Spec::oblique();
-    let mut b = Spec::oblique();
+    let mut b = Spec::oblique().first_slices(4);
     b.uid = "1.2.826.0.1.3680043.2.1143.7002".into();
     b.description = "second";
     b.number = 7;
-    b.slices = 4;
-    b.rescale.truncate(4);
-    b.stored.truncate(4 * b.cols * b.rows);
     a.write(&root.join("a"));
     b.write(&root.join("b").join("deeper"));
     std::fs::write(root.join("README.txt"), "not dicom").unwrap();
