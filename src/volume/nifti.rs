@@ -300,12 +300,6 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
             ),
         ));
     }
-    let frame = pick_frame(
-        path,
-        frames as u64,
-        [dim[1], dim[2], dim[3]].map(|d| d as u64),
-        frame,
-    )?;
     if dim[1..=3].iter().any(|&d| d < 1) {
         return Err(fmt(format!(
             "invalid sizes {} {} {} (must be positive)",
@@ -313,6 +307,7 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
         )));
     }
     let dims = [dim[1] as u64, dim[2] as u64, dim[3] as u64];
+    let frame = pick_frame(path, frames as u64, dims, frame)?;
 
     // samples
     let code = h.datatype;
