@@ -3,6 +3,8 @@
 # Mesa's lavapipe CPU driver, the Khronos validation layers and glslc; and checks for Rust.
 # Sourced by run.sh and test.sh; safe to run again (it only installs what is missing).
 set -euo pipefail
+# debian_mirror: the Debian archive this machine's apt uses (for xr-root.sh's trixie root).
+source "$(dirname "${BASH_SOURCE[0]}")/apt-mirror.sh"
 
 need=()
 have_pkg() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }

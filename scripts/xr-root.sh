@@ -3,10 +3,11 @@
 # in bookworm; a binary built on bookworm runs unchanged inside it). Cached at $CAO_XR_XR_ROOT
 # (default /var/cache/cao-xr/trixie-root); a root whose marker .cao-xr-ready lists the same
 # packages is reused.
-# Needs root and Debian's archive (deb.debian.org or $CAO_XR_DEBIAN_MIRROR). Prints the root's path.
+# Needs root and Debian's archive: $CAO_XR_DEBIAN_MIRROR, else the mirror this machine's own apt
+# sources name (debian_mirror in scripts/apt-mirror.sh). Prints the root's path.
 set -euo pipefail
+source "$(dirname "$0")/apt-mirror.sh"
 ROOT="${CAO_XR_XR_ROOT:-/var/cache/cao-xr/trixie-root}"
-MIRROR="${CAO_XR_DEBIAN_MIRROR:-http://deb.debian.org/debian}"
 # The runtime (monado-service + its OpenXR runtime library), the Khronos loader, the OpenXR core
 # validation layer, lavapipe, the Vulkan loader and the Khronos validation layers; the X11 libraries
 # winit loads for `cao-xr xr --mirror`.
@@ -14,6 +15,8 @@ PACKAGES="monado-service,libopenxr1-monado,libopenxr-loader1,openxr-layer-coreva
 # The marker holds the package list, so a root built from an older list is rebuilt.
 if [ "$(cat "$ROOT/.cao-xr-ready" 2>/dev/null)" = "$PACKAGES" ]; then echo "$ROOT"; exit 0; fi
 [ "$(id -u)" -eq 0 ] || { echo "xr-root: building the trixie root needs root" >&2; exit 1; }
+MIRROR=$(debian_mirror) || { echo "xr-root: cannot build the trixie root without a Debian mirror" >&2; exit 1; }
+echo "xr-root: Debian mirror $MIRROR" >&2
 if ! command -v mmdebstrap >/dev/null 2>&1; then
   echo "xr-root: installing mmdebstrap" >&2
   apt-get update -qq

@@ -1,7 +1,7 @@
 //! cao-xr: stereo CT/MRI volume rendering with (Contextual) Ambient Occlusion on Vulkan.
 //!
 //! The frame as data: input -> scene -> one GPU command buffer (clip + mask, ambient update,
-//! stereo views) -> outputs. See README.md and DESIGN.md.
+//! stereo views) -> outputs. See README.md and docs/design.md.
 
 pub mod ao;
 pub mod app;
@@ -13,5 +13,6 @@ pub mod input;
 pub mod light;
 pub mod render;
 pub mod scene;
+pub mod space;
 pub mod volume;
 pub mod xr;

@@ -5,7 +5,8 @@ use cao_xr::ao::sh::ShParams;
 use cao_xr::ao::LaoParams;
 use cao_xr::app;
 use cao_xr::app::lighting::{LightingMode, LightingOptions};
-use cao_xr::gpu::{Gpu, GpuOptions};
+use cao_xr::app::session::SessionSpec;
+use cao_xr::gpu::Gpu;
 use cao_xr::input::{write_script, ScriptKind, ScriptParams};
 use cao_xr::render::RenderSettings;
 use cao_xr::volume::raw::{RawSpec, RawType};
@@ -13,6 +14,7 @@ use cao_xr::volume::transfer::TransferFunction;
 use cao_xr::volume::{ct_head, phantom};
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
+use std::sync::Arc;
 
 #[derive(Parser)]
 #[command(
@@ -469,20 +471,19 @@ fn bench_volumes(volume: Option<String>, downsample: usize) -> Result<Vec<cao_xr
     })
 }
 
-fn gpu(cli_validation: bool) -> Result<Gpu> {
-    let mut opts = GpuOptions::default();
-    opts.validation |= cli_validation;
-    let gpu = Gpu::new(&opts).context("cannot start Vulkan")?;
-    eprintln!(
-        "GPU: {}{}",
-        gpu.device_name,
-        if gpu.validation_enabled() {
-            " (validation on)"
-        } else {
-            ""
-        }
-    );
-    Ok(gpu)
+fn gpu(validation: bool) -> Result<Gpu> {
+    app::session::start_gpu(validation, false).context("cannot start Vulkan")
+}
+
+/// What a session shows, from its volume, AO and lighting arguments.
+fn session_spec(vol: &VolumeArgs, lao: &LaoArgs, light: &LightArgs) -> Result<SessionSpec> {
+    let (v, tf) = vol.load()?;
+    Ok(SessionSpec {
+        volume: Arc::new(v),
+        tf,
+        params: lao.params(),
+        lighting: light.options(),
+    })
 }
 
 fn main() -> std::process::ExitCode {
@@ -514,51 +515,8 @@ fn main() -> std::process::ExitCode {
 fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
         Cmd::Start { vol, lao, light } => {
-            let (v, tf) = vol.load()?;
-            if cao_xr::xr::available() {
-                eprintln!("start: an OpenXR runtime answered: starting the headset session");
-                let opts = cao_xr::xr::XrOptions {
-                    lighting: light.options(),
-                    ..Default::default()
-                };
-                let s = cao_xr::xr::run(&v, &tf, lao.params(), opts)?;
-                println!("headset session ended cleanly after {} frames", s.frames);
-            } else if std::env::var_os("DISPLAY").is_some() {
-                eprintln!(
-                    "start: no OpenXR runtime answered; DISPLAY is set: opening the desktop window"
-                );
-                let opts = app::desktop::ViewOptions {
-                    size: (480, 480),
-                    lighting: light.options(),
-                    ..Default::default()
-                };
-                app::desktop::run(&v, &tf, lao.params(), opts)?;
-            } else {
-                eprintln!(
-                    "start: no OpenXR runtime and no display: rendering headless to out/render \
-                     (a 40 mm sphere carving the front; cao-xr replay plays pose streams)"
-                );
-                let gpu = gpu(cli.validation)?;
-                let placement = cao_xr::render::Placement::default();
-                let tools = vec![app::parse_tool("sphere:40:0,40,80", &placement)?];
-                let settings = RenderSettings::default();
-                let out = PathBuf::from("out/render");
-                app::render_to_dir(
-                    &gpu,
-                    &v,
-                    &tf,
-                    &lao.params(),
-                    &tools,
-                    (640, 640),
-                    &settings,
-                    &light.options(),
-                    &out,
-                )?;
-                println!(
-                    "wrote {0}/left.png {0}/right.png {0}/stereo.png",
-                    out.display()
-                );
-            }
+            let spec = session_spec(&vol, &lao, &light)?;
+            println!("{}", app::start(&spec, cli.validation)?);
         }
         Cmd::Render {
             vol,
@@ -570,10 +528,11 @@ fn run(cli: Cli) -> Result<()> {
             diffuse,
             tool,
         } => {
-            let (v, tf) = vol.load()?;
+            let spec = session_spec(&vol, &lao, &light)?;
+            let v = &spec.volume;
             eprintln!(
                 "volume {} {:?} spacing {:?} mm, tf {}",
-                v.name, v.dims, v.spacing, tf.name
+                v.name, v.dims, v.spacing, spec.tf.name
             );
             let gpu = gpu(cli.validation)?;
             let settings = RenderSettings {
@@ -581,23 +540,13 @@ fn run(cli: Cli) -> Result<()> {
                 diffuse,
                 ..Default::default()
             };
-            let placement = cao_xr::render::Placement::default();
+            let placement = cao_xr::space::Placement::default();
             let tools = tool
                 .iter()
                 .map(|t| app::parse_tool(t, &placement))
                 .collect::<Result<Vec<_>, _>>()?;
             let t0 = std::time::Instant::now();
-            let m = app::render_to_dir(
-                &gpu,
-                &v,
-                &tf,
-                &lao.params(),
-                &tools,
-                size,
-                &settings,
-                &light.options(),
-                &out,
-            )?;
+            let m = app::render_to_dir(&gpu, &spec, &tools, size, &settings, &out)?;
             if let Some(m) = m {
                 println!(
                     "CAO: {} clipped, {} recomputed ({:.2} %), GPU restore {:.1} ms, clip {:.1} ms, update {:.1} ms",
@@ -732,7 +681,7 @@ fn run(cli: Cli) -> Result<()> {
             realtime,
             shape,
         } => {
-            let (v, tf) = vol.load()?;
+            let spec = session_spec(&vol, &lao, &light)?;
             let gpu = gpu(cli.validation)?;
             let shape = match shape.as_deref() {
                 None => None,
@@ -749,9 +698,8 @@ fn run(cli: Cli) -> Result<()> {
                 },
                 realtime,
                 shape,
-                lighting: light.options(),
             };
-            let s = app::replay::replay(&gpu, &script, &v, &tf, lao.params(), &out, &opts)?;
+            let s = app::replay::replay(&gpu, &script, &spec, &out, &opts)?;
             println!(
                 "replayed {} frames into {} ({} PNGs, metrics.csv): mean AO update {:.1} ms, {:.2} % recomputed",
                 s.frames,
@@ -772,7 +720,7 @@ fn run(cli: Cli) -> Result<()> {
             screenshot,
             dump,
         } => {
-            let (v, tf) = vol.load()?;
+            let spec = session_spec(&vol, &lao, &light)?;
             let opts = app::desktop::ViewOptions {
                 size,
                 frames,
@@ -780,9 +728,9 @@ fn run(cli: Cli) -> Result<()> {
                 demo,
                 screenshot,
                 dump,
-                lighting: light.options(),
+                validation: cli.validation,
             };
-            let n = app::desktop::run(&v, &tf, lao.params(), opts)?;
+            let n = app::desktop::run(&spec, opts)?;
             println!("closed after {n} frames");
         }
         Cmd::Xr {
@@ -797,7 +745,7 @@ fn run(cli: Cli) -> Result<()> {
             volume_at,
             mirror,
         } => {
-            let (v, tf) = vol.load()?;
+            let spec = session_spec(&vol, &lao, &light)?;
             let opts = cao_xr::xr::XrOptions {
                 frames,
                 record,
@@ -806,9 +754,9 @@ fn run(cli: Cli) -> Result<()> {
                 carve,
                 volume_at,
                 mirror,
-                lighting: light.options(),
+                validation: cli.validation,
             };
-            let s = cao_xr::xr::run(&v, &tf, lao.params(), opts)?;
+            let s = app::headset::run(&spec, opts)?;
             println!(
                 "xr session ended cleanly: {} frames submitted, {} with tracked hands, states {}, focused {}, haptic pulses {}, space {}",
                 s.frames,
@@ -851,28 +799,7 @@ fn run(cli: Cli) -> Result<()> {
                 }
             }
             let (v, tf) = vol.load()?;
-            let (lo, hi) = v.value_range();
-            let ext = v.extent_mm();
-            println!("name        {}", v.name);
-            println!("dims        {} x {} x {}", v.dims[0], v.dims[1], v.dims[2]);
-            println!("type        {}", v.voxels.type_name());
-            println!(
-                "spacing     {:.4} x {:.4} x {:.4} mm",
-                v.spacing[0], v.spacing[1], v.spacing[2]
-            );
-            let d = v.directions;
-            println!(
-                "directions  i {:?}  j {:?}  k {:?} (LPS)",
-                d.x_axis, d.y_axis, d.z_axis
-            );
-            println!("values      {lo} .. {hi}");
-            println!("modality    {:?}", v.modality);
-            println!("size        {:.1} x {:.1} x {:.1} mm", ext.x, ext.y, ext.z);
-            println!("tf          {}", tf.name);
-            println!(
-                "presets     {}",
-                cao_xr::volume::transfer::presets_for_volume(&v).join(", ")
-            );
+            print!("{}", app::info_report(&v, &tf));
         }
     }
     Ok(())

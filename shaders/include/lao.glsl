@@ -1,4 +1,4 @@
-// Local Ambient Occlusion of one voxel, exactly as DESIGN.md defines it:
+// Local Ambient Occlusion of one voxel, exactly as docs/design.md defines it:
 //   A_k = (1/M) sum_{m=1..M} prod_{i=1..m-1} (1 - a_i),  1 - a_i = (1 - O(p_i))^(D / 1 mm)
 //   A   = (1/K) sum_k A_k
 // dirs[k].xyz is the step D*d_k expressed in index units (mm step / spacing).

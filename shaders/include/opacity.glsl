@@ -1,4 +1,4 @@
-// The opacity volume O of DESIGN.md, read from a storage buffer (x fastest) and interpolated in
+// The opacity volume O of docs/design.md, read from a storage buffer (x fastest) and interpolated in
 // the shader, so the GPU matches the CPU reference instead of a sampler's fixed-point weights.
 // Voxel q has its centre at index-space point q + 0.5; outside the grid O = 0 (zero padding).
 

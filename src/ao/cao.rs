@@ -8,10 +8,11 @@
 //! for bit: both use the same kernels on the same clipped opacity.
 
 use super::lao::{index_steps, LaoParams, SkipBuffers};
+use crate::clip::Shape;
 use crate::clip::{shape_mesh, ClipMap, ClipMapGpu, TriMesh};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Result};
-use crate::render::{world_from_tex, Placement};
-use crate::scene::{Shape, Tool, ToolMode};
+use crate::scene::{Tool, ToolMode};
+use crate::space::{world_from_tex, Placement};
 use crate::volume::Volume;
 use ash::vk;
 use glam::{Mat4, Vec3};

@@ -1,4 +1,4 @@
-//! CPU reference of LAO (DESIGN.md), in f64, parallel over z-slices. The GPU kernel must agree
+//! CPU reference of LAO (docs/design.md), in f64, parallel over z-slices. The GPU kernel must agree
 //! with it to 1e-4 per voxel; it is also what an outside checker would compute.
 
 use super::lao::{index_steps, LaoParams};

@@ -1,4 +1,4 @@
-//! Local Ambient Occlusion (Hernell et al.) as DESIGN.md defines it, precomputed on the GPU.
+//! Local Ambient Occlusion (Hernell et al.) as docs/design.md defines it, precomputed on the GPU.
 
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Result};
 use ash::vk;

@@ -103,8 +103,9 @@ pub struct CaoBenchRow {
 
 /// A sphere tool of `radius_mm` sweeping left to right through the front half of the volume.
 pub fn sweep_tools(vol: &Volume, radius_mm: f32, frames: usize) -> Vec<Vec<crate::scene::Tool>> {
-    use crate::render::{Placement, Pose};
-    use crate::scene::{Shape, Tool, ToolMode};
+    use crate::clip::Shape;
+    use crate::scene::{Tool, ToolMode};
+    use crate::space::{Placement, Pose};
     let p = Placement::default();
     let ext = vol.extent_mm();
     let half = (ext.max_element() * 0.5) as f32 * 1e-3;
@@ -146,7 +147,7 @@ pub fn bench_cao(
 ) -> Result<Vec<CaoBenchRow>> {
     use crate::ao::cao::Mode;
     let lao = LaoGpu::new(gpu)?;
-    let placement = crate::render::Placement::default();
+    let placement = crate::space::Placement::default();
     println!(
         "CAO vs naive LAO per frame on {} (sphere of 25 mm radius sweeping; GPU ms, mean over the \
          frames, median of {runs} run(s))",

@@ -7,8 +7,9 @@ use crate::ao::cao::Cao;
 use crate::ao::sh::{ShFrameMetrics, ShParams, ShVolume};
 use crate::gpu::Gpu;
 use crate::light::environment::{Environment, ShLight};
-use crate::render::view::world_from_lps;
-use crate::render::{Placement, RenderSettings, ShBinding};
+use crate::render::{RenderSettings, ShBinding};
+use crate::space::world_from_lps;
+use crate::space::Placement;
 use crate::volume::Volume;
 use glam::{DMat3, DQuat};
 

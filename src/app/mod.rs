@@ -4,26 +4,33 @@
 pub mod bench;
 pub mod desktop;
 pub mod frame_loop;
+pub mod headset;
 pub mod lighting;
+pub mod mirror;
 pub mod replay;
+pub mod session;
+pub mod tf_switch;
 
-use crate::ao::cao::{Cao, FrameMetrics, Mode};
+use crate::ao::cao::{Cao, FrameMetrics};
 use crate::ao::lao::{directions, LaoTiming, SkipBuffers};
 use crate::ao::{LaoGpu, LaoParams};
 use crate::gpu::{Buffer, Gpu, GpuError};
+use crate::input::{FrameInput, InteractionSettings};
 use crate::render::png_out::PngError;
 use crate::render::{
-    default_stereo_views, world_from_tex, ClipBinding, FrameViews, Placement, RenderSettings,
-    Renderer, StereoImage, StereoTarget, VolumeTextures,
+    FrameViews, RenderSettings, Renderer, StereoImage, StereoTarget, VolumeTextures,
 };
 use crate::scene::Tool;
+use crate::space::{default_stereo_views, Placement, DEFAULT_IPD};
 use crate::volume::nrrd::{self, NrrdData};
 use crate::volume::raw::RawSpec;
 use crate::volume::transfer::{TfError, TransferFunction};
 use crate::volume::{ct_head, phantom, Volume, VolumeError};
 use ash::vk;
-use lighting::{LightingOptions, ShLighting};
+use frame_loop::FrameLoop;
+use session::SessionSpec;
 use std::path::Path;
+use std::sync::Arc;
 
 #[derive(Debug, thiserror::Error)]
 pub enum AppError {
@@ -39,6 +46,17 @@ pub enum AppError {
     Usage(String),
     #[error("{path}: {msg}")]
     Output { path: String, msg: String },
+    #[error(transparent)]
+    Xr(Box<crate::xr::XrError>),
+}
+
+impl From<crate::xr::XrError> for AppError {
+    fn from(e: crate::xr::XrError) -> Self {
+        match e {
+            crate::xr::XrError::App(e) => e,
+            e => AppError::Xr(Box::new(e)),
+        }
+    }
 }
 
 pub type Result<T> = std::result::Result<T, AppError>;
@@ -152,7 +170,7 @@ pub fn dicom_listing(spec: Option<&str>) -> Result<Option<(String, bool)>> {
 
 /// A volume's classification and LAO, resident on the GPU.
 pub struct AoVolume {
-    /// O of DESIGN.md, on the host.
+    /// O of docs/design.md, on the host.
     pub opacity: Vec<f32>,
     pub opacity_buf: Buffer,
     /// V_PAO: LAO of the unclipped volume (f32, x fastest).
@@ -290,74 +308,119 @@ impl HeadlessRenderer {
     }
 }
 
-/// `cao-xr render`: LAO, then (with tools, or with SH lighting) one CAO frame, then both eyes
-/// from the default pair of eye poses, as PNGs in `out`. Returns the CAO metrics when tools
-/// clipped.
-#[allow(clippy::too_many_arguments)]
+/// `cao-xr render`: one frame of the frame loop (V_PAO, the tools' CAO update, both eyes from
+/// the default pair of eye poses, no overlay), written as PNGs in `out`. Returns the CAO metrics
+/// when tools were given.
 pub fn render_to_dir(
     gpu: &Gpu,
-    vol: &Volume,
-    tf: &TransferFunction,
-    params: &LaoParams,
+    spec: &SessionSpec,
     tools: &[Tool],
     size: (u32, u32),
     settings: &RenderSettings,
-    lighting: &LightingOptions,
     out: &Path,
 ) -> Result<Option<FrameMetrics>> {
-    let mut hr = HeadlessRenderer::new(gpu)?;
-    let ao = precompute_ao(gpu, &hr.lao, vol, tf, params, true)?;
-    let tex = VolumeTextures::new(gpu, vol, tf)?;
-    let placement = Placement::default();
-    let views = default_stereo_views(vol, &placement, 0.064);
-    let mut settings = *settings;
-    lighting.apply(&mut settings);
-    let (img, metrics) = if tools.is_empty() && !lighting.uses_sh() {
-        let frame = FrameViews {
-            views: &views,
-            model: world_from_tex(vol, &placement),
-            clip: None,
-            sh: None,
+    let vol = &spec.volume;
+    let mut fl = FrameLoop::new(
+        gpu,
+        Arc::clone(vol),
+        vec![spec.tf.clone()],
+        spec.params,
+        size,
+        InteractionSettings::default(),
+        true,
+    )?;
+    fl.settings = *settings;
+    fl.set_lighting(&spec.lighting, true)?;
+    fl.show_overlay = false;
+    fl.scene.tools = tools.to_vec();
+    let views = default_stereo_views(vol, &fl.scene.volume, DEFAULT_IPD);
+    let frame = fl.frame(&FrameInput::without_hands(0.0, views))?;
+    frame.image.write_pngs(out)?;
+    Ok((!tools.is_empty()).then_some(frame.stats.metrics))
+}
+
+/// `cao-xr start`: a headset session when an OpenXR runtime answers, else the desktop window
+/// when there is a display, else a headless render of the volume carved by a 40 mm sphere to
+/// out/render. Says on stderr which and why; returns the closing line.
+pub fn start(spec: &SessionSpec, validation: bool) -> Result<String> {
+    if crate::xr::available() {
+        eprintln!("start: an OpenXR runtime answered: starting the headset session");
+        let opts = crate::xr::XrOptions {
+            validation,
+            ..Default::default()
         };
-        let img = hr.render(&tex, Some(&ao.ao_buf), &frame, size, &settings)?;
-        (img, None)
+        let s = headset::run(spec, opts)?;
+        Ok(format!(
+            "headset session ended cleanly after {} frames",
+            s.frames
+        ))
+    } else if std::env::var_os("DISPLAY").is_some() {
+        eprintln!("start: no OpenXR runtime answered; DISPLAY is set: opening the desktop window");
+        let opts = desktop::ViewOptions {
+            size: (480, 480),
+            validation,
+            ..Default::default()
+        };
+        let n = desktop::run(spec, opts)?;
+        Ok(format!("closed after {n} frames"))
     } else {
-        let mut cao = ao.into_cao(gpu, vol, *params)?;
-        let mut sh = lighting
-            .uses_sh()
-            .then(|| ShLighting::new(gpu, vol, lighting, &mut cao, true))
-            .transpose()?;
-        let m = cao.run_frame(tools, &placement, Mode::Contextual)?;
-        if let Some(sh) = &mut sh {
-            gpu.submit_and_wait(|cmd| {
-                sh.record_frame(gpu, cmd, &cao);
-            })?;
-            sh.update_light(vol, &placement, 0.0);
-        }
-        let (t, maps) = cao.clip_buffers();
-        let count = tools.iter().filter(|t| t.active).count() as u32;
-        let frame = FrameViews {
-            views: &views,
-            model: world_from_tex(vol, &placement),
-            clip: (count > 0).then_some(ClipBinding {
-                tools: t,
-                maps,
-                count,
-            }),
-            sh: sh.as_ref().map(|l| l.binding()),
-        };
-        let img = hr.render(&tex, Some(&cao.ao), &frame, size, &settings)?;
-        (img, (!tools.is_empty()).then_some(m))
-    };
-    img.write_pngs(out)?;
-    Ok(metrics)
+        eprintln!(
+            "start: no OpenXR runtime and no display: rendering headless to out/render \
+             (a 40 mm sphere carving the front; cao-xr replay plays pose streams)"
+        );
+        let gpu = session::start_gpu(validation, false)?;
+        let tools = [parse_tool("sphere:40:0,40,80", &Placement::default())?];
+        let out = Path::new("out/render");
+        render_to_dir(
+            &gpu,
+            spec,
+            &tools,
+            (640, 640),
+            &RenderSettings::default(),
+            out,
+        )?;
+        Ok(format!(
+            "wrote {0}/left.png {0}/right.png {0}/stereo.png",
+            out.display()
+        ))
+    }
+}
+
+/// `cao-xr info`: the volume's dims, type, spacing, orientation, range, modality, size, the
+/// transfer function chosen for it and the presets suited to it.
+pub fn info_report(v: &Volume, tf: &TransferFunction) -> String {
+    let (lo, hi) = v.value_range();
+    let ext = v.extent_mm();
+    let d = v.directions;
+    let presets = crate::volume::transfer::presets_for_volume(v).join(", ");
+    [
+        format!("name        {}", v.name),
+        format!("dims        {} x {} x {}", v.dims[0], v.dims[1], v.dims[2]),
+        format!("type        {}", v.voxels.type_name()),
+        format!(
+            "spacing     {:.4} x {:.4} x {:.4} mm",
+            v.spacing[0], v.spacing[1], v.spacing[2]
+        ),
+        format!(
+            "directions  i {:?}  j {:?}  k {:?} (LPS)",
+            d.x_axis, d.y_axis, d.z_axis
+        ),
+        format!("values      {lo} .. {hi}"),
+        format!("modality    {:?}", v.modality),
+        format!("size        {:.1} x {:.1} x {:.1} mm", ext.x, ext.y, ext.z),
+        format!("tf          {}", tf.name),
+        format!("presets     {presets}"),
+    ]
+    .map(|l| l + "\n")
+    .concat()
 }
 
 /// Parses `SHAPE[:SIZE_MM[:X,Y,Z]]` (offset in mm from the volume centre: x right, y up, z
 /// towards the viewer; default a cut into the front) into a carving tool, or a probe with a
 /// `probe-` prefix (`probe-sphere:60`).
 pub fn parse_tool(spec: &str, placement: &Placement) -> Result<Tool> {
-    use crate::scene::{Shape, ToolMode};
+    use crate::clip::Shape;
+    use crate::scene::ToolMode;
     let bad = |why: &str| AppError::Usage(format!("--tool '{spec}': {why}"));
     let mut parts = spec.split(':');
     let name = parts.next().unwrap_or("");
@@ -365,13 +428,8 @@ pub fn parse_tool(spec: &str, placement: &Placement) -> Result<Tool> {
         Some(n) => (ToolMode::Probe, n),
         None => (ToolMode::Carve, name),
     };
-    let shape = match name {
-        "sphere" => Shape::Sphere,
-        "box" => Shape::Box,
-        "cylinder" => Shape::Cylinder,
-        "torus" => Shape::Torus,
-        _ => return Err(bad("shape must be sphere, box, cylinder or torus")),
-    };
+    let shape =
+        Shape::builtin(name).ok_or_else(|| bad("shape must be sphere, box, cylinder or torus"))?;
     let size_mm: f32 = match parts.next() {
         Some(s) => s
             .parse()
@@ -392,7 +450,7 @@ pub fn parse_tool(spec: &str, placement: &Placement) -> Result<Tool> {
     };
     Ok(Tool {
         shape,
-        pose: crate::render::Pose {
+        pose: crate::space::Pose {
             position: placement.center + offset * 1e-3 * placement.scale,
             orientation: glam::Quat::IDENTITY,
         },

@@ -1,17 +1,14 @@
 //! `cao-xr replay`: renders every frame of a pose stream headless through the one frame loop,
 //! writing side-by-side PNGs, per-frame metrics (CSV) and an optional animated PNG preview.
 
-use super::frame_loop::{tf_cycle, FrameLoop};
-use super::lighting::LightingOptions;
+use super::session::SessionSpec;
 use super::{AppError, Result};
 use crate::ao::cao::Mode;
-use crate::ao::LaoParams;
+use crate::clip::Shape;
 use crate::gpu::Gpu;
 use crate::input::{read_stream, replay_schedule, InteractionSettings, StreamHeader};
 use crate::render::png_out::write_rgb;
-use crate::scene::{Shape, Tool, ToolMode};
-use crate::volume::transfer::TransferFunction;
-use crate::volume::Volume;
+use crate::scene::{Tool, ToolMode};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
@@ -28,7 +25,6 @@ pub struct ReplayOptions {
     pub realtime: bool,
     /// The right hand's tool shape; by default from the stream's description ("box tool: ...").
     pub shape: Option<Shape>,
-    pub lighting: LightingOptions,
 }
 
 impl Default for ReplayOptions {
@@ -40,7 +36,6 @@ impl Default for ReplayOptions {
             mode: Mode::Contextual,
             realtime: false,
             shape: None,
-            lighting: LightingOptions::default(),
         }
     }
 }
@@ -56,14 +51,7 @@ pub struct ReplaySummary {
 
 /// The shape a scripted stream names at the start of its description, e.g. "torus tool: ...".
 pub fn shape_from_header(header: &StreamHeader) -> Option<Shape> {
-    let first = header.description.split_whitespace().next()?;
-    Some(match first {
-        "sphere" => Shape::Sphere,
-        "box" => Shape::Box,
-        "cylinder" => Shape::Cylinder,
-        "torus" => Shape::Torus,
-        _ => return None,
-    })
+    Shape::builtin(header.description.split_whitespace().next()?)
 }
 
 fn out_err(path: &Path, e: impl std::fmt::Display) -> AppError {
@@ -73,13 +61,10 @@ fn out_err(path: &Path, e: impl std::fmt::Display) -> AppError {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
 pub fn replay(
     gpu: &Gpu,
     script: &Path,
-    vol: &Volume,
-    tf: &TransferFunction,
-    params: LaoParams,
+    spec: &SessionSpec,
     out: &Path,
     opts: &ReplayOptions,
 ) -> Result<ReplaySummary> {
@@ -98,23 +83,14 @@ pub fn replay(
     } else {
         InteractionSettings::default()
     };
-    let mut fl = FrameLoop::new(
-        gpu,
-        vol,
-        tf_cycle(tf, vol),
-        params,
-        opts.size,
-        interaction,
-        true,
-    )?;
+    let mut fl = spec.frame_loop(gpu, opts.size, interaction, true)?;
     fl.mode = opts.mode;
-    fl.set_lighting(&opts.lighting, true)?;
     fl.scene.tools.push(Tool {
         shape: opts
             .shape
             .or_else(|| shape_from_header(&header))
             .unwrap_or(Shape::Sphere),
-        pose: crate::render::Pose::IDENTITY,
+        pose: crate::space::Pose::IDENTITY,
         size: fl.interaction.settings().tool_size,
         mode: ToolMode::Carve,
         active: false,
@@ -142,7 +118,8 @@ pub fn replay(
                 std::thread::sleep(wait);
             }
         }
-        let f = fl.frame(&frames[i])?;
+        let shown = fl.frame(&frames[i])?;
+        let f = &shown.stats;
         let m = &f.metrics;
         writeln!(
             csv,
@@ -188,9 +165,9 @@ pub fn replay(
         summary.mean_ao_ms += m.gpu_ms() / frames.len() as f64;
         summary.mean_percent_recomputed += m.percent_recomputed() / frames.len() as f64;
         if i % every == 0 {
-            let rgb = f.image.side_by_side_rgb();
+            let rgb = shown.image.side_by_side_rgb();
             let path = out.join(format!("frame-{i:05}.png"));
-            write_rgb(&path, f.image.width * 2, f.image.height, &rgb)?;
+            write_rgb(&path, shown.image.width * 2, shown.image.height, &rgb)?;
             summary.pngs += 1;
             if opts.preview.is_some() {
                 kept.push(rgb);

@@ -1,6 +1,6 @@
 //! Closed triangle meshes of the clipping tools: the built-in shapes, and OBJ / PLY files.
 
-use crate::scene::TORUS_MINOR;
+use super::TORUS_MINOR;
 use glam::Vec3;
 use std::f32::consts::PI;
 use std::path::Path;

@@ -18,6 +18,41 @@ pub use mesh::{MeshError, TriMesh};
 
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// A clipping tool's shape, in tool-local metres scaled by [`Tool::size`] (unit size = 1):
+/// sphere of radius 1, cube of half-edge 1, cylinder of radius 1 and half-height 1 along local Z,
+/// torus of major radius 1 and minor radius [`TORUS_MINOR`] around local Z, or a loaded mesh.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Shape {
+    Sphere,
+    Box,
+    Cylinder,
+    Torus,
+    /// Index into the meshes loaded for this session (OBJ/PLY).
+    Mesh(usize),
+}
+
+/// Minor (tube) radius of the unit torus.
+pub const TORUS_MINOR: f32 = 0.35;
+
+/// The built-in shapes in the order a "cycle shape" button visits them.
+pub const BUILTIN_SHAPES: [Shape; 4] = [Shape::Sphere, Shape::Box, Shape::Cylinder, Shape::Torus];
+
+impl Shape {
+    /// The built-in shape of this name (`sphere`, `box`, `cylinder`, `torus`), as the CLI and
+    /// scripted streams spell it.
+    pub fn builtin(name: &str) -> Option<Shape> {
+        Some(match name {
+            "sphere" => Shape::Sphere,
+            "box" => Shape::Box,
+            "cylinder" => Shape::Cylinder,
+            "torus" => Shape::Torus,
+            _ => return None,
+        })
+    }
+}
 
 /// Depth of an empty interval: `EMPTY_IN > z > EMPTY_OUT` holds for no z.
 pub const EMPTY_IN: f32 = 1e30;
@@ -291,8 +326,7 @@ pub fn dilate(clip: &[[f32; 4]], res: usize, texel: f32, radius: f32) -> Vec<[f3
 }
 
 /// The mesh of a scene shape (`meshes` holds the loaded OBJ/PLY meshes).
-pub fn shape_mesh(shape: crate::scene::Shape, meshes: &[TriMesh]) -> Option<TriMesh> {
-    use crate::scene::Shape;
+pub fn shape_mesh(shape: Shape, meshes: &[TriMesh]) -> Option<TriMesh> {
     Some(match shape {
         Shape::Sphere => TriMesh::sphere(),
         Shape::Box => TriMesh::cube(),
@@ -305,7 +339,6 @@ pub fn shape_mesh(shape: crate::scene::Shape, meshes: &[TriMesh]) -> Option<TriM
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::TORUS_MINOR;
 
     #[test]
     fn sphere_map_matches_the_sphere() {

@@ -2,6 +2,7 @@
 //! submissions and the small resource types (buffers, images, pipelines, timers) every pass uses.
 
 pub mod pipeline;
+pub mod present;
 mod resources;
 mod timer;
 

@@ -5,8 +5,8 @@
 //! (held) is the trigger and toggles carving; Tab cycles the tool shape; P switches carve/probe;
 //! +/- resize the tool; M cycles transfer-function presets; 1 / 2 show one eye / both; Esc quits.
 
-use super::{symmetric_fov, Buttons, FrameInput, HandInput, LEFT, RIGHT};
-use crate::render::Pose;
+use super::{Buttons, FrameInput, HandInput, LEFT, RIGHT};
+use crate::space::{symmetric_fov, Pose, DEFAULT_IPD};
 use glam::{Quat, Vec2, Vec3};
 
 /// Keys and buttons the desktop mapping understands (the window translates its events).
@@ -56,7 +56,7 @@ impl DesktopInput {
             target,
             tool: Vec3::new(0.0, 0.0, 0.08),
             held: Default::default(),
-            ipd: 0.064,
+            ipd: DEFAULT_IPD,
             half_fov: 0.45,
             tool_speed: 0.1,
         }

@@ -1,7 +1,7 @@
 //! Input as data: one [`FrameInput`] per frame, whatever produced it.
 //!
 //! OpenXR, the desktop window and pose-stream replay are only different sources of the same
-//! value (DESIGN.md, "One frame, as data"); the interaction layer turns it into a scene. Keeping
+//! value (docs/design.md, "One frame, as data"); the interaction layer turns it into a scene. Keeping
 //! it a plain `Copy` value is what makes a frame recordable ([`stream`]), scriptable ([`script`])
 //! and replayable bit for bit.
 //!
@@ -22,7 +22,7 @@ pub use stream::{
     StreamHeader,
 };
 
-use crate::render::view::{Fov, Pose, View};
+use crate::space::{Fov, Pose, View};
 use glam::{Quat, Vec2, Vec3};
 use serde::{Deserialize, Serialize};
 
@@ -30,9 +30,6 @@ use serde::{Deserialize, Serialize};
 pub const LEFT: usize = 0;
 /// Index of the right hand in [`FrameInput::hands`] (and of the right eye in `views`).
 pub const RIGHT: usize = 1;
-
-/// A typical adult interpupillary distance (m), used where no headset reports one.
-pub const DEFAULT_IPD: f32 = 0.064;
 
 /// Everything one frame's input says: when, where the eyes are, where the hands are and what
 /// they press.
@@ -67,16 +64,6 @@ impl FrameInput {
             views,
             hands: [HandInput::default(); 2],
         }
-    }
-}
-
-/// A symmetric field of view: `half_angle` radians to each side, up and down.
-pub fn symmetric_fov(half_angle: f32) -> Fov {
-    Fov {
-        angle_left: -half_angle,
-        angle_right: half_angle,
-        angle_up: half_angle,
-        angle_down: -half_angle,
     }
 }
 
@@ -133,6 +120,7 @@ pub fn pose(position: Vec3, orientation: Quat) -> Pose {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::space::{symmetric_fov, DEFAULT_IPD};
 
     #[test]
     fn head_views_put_the_left_eye_left_along_the_head_x() {
@@ -141,7 +129,7 @@ mod tests {
             Vec3::new(0.0, 1.6, 0.0),
             Quat::from_rotation_y(std::f32::consts::FRAC_PI_2),
         );
-        let views = FrameInput::head_views(head, 0.064, symmetric_fov(0.6));
+        let views = FrameInput::head_views(head, DEFAULT_IPD, symmetric_fov(0.6));
         let l = views[LEFT].pose.position;
         let r = views[RIGHT].pose.position;
         assert!((l - Vec3::new(0.0, 1.6, 0.032)).length() < 1e-6, "{l}");

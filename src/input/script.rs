@@ -10,8 +10,8 @@
 //! for).
 
 use super::stream::{PoseStreamWriter, StreamError, StreamHeader};
-use super::{pose, symmetric_fov, Buttons, FrameInput, HandInput, DEFAULT_IPD, LEFT, RIGHT};
-use crate::render::view::{Placement, Pose};
+use super::{pose, Buttons, FrameInput, HandInput, LEFT, RIGHT};
+use crate::space::{symmetric_fov, Placement, Pose, DEFAULT_IPD};
 use glam::{DVec3, Quat, Vec3};
 use std::f64::consts::{PI, TAU};
 use std::fmt;
@@ -263,7 +263,7 @@ pub fn write_script(
 struct Stage {
     center: DVec3,
     r: f64,
-    views: [crate::render::view::View; 2],
+    views: [crate::space::View; 2],
 }
 
 /// SplitMix64: tiny, good enough for picking tremor parameters, and fixed forever (unlike a

@@ -29,7 +29,7 @@
 //! The writer refuses what the reader would refuse, so a recording can always be replayed.
 
 use super::{Buttons, FrameInput, HandInput};
-use crate::render::view::{Fov, Pose, View};
+use crate::space::{Fov, Pose, View};
 use glam::{Quat, Vec2, Vec3};
 use serde::{Deserialize, Serialize};
 use std::fs::File;
@@ -869,7 +869,8 @@ pub fn replay_schedule(
 mod tests {
     use super::*;
     use crate::input::script::SplitMix64;
-    use crate::input::{symmetric_fov, DEFAULT_IPD, LEFT, RIGHT};
+    use crate::input::{LEFT, RIGHT};
+    use crate::space::{symmetric_fov, DEFAULT_IPD};
     use std::io::Cursor;
     use std::sync::atomic::{AtomicUsize, Ordering};
 

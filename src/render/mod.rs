@@ -3,16 +3,15 @@
 
 pub mod overlay;
 pub mod png_out;
-pub mod view;
 
 use crate::gpu::{pipeline, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
+use crate::space::View;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use ash::vk;
 use glam::{Mat4, Vec3};
 use gpu_allocator::MemoryLocation;
 pub use overlay::{scene_overlay, OverlayItem, OverlayMesh, OverlayRenderer};
-pub use view::{default_stereo_views, world_from_tex, Fov, Placement, Pose, View};
 
 pub const COLOR_FORMAT: vk::Format = vk::Format::R8G8B8A8_UNORM;
 pub const DEPTH_FORMAT: vk::Format = vk::Format::D32_SFLOAT;
@@ -576,7 +575,7 @@ impl Renderer {
             },
             sh_light: std::array::from_fn(|k| {
                 let l = frame.sh.map_or([[0.0; 16]; 3], |sh| *sh.light);
-                let y0 = crate::ao::sh::Y0 as f32;
+                let y0 = crate::light::sh::Y0 as f32;
                 [y0 * l[0][k], y0 * l[1][k], y0 * l[2][k], 0.0]
             }),
         };

@@ -13,11 +13,12 @@
 //! are uploaded once; per draw only 96 bytes of push constants change.
 
 use super::{StereoTarget, View, COLOR_FORMAT, DEPTH_FORMAT};
+use crate::clip::Shape;
 use crate::clip::TriMesh;
 use crate::gpu::{pipeline, Buffer, Gpu, Result};
 use crate::input::{LEFT, RIGHT};
-use crate::render::Pose;
-use crate::scene::{Scene, Shape, Tool, ToolMode};
+use crate::scene::{Scene, Tool, ToolMode};
+use crate::space::Pose;
 use ash::vk;
 use glam::{Mat4, Quat, Vec3};
 use std::collections::HashMap;
@@ -466,7 +467,7 @@ impl Drop for OverlayRenderer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::{Fov, Pose};
+    use crate::space::{Fov, Pose};
 
     /// Vulkan's facing rule (spec, "Basic Polygon Rasterization"): with COUNTER_CLOCKWISE, a
     /// triangle is front-facing when a = -1/2 sum(x_i y_{i+1} - x_{i+1} y_i) in framebuffer

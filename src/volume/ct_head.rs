@@ -143,8 +143,8 @@ pub fn fetch(progress: &mut dyn FnMut(&str)) -> Result<PathBuf, VolumeError> {
             let update = update.err().map(|e| format!("; {e}")).unwrap_or_default();
             return Err(fail(format!(
                 "could not download the Debian package {PACKAGE}: {second}{update}. Run this \
-                 as root on Debian (or a derivative) with network access to Debian's archive \
-                 (deb.debian.org), or place a CT volume at this path yourself"
+                 as root on Debian (or a derivative) whose apt sources reach a Debian mirror, \
+                 or place a CT volume at this path yourself"
             )));
         }
     }

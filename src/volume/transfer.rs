@@ -334,7 +334,7 @@ impl TransferFunction {
         rgba(pts.last().unwrap())
     }
 
-    /// The opacity volume O of DESIGN.md (before clipping): tf alpha of every voxel's value.
+    /// The opacity volume O of docs/design.md (before clipping): tf alpha of every voxel's value.
     pub fn opacity_volume(&self, vol: &Volume) -> Vec<f32> {
         let range = vol.value_range();
         (0..vol.voxel_count())

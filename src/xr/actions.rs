@@ -3,23 +3,11 @@
 //! paths produce.
 
 use super::bindings::ProfileBindings;
-use super::{pose_from_xr, XrError};
+use super::conversions::pose_from_xr;
+use super::XrError;
 use crate::input::{Buttons, HandInput, LEFT, RIGHT};
 use glam::Vec2;
 use openxr as xr;
-
-/// Every action a binding file may name.
-pub const ACTION_NAMES: &[&str] = &[
-    "grip_pose",
-    "aim_pose",
-    "grip",
-    "trigger",
-    "primary",
-    "secondary",
-    "menu",
-    "thumbstick",
-    "haptic",
-];
 
 /// The action set, its actions and the per-hand pose spaces.
 pub struct HandActions {

@@ -10,13 +10,26 @@
 //!                             "/user/hand/right/input/select/click"] } }
 //! ```
 //!
-//! The keys of `bindings` are the action names of [`super::actions::ACTION_NAMES`]; each maps to
+//! The keys of `bindings` are the action names of [`ACTION_NAMES`]; each maps to
 //! the full input (or output) paths it is bound to, both hands spelled out, so a profile whose
 //! hands differ (Touch: X/Y on the left, A/B on the right) needs no special case.
 
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+
+/// Every action a binding file may name.
+pub const ACTION_NAMES: &[&str] = &[
+    "grip_pose",
+    "aim_pose",
+    "grip",
+    "trigger",
+    "primary",
+    "secondary",
+    "menu",
+    "thumbstick",
+    "haptic",
+];
 
 /// The files shipped in controllers/bindings/, compiled in so the binary works from any
 /// directory (a run inside the Monado test root, an installed copy).
@@ -84,11 +97,11 @@ pub fn parse(name: &str, text: &str) -> Result<ProfileBindings, BindingsError> {
         });
     }
     for (action, paths) in &b.bindings {
-        if !super::actions::ACTION_NAMES.contains(&action.as_str()) {
+        if !ACTION_NAMES.contains(&action.as_str()) {
             return Err(BindingsError::UnknownAction {
                 path: name.into(),
                 action: action.clone(),
-                known: super::actions::ACTION_NAMES.join(", "),
+                known: ACTION_NAMES.join(", "),
             });
         }
         if let Some(p) = paths.iter().find(|p| !p.starts_with("/user/")) {

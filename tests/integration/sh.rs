@@ -2,15 +2,16 @@
 //! visibilities project to their analytic coefficients, and the clip-aware update equals a full
 //! recompute on the clipped volume voxel for voxel.
 
-mod common;
+use crate::common;
 
 use ash::vk;
 use cao_xr::ao::cao::{Cao, Mode};
 use cao_xr::ao::sh::{self, packed_coeff, ShParams, ShVolume, Y0};
 use cao_xr::ao::{LaoGpu, LaoParams};
+use cao_xr::clip::Shape;
 use cao_xr::gpu::{Buffer, Gpu};
-use cao_xr::render::{Placement, Pose};
-use cao_xr::scene::{Shape, Tool, ToolMode};
+use cao_xr::scene::{Tool, ToolMode};
+use cao_xr::space::{Placement, Pose};
 use cao_xr::volume::transfer::TransferFunction;
 use cao_xr::volume::{phantom, Modality, Volume, Voxels};
 use glam::{DMat3, DVec3, Quat, Vec3};
@@ -307,9 +308,8 @@ fn clip_aware_update_equals_a_full_recompute_every_frame() {
 #[test]
 fn constant_environment_lights_with_albedo_times_light() {
     use cao_xr::app::HeadlessRenderer;
-    use cao_xr::render::{
-        default_stereo_views, world_from_tex, FrameViews, RenderSettings, ShBinding, VolumeTextures,
-    };
+    use cao_xr::render::{FrameViews, RenderSettings, ShBinding, VolumeTextures};
+    use cao_xr::space::{default_stereo_views, world_from_tex};
     let gpu = common::gpu();
     let vol = common::ball();
     let tf = TransferFunction::preset("ct-bone").unwrap();

@@ -1,5 +1,5 @@
 //! The command line end to end: `ao` checked against an independent LAO implementation written
-//! from DESIGN.md, `render` writes pictures, `bench lao` prints its table, bad input is refused.
+//! from docs/design.md, `render` writes pictures, `bench lao` prints its table, bad input is refused.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -65,7 +65,7 @@ fn read_nrrd_f32(path: &Path) -> (Vec<usize>, Vec<f64>, Vec<f32>) {
     (dims, spacing, data)
 }
 
-/// LAO written straight from DESIGN.md, in mm, sharing no code with cao-xr.
+/// LAO written straight from docs/design.md, in mm, sharing no code with cao-xr.
 fn independent_lao(
     o: &[f32],
     n: &[usize],

@@ -12,47 +12,27 @@
 //! python3-pydicom, nifti-bin, dcm2niix and teem-apps. With CAO_XR_REQUIRE_FOREIGN set, a
 //! missing file or tool fails the test; otherwise it is skipped with a message.
 
-mod common;
+use crate::common;
 
 use cao_xr::app::{load_volume, HeadlessRenderer};
-use cao_xr::render::{
-    default_stereo_views, world_from_tex, FrameViews, Placement, RenderSettings, StereoImage,
-    VolumeTextures,
-};
+use cao_xr::render::{FrameViews, RenderSettings, StereoImage, VolumeTextures};
+use cao_xr::space::{default_stereo_views, world_from_tex, Placement};
 use cao_xr::volume::transfer::TransferFunction;
 use cao_xr::volume::{ct_head, dicom, Volume, Voxels};
 use glam::{DMat4, DVec3, DVec4};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-fn required() -> bool {
-    std::env::var_os("CAO_XR_REQUIRE_FOREIGN").is_some()
-}
-
 /// `Some(path)` when present; else a skip message (or a failure when required).
 fn present(path: PathBuf, how: &str) -> Option<PathBuf> {
-    if path.exists() {
-        return Some(path);
-    }
-    assert!(
-        !required(),
-        "{} is missing and CAO_XR_REQUIRE_FOREIGN is set ({how})",
-        path.display()
-    );
-    eprintln!("SKIPPED: {} is missing ({how})", path.display());
-    None
+    let why = format!("{} is missing ({how})", path.display());
+    common::require_or_skip("CAO_XR_REQUIRE_FOREIGN", path.exists(), &why).then_some(path)
 }
 
 fn has_tool(name: &str, package: &str) -> bool {
     let ok = Command::new(name).arg("-h").output().is_ok();
-    assert!(
-        ok || !required(),
-        "`{name}` is missing and CAO_XR_REQUIRE_FOREIGN is set (apt-get install {package})"
-    );
-    if !ok {
-        eprintln!("SKIPPED: `{name}` is missing (apt-get install {package})");
-    }
-    ok
+    let why = format!("`{name}` is missing (apt-get install {package})");
+    common::require_or_skip("CAO_XR_REQUIRE_FOREIGN", ok, &why)
 }
 
 fn foreign_dir() -> PathBuf {
@@ -492,7 +472,7 @@ fn above(hu: f32) -> TransferFunction {
 #[test]
 fn the_ct_head_loads_from_its_nrrd_conversion_and_stands_upright() {
     let path = ct_head::cached_path();
-    if !path.exists() && required() {
+    if !path.exists() && common::required("CAO_XR_REQUIRE_FOREIGN") {
         ct_head::fetch(&mut |m| eprintln!("{m}")).unwrap();
     }
     let Some(path) = present(path, "`cao-xr fetch-ct` converts it") else {

@@ -3,18 +3,20 @@
 //! TF and AO until the last slab, then switch over to exactly what a loop started with the new TF
 //! shows, tools carving.
 
-mod common;
+use crate::common;
 
 use cao_xr::ao::cao::Mode;
 use cao_xr::ao::{LaoGpu, LaoParams};
 use cao_xr::app::frame_loop::{FrameLoop, FrameOutput};
+use cao_xr::clip::Shape;
 use cao_xr::gpu::{Buffer, Gpu};
 use cao_xr::input::{FrameInput, InteractionSettings};
-use cao_xr::render::{default_stereo_views, Placement, Pose};
-use cao_xr::scene::{Shape, Tool, ToolMode};
+use cao_xr::scene::{Tool, ToolMode};
+use cao_xr::space::{default_stereo_views, Placement, Pose};
 use cao_xr::volume::transfer::TransferFunction;
 use cao_xr::volume::{phantom, Volume};
 use glam::{Quat, Vec3};
+use std::sync::Arc;
 
 const N: usize = 32;
 const PARAMS: LaoParams = LaoParams {
@@ -42,10 +44,10 @@ fn soft() -> TransferFunction {
     tf
 }
 
-fn new_loop(gpu: &Gpu, vol: &Volume, tfs: Vec<TransferFunction>, mode: Mode) -> FrameLoop {
+fn new_loop(gpu: &Gpu, vol: &Arc<Volume>, tfs: Vec<TransferFunction>, mode: Mode) -> FrameLoop {
     let mut fl = FrameLoop::new(
         gpu,
-        vol,
+        Arc::clone(vol),
         tfs,
         PARAMS,
         (48, 48),
@@ -93,7 +95,7 @@ fn first_diff(a: &[f32], b: &[f32]) -> Option<usize> {
 #[test]
 fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
     let gpu = common::gpu();
-    let vol = phantom::head(N);
+    let vol = Arc::new(phantom::head(N));
     let (bone, skin) = (
         TransferFunction::preset("ct-bone").unwrap(),
         TransferFunction::preset("ct-skin").unwrap(),
@@ -120,12 +122,12 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
         }
         let t = tool(c, i, i % 5 != 4);
         let a = frame(&mut fl, &vol, t, menu, i);
-        let Some(p) = a.tf_progress.clone() else {
+        let Some(p) = a.stats.tf_progress.clone() else {
             break (a, t);
         };
         // (a) Still the old TF and AO, bit for bit, while CAO goes on.
         let b = frame(&mut still, &vol, t, false, i);
-        assert!(b.tf_progress.is_none());
+        assert!(b.stats.tf_progress.is_none());
         assert_eq!(fl.shown_tf().name, "ct-bone", "frame {i}");
         let d = first_diff(&read(&fl.cao.ao), &read(&still.cao.ao));
         assert!(
@@ -136,9 +138,12 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
             a.image == b.image,
             "frame {i}: image changed during the recompute"
         );
-        assert_eq!(a.metrics.recomputed, b.metrics.recomputed, "frame {i}");
+        assert_eq!(
+            a.stats.metrics.recomputed, b.stats.metrics.recomputed,
+            "frame {i}"
+        );
         assert!(
-            a.metrics.recomputed > 0 || !t.active,
+            a.stats.metrics.recomputed > 0 || !t.active,
             "frame {i}: the tool carves"
         );
         // A slab ran this frame when this TF's fraction grew.
@@ -153,7 +158,7 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
         if p.fraction > before {
             slab_frames += 1;
         } else {
-            assert_eq!(a.tf_ms, 0.0, "frame {i}: no slab, no slab time");
+            assert_eq!(a.stats.tf_ms, 0.0, "frame {i}: no slab, no slab time");
         }
         progress.push((p.name.clone(), p.fraction));
         i += 1;
@@ -212,26 +217,35 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
             d.is_none(),
             "frame {i}: V_AO differs from the naive recompute at {d:?}"
         );
-        assert!(a.tf_progress.is_none());
+        assert!(a.stats.tf_progress.is_none());
         assert!(
             a.image == f.image,
             "frame {i}: image differs from a fresh loop"
         );
-        assert_eq!(a.metrics.clipped, f.metrics.clipped, "frame {i}");
-        assert_eq!(a.metrics.recomputed, f.metrics.recomputed, "frame {i}");
-        assert!(
-            carve == (a.metrics.recomputed > 0),
-            "frame {i}: {:?}",
-            a.metrics
+        assert_eq!(
+            a.stats.metrics.clipped, f.stats.metrics.clipped,
+            "frame {i}"
         );
-        assert_eq!(n.metrics.clipped, f.metrics.clipped, "frame {i}");
+        assert_eq!(
+            a.stats.metrics.recomputed, f.stats.metrics.recomputed,
+            "frame {i}"
+        );
+        assert!(
+            carve == (a.stats.metrics.recomputed > 0),
+            "frame {i}: {:?}",
+            a.stats.metrics
+        );
+        assert_eq!(
+            n.stats.metrics.clipped, f.stats.metrics.clipped,
+            "frame {i}"
+        );
         if !carve {
             pao = Some(ao);
         }
     }
     // V_PAO' differs from the old V_PAO (the switch did something).
     let old = frame(&mut still, &vol, tool(c, 0, false), false, 0);
-    assert!(old.tf_progress.is_none());
+    assert!(old.stats.tf_progress.is_none());
     assert!(first_diff(&pao.unwrap(), &read(&still.cao.ao)).is_some());
     common::assert_no_validation_messages(&gpu);
 }
@@ -241,7 +255,7 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
 #[test]
 fn cycling_back_to_the_shown_tf_cancels_the_switch() {
     let gpu = common::gpu();
-    let vol = phantom::head(24);
+    let vol = Arc::new(phantom::head(24));
     let tfs = vec![
         TransferFunction::preset("ct-bone").unwrap(),
         TransferFunction::preset("ct-skin").unwrap(),
@@ -255,7 +269,10 @@ fn cycling_back_to_the_shown_tf_cancels_the_switch() {
     while slabs == 0 {
         assert!(i < 100, "no slab ever ran");
         let a = frame(&mut fl, &vol, tool(c, i, true), i == 0, i);
-        let p = a.tf_progress.expect("in flight until the second press");
+        let p = a
+            .stats
+            .tf_progress
+            .expect("in flight until the second press");
         assert_eq!(p.name, "ct-skin");
         slabs += (p.fraction > 0.0) as usize;
         frame(&mut still, &vol, tool(c, i, true), false, i);
@@ -264,7 +281,7 @@ fn cycling_back_to_the_shown_tf_cancels_the_switch() {
     for k in 0..3 {
         let a = frame(&mut fl, &vol, tool(c, i, true), k == 0, i);
         let b = frame(&mut still, &vol, tool(c, i, true), false, i);
-        assert!(a.tf_progress.is_none(), "frame {i}: dropped");
+        assert!(a.stats.tf_progress.is_none(), "frame {i}: dropped");
         assert_eq!(fl.scene.tf_index, 0);
         assert_eq!(fl.shown_tf().name, "ct-bone");
         let d = first_diff(&read(&fl.cao.ao), &read(&still.cao.ao));

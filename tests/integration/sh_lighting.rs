@@ -3,19 +3,21 @@
 //! its SH boxes; a transfer-function switch recomputes the SH volume progressively (one slab per
 //! frame, after V_PAO') and then holds exactly what a loop started with the new TF holds.
 
-mod common;
+use crate::common;
 
 use cao_xr::ao::sh::ShParams;
 use cao_xr::ao::LaoParams;
 use cao_xr::app::frame_loop::{FrameLoop, FrameOutput};
 use cao_xr::app::lighting::{LightingMode, LightingOptions};
+use cao_xr::clip::Shape;
 use cao_xr::gpu::Gpu;
 use cao_xr::input::{FrameInput, InteractionSettings};
-use cao_xr::render::{default_stereo_views, Placement, Pose};
-use cao_xr::scene::{Shape, Tool, ToolMode};
+use cao_xr::scene::{Tool, ToolMode};
+use cao_xr::space::{default_stereo_views, Placement, Pose};
 use cao_xr::volume::transfer::TransferFunction;
 use cao_xr::volume::{phantom, Volume};
 use glam::{Quat, Vec3};
+use std::sync::Arc;
 
 const PARAMS: LaoParams = LaoParams {
     rays: 6,
@@ -39,10 +41,10 @@ fn lighting() -> LightingOptions {
     }
 }
 
-fn new_loop(gpu: &Gpu, vol: &Volume, tfs: Vec<TransferFunction>) -> FrameLoop {
+fn new_loop(gpu: &Gpu, vol: &Arc<Volume>, tfs: Vec<TransferFunction>) -> FrameLoop {
     let mut fl = FrameLoop::new(
         gpu,
-        vol,
+        Arc::clone(vol),
         tfs,
         PARAMS,
         (48, 48),
@@ -88,15 +90,18 @@ fn sh_words(fl: &FrameLoop) -> Vec<u32> {
 #[test]
 fn turning_the_light_changes_the_image_but_no_visibility() {
     let gpu = common::gpu();
-    let vol = phantom::head(24);
+    let vol = Arc::new(phantom::head(24));
     let tf = TransferFunction::preset("ct-skin").unwrap();
     let mut fl = new_loop(&gpu, &vol, vec![tf]);
     let a = frame(&mut fl, &vol, None, false, 0);
     let before = sh_words(&fl);
-    assert_eq!(a.sh.voxels, 0, "no tool, no SH update");
+    assert_eq!(a.stats.sh.voxels, 0, "no tool, no SH update");
     fl.lighting.as_mut().unwrap().yaw = 120f32.to_radians();
     let b = frame(&mut fl, &vol, None, false, 1);
-    assert_eq!(b.sh.voxels, 0, "turning the light recomputes no visibility");
+    assert_eq!(
+        b.stats.sh.voxels, 0,
+        "turning the light recomputes no visibility"
+    );
     assert_eq!(sh_words(&fl), before);
     let changed = a.image.rgba[0]
         .iter()
@@ -117,7 +122,7 @@ fn turning_the_light_changes_the_image_but_no_visibility() {
     input.hands[1].buttons.thumbstick.x = 1.0;
     let d = fl.frame(&input).unwrap();
     assert!(fl.scene.light_yaw > 0.1, "{}", fl.scene.light_yaw);
-    assert_eq!(d.sh.voxels, 0);
+    assert_eq!(d.stats.sh.voxels, 0);
     assert!(d.image != c.image);
     assert_eq!(sh_words(&fl), before);
 }
@@ -125,7 +130,7 @@ fn turning_the_light_changes_the_image_but_no_visibility() {
 #[test]
 fn a_carving_tool_recomputes_only_its_sh_boxes_and_opens_the_shadow() {
     let gpu = common::gpu();
-    let vol = phantom::head(32);
+    let vol = Arc::new(phantom::head(32));
     let tf = TransferFunction::preset("ct-skin").unwrap();
     let mut fl = new_loop(&gpu, &vol, vec![tf]);
     let a = frame(&mut fl, &vol, None, false, 0);
@@ -133,9 +138,9 @@ fn a_carving_tool_recomputes_only_its_sh_boxes_and_opens_the_shadow() {
     let b = frame(&mut fl, &vol, Some(sphere(true)), false, 1);
     let count = fl.lighting.as_ref().unwrap().volume.grid.count() as u64;
     assert!(
-        b.sh.voxels > 0 && b.sh.voxels < count,
+        b.stats.sh.voxels > 0 && b.stats.sh.voxels < count,
         "{} of {count}",
-        b.sh.voxels
+        b.stats.sh.voxels
     );
     let carved = sh_words(&fl);
     assert_ne!(carved, pre, "the carve changed some visibility");
@@ -148,7 +153,7 @@ fn a_carving_tool_recomputes_only_its_sh_boxes_and_opens_the_shadow() {
 #[test]
 fn tf_switch_recomputes_sh_progressively_then_equals_a_fresh_loop() {
     let gpu = common::gpu();
-    let vol = phantom::head(24);
+    let vol = Arc::new(phantom::head(24));
     let bone = TransferFunction::preset("ct-bone").unwrap();
     let skin = TransferFunction::preset("ct-skin").unwrap();
     let mut fl = new_loop(&gpu, &vol, vec![bone, skin.clone()]);
@@ -159,14 +164,14 @@ fn tf_switch_recomputes_sh_progressively_then_equals_a_fresh_loop() {
     };
     fl.tf_samples_per_frame = sh_slice * 4.0;
     let first = frame(&mut fl, &vol, None, false, 0);
-    assert!(first.tf_progress.is_none());
+    assert!(first.stats.tf_progress.is_none());
     let old = sh_words(&fl);
     let mut fractions = Vec::new();
     let mut i = 1;
     loop {
         assert!(i < 400, "the switch never finished: {fractions:?}");
         let f = frame(&mut fl, &vol, None, i == 1, i);
-        let Some(p) = f.tf_progress else { break };
+        let Some(p) = f.stats.tf_progress else { break };
         // Until the switch-over the frames keep the old visibility.
         assert_eq!(sh_words(&fl), old, "frame {i}");
         fractions.push(p.fraction);
@@ -192,7 +197,7 @@ fn tf_switch_recomputes_sh_progressively_then_equals_a_fresh_loop() {
     // Carving after the switch: the same clip-aware update as the fresh loop's.
     let a = frame(&mut fl, &vol, Some(sphere(true)), false, i);
     let b = frame(&mut fresh, &vol, Some(sphere(true)), false, i);
-    assert_eq!(a.sh.voxels, b.sh.voxels);
+    assert_eq!(a.stats.sh.voxels, b.stats.sh.voxels);
     assert_eq!(sh_words(&fl), sh_words(&fresh));
     assert!(a.image == b.image);
 }

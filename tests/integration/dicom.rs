@@ -5,6 +5,7 @@
 //! Without dcmtk these tests are skipped with a message, unless CAO_XR_REQUIRE_DCMTK is set
 //! (scripts/test.sh sets it; scripts/setup.sh installs dcmtk).
 
+use crate::common;
 use cao_xr::volume::dicom::{self, Pick};
 use cao_xr::volume::{Modality, Volume, Voxels};
 use glam::{DMat3, DVec3};
@@ -17,13 +18,11 @@ fn have_dcmtk() -> bool {
         .output()
         .map(|o| o.status.success())
         .unwrap_or(false);
-    if !ok {
-        if std::env::var_os("CAO_XR_REQUIRE_DCMTK").is_some() {
-            panic!("dcmtk (dump2dcm) is missing and CAO_XR_REQUIRE_DCMTK is set: apt-get install dcmtk");
-        }
-        eprintln!("SKIPPED: dcmtk is not installed (apt-get install dcmtk)");
-    }
-    ok
+    common::require_or_skip(
+        "CAO_XR_REQUIRE_DCMTK",
+        ok,
+        "dcmtk (dump2dcm) is missing (apt-get install dcmtk)",
+    )
 }
 
 fn tmp(name: &str) -> PathBuf {
@@ -697,7 +696,7 @@ fn phantom_series_has_the_geometry_of_its_nrrd() {
     if !have_dcmtk() {
         return;
     }
-    use cao_xr::render::{world_from_tex, Placement};
+    use cao_xr::space::{world_from_tex, Placement};
     use cao_xr::volume::{nrrd, phantom};
     let root = tmp("phantom");
     let head = phantom::head(32);
@@ -863,17 +862,15 @@ fn pydicom_sample_files_load_with_their_header_geometry() {
     let data = std::env::var_os("CAO_XR_PYDICOM_DATA")
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from("/usr/lib/python3/dist-packages/pydicom/data/test_files"));
-    if !data.join("MR_small.dcm").exists() {
-        if std::env::var_os("CAO_XR_REQUIRE_PYDICOM").is_some() {
-            panic!(
-                "pydicom's sample files are missing at {} and CAO_XR_REQUIRE_PYDICOM is set",
-                data.display()
-            );
-        }
-        eprintln!(
-            "SKIPPED: pydicom's sample files are not at {} (apt-get install python3-pydicom)",
-            data.display()
-        );
+    let why = format!(
+        "pydicom's sample files are not at {} (apt-get install python3-pydicom)",
+        data.display()
+    );
+    if !common::require_or_skip(
+        "CAO_XR_REQUIRE_PYDICOM",
+        data.join("MR_small.dcm").exists(),
+        &why,
+    ) {
         return;
     }
     let root = tmp("pydicom");

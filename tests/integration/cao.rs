@@ -1,18 +1,17 @@
 //! CAO on lavapipe with validation on: every frame of a scripted tool sequence gives exactly the
 //! AO of the naive full recompute, and the cut is where the tools are.
 
-mod common;
+use crate::common;
 
 use ash::vk;
 use cao_xr::ao::cao::{Cao, FrameMetrics, Mode};
 use cao_xr::ao::{LaoGpu, LaoParams};
 use cao_xr::app::HeadlessRenderer;
+use cao_xr::clip::Shape;
 use cao_xr::gpu::{Buffer, Gpu};
-use cao_xr::render::{
-    default_stereo_views, world_from_tex, ClipBinding, FrameViews, Placement, Pose, RenderSettings,
-    StereoImage, VolumeTextures,
-};
-use cao_xr::scene::{Shape, Tool, ToolMode};
+use cao_xr::render::{ClipBinding, FrameViews, RenderSettings, StereoImage, VolumeTextures};
+use cao_xr::scene::{Tool, ToolMode};
+use cao_xr::space::{default_stereo_views, world_from_tex, Placement, Pose};
 use cao_xr::volume::transfer::TransferFunction;
 use cao_xr::volume::{phantom, Volume};
 use glam::{Quat, Vec3};

@@ -1,7 +1,24 @@
-//! Shared by the GPU tests: a validated Vulkan context, and a check that it stayed silent.
-#![allow(dead_code)]
+//! Shared by the tests: a validated Vulkan context and a check that it stayed silent, the skip
+//! rule for what a test needs from outside, and small volumes and picture measures.
 
 use cao_xr::gpu::{Gpu, GpuOptions};
+
+/// Whether the REQUIRE variable `var` is set (to anything but 0).
+pub fn required(var: &str) -> bool {
+    std::env::var(var).is_ok_and(|v| v != "0")
+}
+
+/// Whether a test can run: `available` (a tool, a file, a root it needs), else it is skipped
+/// with `why`, unless the variable `require` (CAO_XR_REQUIRE_XVFB, _DCMTK, _PYDICOM, _FOREIGN,
+/// _XR, all set by scripts/test.sh) is set to anything but 0: then the test fails with `why`.
+pub fn require_or_skip(require: &str, available: bool, why: &str) -> bool {
+    if available {
+        return true;
+    }
+    assert!(!required(require), "{why} and {require} is set");
+    eprintln!("SKIPPED: {why}");
+    false
+}
 
 /// A Vulkan context with the Khronos validation layer on (required: a missing layer fails).
 pub fn gpu() -> Gpu {

@@ -2,10 +2,10 @@
 //! give the CPU's intervals except at a few silhouette texels, the compute dilation of a clip map
 //! equals the CPU's, and the dilated shape holds the shape.
 
-mod common;
+use crate::common;
 
+use cao_xr::clip::TORUS_MINOR;
 use cao_xr::clip::{dilate, ClipMap, ClipMapGpu, TriMesh, EMPTY_IN, EMPTY_OUT, SAMPLE_OFFSET};
-use cao_xr::scene::TORUS_MINOR;
 use glam::Vec3;
 use std::time::Instant;
 

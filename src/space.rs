@@ -1,4 +1,6 @@
-//! Views (pose + asymmetric field of view, as OpenXR reports them) and volume placement.
+//! GPU-free geometry every stage shares: poses, views (pose + asymmetric field of view, as
+//! OpenXR reports them), the volume's placement and the maps between world, patient (LPS) and
+//! volume texture space (docs/design.md, "Conventions").
 
 use crate::volume::Volume;
 use glam::{DMat4, DVec3, Mat3, Mat4, Quat, Vec3};
@@ -6,6 +8,9 @@ use serde::{Deserialize, Serialize};
 
 pub const NEAR: f32 = 0.05;
 pub const FAR: f32 = 100.0;
+
+/// A typical adult interpupillary distance (m), used where no headset reports one.
+pub const DEFAULT_IPD: f32 = 0.064;
 
 /// A rigid pose in the world (OpenXR STAGE space: metres, +Y up, right-handed).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -56,6 +61,16 @@ impl View {
 
     pub fn view_proj(&self) -> Mat4 {
         self.projection() * self.pose.matrix().inverse()
+    }
+}
+
+/// A symmetric field of view: `half_angle` radians to each side, up and down.
+pub fn symmetric_fov(half_angle: f32) -> Fov {
+    Fov {
+        angle_left: -half_angle,
+        angle_right: half_angle,
+        angle_up: half_angle,
+        angle_down: -half_angle,
     }
 }
 

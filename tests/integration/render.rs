@@ -1,9 +1,10 @@
 //! The stereo ray caster on lavapipe with validation on: determinism, parallax, depth.
 
-mod common;
+use crate::common;
 
 use cao_xr::app::HeadlessRenderer;
-use cao_xr::render::{Fov, Placement, Pose, RenderSettings, StereoImage, View, VolumeTextures};
+use cao_xr::render::{RenderSettings, StereoImage, VolumeTextures};
+use cao_xr::space::{Fov, Placement, Pose, View};
 use cao_xr::volume::transfer::TransferFunction;
 use cao_xr::volume::Volume;
 use glam::{Quat, Vec3};
@@ -38,7 +39,7 @@ fn render(vol: &Volume, settings: &RenderSettings) -> (StereoImage, [View; 2]) {
     let v = views(&placement);
     let frame = cao_xr::render::FrameViews {
         views: &v,
-        model: cao_xr::render::world_from_tex(vol, &placement),
+        model: cao_xr::space::world_from_tex(vol, &placement),
         clip: None,
         sh: None,
     };

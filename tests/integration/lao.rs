@@ -1,6 +1,6 @@
 //! GPU LAO against the CPU reference and the analytic cases, on lavapipe with validation on.
 
-mod common;
+use crate::common;
 
 use ash::vk;
 use cao_xr::ao::{cpu, LaoGpu, LaoParams};

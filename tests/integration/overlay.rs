@@ -2,15 +2,17 @@
 //! projects and nowhere else, hides behind opaque bone, and the scene's overlay lists what the
 //! hands and tools are.
 
-mod common;
+use crate::common;
 
+use cao_xr::clip::Shape;
 use cao_xr::gpu::Gpu;
 use cao_xr::render::overlay::colors;
 use cao_xr::render::{
-    scene_overlay, world_from_tex, Fov, FrameViews, OverlayItem, OverlayMesh, OverlayRenderer,
-    Placement, Pose, RenderSettings, Renderer, StereoImage, StereoTarget, View, VolumeTextures,
+    scene_overlay, FrameViews, OverlayItem, OverlayMesh, OverlayRenderer, RenderSettings, Renderer,
+    StereoImage, StereoTarget, VolumeTextures,
 };
-use cao_xr::scene::{Scene, Shape, Tool, ToolMode};
+use cao_xr::scene::{Scene, Tool, ToolMode};
+use cao_xr::space::{world_from_tex, Fov, Placement, Pose, View};
 use cao_xr::volume::transfer::TransferFunction;
 
 use glam::{Quat, Vec3};

@@ -1,0 +1,118 @@
+//! `cao-xr xr`: the headset front end. The runtime creates the Vulkan device, each frame the
+//! session locates the eyes and hands, the one frame loop renders both eyes and copies them into
+//! the swapchain in the same command buffer, and the session submits the views it rendered.
+
+use super::frame_loop::FrameLoop;
+use super::mirror::Mirror;
+use super::session::{gpu_banner, gpu_options, record_error, recorder, Recorder, SessionSpec};
+use crate::input::{InteractionSettings, StreamHeader, RIGHT};
+use crate::xr::session::{XrRuntime, XrSession};
+use crate::xr::{Result, XrError, XrOptions, XrSummary};
+
+/// Runs a headset session until the runtime ends it (or `frames` were submitted).
+pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
+    let runtime = XrRuntime::open()?;
+    let gpu = runtime.create_gpu(&gpu_options(opts.validation, opts.mirror))?;
+    eprintln!("xr: GPU {}", gpu_banner(&gpu));
+    // The session's objects are locals of this block: leaving it drops them in reverse order
+    // (the mirror, the frame loop, then the session), all before the device they use, and the
+    // validation messages of their teardown are read after.
+    let (result, summary, recorder) = {
+        let mut xs = XrSession::new(&runtime, &gpu, &opts)?;
+        let extent = xs.extent();
+        let mut fl = spec.frame_loop(&gpu, extent, InteractionSettings::default(), false)?;
+        if let Some(c) = opts.volume_at {
+            fl.scene.volume.center = c;
+        }
+        let mut mirror = opts.mirror.then(|| Mirror::new(&gpu, extent)).transpose()?;
+        let description = format!("cao-xr xr of {} on {}", spec.volume.name, runtime.name);
+        let mut recorder = recorder(
+            opts.record.as_deref(),
+            &StreamHeader::new("xr", description),
+        )?;
+        let result = frames(&mut xs, &mut fl, &mut mirror, &mut recorder, &opts);
+        unsafe {
+            let _ = gpu.device.device_wait_idle();
+        }
+        (result, std::mem::take(&mut xs.summary), recorder)
+    };
+    let messages = gpu.validation_messages();
+    let xr_messages = runtime.messages();
+    result?;
+    if let Some(r) = recorder {
+        r.finish().map_err(|e| XrError::from(record_error(e)))?;
+    }
+    if !xr_messages.is_empty() {
+        return Err(XrError::Runtime(format!(
+            "{} OpenXR validation messages (first: {})",
+            xr_messages.len(),
+            xr_messages[0]
+        )));
+    }
+    if !messages.is_empty() {
+        return Err(XrError::Runtime(format!(
+            "{} Vulkan validation messages (first: {})",
+            messages.len(),
+            messages[0]
+        )));
+    }
+    Ok(summary)
+}
+
+/// The frames of a running session, until the runtime ends it.
+fn frames(
+    xs: &mut XrSession,
+    fl: &mut FrameLoop,
+    mirror: &mut Option<Mirror>,
+    recorder: &mut Option<Recorder>,
+    opts: &XrOptions,
+) -> Result<()> {
+    let mut prev_clipped = 0u64;
+    while xs.poll_events()? {
+        if !xs.running() {
+            std::thread::sleep(std::time::Duration::from_millis(10));
+            continue;
+        }
+        let done = opts.frames.is_some_and(|n| xs.summary.frames >= n);
+        if done {
+            xs.request_exit()?;
+        }
+        let Some(frame) = xs.begin_frame(done, opts.carve)? else {
+            continue;
+        };
+        if let Some(r) = recorder {
+            r.write_frame(&frame.input).map_err(record_error)?;
+        }
+        // One command buffer per frame: the swapchain images are acquired and waited first,
+        // the eyes are copied into them at the end of the frame's own command buffer, and they
+        // are released once that submission finished, even if it failed.
+        let images = xs.acquire()?;
+        let d = fl.gpu.device.clone();
+        let stats = fl.render_with(&frame.input, |cmd, src| unsafe {
+            images.record_copy(&d, cmd, src)
+        });
+        xs.release()?;
+        let stats = stats?;
+        if stats.metrics.clipped > 0 && prev_clipped == 0 {
+            xs.pulse(RIGHT)?;
+            eprintln!(
+                "xr: haptic pulse: the tool touched tissue at frame {}",
+                xs.summary.frames
+            );
+        }
+        prev_clipped = stats.metrics.clipped;
+        xs.end_frame(&frame)?;
+        // The mirror shows the same finished frame, after the headset has it.
+        if let Some(m) = mirror {
+            m.show(fl.target())?;
+            if !m.open() {
+                eprintln!("xr: mirror window closed; the session goes on");
+                *mirror = None;
+            }
+        }
+        if xs.summary.frames % 100 == 0 {
+            eprintln!("xr: {} frames submitted", xs.summary.frames);
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,141 @@
+//! `cao-xr xr --mirror`: a desktop window showing the left eye of the frames the headset loop
+//! rendered, through the desktop window's presenter.
+
+use super::{AppError, Result};
+use crate::gpu::present::Presenter;
+use crate::gpu::Gpu;
+use crate::render::StereoTarget;
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::WindowEvent;
+use winit::event_loop::{ActiveEventLoop, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+/// A desktop window that shows the left eye of frames another loop rendered (`cao-xr xr
+/// --mirror`). That loop is not a winit event loop, so the window's events are pumped once per
+/// frame ([`Mirror::show`]); closing the window ends the mirror, not the session.
+pub struct Mirror {
+    event_loop: EventLoop<()>,
+    state: MirrorWindow,
+}
+
+struct MirrorWindow {
+    gpu: Gpu,
+    size: (u32, u32),
+    // The presenter (surface, swapchain) goes before its window.
+    presenter: Option<Presenter>,
+    window: Option<Window>,
+    closed: bool,
+    error: Option<AppError>,
+}
+
+impl Mirror {
+    /// Connects to the display; the window opens on the first [`Mirror::show`]. `gpu` must have
+    /// been created with [`crate::gpu::GpuOptions::present`].
+    pub fn new(gpu: &Gpu, size: (u32, u32)) -> Result<Mirror> {
+        let event_loop = EventLoop::new().map_err(|e| {
+            AppError::Usage(format!(
+                "--mirror cannot open the display: {e} (is DISPLAY set?)"
+            ))
+        })?;
+        Ok(Mirror {
+            event_loop,
+            state: MirrorWindow {
+                gpu: gpu.clone(),
+                size,
+                presenter: None,
+                window: None,
+                closed: false,
+                error: None,
+            },
+        })
+    }
+
+    /// Whether the window is still open (or yet to open).
+    pub fn open(&self) -> bool {
+        !self.state.closed
+    }
+
+    /// Handles the window's pending events, then shows the left eye of `target` (a finished
+    /// frame: colour in TRANSFER_SRC_OPTIMAL).
+    pub fn show(&mut self, target: &StereoTarget) -> Result<()> {
+        use winit::platform::pump_events::{EventLoopExtPumpEvents, PumpStatus};
+        if self.state.closed {
+            return Ok(());
+        }
+        let status = self
+            .event_loop
+            .pump_app_events(Some(std::time::Duration::ZERO), &mut self.state);
+        if let Some(e) = self.state.error.take() {
+            return Err(e);
+        }
+        if matches!(status, PumpStatus::Exit(_)) {
+            self.state.close();
+        }
+        if let Some(p) = &mut self.state.presenter {
+            unsafe {
+                p.present(
+                    target.color.raw,
+                    (target.width, target.height),
+                    false,
+                    false,
+                )?
+            };
+        }
+        Ok(())
+    }
+}
+
+impl MirrorWindow {
+    fn close(&mut self) {
+        self.closed = true;
+        self.presenter = None;
+        self.window = None;
+    }
+}
+
+impl ApplicationHandler for MirrorWindow {
+    fn resumed(&mut self, el: &ActiveEventLoop) {
+        if self.window.is_some() || self.closed {
+            return;
+        }
+        let attrs = Window::default_attributes()
+            .with_title("cao-xr mirror (left eye)")
+            .with_inner_size(PhysicalSize::new(self.size.0, self.size.1));
+        let window = match el.create_window(attrs) {
+            Ok(w) => w,
+            Err(e) => {
+                self.error = Some(AppError::Usage(format!("cannot open a window: {e}")));
+                return;
+            }
+        };
+        match unsafe { Presenter::new(&self.gpu, &window) } {
+            Ok(p) => self.presenter = Some(p),
+            Err(e) => {
+                self.error = Some(e.into());
+                return;
+            }
+        }
+        self.window = Some(window);
+    }
+
+    fn window_event(&mut self, _: &ActiveEventLoop, _: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => self.close(),
+            WindowEvent::KeyboardInput { event, .. }
+                if event.physical_key == PhysicalKey::Code(KeyCode::Escape) =>
+            {
+                self.close()
+            }
+            WindowEvent::Resized(size) => {
+                if let Some(p) = &mut self.presenter {
+                    if let Err(e) = unsafe { p.recreate(size.width, size.height) } {
+                        self.error = Some(e.into());
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+}

@@ -1,0 +1,97 @@
+//! What every front end (the desktop window, the headset, replay and the one-frame render) sets
+//! up the same way: the GPU from the command line's options and its banner, the frame loop with
+//! its transfer-function cycle and lighting, and the pose-stream recorder.
+
+use super::frame_loop::FrameLoop;
+use super::lighting::LightingOptions;
+use super::tf_switch::tf_cycle;
+use super::{AppError, Result};
+use crate::ao::LaoParams;
+use crate::gpu::{Gpu, GpuOptions};
+use crate::input::{InteractionSettings, PoseStreamWriter, StreamHeader};
+use crate::volume::transfer::TransferFunction;
+use crate::volume::Volume;
+use std::path::Path;
+use std::sync::Arc;
+
+/// GPU options from the command line: `--validation` turns the Khronos layer on (it is also on
+/// in debug builds and with CAO_XR_VALIDATION=1); `present` for a window or a mirror.
+pub fn gpu_options(validation: bool, present: bool) -> GpuOptions {
+    let mut opts = GpuOptions::default();
+    opts.validation |= validation;
+    opts.present = present;
+    opts
+}
+
+/// "llvmpipe (LLVM 15.0.6, 256 bits) (validation on)": the device, and whether validation is on.
+pub fn gpu_banner(gpu: &Gpu) -> String {
+    let validation = if gpu.validation_enabled() {
+        " (validation on)"
+    } else {
+        ""
+    };
+    format!("{}{validation}", gpu.device_name)
+}
+
+/// Starts Vulkan as the command line says and prints the banner on stderr.
+pub fn start_gpu(validation: bool, present: bool) -> Result<Gpu> {
+    let gpu = Gpu::new(&gpu_options(validation, present))?;
+    eprintln!("GPU: {}", gpu_banner(&gpu));
+    Ok(gpu)
+}
+
+/// What a session shows: the volume, the TF it starts with (the menu cycles through the
+/// presets after it), the AO parameters and the lighting.
+pub struct SessionSpec {
+    pub volume: Arc<Volume>,
+    pub tf: TransferFunction,
+    pub params: LaoParams,
+    pub lighting: LightingOptions,
+}
+
+impl SessionSpec {
+    /// The frame loop for `size` pixels per eye: V_PAO (and V_PSH with SH lighting) precomputed,
+    /// the menu cycling through [`tf_cycle`], lit as asked.
+    pub fn frame_loop(
+        &self,
+        gpu: &Gpu,
+        size: (u32, u32),
+        interaction: InteractionSettings,
+        show_progress: bool,
+    ) -> Result<FrameLoop> {
+        let tfs = tf_cycle(&self.tf, &self.volume);
+        let mut fl = FrameLoop::new(
+            gpu,
+            Arc::clone(&self.volume),
+            tfs,
+            self.params,
+            size,
+            interaction,
+            show_progress,
+        )?;
+        fl.set_lighting(&self.lighting, show_progress)?;
+        Ok(fl)
+    }
+}
+
+/// A session's input as it is being recorded.
+pub type Recorder = PoseStreamWriter<std::io::BufWriter<std::fs::File>>;
+
+/// A recorder writing to `path` when one is asked for.
+pub fn recorder(path: Option<&Path>, header: &StreamHeader) -> Result<Option<Recorder>> {
+    path.map(|p| {
+        PoseStreamWriter::create(p, header).map_err(|e| AppError::Output {
+            path: p.display().to_string(),
+            msg: e.to_string(),
+        })
+    })
+    .transpose()
+}
+
+/// The error of a failed write to the recording.
+pub fn record_error(e: impl std::fmt::Display) -> AppError {
+    AppError::Output {
+        path: "record".into(),
+        msg: e.to_string(),
+    }
+}

@@ -1,0 +1,308 @@
+//! The transfer-function switch (the menu button, `scene.tf_index`): progressive, so the frame
+//! rate holds. O' and its skipping data are classified on a worker thread, then each frame
+//! records one slab of V_PAO' (bounded by a budget of opacity samples) ahead of its CAO passes
+//! while the frame still shows the old TF and AO; with SH lighting, slabs of V_PSH' follow. The
+//! frame after the last slab switches the LUT, the CAO state and the SH volume over at once.
+
+use super::lighting::ShLighting;
+use super::{AppError, Result};
+use crate::ao::cao::Cao;
+use crate::ao::lao::{SkipBuffers, SkipData};
+use crate::ao::progressive::{HostTask, SlabScheduler};
+use crate::ao::sh::ShVolume;
+use crate::ao::LaoGpu;
+use crate::gpu::{Buffer, Gpu, GpuTimer};
+use crate::render::VolumeTextures;
+use crate::volume::transfer::{presets_for_volume, TransferFunction};
+use crate::volume::Volume;
+use ash::vk;
+use std::sync::Arc;
+
+/// How far a transfer-function switch has come: V_PAO' (and V_PSH', half each) of `name` is
+/// `fraction` done (0 while the host still classifies). Shown as "TF ct-skin 40%".
+#[derive(Clone, Debug, PartialEq)]
+pub struct TfProgress {
+    pub name: String,
+    pub fraction: f32,
+}
+
+impl std::fmt::Display for TfProgress {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "TF {} {:.0}%", self.name, 100.0 * self.fraction)
+    }
+}
+
+/// The transfer functions the menu cycles through: `first` (the one asked for), then the
+/// presets suited to the volume ([`presets_for_volume`]: CT or MR), each once.
+pub fn tf_cycle(first: &TransferFunction, vol: &Volume) -> Vec<TransferFunction> {
+    let mut tfs = vec![first.clone()];
+    for tf in presets_for_volume(vol)
+        .into_iter()
+        .filter_map(TransferFunction::preset)
+    {
+        if !tfs.iter().any(|t| t.name == tf.name) {
+            tfs.push(tf);
+        }
+    }
+    tfs
+}
+
+/// Default V_PAO' budget per frame, in opacity samples (K*M per voxel): a few ms on a GPU; on a
+/// CPU device (lavapipe, ~20 M samples/s) about a tenth of a second.
+pub fn default_tf_samples_per_frame(gpu: &Gpu) -> f64 {
+    if gpu.is_cpu() {
+        2e6
+    } else {
+        2e8
+    }
+}
+
+/// A switch in flight.
+struct Switch {
+    /// Index into [`TfSwitcher::tfs`] of the TF being computed.
+    index: usize,
+    stage: Stage,
+}
+
+// At most one exists per loop: its size does not matter.
+#[allow(clippy::large_enum_variant)]
+enum Stage {
+    /// O' and its skipping data, on a worker thread.
+    Classifying(HostTask<(Vec<f32>, SkipData)>),
+    /// One slab of V_PAO' per frame, then (with SH lighting) one slab of V_PSH'.
+    Computing {
+        opacity: Buffer,
+        skip: SkipBuffers,
+        pao: Buffer,
+        slabs: SlabScheduler,
+        sh: Option<(ShVolume, SlabScheduler)>,
+    },
+}
+
+impl Switch {
+    fn fraction(&self) -> f32 {
+        match &self.stage {
+            Stage::Classifying(_) => 0.0,
+            Stage::Computing {
+                slabs, sh: None, ..
+            } => slabs.fraction(),
+            Stage::Computing {
+                slabs,
+                sh: Some((_, sh_slabs)),
+                ..
+            } => 0.5 * (slabs.fraction() + sh_slabs.fraction()),
+        }
+    }
+}
+
+/// The transfer functions a frame loop can show, the one it shows, and the switch in flight.
+pub struct TfSwitcher {
+    gpu: Gpu,
+    tfs: Vec<TransferFunction>,
+    shown: usize,
+    switch: Option<Switch>,
+    lao: LaoGpu,
+    lao_dirs: Buffer,
+    timer: GpuTimer,
+}
+
+impl TfSwitcher {
+    /// `lao_dirs` holds the directions of the CAO state's LAO parameters (V_PAO' uses them).
+    pub fn new(
+        gpu: &Gpu,
+        tfs: Vec<TransferFunction>,
+        lao: LaoGpu,
+        lao_dirs: Buffer,
+    ) -> Result<Self> {
+        Ok(TfSwitcher {
+            gpu: gpu.clone(),
+            tfs,
+            shown: 0,
+            switch: None,
+            lao,
+            lao_dirs,
+            timer: GpuTimer::new(gpu, 2)?,
+        })
+    }
+
+    pub fn all(&self) -> &[TransferFunction] {
+        &self.tfs
+    }
+
+    /// The transfer function whose colours and AO the frames show.
+    pub fn shown(&self) -> &TransferFunction {
+        &self.tfs[self.shown]
+    }
+
+    /// The switch in flight, if any.
+    pub fn progress(&self) -> Option<TfProgress> {
+        self.switch.as_ref().map(|sw| TfProgress {
+            name: self.tfs[sw.index].name.clone(),
+            fraction: sw.fraction(),
+        })
+    }
+
+    /// Follows `want` (the scene's TF index): starts, restarts or drops a switch, hands finished
+    /// host work to the GPU, and switches `cao`, `tex` and `lighting` over once every slab has
+    /// executed. Runs before the frame is recorded, after the previous frame's wait, so no
+    /// submitted work uses what it drops.
+    pub fn advance(
+        &mut self,
+        want: usize,
+        vol: &Arc<Volume>,
+        budget: f64,
+        cao: &mut Cao,
+        tex: &mut VolumeTextures,
+        lighting: Option<&mut ShLighting>,
+    ) -> Result<()> {
+        let want = want % self.tfs.len();
+        let target = self.switch.as_ref().map_or(self.shown, |s| s.index);
+        if want != target {
+            // Dropping the switch in flight frees O', V_PAO' and skip': safe, because every
+            // frame waits for its command buffer, so none of them is in use any more; an
+            // unfinished classification thread is detached and its result discarded.
+            self.switch = None;
+            if want != self.shown {
+                self.switch = Some(self.start(want, vol, cao)?);
+            }
+        }
+        let Some(sw) = self.switch.as_mut() else {
+            return Ok(());
+        };
+        if let Stage::Classifying(task) = &mut sw.stage {
+            let Some(done) = task.poll() else {
+                return Ok(());
+            };
+            let name = &self.tfs[sw.index].name;
+            let (opacity, skip) = done.map_err(|msg| {
+                AppError::Usage(format!(
+                    "{}: classifying with transfer function '{name}' failed: {msg}",
+                    vol.name
+                ))
+            })?;
+            let sh = match &lighting {
+                Some(l) => {
+                    let v = ShVolume::new(&self.gpu, vol, l.volume.params)?;
+                    let slabs =
+                        SlabScheduler::with_budget(v.grid.dims[2], v.samples_per_slice(), budget);
+                    Some((v, slabs))
+                }
+                None => None,
+            };
+            sw.stage = Stage::Computing {
+                sh,
+                opacity: Buffer::device_local(
+                    &self.gpu,
+                    &opacity,
+                    vk::BufferUsageFlags::STORAGE_BUFFER,
+                    "opacity",
+                )?,
+                skip: self.lao.upload_skip(&skip)?,
+                pao: self.lao.output_buffer(vol.dims)?,
+                slabs: SlabScheduler::with_budget(
+                    vol.dims[2],
+                    LaoGpu::samples_per_slice(vol.dims, &cao.params),
+                    budget,
+                ),
+            };
+        }
+        let finished = matches!(&sw.stage, Stage::Computing { slabs, sh, .. }
+            if slabs.is_finished() && sh.as_ref().is_none_or(|s| s.1.is_finished()));
+        if finished {
+            let sw = self.switch.take().expect("checked above");
+            let Stage::Computing {
+                opacity,
+                skip,
+                pao,
+                sh,
+                ..
+            } = sw.stage
+            else {
+                unreachable!("finished implies computing")
+            };
+            tex.set_transfer_function(&self.tfs[sw.index])?;
+            cao.replace_precomputed(opacity, pao, skip)?;
+            if let (Some((mut v, _)), Some(l)) = (sh, lighting) {
+                self.gpu.submit_and_wait(|cmd| v.record_publish(cmd))?;
+                l.volume = v;
+            }
+            self.shown = sw.index;
+        }
+        Ok(())
+    }
+
+    fn start(&self, index: usize, vol: &Arc<Volume>, cao: &Cao) -> Result<Switch> {
+        let vol = Arc::clone(vol);
+        let tf = self.tfs[index].clone();
+        let params = cao.params;
+        let name = vol.name.clone();
+        let task = HostTask::spawn("cao-xr-classify", move || {
+            let opacity = tf.opacity_volume(&vol);
+            let skip = SkipData::new(&opacity, vol.dims, vol.spacing, &params);
+            (opacity, skip)
+        })
+        .map_err(|e| {
+            AppError::Usage(format!(
+                "{name}: cannot start a thread to classify with transfer function '{}': {e}",
+                self.tfs[index].name
+            ))
+        })?;
+        Ok(Switch {
+            index,
+            stage: Stage::Classifying(task),
+        })
+    }
+
+    /// Records this frame's slab of V_PAO' (or, once those are done, of V_PSH'). It writes only
+    /// buffers of its own, which no other pass of the frame reads, so it needs no barrier.
+    /// Returns whether a slab was recorded (then [`TfSwitcher::read_ms`] has its time).
+    pub fn record_slab(&mut self, cmd: vk::CommandBuffer, vol: &Volume, cao: &Cao) -> bool {
+        let Some(Switch {
+            stage:
+                Stage::Computing {
+                    opacity,
+                    skip,
+                    pao,
+                    slabs,
+                    sh,
+                },
+            ..
+        }) = self.switch.as_mut()
+        else {
+            return false;
+        };
+        if let Some(z) = slabs.next_slab() {
+            self.timer.begin(cmd);
+            let lao = &self.lao;
+            lao.record_slab(
+                cmd,
+                opacity,
+                &self.lao_dirs,
+                skip,
+                pao,
+                vol.dims,
+                &cao.params,
+                z,
+            );
+            self.timer.mark(cmd, "tf-slab");
+            return true;
+        }
+        if let Some((v, sh_slabs)) = sh.as_mut() {
+            if sh_slabs.done() == 0 {
+                v.record_pyramid(cmd, opacity);
+            }
+            if let Some(z) = sh_slabs.next_slab() {
+                self.timer.begin(cmd);
+                v.record_precompute_slab(cmd, z);
+                self.timer.mark(cmd, "tf-slab");
+                return true;
+            }
+        }
+        false
+    }
+
+    /// GPU ms of the slab recorded in the frame just waited for.
+    pub fn read_ms(&self) -> Result<f64> {
+        Ok(self.timer.read()?.first().map_or(0.0, |t| t.1))
+    }
+}
