@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Runs one `cao-xr xr` session against Monado inside the trixie root (scripts/xr-root.sh), with
 # no display: monado-service with the null compositor and two simulated controllers, lavapipe
-# for Vulkan, the Khronos Vulkan validation layer and the OpenXR core validation layer on.
+# for Vulkan, the Khronos Vulkan validation layer (unless CAO_XR_VALIDATION=0 is passed in) and the
+# OpenXR core validation layer on.
 #
 #   scripts/xr-session.sh ROOT CAO_XR_BINARY OUTDIR [cao-xr xr arguments...]
 #
@@ -42,7 +43,7 @@ fi
 echo "xr-session: monado-service is up" >&2
 XR_ENABLE_API_LAYERS=XR_APILAYER_LUNARG_core_validation \
 XR_CORE_VALIDATION_EXPORT_TYPE=text XR_CORE_VALIDATION_FILE_NAME="$W/xr-validation.txt" \
-CAO_XR_VALIDATION=1 CAO_XR_BINDINGS="$W/bindings" \
+CAO_XR_VALIDATION="${CAO_XR_VALIDATION:-1}" CAO_XR_BINDINGS="$W/bindings" \
   timeout "${CAO_XR_SESSION_TIMEOUT:-300}" "$W/cao-xr" xr "$@"
 rc=$?
 stop

@@ -25,8 +25,7 @@ layout(push_constant) uniform Push {
     int reach;
 } pc;
 
-const float EMPTY_IN = 1e30;
-const float EMPTY_OUT = -1e30;
+#include "constants.glsl"
 
 void main() {
     ivec2 p = ivec2(gl_GlobalInvocationID.xy);

@@ -10,8 +10,7 @@ layout(std430, set = 0, binding = 1) writeonly buffer Clip { vec4 clip[]; };
 
 layout(push_constant) uniform Push { int res; } pc;
 
-const float EMPTY_IN = 1e30;
-const float EMPTY_OUT = -1e30;
+#include "constants.glsl"
 
 void main() {
     ivec2 p = ivec2(gl_GlobalInvocationID.xy);

@@ -29,8 +29,7 @@ layout(push_constant) uniform Push {
 #define CLIP_TOOL_COUNT pc.box_min.w
 #include "clip.glsl"
 
-const float T_MIN = 1.0 / 1024.0;
-const float Y0 = 0.28209479177387814;
+#include "constants.glsl"
 
 float cell(int level, ivec3 q) {
     ivec4 l = levels[level];
@@ -72,7 +71,7 @@ float visibility(vec3 x, vec3 dir) {
         float pad = float(1 << int(pc.march.z));
         if (any(lessThan(p, vec3(-pad))) || any(greaterThan(p, pc.extent.xyz + pad))) break;
         trans *= 1.0 - sample_level(level, p);
-        if (trans < T_MIN) break;
+        if (trans < SH_T_MIN) break;
     }
     return trans;
 }

@@ -10,9 +10,10 @@ float transmittance(float o) {
     return pow(1.0 - o, pc.exponent);
 }
 
-// Bricks of 4^3 voxels (BRICK in src/ao/lao.rs); brick_occupied[b] = 0 means the brick and one voxel beyond its upper
-// faces hold only O = 0, so a sample whose footprint starts there has O = 0 and transmittance 1.
-const int BRICK_SHIFT = 2;
+// Bricks of 2^BRICK_SHIFT voxels per axis (constants.glsl); brick_occupied[b] = 0 means the brick
+// and one voxel beyond its upper faces hold only O = 0, so a sample whose footprint starts there
+// has O = 0 and transmittance 1.
+#include "constants.glsl"
 
 bool footprint_empty(vec3 p, ivec3 bricks) {
     ivec3 q = ivec3(floor(p - 0.5));

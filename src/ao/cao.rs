@@ -66,6 +66,8 @@ pub struct ClipToolGpu {
     /// The SH dilation map's extent, texels per unit and resolution (see [`Cao::sh_radius_mm`]).
     pub sh_map: [f32; 4],
 }
+crate::gpu::glsl_layout!(ClipToolGpu, 176,
+    local_from_index: 0, local_from_world: 64, map: 128, offsets: 144, sh_map: 160);
 
 /// A voxel box [min, max).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -117,6 +119,7 @@ struct BoxPush {
     box_min: [i32; 4],
     box_max: [i32; 4],
 }
+crate::gpu::glsl_layout!(BoxPush, 48, dims: 0, box_min: 16, box_max: 32);
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -129,6 +132,8 @@ struct UpdatePush {
     box_min: [i32; 4],
     box_max: [i32; 4],
 }
+crate::gpu::glsl_layout!(UpdatePush, 64,
+    dims: 0, rays: 16, steps: 20, exponent: 24, naive: 28, box_min: 32, box_max: 48);
 
 /// The volume's CAO state on the GPU and the passes that update it every frame.
 pub struct Cao {

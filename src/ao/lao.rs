@@ -127,8 +127,7 @@ pub fn clear_mask(opacity: &[f32], dims: [usize; 3], h: [usize; 3]) -> Vec<u32> 
         .collect()
 }
 
-/// Edge of the occupancy bricks, in voxels (shaders/include/lao.glsl has the same constant).
-pub const BRICK: usize = 4;
+pub use crate::shader_constants::BRICK;
 
 /// One word per BRICK^3 brick (x fastest): 1 when any voxel in the brick or one voxel beyond its
 /// upper faces has O > 0. A sample whose trilinear footprint starts in an unoccupied brick reads
@@ -164,6 +163,7 @@ struct Push {
     z0: u32,
     z1: u32,
 }
+crate::gpu::glsl_layout!(Push, 36, dims: 0, rays: 16, steps: 20, exponent: 24, z0: 28, z1: 32);
 
 /// Exact empty-space skipping data for one opacity volume and LAO setting.
 pub struct SkipBuffers {

@@ -32,8 +32,9 @@ use gpu_allocator::MemoryLocation;
 use rayon::prelude::*;
 
 pub use crate::light::sh::Y0;
+use crate::rng::SplitMix64;
 /// Marches stop once the transmittance falls below this.
-pub const T_MIN: f64 = 1.0 / 1024.0;
+pub use crate::shader_constants::SH_T_MIN as T_MIN;
 
 /// How the SH visibility volume is computed.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -186,18 +187,6 @@ impl ShGrid {
     }
 }
 
-/// SplitMix64: a tiny deterministic generator for the direction patterns.
-struct SplitMix(u64);
-impl SplitMix {
-    fn next(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
-
 /// M patterns of N unit directions (mm frame), pattern-major: the upper half of a spherical
 /// Fibonacci set of N points with each direction jittered within its stratum (z in its band of
 /// height 2/N, the azimuth by about one point spacing), then the antipodes of those points; each
@@ -205,17 +194,17 @@ impl SplitMix {
 pub fn patterns(p: &ShParams) -> Vec<DVec3> {
     let n = p.directions as usize;
     let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
-    let mut rng = SplitMix(p.seed);
+    let mut rng = SplitMix64(p.seed);
     let mut out = Vec::with_capacity(n * p.patterns as usize);
     for _ in 0..p.patterns {
-        let spin = rng.next() * std::f64::consts::TAU;
+        let spin = rng.unit() * std::f64::consts::TAU;
         let start = out.len();
         for j in 0..n.div_ceil(2) {
-            let z = 1.0 - 2.0 * (j as f64 + rng.next()) / n as f64;
+            let z = 1.0 - 2.0 * (j as f64 + rng.unit()) / n as f64;
             let r = (1.0 - z * z).max(0.0).sqrt();
             // Azimuthal jitter of about one point spacing (sqrt(4 pi / N) on the sphere).
             let spread = ((4.0 * std::f64::consts::PI / n as f64).sqrt() / r.max(1e-3)).min(1.0);
-            let phi = spin + golden * j as f64 + spread * (rng.next() - 0.5);
+            let phi = spin + golden * j as f64 + spread * (rng.unit() - 0.5);
             out.push(DVec3::new(r * phi.cos(), r * phi.sin(), z));
         }
         // The other half antipodal: the odd bands of a constant visibility cancel exactly.
@@ -396,6 +385,7 @@ struct PyramidPush {
     exponent: f32,
     level0: u32,
 }
+crate::gpu::glsl_layout!(PyramidPush, 40, src_dims: 0, dst_dims: 16, exponent: 32, level0: 36);
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -407,6 +397,8 @@ struct ShPush {
     march: [u32; 4],
     extent: [f32; 4],
 }
+crate::gpu::glsl_layout!(ShPush, 96,
+    dims: 0, box_min: 16, box_max: 32, scale: 48, march: 64, extent: 80);
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Pass {

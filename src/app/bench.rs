@@ -131,6 +131,13 @@ pub fn sweep_tools(vol: &Volume, radius_mm: f32, frames: usize) -> Vec<Vec<crate
         .collect()
 }
 
+/// The frames of a sweep of `frames` on which the naive recompute is timed: `naive` of them (at
+/// most all), spread evenly, each once.
+pub fn naive_timed_frames(frames: usize, naive: usize) -> Vec<usize> {
+    let n = naive.clamp(1, frames.max(1));
+    (0..n).map(|j| (2 * j + 1) * frames / (2 * n)).collect()
+}
+
 /// Mean GPU ms per frame of CAO and of the naive full recompute over a sphere sweep, medians of
 /// `runs` runs, both measured in the same run. With `verify`, every naive frame is compared with
 /// the CAO frame bit for bit; the first difference is an error naming the frame and voxel.
@@ -168,6 +175,7 @@ pub fn bench_cao(
             let mut naive = ao.duplicate()?.into_cao(gpu, vol, params)?;
             let mut cao = ao.into_cao(gpu, vol, params)?;
             let sweep = sweep_tools(vol, 25.0, frames);
+            let timed = naive_timed_frames(frames, naive_frames);
             let (mut c_runs, mut n_runs, mut pct) = (Vec::new(), Vec::new(), 0.0);
             for _ in 0..runs.max(1) {
                 let (mut c_ms, mut n_ms) = (0.0, 0.0);
@@ -175,9 +183,9 @@ pub fn bench_cao(
                     let m = cao.run_frame(tools, &placement, Mode::Contextual)?;
                     c_ms += m.gpu_ms();
                     pct += m.percent_recomputed();
-                    // Naive frames spread evenly over the sweep when only a few are timed.
-                    let stride = frames.div_ceil(naive_frames.max(1)).max(1);
-                    if f % stride == stride / 2 || naive_frames == frames {
+                    // Naive frames spread evenly over the sweep when only a few are timed (each
+                    // is a full recompute, independent of the frames before it).
+                    if timed.contains(&f) {
                         n_ms += naive.run_frame(tools, &placement, Mode::Naive)?.gpu_ms();
                         if verify {
                             let (a, b) = (cao.ao.read_back()?, naive.ao.read_back()?);
@@ -202,14 +210,14 @@ pub fn bench_cao(
                     }
                 }
                 c_runs.push(c_ms / frames as f64);
-                n_runs.push(n_ms / naive_frames.min(frames).max(1) as f64);
+                n_runs.push(n_ms / timed.len() as f64);
             }
             let row = CaoBenchRow {
                 volume: vol.name.clone(),
                 dims: vol.dims,
                 rays: k,
                 frames,
-                naive_frames,
+                naive_frames: timed.len(),
                 naive_ms: median(&mut n_runs),
                 cao_ms: median(&mut c_runs),
                 percent_recomputed: pct / (frames * runs.max(1)) as f64,
@@ -219,8 +227,8 @@ pub fn bench_cao(
                 row.volume,
                 format!("{}x{}x{}", row.dims[0], row.dims[1], row.dims[2]),
                 row.rays,
-                if naive_frames < frames {
-                    format!("{frames}/{naive_frames}")
+                if timed.len() < frames {
+                    format!("{frames}/{}", timed.len())
                 } else {
                     frames.to_string()
                 },
@@ -356,4 +364,23 @@ pub fn bench_sh(
         }
     }
     Ok(rows)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_naive_recompute_is_timed_on_as_many_distinct_frames_as_it_is_divided_by() {
+        for frames in 1..40 {
+            for naive in 1..=frames + 2 {
+                let t = naive_timed_frames(frames, naive);
+                assert_eq!(t.len(), naive.min(frames), "{frames} frames, {naive} naive");
+                assert!(t.windows(2).all(|w| w[0] < w[1]), "{frames}/{naive}: {t:?}");
+                assert!(t.iter().all(|&f| f < frames), "{frames}/{naive}: {t:?}");
+            }
+        }
+        // The case that timed one frame and divided by two.
+        assert_eq!(naive_timed_frames(3, 2), vec![0, 2]);
+    }
 }

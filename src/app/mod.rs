@@ -491,7 +491,6 @@ fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
 
 /// `cao-xr ao`: the AO volume as float32 NRRD, its JSON sidecar, optionally the opacity volume.
 /// With `cpu`, the CPU reference computes it instead of the GPU.
-#[allow(clippy::too_many_arguments)]
 pub fn write_ao(
     gpu: Option<&Gpu>,
     vol: &Volume,

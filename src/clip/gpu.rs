@@ -106,6 +106,7 @@ struct PeelPush {
     /// 0: front peel, 1: farthest crossing.
     mode: u32,
 }
+crate::gpu::glsl_layout!(PeelPush, 24, shift: 0, inv_extent: 8, z_lo: 12, z_scale: 16, mode: 20);
 
 /// Push constants of clip_pair.comp (res only) and clip_dilate.comp.
 #[repr(C)]
@@ -114,6 +115,7 @@ struct GridPush {
     res: i32,
     reach: i32,
 }
+crate::gpu::glsl_layout!(GridPush, 8, res: 0, reach: 4);
 
 /// Builds clip maps on the GPU: pipelines made once, images and buffers per map (a map is built
 /// once per shape and radius, and cached by CAO).

@@ -54,9 +54,7 @@ impl Shape {
     }
 }
 
-/// Depth of an empty interval: `EMPTY_IN > z > EMPTY_OUT` holds for no z.
-pub const EMPTY_IN: f32 = 1e30;
-pub const EMPTY_OUT: f32 = -1e30;
+pub use crate::shader_constants::{EMPTY_IN, EMPTY_OUT};
 /// Default clip-map resolution (texels per side).
 pub const DEFAULT_RESOLUTION: usize = 128;
 

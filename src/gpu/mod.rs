@@ -35,6 +35,23 @@ pub enum GpuError {
 
 pub type Result<T> = std::result::Result<T, GpuError>;
 
+/// Fails the build unless a `#[repr(C)]` struct that a shader reads has the size and field
+/// offsets of its GLSL block (std140 for uniform blocks, std430 for push constants and storage
+/// buffers), written next to the struct from the GLSL declaration:
+/// `glsl_layout!(Push, 36, dims: 0, rays: 16, steps: 20);`
+macro_rules! glsl_layout {
+    ($t:ty, $size:expr, $($field:ident: $offset:expr),+ $(,)?) => {
+        const _: () = {
+            assert!(std::mem::size_of::<$t>() == $size, "size differs from the GLSL block");
+            $(assert!(
+                std::mem::offset_of!($t, $field) == $offset,
+                concat!("offset of ", stringify!($field), " differs from the GLSL block")
+            );)+
+        };
+    };
+}
+pub(crate) use glsl_layout;
+
 /// How to create the context.
 #[derive(Clone, Debug)]
 pub struct GpuOptions {

@@ -47,14 +47,16 @@ impl Buffer {
                     return Err(e.into());
                 }
             };
-            gpu.device
-                .bind_buffer_memory(raw, alloc.memory(), alloc.offset())?;
-            Ok(Buffer {
+            let (memory, offset) = (alloc.memory(), alloc.offset());
+            // Owned from here on: if binding fails, Drop frees the memory and the handle.
+            let buffer = Buffer {
                 gpu: gpu.clone(),
                 raw,
                 size,
                 alloc: Some(alloc),
-            })
+            };
+            gpu.device.bind_buffer_memory(raw, memory, offset)?;
+            Ok(buffer)
         }
     }
 
@@ -232,9 +234,19 @@ impl Image {
                     return Err(e.into());
                 }
             };
-            gpu.device
-                .bind_image_memory(raw, alloc.memory(), alloc.offset())?;
-            let view = gpu.device.create_image_view(
+            let (memory, offset) = (alloc.memory(), alloc.offset());
+            // Owned from here on: if binding or a view fails, Drop frees what exists (destroying
+            // a null view is a no-op in Vulkan).
+            let mut image = Image {
+                gpu: gpu.clone(),
+                raw,
+                view: vk::ImageView::null(),
+                layer_views: Vec::new(),
+                desc: desc.clone(),
+                alloc: Some(alloc),
+            };
+            gpu.device.bind_image_memory(raw, memory, offset)?;
+            image.view = gpu.device.create_image_view(
                 &vk::ImageViewCreateInfo::default()
                     .image(raw)
                     .view_type(desc.view_type)
@@ -242,11 +254,10 @@ impl Image {
                     .subresource_range(Self::range_of(&desc)),
                 None,
             )?;
-            let mut layer_views = Vec::new();
             if desc.layers > 1 {
                 for layer in 0..desc.layers {
                     let range = Self::range_of(&desc).base_array_layer(layer).layer_count(1);
-                    layer_views.push(
+                    image.layer_views.push(
                         gpu.device.create_image_view(
                             &vk::ImageViewCreateInfo::default()
                                 .image(raw)
@@ -258,14 +269,7 @@ impl Image {
                     );
                 }
             }
-            Ok(Image {
-                gpu: gpu.clone(),
-                raw,
-                view,
-                layer_views,
-                desc,
-                alloc: Some(alloc),
-            })
+            Ok(image)
         }
     }
 

@@ -19,12 +19,10 @@
 //! The wire format is private serde structs mapped to and from [`FrameInput`], so the in-memory
 //! type stays free of wire details and the wire stays compact (short keys, arrays for vectors).
 //!
-//! Numbers are written in their shortest round-tripping form (serde_json uses ryu), so writing
-//! and reading give back the identical `FrameInput`. `t` is re-parsed from its text with Rust's
-//! correctly rounded parser because serde_json, without its `float_roundtrip` feature, is often
-//! one ulp off for 17-digit f64s (even `t = 1/90`). f32s (at most 9 digits) go through
-//! serde_json exactly: 20 million random f32 bit patterns were checked once, and a test keeps
-//! checking a sample.
+//! Numbers are written in their shortest round-tripping form (serde_json uses ryu) and read back
+//! with serde_json's correctly rounded parser (its `float_roundtrip` feature; without it a
+//! 17-digit f64 such as `t = 1/90` is often one ulp off), so writing and reading give back the
+//! identical `FrameInput`; a test checks random f64 times and f32 bit patterns.
 //!
 //! The writer refuses what the reader would refuse, so a recording can always be replayed.
 
@@ -250,6 +248,32 @@ struct WireFrame {
     hands: [WireHand; 2],
 }
 
+/// An f32 on the wire: written in its shortest round-tripping form, read through a correctly
+/// rounded f64, so that a finite JSON number too large for an f32 reads as infinity and is
+/// refused by name ([`check_frame`]) rather than as bad JSON.
+#[derive(Clone, Copy)]
+struct F32(f32);
+
+impl Serialize for F32 {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_f32(self.0)
+    }
+}
+
+impl<'de> Deserialize<'de> for F32 {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        f64::deserialize(d).map(|v| F32(v as f32))
+    }
+}
+
+fn wire<const N: usize>(a: [f32; N]) -> [F32; N] {
+    a.map(F32)
+}
+
+fn unwire<const N: usize>(a: [F32; N]) -> [f32; N] {
+    a.map(|x| x.0)
+}
+
 #[derive(Serialize, Deserialize)]
 #[serde(
     deny_unknown_fields,
@@ -258,7 +282,7 @@ struct WireFrame {
 struct WireView {
     pose: WirePose,
     /// [angle_left, angle_right, angle_up, angle_down], radians.
-    fov: [f32; 4],
+    fov: [F32; 4],
 }
 
 #[derive(Serialize, Deserialize)]
@@ -267,9 +291,9 @@ struct WireView {
     expecting = "a pose {\"p\":[x,y,z],\"q\":[x,y,z,w]}"
 )]
 struct WirePose {
-    p: [f32; 3],
+    p: [F32; 3],
     /// [x, y, z, w], as glam and OpenXR store it.
-    q: [f32; 4],
+    q: [F32; 4],
 }
 
 #[derive(Serialize, Deserialize)]
@@ -281,19 +305,19 @@ struct WireHand {
     tracked: bool,
     grip: WirePose,
     aim: WirePose,
-    grip_value: f32,
-    trigger: f32,
+    grip_value: F32,
+    trigger: F32,
     primary: bool,
     secondary: bool,
     menu: bool,
-    stick: [f32; 2],
+    stick: [F32; 2],
 }
 
 impl From<&Pose> for WirePose {
     fn from(p: &Pose) -> Self {
         WirePose {
-            p: p.position.to_array(),
-            q: p.orientation.to_array(),
+            p: wire(p.position.to_array()),
+            q: wire(p.orientation.to_array()),
         }
     }
 }
@@ -301,8 +325,8 @@ impl From<&Pose> for WirePose {
 impl From<&WirePose> for Pose {
     fn from(w: &WirePose) -> Self {
         Pose {
-            position: Vec3::from_array(w.p),
-            orientation: Quat::from_array(w.q),
+            position: Vec3::from_array(unwire(w.p)),
+            orientation: Quat::from_array(unwire(w.q)),
         }
     }
 }
@@ -313,23 +337,23 @@ impl From<&FrameInput> for WireFrame {
             t: f.time,
             views: f.views.each_ref().map(|v| WireView {
                 pose: (&v.pose).into(),
-                fov: [
+                fov: wire([
                     v.fov.angle_left,
                     v.fov.angle_right,
                     v.fov.angle_up,
                     v.fov.angle_down,
-                ],
+                ]),
             }),
             hands: f.hands.each_ref().map(|h| WireHand {
                 tracked: h.tracked,
                 grip: (&h.grip).into(),
                 aim: (&h.aim).into(),
-                grip_value: h.buttons.grip,
-                trigger: h.buttons.trigger,
+                grip_value: F32(h.buttons.grip),
+                trigger: F32(h.buttons.trigger),
                 primary: h.buttons.primary,
                 secondary: h.buttons.secondary,
                 menu: h.buttons.menu,
-                stick: h.buttons.thumbstick.to_array(),
+                stick: wire(h.buttons.thumbstick.to_array()),
             }),
         }
     }
@@ -341,11 +365,14 @@ impl From<&WireFrame> for FrameInput {
             time: w.t,
             views: w.views.each_ref().map(|v| View {
                 pose: (&v.pose).into(),
-                fov: Fov {
-                    angle_left: v.fov[0],
-                    angle_right: v.fov[1],
-                    angle_up: v.fov[2],
-                    angle_down: v.fov[3],
+                fov: {
+                    let [angle_left, angle_right, angle_up, angle_down] = unwire(v.fov);
+                    Fov {
+                        angle_left,
+                        angle_right,
+                        angle_up,
+                        angle_down,
+                    }
                 },
             }),
             hands: w.hands.each_ref().map(|h| HandInput {
@@ -353,12 +380,12 @@ impl From<&WireFrame> for FrameInput {
                 grip: (&h.grip).into(),
                 aim: (&h.aim).into(),
                 buttons: Buttons {
-                    grip: h.grip_value,
-                    trigger: h.trigger,
+                    grip: h.grip_value.0,
+                    trigger: h.trigger.0,
                     primary: h.primary,
                     secondary: h.secondary,
                     menu: h.menu,
-                    thumbstick: Vec2::from_array(h.stick),
+                    thumbstick: Vec2::from_array(unwire(h.stick)),
                 },
             }),
         }
@@ -761,11 +788,7 @@ fn parse_frame(
     previous: Option<f64>,
 ) -> Result<FrameInput, LineError> {
     let wire: WireFrame = serde_json::from_str(text).map_err(|e| json_error(&e, terminated))?;
-    let mut frame = FrameInput::from(&wire);
-    if let Some(t) = top_level_number(text, "t").and_then(|s| s.parse::<f64>().ok()) {
-        frame.time = t;
-    }
-    check_frame(frame, previous)
+    check_frame(FrameInput::from(&wire), previous)
 }
 
 /// serde_json's message without its position (always "line 1" here, which would contradict
@@ -784,51 +807,6 @@ fn json_error(e: &serde_json::Error, terminated: bool) -> LineError {
         Category::Data => LineError::Schema(msg),
         _ => LineError::Syntax(msg),
     }
-}
-
-/// The text of the number that is the value of the top-level member `key` of the JSON object
-/// `json` (which serde has already accepted), so that it can be parsed exactly. None if it is
-/// not found as plain text (e.g. a key written with escapes); the caller then keeps serde's
-/// value.
-fn top_level_number<'a>(json: &'a str, key: &str) -> Option<&'a str> {
-    let b = json.as_bytes();
-    let mut depth = 0usize;
-    let mut expect_key = false;
-    let mut i = 0;
-    while i < b.len() {
-        match b[i] {
-            b'"' => {
-                let start = i + 1;
-                i += 1;
-                while i < b.len() && b[i] != b'"' {
-                    if b[i] == b'\\' {
-                        i += 1;
-                    }
-                    i += 1;
-                }
-                if depth == 1 && expect_key {
-                    expect_key = false;
-                    if json.get(start..i)? == key {
-                        let rest = json.get(i + 1..)?.trim_start();
-                        let rest = rest.strip_prefix(':')?.trim_start();
-                        let len = rest
-                            .find(|c: char| !matches!(c, '0'..='9' | '-' | '+' | '.' | 'e' | 'E'))
-                            .unwrap_or(rest.len());
-                        return (len > 0).then(|| &rest[..len]);
-                    }
-                }
-            }
-            b'{' | b'[' => {
-                depth += 1;
-                expect_key = depth == 1 && b[i] == b'{';
-            }
-            b'}' | b']' => depth = depth.saturating_sub(1),
-            b',' if depth == 1 => expect_key = true,
-            _ => {}
-        }
-        i += 1;
-    }
-    None
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -868,8 +846,8 @@ pub fn replay_schedule(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::input::script::SplitMix64;
     use crate::input::{LEFT, RIGHT};
+    use crate::rng::SplitMix64;
     use crate::space::{symmetric_fov, DEFAULT_IPD};
     use std::io::Cursor;
     use std::sync::atomic::{AtomicUsize, Ordering};
@@ -1011,14 +989,6 @@ mod tests {
             let back = parse_frame(&frame_line(&f), true, None).unwrap();
             assert_eq!(back.time.to_bits(), t.to_bits(), "{t:e}");
         }
-    }
-
-    #[test]
-    fn top_level_number_finds_t_only_at_the_top() {
-        let j = r#"{ "views" : [{"t": 5}], "x":"\"t\"", "t" :  1.25e-3 , "hands":[]}"#;
-        assert_eq!(top_level_number(j, "t"), Some("1.25e-3"));
-        assert_eq!(top_level_number(r#"{"a":{"t":1}}"#, "t"), None);
-        assert_eq!(top_level_number(r#"{"t":"#, "t"), None);
     }
 
     #[test]

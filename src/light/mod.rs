@@ -51,7 +51,7 @@ impl LightError {
 /// Random unit vectors for the tests, from the project's fixed SplitMix64.
 #[cfg(test)]
 pub(crate) mod test_rng {
-    use crate::input::script::SplitMix64;
+    use crate::rng::SplitMix64;
     use glam::DVec3;
     use std::f64::consts::PI;
 

@@ -26,9 +26,7 @@ use glam::{DVec3, Vec3};
 /// Number of coefficients of bands 0..3.
 pub const COEFFS_MAX: usize = 16;
 
-/// Y_0 = 1 / (2 sqrt(pi)) = 1 / sqrt(4 pi): the constant band, and the bound of every visibility
-/// coefficient.
-pub const Y0: f64 = 0.282_094_791_773_878_14;
+pub use crate::shader_constants::Y0;
 
 // Normalisation constants (Sloan's appendix), named after the GLSL twin.
 const C1: f64 = 0.488_602_511_902_919_9; // sqrt(3 / 4pi)

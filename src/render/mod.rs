@@ -398,6 +398,9 @@ struct FrameUniforms {
     lighting: [f32; 4],
     sh_light: [[f32; 4]; 16],
 }
+crate::gpu::glsl_layout!(FrameUniforms, 656,
+    inv_view_proj: 0, view_proj: 128, tex_from_world: 256, extent_mm: 320, value_map: 336,
+    background: 352, viewport: 368, lighting: 384, sh_light: 400);
 
 pub struct Renderer {
     gpu: Gpu,

@@ -232,6 +232,7 @@ struct ItemPush {
     color: [f32; 4],
     eye_local: [f32; 4],
 }
+crate::gpu::glsl_layout!(ItemPush, 96, mvp: 0, color: 64, eye_local: 80);
 
 /// Draws [`OverlayItem`]s into a [`StereoTarget`] the volume was just rendered into.
 pub struct OverlayRenderer {

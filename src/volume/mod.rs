@@ -462,7 +462,7 @@ impl WideType {
 /// float32 (f64 values are rounded to the nearest f32). NaN and infinite values are refused
 /// with the voxel's (i, j, k) and value; so are finite values beyond the float32 range. The one
 /// conversion every loader of wide, float or scaled data (NIfTI, MetaImage, NRRD, DICOM) uses.
-#[allow(dead_code)] // for the DICOM loader; the others call it through `read_wide`
+// Used by the DICOM loader; the other loaders call it through `read_wide`.
 pub(crate) fn voxels_from_values(
     path: &Path,
     dims: [usize; 3],

@@ -59,11 +59,17 @@ fn window_session_replays_into_the_images_it_showed() {
             "--dump",
             shown.to_str().unwrap(),
         ])
-        .env("CAO_XR_VALIDATION", "1")
+        // Validation off by the environment, on by the flag: `--validation` must win.
+        .arg("--validation")
+        .env("CAO_XR_VALIDATION", "0")
         .output()
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "cao-xr view failed:\n{err}");
+    assert!(
+        err.contains("(validation on)"),
+        "--validation ignored by view:\n{err}"
+    );
     assert!(
         !err.contains("vulkan validation") && !err.contains("panicked"),
         "{err}"

@@ -1,0 +1,16 @@
+//! Constants that Rust and the shaders share, written once here. build.rs includes this file and
+//! writes each one into the generated GLSL include `constants.glsl`; the Rust modules re-export
+//! them where they belong. Plain `const` items only: build.rs compiles this file on its own.
+
+/// Bricks of 2^BRICK_SHIFT voxels per axis for LAO's exact empty-space skipping.
+pub const BRICK_SHIFT: u32 = 2;
+/// Edge of the occupancy bricks, in voxels.
+pub const BRICK: usize = 1 << BRICK_SHIFT;
+/// Depth of an empty clip-map interval: `EMPTY_IN > z > EMPTY_OUT` holds for no z.
+pub const EMPTY_IN: f32 = 1e30;
+pub const EMPTY_OUT: f32 = -1e30;
+/// SH visibility marches stop once the transmittance falls below this.
+pub const SH_T_MIN: f64 = 1.0 / 1024.0;
+/// Y_0 = 1 / (2 sqrt(pi)) = 1 / sqrt(4 pi): the constant SH band, and the bound of every
+/// visibility coefficient.
+pub const Y0: f64 = 0.282_094_791_773_878_14;
