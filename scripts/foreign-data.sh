@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Fetches volumes that nobody on this project wrote, for tests/foreign.rs, into DIR (default
+# Fetches volumes that nobody on this project wrote, for tests/integration/foreign.rs, into DIR (default
 # $CAO_XR_FOREIGN_DATA, else ~/.cache/cao-xr/foreign): nibabel's NIfTI test files (Debian's
 # python3-nibabel, unpacked only: it is not installed), the Colin27 MRI template that mricron
 # ships (mricron-data) and ITK's example volumes (insighttoolkit5-examples). Downloaded from

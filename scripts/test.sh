@@ -5,7 +5,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # The desktop-window test runs under Xvfb; the DICOM tests write their series with dcmtk and
-# read the real sample files pydicom ships; tests/foreign.rs checks volumes nobody here wrote
+# read the real sample files pydicom ships; tests/integration/foreign.rs checks volumes nobody here wrote
 # against niftilib (nifti-bin), dcm2niix and teem (teem-apps).
 CAO_XR_EXTRA_PACKAGES="xvfb xauth dcmtk python3-pydicom nifti-bin dcm2niix teem-apps" source scripts/setup.sh
 export CAO_XR_REQUIRE_XVFB=1
@@ -21,8 +21,8 @@ if [ "${CAO_XR_TEST_DEVICE:-lavapipe}" = "lavapipe" ]; then
   export VK_DRIVER_FILES="$LVP_ICD"
 fi
 export CAO_XR_VALIDATION=1
-# The OpenXR test (tests/xr.rs) runs against Monado in a Debian trixie root, built once and
+# The OpenXR test (tests/integration/xr.rs) runs against Monado in a Debian trixie root, built once and
 # cached (scripts/xr-root.sh); without it that test fails with the reason rather than skipping.
-scripts/xr-root.sh >/dev/null || echo "test.sh: the Monado test root could not be built; tests/xr.rs will fail" >&2
+scripts/xr-root.sh >/dev/null || echo "test.sh: the Monado test root could not be built; tests/integration/xr.rs will fail" >&2
 export CAO_XR_REQUIRE_XR=1
 cargo test "$@"

@@ -5,9 +5,10 @@
 use super::frame_loop::FrameLoop;
 use super::mirror::Mirror;
 use super::session::{gpu_banner, gpu_options, record_error, recorder, Recorder, SessionSpec};
+use super::Result;
 use crate::input::{InteractionSettings, StreamHeader, RIGHT};
 use crate::xr::session::{XrRuntime, XrSession};
-use crate::xr::{Result, XrError, XrOptions, XrSummary};
+use crate::xr::{XrError, XrOptions, XrSummary};
 
 /// Runs a headset session until the runtime ends it (or `frames` were submitted).
 pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
@@ -40,21 +41,23 @@ pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
     let xr_messages = runtime.messages();
     result?;
     if let Some(r) = recorder {
-        r.finish().map_err(|e| XrError::from(record_error(e)))?;
+        r.finish().map_err(record_error)?;
     }
     if !xr_messages.is_empty() {
         return Err(XrError::Runtime(format!(
             "{} OpenXR validation messages (first: {})",
             xr_messages.len(),
             xr_messages[0]
-        )));
+        ))
+        .into());
     }
     if !messages.is_empty() {
         return Err(XrError::Runtime(format!(
             "{} Vulkan validation messages (first: {})",
             messages.len(),
             messages[0]
-        )));
+        ))
+        .into());
     }
     Ok(summary)
 }

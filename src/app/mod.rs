@@ -52,10 +52,7 @@ pub enum AppError {
 
 impl From<crate::xr::XrError> for AppError {
     fn from(e: crate::xr::XrError) -> Self {
-        match e {
-            crate::xr::XrError::App(e) => e,
-            e => AppError::Xr(Box::new(e)),
-        }
+        AppError::Xr(Box::new(e))
     }
 }
 

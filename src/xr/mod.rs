@@ -21,7 +21,6 @@ pub mod vulkan;
 
 pub use session::{StateMachine, Step, XrRuntime, XrSession};
 
-use crate::app::AppError;
 use crate::gpu::GpuError;
 use glam::Vec3;
 use openxr as xr;
@@ -35,8 +34,6 @@ pub enum XrError {
     NoRuntime(String),
     #[error("OpenXR call failed: {0}")]
     Xr(#[from] xr::sys::Result),
-    #[error(transparent)]
-    App(#[from] AppError),
     #[error(transparent)]
     Gpu(#[from] GpuError),
     #[error(transparent)]
