@@ -15,6 +15,8 @@ layout(set = 0, binding = 6) uniform sampler3D sh0;
 layout(set = 0, binding = 7) uniform sampler3D sh1;
 layout(set = 0, binding = 8) uniform sampler3D sh2;
 layout(set = 0, binding = 9) uniform sampler3D sh3;
+// var_s of variance opacity modulation (data units squared); read when lighting.w = 1/V_max > 0.
+layout(set = 0, binding = 10) uniform sampler3D variance;
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 4
@@ -95,6 +97,8 @@ void main() {
             // Shadow-test clipping: the same maps the AO update used.
             if (frame.viewport.z > 0.0 && clipped_world(a_w + t * (b_w - a_w))) continue;
             vec4 c = classify(p);
+            // Variance opacity modulation: homogeneous tissue fades, boundaries stay.
+            if (frame.lighting.w > 0.0) c.a *= min(texture(variance, p).r * frame.lighting.w, 1.0);
             if (c.a > 0.0) {
                 float a = 1.0 - pow(1.0 - min(c.a, 0.9999), step_mm);
                 float occl = frame.background.a > 0.5 ? texture(ambient, p).r : 1.0;

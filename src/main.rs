@@ -1,8 +1,9 @@
 //! The cao-xr command line. Every subcommand is a thin call into the library.
 
 use anyhow::{bail, Context, Result};
+use cao_xr::ao::filtered::{FilterInput, FilterParams, VarianceModulation};
 use cao_xr::ao::sh::ShParams;
-use cao_xr::ao::LaoParams;
+use cao_xr::ao::{AoConfig, AoMethod, LaoParams};
 use cao_xr::app;
 use cao_xr::app::lighting::{LightingMode, LightingOptions};
 use cao_xr::app::session::SessionSpec;
@@ -398,6 +399,21 @@ struct LaoArgs {
     /// Step length D in mm.
     #[arg(long, default_value_t = LaoParams::default().step_mm)]
     step_mm: f32,
+    /// The AO method: lao, or volumetric AO by separable filtering (Ruiz et al.) with the
+    /// filter-cdf (t^beta), filter-gauss, filter-penner or filter-exact (brute force) estimator.
+    #[arg(long, default_value = "lao")]
+    ao: String,
+    /// The filters' radius R in mm (the tangent box's half-size).
+    #[arg(long, default_value_t = FilterParams::default().radius_mm)]
+    filter_radius_mm: f64,
+    /// What the filters filter: opacity (the TF's, clipped) or scalar (the normalised value).
+    #[arg(long, default_value = "opacity", value_parser = ["opacity", "scalar"])]
+    filter_input: String,
+    /// Variance opacity modulation (with any AO method): each sample's opacity times
+    /// min(var/V, 1), var the data's variance over the centred box of --filter-radius-mm, V in
+    /// the data's units squared (HU^2 for CT); homogeneous tissue fades. Off by default.
+    #[arg(long, value_name = "V")]
+    variance_max: Option<f64>,
 }
 
 impl LaoArgs {
@@ -407,6 +423,34 @@ impl LaoArgs {
             steps: self.steps,
             step_mm: self.step_mm,
         }
+    }
+
+    fn variance(&self) -> Result<Option<VarianceModulation>> {
+        match self.variance_max {
+            Some(v) if !(v.is_finite() && v > 0.0) => {
+                bail!("--variance-max must be a positive number (data units squared), got {v}")
+            }
+            Some(max) => Ok(Some(VarianceModulation {
+                radius_mm: self.filter_radius_mm,
+                max,
+            })),
+            None => Ok(None),
+        }
+    }
+
+    fn config(&self) -> Result<AoConfig> {
+        let filter = FilterParams {
+            radius_mm: self.filter_radius_mm,
+            input: match self.filter_input.as_str() {
+                "scalar" => FilterInput::Scalar,
+                _ => FilterInput::Opacity,
+            },
+            ..Default::default()
+        };
+        Ok(AoConfig {
+            method: AoMethod::parse(&self.ao, filter).map_err(anyhow::Error::msg)?,
+            lao: self.params(),
+        })
     }
 }
 
@@ -481,8 +525,9 @@ fn session_spec(vol: &VolumeArgs, lao: &LaoArgs, light: &LightArgs) -> Result<Se
     Ok(SessionSpec {
         volume: Arc::new(v),
         tf,
-        params: lao.params(),
+        ao: lao.config()?,
         lighting: light.options(),
+        variance: lao.variance()?,
     })
 }
 
@@ -581,7 +626,7 @@ fn run(cli: Cli) -> Result<()> {
                 gpu.as_ref(),
                 &v,
                 &tf,
-                &lao.params(),
+                &lao.config()?,
                 &out,
                 opacity_out.as_deref(),
             )?;

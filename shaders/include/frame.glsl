@@ -7,6 +7,7 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     vec4 value_map;          // lut coordinate = value * y + x; z: ambient k, w: diffuse weight
     vec4 background;         // rgb background, a: 1 = modulate by AO
     vec4 viewport;           // xy: width, height in pixels; z: number of clipping tools
-    vec4 lighting;           // x: SH light weight (0: off), y: SH coefficients, z: 1 = times AO
+    vec4 lighting;           // x: SH light weight (0: off), y: SH coefficients, z: 1 = times AO,
+                             // w: 1 / V_max of variance opacity modulation (0: off)
     vec4 sh_light[16];       // rgb: Y_0 * L_k per colour channel (the environment in data space)
 } frame;

@@ -7,6 +7,7 @@
 //! the tools, not the volume. The result equals the naive full recompute ([`Mode::Naive`]) bit
 //! for bit: both use the same kernels on the same clipped opacity.
 
+use super::filter_gpu::{FilterGpu, FilterMode};
 use super::lao::{index_steps, LaoParams, SkipBuffers};
 use crate::clip::Shape;
 use crate::clip::{shape_mesh, ClipMap, ClipMapGpu, TriMesh};
@@ -173,6 +174,9 @@ pub struct Cao {
     /// Tools uploaded for the last recorded frame.
     pub tool_count: u32,
     timer: GpuTimer,
+    /// The AO method when it is not LAO: the filters recompute the category-b voxels (and the
+    /// reach is theirs); V_PAO then holds their openness of the unclipped volume.
+    filter: Option<FilterGpu>,
 }
 
 impl Cao {
@@ -271,6 +275,7 @@ impl Cao {
             sh_boxes: Vec::new(),
             tool_count: 0,
             timer: GpuTimer::new(gpu, 8)?,
+            filter: None,
         };
         // Start unclipped: O_c = O, V_AO = V_PAO everywhere.
         let all = cao.whole();
@@ -311,12 +316,39 @@ impl Cao {
         }
     }
 
-    /// The dilation radius in mm: the farthest LAO sample, the trilinear footprint around it and
-    /// the anti-aliasing spread around the clipped voxel (a voxel diagonal each), plus 1 %.
+    /// Makes the filters the AO method: `pao` must hold their openness of the unclipped O.
+    pub fn use_filter(&mut self, filter: FilterGpu) {
+        self.filter = Some(filter);
+    }
+
+    /// The AO method's name, as `--ao` spells it (lao, filter-gauss, ...).
+    pub fn method_name(&self) -> String {
+        match &self.filter {
+            Some(f) => super::AoMethod::Filter(f.params).name(),
+            None => super::AoMethod::Lao.name(),
+        }
+    }
+
+    /// The filters, when they are the AO method.
+    pub fn filter(&self) -> Option<&FilterGpu> {
+        self.filter.as_ref()
+    }
+
+    /// The AO method's reach in mm: for LAO the farthest sample, (M - 1) D; for the filters the
+    /// farthest box member.
+    pub fn reach_mm(&self) -> f64 {
+        match &self.filter {
+            Some(f) => f.params.reach_mm(self.spacing),
+            None => self.params.steps.saturating_sub(1) as f64 * self.params.step_mm as f64,
+        }
+    }
+
+    /// The dilation radius in mm: the method's reach, the trilinear footprint around its
+    /// farthest sample and the anti-aliasing spread around the clipped voxel (a voxel diagonal
+    /// each), plus 1 %.
     pub fn dilation_radius_mm(&self) -> f64 {
         let diag = 3f64.sqrt() * self.max_spacing_mm;
-        (self.params.steps.saturating_sub(1) as f64 * self.params.step_mm as f64 + 2.0 * diag)
-            * 1.01
+        (self.reach_mm() + 2.0 * diag) * 1.01
     }
 
     /// The cached map of `tool`, built now if missing: with the GPU builder when `on_gpu`, else
@@ -561,7 +593,22 @@ impl Cao {
         }
         self.gpu.barrier(cmd);
         self.timer.mark(cmd, "clip");
-        for b in &boxes {
+        if let Some(f) = &self.filter {
+            let fmode = match mode {
+                Mode::Contextual => FilterMode::Contextual,
+                Mode::Naive => FilterMode::Naive,
+            };
+            f.record(
+                cmd,
+                &self.clipped,
+                &self.ao,
+                &self.mask,
+                &self.pao,
+                &boxes,
+                fmode,
+            );
+        }
+        for b in boxes.iter().filter(|_| self.filter.is_none()) {
             let push = UpdatePush {
                 dims: self.dims4(),
                 rays: self.params.rays,

@@ -146,8 +146,9 @@ impl App {
                 None => String::new(),
             };
             w.set_title(&format!(
-                "cao-xr | {:.1} fps | AO {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}",
+                "cao-xr | {:.1} fps | AO {} {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}",
                 self.fps,
+                self.fl.cao.method_name(),
                 m.gpu_ms(),
                 m.percent_recomputed(),
                 if carving { "on" } else { "off" },

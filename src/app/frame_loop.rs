@@ -11,9 +11,10 @@
 
 use super::lighting::{LightingOptions, ShLighting};
 use super::tf_switch::{default_tf_samples_per_frame, TfProgress, TfSwitcher};
-use super::{precompute_ao, AppError, Result};
+use super::{precompute, AppError, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
-use crate::ao::{LaoGpu, LaoParams};
+use crate::ao::filtered::{variance_volume, FilterInput, VarianceModulation};
+use crate::ao::{AoConfig, LaoGpu};
 use crate::gpu::{Gpu, GpuTimer};
 use crate::input::{FrameInput, Interaction, InteractionSettings};
 use crate::render::{scene_overlay, OverlayRenderer};
@@ -88,17 +89,19 @@ impl FrameLoop {
         gpu: &Gpu,
         vol: Arc<Volume>,
         tfs: Vec<TransferFunction>,
-        params: LaoParams,
+        ao: impl Into<AoConfig>,
         size: (u32, u32),
         mut interaction: InteractionSettings,
         show_progress: bool,
     ) -> Result<FrameLoop> {
+        let ao: AoConfig = ao.into();
+        let params = ao.lao;
         let tf = tfs.first().ok_or_else(|| {
             AppError::Usage(format!("{}: no transfer function to show", vol.name))
         })?;
         interaction.tf_presets = tfs.len();
         let lao = LaoGpu::new(gpu)?;
-        let ao = precompute_ao(gpu, &lao, &vol, tf, &params, show_progress)?;
+        let ao = precompute(gpu, &lao, &vol, tf, &ao, show_progress)?;
         let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
         Ok(FrameLoop {
             gpu: gpu.clone(),
@@ -127,6 +130,17 @@ impl FrameLoop {
         self.lighting = None;
         self.cao.sh_radius_mm = None;
         if opts.uses_sh() {
+            if self
+                .cao
+                .filter()
+                .is_some_and(|f| f.params.input == FilterInput::Scalar)
+            {
+                return Err(AppError::Usage(
+                    "SH lighting marches the opacity; with --filter-input scalar the AO volumes \
+                     hold the scalar instead: use --filter-input opacity, or --lighting ao"
+                        .into(),
+                ));
+            }
             self.lighting = Some(ShLighting::new(
                 &self.gpu,
                 &self.volume,
@@ -135,6 +149,15 @@ impl FrameLoop {
                 show_progress,
             )?);
         }
+        Ok(())
+    }
+
+    /// Variance opacity modulation: var_s of the volume's data over the centred box of
+    /// `m.radius_mm`, and the ray caster's V_max; None turns it off.
+    pub fn set_variance(&mut self, m: Option<VarianceModulation>) -> Result<()> {
+        let var = m.map(|m| variance_volume(&self.volume, m.radius_mm));
+        self.tex.set_variance(&self.gpu, var.as_deref())?;
+        self.settings.variance_max = m.map_or(0.0, |m| m.max as f32);
         Ok(())
     }
 

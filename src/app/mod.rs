@@ -12,8 +12,9 @@ pub mod session;
 pub mod tf_switch;
 
 use crate::ao::cao::{Cao, FrameMetrics};
+use crate::ao::filter_gpu::FilterGpu;
 use crate::ao::lao::{directions, LaoTiming, SkipBuffers};
-use crate::ao::{LaoGpu, LaoParams};
+use crate::ao::{filtered, AoConfig, AoMethod, LaoGpu, LaoParams};
 use crate::gpu::{Buffer, Gpu, GpuError};
 use crate::input::{FrameInput, InteractionSettings};
 use crate::render::png_out::PngError;
@@ -165,16 +166,19 @@ pub fn dicom_listing(spec: Option<&str>) -> Result<Option<(String, bool)>> {
     Ok(Some((head, chosen)))
 }
 
-/// A volume's classification and LAO, resident on the GPU.
+/// A volume's classification and precomputed AO, resident on the GPU.
 pub struct AoVolume {
-    /// O of docs/design.md, on the host.
+    /// O of docs/design.md, on the host (for the filters: the density they filter, O or the
+    /// normalised scalar).
     pub opacity: Vec<f32>,
     pub opacity_buf: Buffer,
-    /// V_PAO: LAO of the unclipped volume (f32, x fastest).
+    /// V_PAO: the AO method's openness of the unclipped volume (f32, x fastest).
     pub ao_buf: Buffer,
     /// Exact empty-space skipping data of O (valid for every clipped O too).
     pub skip: SkipBuffers,
     pub timing: LaoTiming,
+    /// The filters, when they are the method (they go to the CAO state with the volumes).
+    pub filter: Option<FilterGpu>,
 }
 
 impl AoVolume {
@@ -190,19 +194,17 @@ impl AoVolume {
                 bricks: self.skip.bricks.duplicate(usage, "lao-bricks")?,
             },
             timing: self.timing.clone(),
+            filter: self.filter.as_ref().map(FilterGpu::duplicate).transpose()?,
         })
     }
 
     /// Hands O, V_PAO and the skipping data to a CAO state for per-frame clipping.
     pub fn into_cao(self, gpu: &Gpu, vol: &Volume, params: LaoParams) -> Result<Cao> {
-        Ok(Cao::new(
-            gpu,
-            vol,
-            self.opacity_buf,
-            self.ao_buf,
-            self.skip,
-            params,
-        )?)
+        let mut cao = Cao::new(gpu, vol, self.opacity_buf, self.ao_buf, self.skip, params)?;
+        if let Some(f) = self.filter {
+            cao.use_filter(f);
+        }
+        Ok(cao)
     }
 }
 
@@ -261,6 +263,49 @@ pub fn precompute_ao(
         ao_buf,
         skip,
         timing,
+        filter: None,
+    })
+}
+
+/// Classifies the volume and precomputes V_PAO with the configured AO method: LAO (with a
+/// progress bar when asked), or the filters over the density they filter (one fast pass).
+pub fn precompute(
+    gpu: &Gpu,
+    lao: &LaoGpu,
+    vol: &Volume,
+    tf: &TransferFunction,
+    ao: &AoConfig,
+    show_progress: bool,
+) -> Result<AoVolume> {
+    let AoMethod::Filter(fp) = ao.method else {
+        return precompute_ao(gpu, lao, vol, tf, &ao.lao, show_progress);
+    };
+    ao.lao.validate().map_err(AppError::Usage)?;
+    fp.validate().map_err(AppError::Usage)?;
+    crate::render::check_volume_fits_gpu(gpu, vol)?;
+    let density = filtered::density(fp.input, &tf.opacity_volume(vol), vol);
+    let opacity_buf = Buffer::device_local(
+        gpu,
+        &density,
+        vk::BufferUsageFlags::STORAGE_BUFFER,
+        "opacity",
+    )?;
+    let skip = lao.skip_buffers(&density, vol.dims, vol.spacing, &ao.lao)?;
+    let filter = FilterGpu::new(gpu, vol.dims, vol.spacing, fp)?;
+    let t0 = std::time::Instant::now();
+    let (ao_buf, gpu_ms) = filter.compute(&opacity_buf)?;
+    let timing = LaoTiming {
+        gpu_ms,
+        wall_ms: t0.elapsed().as_secs_f64() * 1e3,
+        ..Default::default()
+    };
+    Ok(AoVolume {
+        opacity: density,
+        opacity_buf,
+        ao_buf,
+        skip,
+        timing,
+        filter: Some(filter),
     })
 }
 
@@ -321,13 +366,14 @@ pub fn render_to_dir(
         gpu,
         Arc::clone(vol),
         vec![spec.tf.clone()],
-        spec.params,
+        spec.ao,
         size,
         InteractionSettings::default(),
         true,
     )?;
     fl.settings = *settings;
     fl.set_lighting(&spec.lighting, true)?;
+    fl.set_variance(spec.variance)?;
     fl.show_overlay = false;
     fl.scene.tools = tools.to_vec();
     let views = default_stereo_views(vol, &fl.scene.volume, DEFAULT_IPD);
@@ -458,7 +504,25 @@ pub fn parse_tool(spec: &str, placement: &Placement) -> Result<Tool> {
 }
 
 /// The JSON sidecar of an AO volume: everything an outside checker needs to recompute it.
-pub fn ao_sidecar(vol: &Volume, tf: &TransferFunction, params: &LaoParams) -> serde_json::Value {
+pub fn ao_sidecar(vol: &Volume, tf: &TransferFunction, ao: &AoConfig) -> serde_json::Value {
+    let params = &ao.lao;
+    if let AoMethod::Filter(f) = &ao.method {
+        return serde_json::json!({
+            "volume": vol.name,
+            "method": "filter",
+            "estimator": f.estimator.name(),
+            "radius_mm": f.radius_mm,
+            "half_widths": f.half_widths(vol.spacing),
+            "input": f.input.name(),
+            "dims": vol.dims,
+            "spacing_mm": vol.spacing,
+            "transfer_function": tf,
+            "value_range": [vol.value_range().0, vol.value_range().1],
+            "definition": "docs/design.md, Filtered AO: the density d (the written opacity file) \
+        over the tangent box B(c), h_a = max(1, round(R/s_a)), c = v + round(-R n_a/s_a) clamped, \
+        out-of-grid members d = 0",
+        });
+    }
     let dirs: Vec<[f64; 3]> = directions(params.rays)
         .iter()
         .map(|d| d.to_array())
@@ -486,20 +550,22 @@ fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
     })
 }
 
-/// `cao-xr ao`: the AO volume as float32 NRRD, its JSON sidecar, optionally the opacity volume.
-/// With `cpu`, the CPU reference computes it instead of the GPU.
+/// `cao-xr ao`: the AO volume as float32 NRRD, its JSON sidecar, optionally the opacity volume
+/// (for the filters: the density they filtered). With `cpu`, the CPU reference computes it
+/// instead of the GPU.
 pub fn write_ao(
     gpu: Option<&Gpu>,
     vol: &Volume,
     tf: &TransferFunction,
-    params: &LaoParams,
+    config: &AoConfig,
     out: &Path,
     opacity_out: Option<&Path>,
 ) -> Result<LaoTiming> {
+    let params = &config.lao;
     let (ao, opacity, timing) = match gpu {
         Some(gpu) => {
             let lao = LaoGpu::new(gpu)?;
-            let r = precompute_ao(gpu, &lao, vol, tf, params, true)?;
+            let r = precompute(gpu, &lao, vol, tf, config, true)?;
             let bytes = r.ao_buf.read_back()?;
             (
                 bytemuck::cast_slice::<u8, f32>(&bytes).to_vec(),
@@ -511,7 +577,17 @@ pub fn write_ao(
             params.validate().map_err(AppError::Usage)?;
             let opacity = tf.opacity_volume(vol);
             let t0 = std::time::Instant::now();
-            let ao = crate::ao::cpu::lao(&opacity, vol.dims, vol.spacing, params);
+            let (ao, opacity) = match &config.method {
+                AoMethod::Lao => (
+                    crate::ao::cpu::lao(&opacity, vol.dims, vol.spacing, params),
+                    opacity,
+                ),
+                AoMethod::Filter(f) => {
+                    f.validate().map_err(AppError::Usage)?;
+                    let d = filtered::density(f.input, &opacity, vol);
+                    (filtered::filtered_ao(&d, vol.dims, vol.spacing, f), d)
+                }
+            };
             let timing = LaoTiming {
                 wall_ms: t0.elapsed().as_secs_f64() * 1e3,
                 ..Default::default()
@@ -532,7 +608,7 @@ pub fn write_ao(
         )
     };
     write(out, &ao)?;
-    write_json(&out.with_extension("json"), &ao_sidecar(vol, tf, params))?;
+    write_json(&out.with_extension("json"), &ao_sidecar(vol, tf, config))?;
     if let Some(o) = opacity_out {
         write(o, &opacity)?;
     }

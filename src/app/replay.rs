@@ -154,10 +154,11 @@ pub fn replay(
             String::new()
         };
         eprintln!(
-            "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {:>8.1} ms{sh}  render {:>8.1} ms  recomputed {:>6.2} %{tf}",
+            "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {} {:>8.1} ms{sh}  render {:>8.1} ms  recomputed {:>6.2} %{tf}",
             frames.len(),
             frames[i].time,
             f.frame_ms,
+            fl.cao.method_name(),
             m.gpu_ms(),
             f.render_ms,
             m.percent_recomputed()

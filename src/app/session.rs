@@ -6,7 +6,8 @@ use super::frame_loop::FrameLoop;
 use super::lighting::LightingOptions;
 use super::tf_switch::tf_cycle;
 use super::{AppError, Result};
-use crate::ao::LaoParams;
+use crate::ao::filtered::VarianceModulation;
+use crate::ao::AoConfig;
 use crate::gpu::{Gpu, GpuOptions};
 use crate::input::{InteractionSettings, PoseStreamWriter, StreamHeader};
 use crate::volume::transfer::TransferFunction;
@@ -41,12 +42,15 @@ pub fn start_gpu(validation: bool, present: bool) -> Result<Gpu> {
 }
 
 /// What a session shows: the volume, the TF it starts with (the menu cycles through the
-/// presets after it), the AO parameters and the lighting.
+/// presets after it), the AO method and its parameters, the lighting and the variance opacity
+/// modulation.
 pub struct SessionSpec {
     pub volume: Arc<Volume>,
     pub tf: TransferFunction,
-    pub params: LaoParams,
+    pub ao: AoConfig,
     pub lighting: LightingOptions,
+    /// Variance opacity modulation, when asked for (`--variance-max`).
+    pub variance: Option<VarianceModulation>,
 }
 
 impl SessionSpec {
@@ -64,12 +68,13 @@ impl SessionSpec {
             gpu,
             Arc::clone(&self.volume),
             tfs,
-            self.params,
+            self.ao,
             size,
             interaction,
             show_progress,
         )?;
         fl.set_lighting(&self.lighting, show_progress)?;
+        fl.set_variance(self.variance)?;
         Ok(fl)
     }
 }

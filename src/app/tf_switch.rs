@@ -6,7 +6,9 @@
 
 use super::lighting::ShLighting;
 use super::{AppError, Result};
-use crate::ao::cao::Cao;
+use crate::ao::cao::{Cao, VoxelBox};
+use crate::ao::filter_gpu::FilterMode;
+use crate::ao::filtered;
 use crate::ao::lao::{SkipBuffers, SkipData};
 use crate::ao::progressive::{HostTask, SlabScheduler};
 use crate::ao::sh::ShVolume;
@@ -199,11 +201,16 @@ impl TfSwitcher {
                 )?,
                 skip: self.lao.upload_skip(&skip)?,
                 pao: self.lao.output_buffer(vol.dims)?,
-                slabs: SlabScheduler::with_budget(
-                    vol.dims[2],
-                    LaoGpu::samples_per_slice(vol.dims, &cao.params),
-                    budget,
-                ),
+                // The filters refilter the whole volume in one go (they are cheap); LAO goes a
+                // bounded slab of slices per frame.
+                slabs: match cao.filter() {
+                    Some(_) => SlabScheduler::new(1, 1),
+                    None => SlabScheduler::with_budget(
+                        vol.dims[2],
+                        LaoGpu::samples_per_slice(vol.dims, &cao.params),
+                        budget,
+                    ),
+                },
             };
         }
         let finished = matches!(&sw.stage, Stage::Computing { slabs, sh, .. }
@@ -235,9 +242,13 @@ impl TfSwitcher {
         let vol = Arc::clone(vol);
         let tf = self.tfs[index].clone();
         let params = cao.params;
+        let input = cao.filter().map(|f| f.params.input);
         let name = vol.name.clone();
         let task = HostTask::spawn("cao-xr-classify", move || {
-            let opacity = tf.opacity_volume(&vol);
+            let mut opacity = tf.opacity_volume(&vol);
+            if let Some(input) = input {
+                opacity = filtered::density(input, &opacity, &vol);
+            }
             let skip = SkipData::new(&opacity, vol.dims, vol.spacing, &params);
             (opacity, skip)
         })
@@ -273,17 +284,19 @@ impl TfSwitcher {
         };
         if let Some(z) = slabs.next_slab() {
             self.timer.begin(cmd);
-            let lao = &self.lao;
-            lao.record_slab(
-                cmd,
-                opacity,
-                &self.lao_dirs,
-                skip,
-                pao,
-                vol.dims,
-                &cao.params,
-                z,
-            );
+            match cao.filter() {
+                Some(f) => {
+                    let whole = [VoxelBox {
+                        min: [0; 3],
+                        max: vol.dims.map(|d| d as i32),
+                    }];
+                    f.record(cmd, opacity, pao, opacity, opacity, &whole, FilterMode::All);
+                }
+                None => {
+                    let (lao, dirs) = (&self.lao, &self.lao_dirs);
+                    lao.record_slab(cmd, opacity, dirs, skip, pao, vol.dims, &cao.params, z);
+                }
+            }
             self.timer.mark(cmd, "tf-slab");
             return true;
         }

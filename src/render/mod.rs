@@ -32,6 +32,9 @@ pub struct RenderSettings {
     pub sh_weight: f32,
     /// Multiply the SH light by the AO (the exact local occlusion CAO keeps up to date).
     pub sh_times_ao: bool,
+    /// Variance opacity modulation's V_max (data units squared); 0 = off. Takes effect where
+    /// the textures hold a variance volume ([`VolumeTextures::set_variance`]).
+    pub variance_max: f32,
 }
 
 impl Default for RenderSettings {
@@ -44,6 +47,7 @@ impl Default for RenderSettings {
             background: [0.06, 0.07, 0.09],
             sh_weight: 1.0,
             sh_times_ao: false,
+            variance_max: 0.0,
         }
     }
 }
@@ -54,6 +58,8 @@ pub struct VolumeTextures {
     pub scalars: Image,
     pub ambient: Image,
     pub lut: Image,
+    /// var_s of variance opacity modulation (R32F, data units squared), when it is on.
+    pub variance: Option<Image>,
     pub dims: [usize; 3],
     pub spacing: [f64; 3],
     pub value_range: (f32, f32),
@@ -227,12 +233,30 @@ impl VolumeTextures {
             scalars,
             ambient,
             lut,
+            variance: None,
             dims: vol.dims,
             spacing: vol.spacing,
             value_range: vol.value_range(),
         };
         t.set_transfer_function(tf)?;
         Ok(t)
+    }
+
+    /// Uploads var_s (one value per voxel, x fastest) for variance opacity modulation; None
+    /// turns it off.
+    pub fn set_variance(&mut self, gpu: &Gpu, variance: Option<&[f32]>) -> Result<()> {
+        self.variance = match variance {
+            Some(v) => {
+                let img = volume_image(gpu, self.dims, "variance")?;
+                img.upload(
+                    bytemuck::cast_slice(v),
+                    vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+                )?;
+                Some(img)
+            }
+            None => None,
+        };
+        Ok(())
     }
 
     pub fn set_transfer_function(&self, tf: &TransferFunction) -> Result<()> {
@@ -458,6 +482,7 @@ impl Renderer {
                     sampled,
                     sampled,
                     sampled,
+                    sampled,
                 ],
                 vk::ShaderStageFlags::FRAGMENT,
             )?;
@@ -567,14 +592,20 @@ impl Renderer {
                 clip.map_or(0, |c| c.count) as f32,
                 0.0,
             ],
-            lighting: match frame.sh {
-                Some(sh) => [
-                    settings.sh_weight,
-                    4.0 * sh.images.len() as f32,
-                    if settings.sh_times_ao { 1.0 } else { 0.0 },
-                    0.0,
-                ],
-                None => [0.0; 4],
+            lighting: {
+                let inv_vmax = match &tex.variance {
+                    Some(_) if settings.variance_max > 0.0 => 1.0 / settings.variance_max,
+                    _ => 0.0,
+                };
+                match frame.sh {
+                    Some(sh) => [
+                        settings.sh_weight,
+                        4.0 * sh.images.len() as f32,
+                        if settings.sh_times_ao { 1.0 } else { 0.0 },
+                        inv_vmax,
+                    ],
+                    None => [0.0, 0.0, 0.0, inv_vmax],
+                }
             },
             sh_light: std::array::from_fn(|k| {
                 let l = frame.sh.map_or([[0.0; 16]; 3], |sh| *sh.light);
@@ -625,6 +656,8 @@ impl Renderer {
             })
         });
         let sh_infos = sh_views.map(img);
+        // var_s, or a bound image standing in, unread (lighting.w = 0).
+        let i10 = img(tex.variance.as_ref().unwrap_or(&tex.ambient).view);
         let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
         let clip_maps = [clip.map_or(&self.no_clip, |c| c.maps).descriptor()];
@@ -669,6 +702,10 @@ impl Renderer {
                 .dst_binding(9)
                 .descriptor_type(sampled)
                 .image_info(&sh_infos[3]),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(10)
+                .descriptor_type(sampled)
+                .image_info(&i10),
         ];
         for eye in 0..2u32 {
             let color_att = [vk::RenderingAttachmentInfo::default()

@@ -77,7 +77,7 @@ fn render(
     .unwrap()
 }
 
-fn read(b: &Buffer) -> Vec<f32> {
+pub(crate) fn read(b: &Buffer) -> Vec<f32> {
     bytemuck::cast_slice(&b.read_back().unwrap()).to_vec()
 }
 
@@ -96,7 +96,7 @@ fn tool(shape: Shape, position: Vec3, rotation: Quat, size: f32, mode: ToolMode)
 
 /// A scripted sequence: sphere sweep, box in and out, torus over the skull and through its hole,
 /// two tools, a probe, and frames with no tool (everything restored).
-fn frames(c: Vec3) -> Vec<Vec<Tool>> {
+pub(crate) fn frames(c: Vec3) -> Vec<Vec<Tool>> {
     let mut f = Vec::new();
     let carve = ToolMode::Carve;
     for i in 0..4 {

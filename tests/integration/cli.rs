@@ -190,6 +190,167 @@ fn ao_command_agrees_with_an_independent_implementation() {
     assert!(a.iter().any(|&x| x < 0.7), "expected some occlusion");
 }
 
+/// Filtered AO written straight from docs/design.md ("Filtered AO, exactly"), sharing no code
+/// with cao-xr: brute force over every voxel's tangent box.
+fn independent_filter(d: &[f32], dims: &[usize], s: &[f64], r: f64, estimator: &str) -> Vec<f64> {
+    let at = |p: [i64; 3]| -> f64 {
+        if (0..3).all(|a| p[a] >= 0 && (p[a] as usize) < dims[a]) {
+            d[p[0] as usize + dims[0] * (p[1] as usize + dims[1] * p[2] as usize)] as f64
+        } else {
+            0.0
+        }
+    };
+    let h: Vec<i64> = s.iter().map(|s| ((r / s).round() as i64).max(1)).collect();
+    let n = ((2 * h[0] + 1) * (2 * h[1] + 1) * (2 * h[2] + 1)) as f64;
+    let mut out = Vec::new();
+    for z in 0..dims[2] as i64 {
+        for y in 0..dims[1] as i64 {
+            for x in 0..dims[0] as i64 {
+                let v = [x, y, z];
+                let g: Vec<f64> = (0..3)
+                    .map(|a| {
+                        let (mut p, mut q) = (v, v);
+                        p[a] += 1;
+                        q[a] -= 1;
+                        (at(p) - at(q)) / (2.0 * s[a])
+                    })
+                    .collect();
+                let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+                let mut c = v;
+                if len > 0.0 {
+                    for a in 0..3 {
+                        let off = (-r * g[a] / len / s[a]).round() as i64;
+                        c[a] = (v[a] + off).clamp(0, dims[a] as i64 - 1);
+                    }
+                }
+                let dv = at(v);
+                let mut m = Vec::new();
+                for k in -h[2]..=h[2] {
+                    for j in -h[1]..=h[1] {
+                        for i in -h[0]..=h[0] {
+                            m.push(at([c[0] + i, c[1] + j, c[2] + k]));
+                        }
+                    }
+                }
+                let (lo, hi) = m
+                    .iter()
+                    .fold((f64::MAX, f64::MIN), |(a, b), x| (a.min(*x), b.max(*x)));
+                let mu = if lo == hi {
+                    lo
+                } else {
+                    m.iter().sum::<f64>() / n
+                };
+                let var = if lo == hi {
+                    0.0
+                } else {
+                    (m.iter().map(|x| x * x).sum::<f64>() / n - mu * mu).max(0.0)
+                };
+                let erf = |x: f64| {
+                    let a = 0.147;
+                    x.signum()
+                        * (1.0
+                            - (-x * x * (4.0 / std::f64::consts::PI + a * x * x)
+                                / (1.0 + a * x * x))
+                                .exp())
+                        .sqrt()
+                };
+                out.push(match estimator {
+                    "exact" => m.iter().filter(|x| **x <= dv).count() as f64 / n,
+                    "cdf" if dv >= hi => 1.0,
+                    "cdf" if dv <= lo => 0.0,
+                    "cdf" if mu >= hi => 0.0,
+                    "cdf" => {
+                        let beta = (mu - lo) / (hi - mu);
+                        if beta <= 0.0 {
+                            1.0
+                        } else {
+                            ((dv - lo) / (hi - lo)).powf(beta)
+                        }
+                    }
+                    _ if var <= 1e-12 => (dv >= mu) as u8 as f64,
+                    "gauss" => 0.5 * (1.0 + erf((dv - mu) / (2.0 * var).sqrt())),
+                    _ if dv <= mu => 0.0,
+                    _ => (dv - mu).powi(2) / (var + (dv - mu).powi(2)),
+                });
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn ao_command_filters_agree_with_an_independent_implementation() {
+    let dir = tmp("ao-filter");
+    let vol = dir.join("head.nrrd");
+    assert!(
+        cao(&["phantom", "--size", "20", "--out", vol.to_str().unwrap()])
+            .status
+            .success()
+    );
+    for estimator in ["cdf", "gauss", "penner", "exact"] {
+        let (ao, op) = (dir.join(format!("{estimator}.nrrd")), dir.join("d.nrrd"));
+        let out = cao(&[
+            "ao",
+            vol.to_str().unwrap(),
+            "--tf",
+            "ct-skin",
+            "--ao",
+            &format!("filter-{estimator}"),
+            "--filter-radius-mm",
+            "20",
+            "--out",
+            ao.to_str().unwrap(),
+            "--opacity-out",
+            op.to_str().unwrap(),
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let side: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(ao.with_extension("json")).unwrap())
+                .unwrap();
+        assert_eq!(side["method"], "filter");
+        assert_eq!(side["estimator"], estimator);
+        assert_eq!(side["input"], "opacity");
+        assert_eq!(side["radius_mm"], 20.0);
+        for key in ["half_widths", "spacing_mm", "dims"] {
+            assert!(side.get(key).is_some(), "sidecar lacks {key}");
+        }
+        let (dims, spacing, a) = read_nrrd_f32(&ao);
+        let (_, _, d) = read_nrrd_f32(&op);
+        assert!(d.iter().any(|&x| x > 0.0));
+        let want = independent_filter(&d, &dims, &spacing, 20.0, estimator);
+        let diffs: Vec<f64> = a
+            .iter()
+            .zip(&want)
+            .map(|(x, y)| (*x as f64 - y).abs())
+            .collect();
+        let close = diffs.iter().filter(|x| **x <= 1e-4).count() as f64 / diffs.len() as f64;
+        let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
+        assert!(
+            close >= 0.999 && mean <= 1e-5,
+            "filter-{estimator}: {:.3} % within 1e-4, mean {mean:e}",
+            100.0 * close
+        );
+        assert!(
+            a.iter().any(|&x| x < 0.5),
+            "filter-{estimator}: no occlusion"
+        );
+    }
+    let bad = cao(&[
+        "ao",
+        vol.to_str().unwrap(),
+        "--ao",
+        "filter-blur",
+        "--out",
+        "x.nrrd",
+    ]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("filter-gauss"));
+}
+
 #[test]
 fn render_writes_three_pngs() {
     let dir = tmp("render");

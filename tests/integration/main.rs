@@ -9,6 +9,7 @@ mod cli;
 mod clip_gpu;
 mod desktop;
 mod dicom;
+mod filtered;
 mod foreign;
 mod lao;
 mod overlay;
