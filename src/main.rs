@@ -220,6 +220,25 @@ enum Cmd {
 
 #[derive(Subcommand)]
 enum BenchCmd {
+    /// Every AO method side by side: full compute, per-frame clip update, TF change, memory,
+    /// the filters' error and each picture against LAO at K = 54: phantom 64^3 and 128^3 and the
+    /// CT head (or VOLUME).
+    Ao {
+        #[command(flatten)]
+        common: BenchArgs,
+        /// LAO's ray count K.
+        #[arg(long, default_value_t = LaoParams::default().rays)]
+        rays: u32,
+        /// Filter radii R in mm.
+        #[arg(long, value_delimiter = ',', default_value = "6,10")]
+        radii: Vec<f64>,
+        /// Frames of the sweep.
+        #[arg(long, default_value_t = 8)]
+        frames: usize,
+        /// The transfer function the TF change switches to.
+        #[arg(long, default_value = "ct-skin")]
+        tf_after: String,
+    },
     /// CAO vs the naive full LAO recompute per frame, a 25 mm sphere sweeping through the
     /// phantom at 64^3 and 128^3 and the CT head (or VOLUME).
     Cao {
@@ -669,6 +688,30 @@ fn run(cli: Cli) -> Result<()> {
                 &coeffs,
                 &directions,
                 &base,
+                b.runs,
+            )?;
+        }
+        Cmd::Bench {
+            what:
+                BenchCmd::Ao {
+                    common,
+                    rays,
+                    radii,
+                    frames,
+                    tf_after,
+                },
+        } => {
+            let b = common.setup(cli.validation)?;
+            let tf_after = TransferFunction::resolve(&tf_after)?;
+            let base = LaoParams { rays, ..b.base };
+            app::bench_ao::bench_ao(
+                &b.gpu,
+                &b.volumes,
+                &b.tf,
+                &tf_after,
+                &radii,
+                &base,
+                frames.max(1),
                 b.runs,
             )?;
         }

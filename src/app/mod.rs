@@ -2,6 +2,7 @@
 //! write the results. The CLI in main.rs only parses arguments and calls these.
 
 pub mod bench;
+pub mod bench_ao;
 pub mod desktop;
 pub mod frame_loop;
 pub mod headset;

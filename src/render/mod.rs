@@ -1,6 +1,7 @@
 //! The stereo ray caster: both eyes, one draw each in one command buffer, into a two-layer
 //! colour + depth target (one layer per eye), sampling the scalar volume, the transfer function and the shared AO volume.
 
+pub mod compare;
 pub mod overlay;
 pub mod png_out;
 

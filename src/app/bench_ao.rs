@@ -1,0 +1,230 @@
+//! `cao-xr bench ao`: every AO method side by side in one run: the full compute, the per-frame
+//! clip update of the `bench cao` sphere sweep, the time from a TF change to the new AO, the
+//! method's own GPU memory, the filters' error against their exact box openness, and how each
+//! method's picture differs from LAO's at K = 54 (PSNR, SSIM of three fixed views).
+
+use super::bench::{median, sweep_tools};
+use super::{precompute, AoVolume, HeadlessRenderer, Result};
+use crate::ao::cao::Mode;
+use crate::ao::filtered::{Estimator, FilterParams};
+use crate::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
+use crate::gpu::{Buffer, Gpu};
+use crate::render::compare::{luma, psnr, ssim};
+use crate::render::{FrameViews, RenderSettings, VolumeTextures};
+use crate::space::{default_stereo_views, world_from_tex, Placement, DEFAULT_IPD};
+use crate::volume::transfer::TransferFunction;
+use crate::volume::Volume;
+use glam::Quat;
+
+/// Pixels per side of the comparison renders.
+const VIEW_SIZE: u32 = 256;
+
+#[derive(Clone, Debug)]
+pub struct AoBenchRow {
+    pub volume: String,
+    pub method: String,
+    pub radius_mm: Option<f64>,
+    pub full_ms: f64,
+    pub clip_ms: f64,
+    pub tf_change_ms: f64,
+    pub resident_mb: f64,
+    /// Mean |openness - the exact box openness| (filters only).
+    pub error: Option<f64>,
+    pub psnr_db: f64,
+    pub ssim: f64,
+}
+
+fn read(b: &Buffer) -> Result<Vec<f32>> {
+    Ok(bytemuck::cast_slice(&b.read_back()?).to_vec())
+}
+
+/// Left-eye luma of the volume lit by `ao` from three fixed views (turned 0 and +-40 degrees).
+fn pictures(
+    hr: &mut HeadlessRenderer,
+    tex: &VolumeTextures,
+    vol: &Volume,
+    ao: &Buffer,
+) -> Result<Vec<Vec<f64>>> {
+    [0.0f32, 40.0, -40.0]
+        .iter()
+        .map(|deg| {
+            let placement = Placement {
+                rotation: Quat::from_rotation_y(deg.to_radians()),
+                ..Default::default()
+            };
+            let views = default_stereo_views(vol, &placement, DEFAULT_IPD);
+            let frame = FrameViews {
+                views: &views,
+                model: world_from_tex(vol, &placement),
+                clip: None,
+                sh: None,
+            };
+            let size = (VIEW_SIZE, VIEW_SIZE);
+            let img = hr.render(tex, Some(ao), &frame, size, &RenderSettings::default())?;
+            Ok(luma(&img.rgba[0]))
+        })
+        .collect()
+}
+
+/// The method's own GPU memory beyond the volumes every method has (O, O_c, the mask, V_PAO,
+/// V_AO): LAO's skipping data, the filters' two statistics volumes.
+fn resident_bytes(v: &AoVolume) -> u64 {
+    match &v.filter {
+        Some(f) => f.resident_bytes(),
+        None => v.skip.clear.size + v.skip.bricks.size,
+    }
+}
+
+/// One table for every volume: LAO at `base`, then each filter estimator at each radius.
+#[allow(clippy::too_many_arguments)]
+pub fn bench_ao(
+    gpu: &Gpu,
+    volumes: &[Volume],
+    tf: &TransferFunction,
+    tf_after: &TransferFunction,
+    radii: &[f64],
+    base: &LaoParams,
+    frames: usize,
+    runs: usize,
+) -> Result<Vec<AoBenchRow>> {
+    let lao = LaoGpu::new(gpu)?;
+    let mut hr = HeadlessRenderer::new(gpu)?;
+    let placement = Placement::default();
+    println!(
+        "AO methods on {} (full = wall ms of the compute submissions, waited; clip = GPU ms; medians of {runs} run(s); clip: the mean CAO update per frame of a \
+         25 mm sphere sweeping {frames} frames; TF change = wall ms until the new AO is complete, \
+         {} -> {}; MB = the method's own GPU memory; error = mean |A - exact box openness|; \
+         PSNR/SSIM of three views against LAO at K = 54)",
+        gpu.device_name, tf.name, tf_after.name
+    );
+    println!(
+        "{:<12} {:<14} {:>5} {:>10} {:>9} {:>10} {:>7} {:>8} {:>8} {:>6}",
+        "volume", "method", "R mm", "full ms", "clip ms", "TF ms", "MB", "error", "PSNR dB", "SSIM"
+    );
+    let mut rows = Vec::new();
+    for vol in volumes {
+        let tex = VolumeTextures::new(gpu, vol, tf)?;
+        let reference = {
+            let cfg = AoConfig::from(LaoParams { rays: 54, ..*base });
+            let v = precompute(gpu, &lao, vol, tf, &cfg, false)?;
+            pictures(&mut hr, &tex, vol, &v.ao_buf)?
+        };
+        let mut methods = vec![(AoMethod::Lao, None)];
+        for &r in radii {
+            let exact = FilterParams {
+                radius_mm: r,
+                estimator: Estimator::Exact,
+                ..Default::default()
+            };
+            let cfg = AoConfig {
+                method: AoMethod::Filter(exact),
+                lao: *base,
+            };
+            let exact_ao = read(&precompute(gpu, &lao, vol, tf, &cfg, false)?.ao_buf)?;
+            for estimator in [Estimator::Cdf, Estimator::Gauss, Estimator::Penner] {
+                let p = FilterParams { estimator, ..exact };
+                methods.push((AoMethod::Filter(p), Some(exact_ao.clone())));
+            }
+        }
+        let sweep = sweep_tools(vol, 25.0, frames);
+        for (method, exact) in methods {
+            let cfg = AoConfig { method, lao: *base };
+            let (mut full, mut clip) = (Vec::new(), Vec::new());
+            let mut last = None;
+            for _ in 0..runs.max(1) {
+                let v = precompute(gpu, &lao, vol, tf, &cfg, false)?;
+                // The submissions' wall time, waited: lavapipe's timestamps around LAO's slabs
+                // read near zero after other work in the same run.
+                full.push(v.timing.wall_ms);
+                last = Some(v);
+            }
+            let v = last.expect("at least one run");
+            let resident_mb = resident_bytes(&v) as f64 / (1 << 20) as f64;
+            let ao = read(&v.ao_buf)?;
+            let error = exact.map(|e| {
+                ao.iter()
+                    .zip(&e)
+                    .map(|(a, b)| (a - b).abs() as f64)
+                    .sum::<f64>()
+                    / ao.len() as f64
+            });
+            let pics = pictures(&mut hr, &tex, vol, &v.ao_buf)?;
+            let n = pics.len() as f64;
+            let psnr_db = pics
+                .iter()
+                .zip(&reference)
+                .map(|(a, b)| psnr(a, b))
+                .sum::<f64>()
+                / n;
+            let side = VIEW_SIZE as usize;
+            let ssim = pics
+                .iter()
+                .zip(&reference)
+                .map(|(a, b)| ssim(a, b, side, side))
+                .sum::<f64>()
+                / n;
+            let mut cao = v.into_cao(gpu, vol, cfg.lao)?;
+            for _ in 0..runs.max(1) {
+                let mut ms = 0.0;
+                for tools in &sweep {
+                    ms += cao.run_frame(tools, &placement, Mode::Contextual)?.gpu_ms();
+                }
+                clip.push(ms / sweep.len().max(1) as f64);
+            }
+            drop(cao);
+            let t0 = std::time::Instant::now();
+            drop(precompute(gpu, &lao, vol, tf_after, &cfg, false)?);
+            let tf_change_ms = t0.elapsed().as_secs_f64() * 1e3;
+            let row = AoBenchRow {
+                volume: vol.name.clone(),
+                method: method.name(),
+                radius_mm: match method {
+                    AoMethod::Filter(p) => Some(p.radius_mm),
+                    AoMethod::Lao => None,
+                },
+                full_ms: median(&mut full),
+                clip_ms: median(&mut clip),
+                tf_change_ms,
+                resident_mb,
+                error,
+                psnr_db,
+                ssim,
+            };
+            println!(
+                "{:<12} {:<14} {:>5} {:>10.1} {:>9.1} {:>10.1} {:>7.2} {:>8} {:>8.2} {:>6.3}",
+                row.volume,
+                if row.method == "lao" {
+                    format!("lao K={}", base.rays)
+                } else {
+                    row.method.clone()
+                },
+                row.radius_mm.map_or("-".into(), |r| format!("{r}")),
+                row.full_ms,
+                row.clip_ms,
+                row.tf_change_ms,
+                row.resident_mb,
+                row.error.map_or("-".into(), |e| format!("{e:.4}")),
+                row.psnr_db,
+                row.ssim
+            );
+            rows.push(row);
+        }
+        if let Some(lao_row) = rows
+            .iter()
+            .rev()
+            .find(|r| r.volume == vol.name && r.method == "lao")
+        {
+            let fastest = rows
+                .iter()
+                .filter(|r| r.volume == vol.name && r.method != "lao")
+                .map(|r| r.full_ms)
+                .fold(f64::MAX, f64::min);
+            println!(
+                "{:<12} the fastest filter costs {:.3} of LAO's full compute",
+                vol.name,
+                fastest / lao_row.full_ms
+            );
+        }
+    }
+    Ok(rows)
+}
