@@ -381,6 +381,44 @@ fn render_writes_three_pngs() {
 }
 
 #[test]
+fn bench_ao_prints_every_method_in_one_table() {
+    let out = cao(&[
+        "bench",
+        "ao",
+        "phantom:16",
+        "--runs",
+        "1",
+        "--frames",
+        "2",
+        "--radii",
+        "20",
+        "--rays",
+        "6",
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for method in ["lao K=6", "filter-cdf", "filter-gauss", "filter-penner"] {
+        let row = text
+            .lines()
+            .find(|l| l.starts_with("phantom-16") && l.contains(method))
+            .unwrap_or_else(|| panic!("no {method} row:\n{text}"));
+        // full, clip, TF, MB, error, PSNR, SSIM after the method and radius
+        let cols: Vec<&str> = row.split_whitespace().collect();
+        let ssim: f64 = cols.last().unwrap().parse().unwrap();
+        assert!((0.0..=1.0).contains(&ssim), "{row}");
+        if method != "lao K=6" {
+            let error: f64 = cols[cols.len() - 3].parse().unwrap();
+            assert!((0.0..1.0).contains(&error), "{row}");
+        }
+    }
+    assert!(text.contains("the fastest filter costs"), "{text}");
+}
+
+#[test]
 fn bench_lao_prints_a_table() {
     let out = cao(&[
         "bench",
