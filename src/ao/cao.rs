@@ -113,12 +113,21 @@ fn merge_boxes(mut boxes: Vec<VoxelBox>) -> Vec<VoxelBox> {
     boxes
 }
 
+/// Dispatches a 4^3-workgroup compute pass over the voxels of `b`.
+pub(super) fn dispatch_box(pipe: &ComputePipeline, cmd: vk::CommandBuffer, b: &VoxelBox) {
+    pipe.dispatch(
+        cmd,
+        [0, 1, 2].map(|a| ((b.max[a] - b.min[a]).max(0) as u32).div_ceil(4)),
+    );
+}
+
+/// Push constants of the passes over a voxel box (the w components are each pass's own).
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct BoxPush {
-    dims: [i32; 4],
-    box_min: [i32; 4],
-    box_max: [i32; 4],
+pub(super) struct BoxPush {
+    pub dims: [i32; 4],
+    pub box_min: [i32; 4],
+    pub box_max: [i32; 4],
 }
 crate::gpu::glsl_layout!(BoxPush, 48, dims: 0, box_min: 16, box_max: 32);
 
@@ -507,13 +516,6 @@ impl Cao {
         }
     }
 
-    fn dispatch_box(&self, pipe: &ComputePipeline, cmd: vk::CommandBuffer, b: &VoxelBox) {
-        pipe.dispatch(
-            cmd,
-            [0, 1, 2].map(|a| ((b.max[a] - b.min[a]).max(0) as u32).div_ceil(4)),
-        );
-    }
-
     fn dims4(&self) -> [i32; 4] {
         [
             self.dims[0] as i32,
@@ -538,7 +540,7 @@ impl Cao {
                 &self.ao,
             ];
             self.restore.bind(cmd, &bufs, bytemuck::bytes_of(&push));
-            self.dispatch_box(&self.restore, cmd, b);
+            dispatch_box(&self.restore, cmd, b);
         }
     }
 
@@ -589,7 +591,7 @@ impl Cao {
                 &self.counts,
             ];
             self.clip.bind(cmd, &bufs, bytemuck::bytes_of(&push));
-            self.dispatch_box(&self.clip, cmd, b);
+            dispatch_box(&self.clip, cmd, b);
         }
         self.gpu.barrier(cmd);
         self.timer.mark(cmd, "clip");
@@ -628,7 +630,7 @@ impl Cao {
                 &self.pao,
             ];
             self.update.bind(cmd, &bufs, bytemuck::bytes_of(&push));
-            self.dispatch_box(&self.update, cmd, b);
+            dispatch_box(&self.update, cmd, b);
         }
         self.gpu.barrier(cmd);
         self.timer.mark(cmd, "update");

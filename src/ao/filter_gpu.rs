@@ -4,20 +4,11 @@
 //! the whole volume's bit for bit; that is what makes the filters a clip-aware AO method of CAO
 //! (docs/design.md, "AO methods"). [`super::filtered::filtered_ao`] is the CPU reference.
 
-use super::cao::VoxelBox;
+use super::cao::{dispatch_box, BoxPush, VoxelBox};
 use super::filtered::FilterParams;
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Result};
 use ash::vk;
 use gpu_allocator::MemoryLocation;
-
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct BoxPassPush {
-    dims: [i32; 4],
-    box_min: [i32; 4],
-    box_max: [i32; 4],
-}
-crate::gpu::glsl_layout!(BoxPassPush, 48, dims: 0, box_min: 16, box_max: 32);
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -119,13 +110,6 @@ impl FilterGpu {
         ]
     }
 
-    fn dispatch(pipe: &ComputePipeline, cmd: vk::CommandBuffer, b: &VoxelBox) {
-        pipe.dispatch(
-            cmd,
-            [0, 1, 2].map(|a| ((b.max[a] - b.min[a]).max(0) as u32).div_ceil(4)),
-        );
-    }
-
     /// Records the openness of the voxels of `boxes` from `density` into `out` (`mask` and `pre`
     /// as [`FilterMode`] says; any buffer of the right size stands in when unused).
     #[allow(clippy::too_many_arguments)]
@@ -162,14 +146,14 @@ impl FilterGpu {
             for (axis, grow, src, dst, count) in passes {
                 for s in &stats {
                     let r = self.grown(s, grow);
-                    let push = BoxPassPush {
+                    let push = BoxPush {
                         dims: self.dims4(axis as i32),
                         box_min: [r.min[0], r.min[1], r.min[2], h[axis] as i32],
                         box_max: [r.max[0], r.max[1], r.max[2], count as i32],
                     };
                     self.boxes
                         .bind(cmd, &[density, src, dst], bytemuck::bytes_of(&push));
-                    Self::dispatch(&self.boxes, cmd, &r);
+                    dispatch_box(&self.boxes, cmd, &r);
                 }
                 self.gpu.barrier(cmd);
             }
@@ -190,7 +174,7 @@ impl FilterGpu {
             };
             let bufs = [density, &self.pass_a, out, mask, pre];
             self.estimate.bind(cmd, &bufs, bytemuck::bytes_of(&push));
-            Self::dispatch(&self.estimate, cmd, b);
+            dispatch_box(&self.estimate, cmd, b);
         }
         self.gpu.barrier(cmd);
     }
