@@ -235,14 +235,8 @@ pub fn precompute_ao(
     params.validate().map_err(AppError::Usage)?;
     crate::render::check_volume_fits_gpu(gpu, vol)?;
     let opacity = tf.opacity_volume(vol);
-    let opacity_buf = Buffer::device_local(
-        gpu,
-        &opacity,
-        vk::BufferUsageFlags::STORAGE_BUFFER,
-        "opacity",
-    )?;
+    let (opacity_buf, skip) = upload_opacity(gpu, lao, vol, &opacity, params)?;
     let bar = show_progress.then(|| progress_bar(vol.dims[2] as u64, "LAO"));
-    let skip = lao.skip_buffers(&opacity, vol.dims, vol.spacing, params)?;
     let (ao_buf, timing) = lao.compute(
         &opacity_buf,
         &skip,
@@ -268,6 +262,21 @@ pub fn precompute_ao(
     })
 }
 
+/// The opacity volume CAO clips (O, or the density the filters filter) on the GPU, with its
+/// exact empty-space skipping data.
+fn upload_opacity(
+    gpu: &Gpu,
+    lao: &LaoGpu,
+    vol: &Volume,
+    opacity: &[f32],
+    params: &LaoParams,
+) -> Result<(Buffer, SkipBuffers)> {
+    let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+    let buf = Buffer::device_local(gpu, opacity, usage, "opacity")?;
+    let skip = lao.skip_buffers(opacity, vol.dims, vol.spacing, params)?;
+    Ok((buf, skip))
+}
+
 /// Classifies the volume and precomputes V_PAO with the configured AO method: LAO (with a
 /// progress bar when asked), or the filters over the density they filter (one fast pass).
 pub fn precompute(
@@ -285,13 +294,7 @@ pub fn precompute(
     fp.validate().map_err(AppError::Usage)?;
     crate::render::check_volume_fits_gpu(gpu, vol)?;
     let density = filtered::density(fp.input, &tf.opacity_volume(vol), vol);
-    let opacity_buf = Buffer::device_local(
-        gpu,
-        &density,
-        vk::BufferUsageFlags::STORAGE_BUFFER,
-        "opacity",
-    )?;
-    let skip = lao.skip_buffers(&density, vol.dims, vol.spacing, &ao.lao)?;
+    let (opacity_buf, skip) = upload_opacity(gpu, lao, vol, &density, &ao.lao)?;
     let filter = FilterGpu::new(gpu, vol.dims, vol.spacing, fp)?;
     let t0 = std::time::Instant::now();
     let (ao_buf, gpu_ms) = filter.compute(&opacity_buf)?;

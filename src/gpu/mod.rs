@@ -7,7 +7,8 @@ mod resources;
 mod timer;
 
 pub use resources::{
-    cmd_image_barrier, push_set_layout, shader_module, Buffer, ComputePipeline, Image, ImageDesc,
+    cmd_blit_color, cmd_image_barrier, push_set_layout, shader_module, Buffer, ComputePipeline,
+    Image, ImageDesc,
 };
 pub use timer::GpuTimer;
 

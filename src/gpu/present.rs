@@ -2,7 +2,7 @@
 //! a finished stereo target are blitted and presented (the desktop window and the headset's
 //! mirror window both use it).
 
-use super::{cmd_image_barrier, Buffer, Gpu, GpuError, Result};
+use super::{cmd_blit_color, cmd_image_barrier, Buffer, Gpu, GpuError, Result};
 use ash::vk;
 use winit::raw_window_handle::{
     HasDisplayHandle, HasWindowHandle, RawDisplayHandle, RawWindowHandle,
@@ -217,39 +217,8 @@ impl Presenter {
             for eye in 0..eyes {
                 let x0 = w * eye / eyes;
                 let x1 = w * (eye + 1) / eyes;
-                let region = [vk::ImageBlit::default()
-                    .src_subresource(
-                        vk::ImageSubresourceLayers::default()
-                            .aspect_mask(vk::ImageAspectFlags::COLOR)
-                            .base_array_layer(eye as u32)
-                            .layer_count(1),
-                    )
-                    .src_offsets([
-                        vk::Offset3D::default(),
-                        vk::Offset3D {
-                            x: src_w as i32,
-                            y: src_h as i32,
-                            z: 1,
-                        },
-                    ])
-                    .dst_subresource(
-                        vk::ImageSubresourceLayers::default()
-                            .aspect_mask(vk::ImageAspectFlags::COLOR)
-                            .layer_count(1),
-                    )
-                    .dst_offsets([
-                        vk::Offset3D { x: x0, y: 0, z: 0 },
-                        vk::Offset3D { x: x1, y: h, z: 1 },
-                    ])];
-                d.cmd_blit_image(
-                    cmd,
-                    src,
-                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                    image,
-                    vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-                    &region,
-                    vk::Filter::LINEAR,
-                );
+                let rect = [(x0, 0), (x1, h)];
+                cmd_blit_color(d, cmd, src, (eye as u32, 1), (src_w, src_h), image, rect);
             }
             let mut last = vk::ImageLayout::TRANSFER_DST_OPTIMAL;
             if let Some(buf) = &readback {

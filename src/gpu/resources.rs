@@ -379,6 +379,46 @@ impl Drop for Image {
     }
 }
 
+/// A linear blit of the colour layers `layers` (first, count) of `src` (TRANSFER_SRC_OPTIMAL,
+/// `src_size` pixels) onto the rectangle `dst_rect` (corners) of the same number of layers of
+/// `dst` (TRANSFER_DST_OPTIMAL): both eyes into a headset's array image, or one eye into a window.
+pub fn cmd_blit_color(
+    device: &ash::Device,
+    cmd: vk::CommandBuffer,
+    src: vk::Image,
+    (first, count): (u32, u32),
+    src_size: (u32, u32),
+    dst: vk::Image,
+    dst_rect: [(i32, i32); 2],
+) {
+    let layers = |base| {
+        vk::ImageSubresourceLayers::default()
+            .aspect_mask(vk::ImageAspectFlags::COLOR)
+            .base_array_layer(base)
+            .layer_count(count)
+    };
+    let corner = |(x, y): (i32, i32), z| vk::Offset3D { x, y, z };
+    let region = [vk::ImageBlit::default()
+        .src_subresource(layers(first))
+        .src_offsets([
+            vk::Offset3D::default(),
+            corner((src_size.0 as i32, src_size.1 as i32), 1),
+        ])
+        .dst_subresource(layers(0))
+        .dst_offsets([corner(dst_rect[0], 0), corner(dst_rect[1], 1)])];
+    unsafe {
+        device.cmd_blit_image(
+            cmd,
+            src,
+            vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+            dst,
+            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+            &region,
+            vk::Filter::LINEAR,
+        );
+    }
+}
+
 /// A layout transition of `range` of any image (also swapchain images, which no [`Image`] owns)
 /// that orders all earlier memory writes before all later accesses.
 pub fn cmd_image_barrier(

@@ -3,7 +3,7 @@
 //! command buffer.
 
 use super::{Result, XrError};
-use crate::gpu::cmd_image_barrier;
+use crate::gpu::{cmd_blit_color, cmd_image_barrier};
 use crate::render::StereoTarget;
 use ash::vk::{self, Handle};
 use openxr as xr;
@@ -114,9 +114,6 @@ pub unsafe fn record_blit(
         .aspect_mask(vk::ImageAspectFlags::COLOR)
         .level_count(1)
         .layer_count(2);
-    let layers = vk::ImageSubresourceLayers::default()
-        .aspect_mask(vk::ImageAspectFlags::COLOR)
-        .layer_count(2);
     // The runtime hands images over in COLOR_ATTACHMENT_OPTIMAL and wants them back so
     // (XR_KHR_vulkan_enable); the old contents are not needed.
     cmd_image_barrier(
@@ -127,34 +124,9 @@ pub unsafe fn record_blit(
         vk::ImageLayout::UNDEFINED,
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
     );
-    let region = [vk::ImageBlit::default()
-        .src_subresource(layers)
-        .src_offsets([
-            vk::Offset3D::default(),
-            vk::Offset3D {
-                x: src.width as i32,
-                y: src.height as i32,
-                z: 1,
-            },
-        ])
-        .dst_subresource(layers)
-        .dst_offsets([
-            vk::Offset3D::default(),
-            vk::Offset3D {
-                x: w as i32,
-                y: h as i32,
-                z: 1,
-            },
-        ])];
-    d.cmd_blit_image(
-        cmd,
-        src.color.raw,
-        vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-        image,
-        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-        &region,
-        vk::Filter::LINEAR,
-    );
+    let size = (src.width, src.height);
+    let rect = [(0, 0), (w as i32, h as i32)];
+    cmd_blit_color(d, cmd, src.color.raw, (0, 2), size, image, rect);
     cmd_image_barrier(
         d,
         cmd,
