@@ -466,9 +466,12 @@ impl LaoArgs {
             },
             ..Default::default()
         };
+        // The stick click cycles through the filters whatever --ao says: check them up front.
+        filter.validate().map_err(anyhow::Error::msg)?;
         Ok(AoConfig {
             method: AoMethod::parse(&self.ao, filter).map_err(anyhow::Error::msg)?,
             lao: self.params(),
+            filter,
         })
     }
 }

@@ -33,6 +33,9 @@ pub struct Scene {
     pub tools: Vec<Tool>,
     /// Index of the transfer-function preset in use.
     pub tf_index: usize,
+    /// Index of the AO method in use (in the session's cycle; the stick click advances it).
+    #[serde(default)]
+    pub ao_index: usize,
     /// Turn of the environment light about the world's up axis (radians), on top of the
     /// session's starting turn; SH lighting re-projects the light, no visibility recompute.
     #[serde(default)]

@@ -325,9 +325,10 @@ impl Cao {
         }
     }
 
-    /// Makes the filters the AO method: `pao` must hold their openness of the unclipped O.
-    pub fn use_filter(&mut self, filter: FilterGpu) {
-        self.filter = Some(filter);
+    /// Sets the AO method: the filters, or LAO (None). V_PAO must already hold that method's
+    /// AO of the unclipped volume ([`Cao::replace_precomputed`]).
+    pub fn set_filter(&mut self, filter: Option<FilterGpu>) {
+        self.filter = filter;
     }
 
     /// The AO method's name, as `--ao` spells it (lao, filter-gauss, ...).

@@ -52,19 +52,86 @@ impl AoMethod {
     }
 }
 
-/// The AO a session computes: the method, and LAO's parameters (used by `lao`, and by the
-/// TF switch's budget).
+/// The AO a session computes: the method, LAO's parameters (used by `lao`, and by the TF
+/// switch's budget) and the filters' (used by the filter methods of [`AoConfig::cycle`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AoConfig {
     pub method: AoMethod,
     pub lao: LaoParams,
+    pub filter: FilterParams,
+}
+
+impl AoConfig {
+    /// A config whose method is `method`, its filter parameters the method's own (or the
+    /// defaults for LAO).
+    pub fn new(method: AoMethod, lao: LaoParams) -> Self {
+        let filter = match method {
+            AoMethod::Filter(f) => f,
+            AoMethod::Lao => FilterParams::default(),
+        };
+        AoConfig {
+            method,
+            lao,
+            filter,
+        }
+    }
+
+    /// The methods the stick click cycles through: the configured one, then LAO and the three
+    /// filter estimators (with the configured radius and input), each once. `exact` is for
+    /// tests and the benchmark, not for viewing.
+    pub fn cycle(&self) -> Vec<AoMethod> {
+        let mut all = vec![self.method, AoMethod::Lao];
+        for estimator in [Estimator::Cdf, Estimator::Gauss, Estimator::Penner] {
+            all.push(AoMethod::Filter(FilterParams {
+                estimator,
+                ..self.filter
+            }));
+        }
+        let mut cycle: Vec<AoMethod> = Vec::new();
+        for m in all {
+            if !cycle.contains(&m) {
+                cycle.push(m);
+            }
+        }
+        cycle
+    }
 }
 
 impl From<LaoParams> for AoConfig {
     fn from(lao: LaoParams) -> Self {
-        AoConfig {
-            method: AoMethod::Lao,
-            lao,
-        }
+        AoConfig::new(AoMethod::Lao, lao)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_cycle_starts_with_the_configured_method_and_lists_each_once() {
+        let f = FilterParams {
+            radius_mm: 9.0,
+            ..Default::default()
+        };
+        let gauss = AoMethod::parse("filter-gauss", f).unwrap();
+        let names = |c: &AoConfig| c.cycle().iter().map(|m| m.name()).collect::<Vec<_>>();
+        let cfg = AoConfig::new(gauss, LaoParams::default());
+        assert_eq!(
+            names(&cfg),
+            ["filter-gauss", "lao", "filter-cdf", "filter-penner"]
+        );
+        // Every filter in the cycle keeps the configured radius.
+        assert!(cfg.cycle().iter().all(|m| match m {
+            AoMethod::Filter(p) => p.radius_mm == 9.0,
+            AoMethod::Lao => true,
+        }));
+        let lao = AoConfig::from(LaoParams::default());
+        assert_eq!(
+            names(&lao),
+            ["lao", "filter-cdf", "filter-gauss", "filter-penner"]
+        );
+        let exact = AoConfig::new(AoMethod::parse("filter-exact", f).unwrap(), lao.lao);
+        assert_eq!(names(&exact)[0], "filter-exact");
+        assert_eq!(exact.cycle().len(), 5);
     }
 }

@@ -116,10 +116,7 @@ pub fn bench_ao(
                 estimator: Estimator::Exact,
                 ..Default::default()
             };
-            let cfg = AoConfig {
-                method: AoMethod::Filter(exact),
-                lao: *base,
-            };
+            let cfg = AoConfig::new(AoMethod::Filter(exact), *base);
             let exact_ao = read(&precompute(gpu, &lao, vol, tf, &cfg, false)?.ao_buf)?;
             for estimator in [Estimator::Cdf, Estimator::Gauss, Estimator::Penner] {
                 let p = FilterParams { estimator, ..exact };
@@ -128,7 +125,7 @@ pub fn bench_ao(
         }
         let sweep = sweep_tools(vol, 25.0, frames);
         for (method, exact) in methods {
-            let cfg = AoConfig { method, lao: *base };
+            let cfg = AoConfig::new(method, *base);
             let (mut full, mut clip) = (Vec::new(), Vec::new());
             let mut last = None;
             for _ in 0..runs.max(1) {

@@ -75,6 +75,7 @@ fn key_of(code: KeyCode) -> Option<Key> {
         KeyCode::Equal | KeyCode::NumpadAdd => Key::Grow,
         KeyCode::Minus | KeyCode::NumpadSubtract => Key::Shrink,
         KeyCode::KeyM => Key::Menu,
+        KeyCode::KeyO => Key::NextAo,
         KeyCode::BracketLeft => Key::LightLeft,
         KeyCode::BracketRight => Key::LightRight,
         _ => return None,

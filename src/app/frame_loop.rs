@@ -14,7 +14,7 @@ use super::tf_switch::{default_tf_samples_per_frame, TfProgress, TfSwitcher};
 use super::{precompute, AppError, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
 use crate::ao::filtered::{variance_volume, FilterInput, VarianceModulation};
-use crate::ao::{AoConfig, LaoGpu};
+use crate::ao::{AoConfig, AoMethod, LaoGpu};
 use crate::gpu::{Gpu, GpuTimer};
 use crate::input::{FrameInput, Interaction, InteractionSettings};
 use crate::render::{scene_overlay, OverlayRenderer};
@@ -100,6 +100,8 @@ impl FrameLoop {
             AppError::Usage(format!("{}: no transfer function to show", vol.name))
         })?;
         interaction.tf_presets = tfs.len();
+        let methods = ao.cycle();
+        interaction.ao_methods = methods.len();
         let lao = LaoGpu::new(gpu)?;
         let ao = precompute(gpu, &lao, &vol, tf, &ao, show_progress)?;
         let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
@@ -116,7 +118,7 @@ impl FrameLoop {
             settings: RenderSettings::default(),
             show_overlay: true,
             timer: GpuTimer::new(gpu, 2)?,
-            tfs: TfSwitcher::new(gpu, tfs, lao, lao_dirs)?,
+            tfs: TfSwitcher::new(gpu, tfs, methods, lao, lao_dirs)?,
             tf_samples_per_frame: default_tf_samples_per_frame(gpu),
             lighting: None,
             volume: vol,
@@ -130,14 +132,12 @@ impl FrameLoop {
         self.lighting = None;
         self.cao.sh_radius_mm = None;
         if opts.uses_sh() {
-            if self
-                .cao
-                .filter()
-                .is_some_and(|f| f.params.input == FilterInput::Scalar)
-            {
+            let scalar =
+                |m: &AoMethod| matches!(m, AoMethod::Filter(f) if f.input == FilterInput::Scalar);
+            if self.tfs.methods().iter().any(scalar) {
                 return Err(AppError::Usage(
-                    "SH lighting marches the opacity; with --filter-input scalar the AO volumes \
-                     hold the scalar instead: use --filter-input opacity, or --lighting ao"
+                    "SH lighting marches the opacity; with --filter-input scalar the filters' \
+                     volumes hold the scalar instead: use --filter-input opacity, or --lighting ao"
                         .into(),
                 ));
             }
@@ -171,6 +171,11 @@ impl FrameLoop {
         self.tfs.shown()
     }
 
+    /// The AO methods the stick click cycles through (the first is the one configured).
+    pub fn ao_methods(&self) -> &[AoMethod] {
+        self.tfs.methods()
+    }
+
     /// Runs one frame and reads both eyes back to the host.
     pub fn frame(&mut self, input: &FrameInput) -> Result<FrameOutput> {
         let t0 = std::time::Instant::now();
@@ -202,7 +207,7 @@ impl FrameLoop {
         let t0 = std::time::Instant::now();
         self.interaction.update(input, &mut self.scene);
         self.tfs.advance(
-            self.scene.tf_index,
+            (self.scene.tf_index, self.scene.ao_index),
             &self.volume,
             self.tf_samples_per_frame,
             &mut self.cao,

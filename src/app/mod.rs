@@ -203,7 +203,7 @@ impl AoVolume {
     pub fn into_cao(self, gpu: &Gpu, vol: &Volume, params: LaoParams) -> Result<Cao> {
         let mut cao = Cao::new(gpu, vol, self.opacity_buf, self.ao_buf, self.skip, params)?;
         if let Some(f) = self.filter {
-            cao.use_filter(f);
+            cao.set_filter(Some(f));
         }
         Ok(cao)
     }

@@ -102,7 +102,7 @@ pub fn replay(
     );
     writeln!(
         csv,
-        "frame,time_s,frame_ms,ao_update_ms,restore_ms,clip_ms,update_ms,render_ms,clipped,recomputed,percent_recomputed,tf,tf_progress,tf_ms,sh_voxels,sh_ms"
+        "frame,time_s,frame_ms,ao_update_ms,restore_ms,clip_ms,update_ms,render_ms,clipped,recomputed,percent_recomputed,tf,tf_progress,tf_ms,sh_voxels,sh_ms,ao_method"
     )
     .map_err(|e| out_err(&csv_path, e))?;
     let every = opts.every.max(1);
@@ -123,7 +123,7 @@ pub fn replay(
         let m = &f.metrics;
         writeln!(
             csv,
-            "{i},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{:.4},{},{},{:.3},{},{:.3}",
+            "{i},{:.6},{:.3},{:.3},{:.3},{:.3},{:.3},{:.3},{},{},{:.4},{},{},{:.3},{},{:.3},{}",
             frames[i].time,
             f.frame_ms,
             m.gpu_ms(),
@@ -141,7 +141,8 @@ pub fn replay(
                 .map_or(String::new(), |p| format!("{:.4}", p.fraction)),
             f.tf_ms,
             f.sh.voxels,
-            f.sh.gpu_ms
+            f.sh.gpu_ms,
+            fl.cao.method_name()
         )
         .map_err(|e| out_err(&csv_path, e))?;
         let tf = f

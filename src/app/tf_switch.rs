@@ -1,18 +1,20 @@
-//! The transfer-function switch (the menu button, `scene.tf_index`): progressive, so the frame
-//! rate holds. O' and its skipping data are classified on a worker thread, then each frame
-//! records one slab of V_PAO' (bounded by a budget of opacity samples) ahead of its CAO passes
-//! while the frame still shows the old TF and AO; with SH lighting, slabs of V_PSH' follow. The
-//! frame after the last slab switches the LUT, the CAO state and the SH volume over at once.
+//! The transfer-function and AO-method switch (the menu button, `scene.tf_index`; the stick
+//! click, `scene.ao_index`): progressive, so the frame rate holds. O' and its skipping data are
+//! classified on a worker thread, then each frame records one slab of V_PAO' (bounded by a
+//! budget of opacity samples; a filter method refilters in one go) ahead of its CAO passes while
+//! the frame still shows the old TF, method and AO; with SH lighting and a new TF, slabs of
+//! V_PSH' follow. The frame after the last slab switches the LUT, the CAO state (its method
+//! included) and the SH volume over at once.
 
 use super::lighting::ShLighting;
 use super::{AppError, Result};
 use crate::ao::cao::{Cao, VoxelBox};
-use crate::ao::filter_gpu::FilterMode;
+use crate::ao::filter_gpu::{FilterGpu, FilterMode};
 use crate::ao::filtered;
 use crate::ao::lao::{SkipBuffers, SkipData};
 use crate::ao::progressive::{HostTask, SlabScheduler};
 use crate::ao::sh::ShVolume;
-use crate::ao::LaoGpu;
+use crate::ao::{AoMethod, LaoGpu};
 use crate::gpu::{Buffer, Gpu, GpuTimer};
 use crate::render::VolumeTextures;
 use crate::volume::transfer::{presets_for_volume, TransferFunction};
@@ -20,17 +22,26 @@ use crate::volume::Volume;
 use ash::vk;
 use std::sync::Arc;
 
-/// How far a transfer-function switch has come: V_PAO' (and V_PSH', half each) of `name` is
-/// `fraction` done (0 while the host still classifies). Shown as "TF ct-skin 40%".
+/// How far a switch has come: V_PAO' (and V_PSH', half each) of `name` (the new TF, or the
+/// new AO method when that is what changed) is `fraction` done (0 while the host still
+/// classifies). Shown as "TF ct-skin 40%" or "AO lao 40%".
 #[derive(Clone, Debug, PartialEq)]
 pub struct TfProgress {
+    /// "TF" or "AO".
+    pub what: &'static str,
     pub name: String,
     pub fraction: f32,
 }
 
 impl std::fmt::Display for TfProgress {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "TF {} {:.0}%", self.name, 100.0 * self.fraction)
+        write!(
+            f,
+            "{} {} {:.0}%",
+            self.what,
+            self.name,
+            100.0 * self.fraction
+        )
     }
 }
 
@@ -63,6 +74,10 @@ pub fn default_tf_samples_per_frame(gpu: &Gpu) -> f64 {
 struct Switch {
     /// Index into [`TfSwitcher::tfs`] of the TF being computed.
     index: usize,
+    /// Index into [`TfSwitcher::methods`] of the AO method being computed.
+    method: usize,
+    /// That method's filters (None for LAO).
+    filter: Option<FilterGpu>,
     stage: Stage,
 }
 
@@ -97,11 +112,14 @@ impl Switch {
     }
 }
 
-/// The transfer functions a frame loop can show, the one it shows, and the switch in flight.
+/// The transfer functions and AO methods a frame loop can show, the ones it shows, and the
+/// switch in flight.
 pub struct TfSwitcher {
     gpu: Gpu,
     tfs: Vec<TransferFunction>,
     shown: usize,
+    methods: Vec<AoMethod>,
+    shown_method: usize,
     switch: Option<Switch>,
     lao: LaoGpu,
     lao_dirs: Buffer,
@@ -110,9 +128,11 @@ pub struct TfSwitcher {
 
 impl TfSwitcher {
     /// `lao_dirs` holds the directions of the CAO state's LAO parameters (V_PAO' uses them).
+    /// The first of `tfs` and of `methods` are the ones the CAO state shows.
     pub fn new(
         gpu: &Gpu,
         tfs: Vec<TransferFunction>,
+        methods: Vec<AoMethod>,
         lao: LaoGpu,
         lao_dirs: Buffer,
     ) -> Result<Self> {
@@ -120,6 +140,8 @@ impl TfSwitcher {
             gpu: gpu.clone(),
             tfs,
             shown: 0,
+            methods,
+            shown_method: 0,
             switch: None,
             lao,
             lao_dirs,
@@ -136,35 +158,49 @@ impl TfSwitcher {
         &self.tfs[self.shown]
     }
 
+    /// The AO methods the stick click cycles through.
+    pub fn methods(&self) -> &[AoMethod] {
+        &self.methods
+    }
+
     /// The switch in flight, if any.
     pub fn progress(&self) -> Option<TfProgress> {
-        self.switch.as_ref().map(|sw| TfProgress {
-            name: self.tfs[sw.index].name.clone(),
-            fraction: sw.fraction(),
+        self.switch.as_ref().map(|sw| {
+            let (what, name) = if sw.index != self.shown {
+                ("TF", self.tfs[sw.index].name.clone())
+            } else {
+                ("AO", self.methods[sw.method].name())
+            };
+            TfProgress {
+                what,
+                name,
+                fraction: sw.fraction(),
+            }
         })
     }
 
-    /// Follows `want` (the scene's TF index): starts, restarts or drops a switch, hands finished
-    /// host work to the GPU, and switches `cao`, `tex` and `lighting` over once every slab has
-    /// executed. Runs before the frame is recorded, after the previous frame's wait, so no
-    /// submitted work uses what it drops.
+    /// Follows `want` (the scene's TF and AO-method indices): starts, restarts or drops a
+    /// switch, hands finished host work to the GPU, and switches `cao`, `tex` and `lighting`
+    /// over once every slab has executed. Runs before the frame is recorded, after the previous
+    /// frame's wait, so no submitted work uses what it drops.
     pub fn advance(
         &mut self,
-        want: usize,
+        want: (usize, usize),
         vol: &Arc<Volume>,
         budget: f64,
         cao: &mut Cao,
         tex: &mut VolumeTextures,
         lighting: Option<&mut ShLighting>,
     ) -> Result<()> {
-        let want = want % self.tfs.len();
-        let target = self.switch.as_ref().map_or(self.shown, |s| s.index);
+        let want = (want.0 % self.tfs.len(), want.1 % self.methods.len());
+        let shown = (self.shown, self.shown_method);
+        let target = self.switch.as_ref().map_or(shown, |s| (s.index, s.method));
         if want != target {
             // Dropping the switch in flight frees O', V_PAO' and skip': safe, because every
             // frame waits for its command buffer, so none of them is in use any more; an
             // unfinished classification thread is detached and its result discarded.
             self.switch = None;
-            if want != self.shown {
+            if want != shown {
                 self.switch = Some(self.start(want, vol, cao)?);
             }
         }
@@ -182,14 +218,15 @@ impl TfSwitcher {
                     vol.name
                 ))
             })?;
+            // The SH visibility depends on the TF's opacity, not on the AO method.
             let sh = match &lighting {
-                Some(l) => {
+                Some(l) if sw.index != self.shown => {
                     let v = ShVolume::new(&self.gpu, vol, l.volume.params)?;
                     let slabs =
                         SlabScheduler::with_budget(v.grid.dims[2], v.samples_per_slice(), budget);
                     Some((v, slabs))
                 }
-                None => None,
+                _ => None,
             };
             sw.stage = Stage::Computing {
                 sh,
@@ -203,7 +240,7 @@ impl TfSwitcher {
                 pao: self.lao.output_buffer(vol.dims)?,
                 // The filters refilter the whole volume in one go (they are cheap); LAO goes a
                 // bounded slab of slices per frame.
-                slabs: match cao.filter() {
+                slabs: match &sw.filter {
                     Some(_) => SlabScheduler::new(1, 1),
                     None => SlabScheduler::with_budget(
                         vol.dims[2],
@@ -229,20 +266,31 @@ impl TfSwitcher {
             };
             tex.set_transfer_function(&self.tfs[sw.index])?;
             cao.replace_precomputed(opacity, pao, skip)?;
+            cao.set_filter(sw.filter);
             if let (Some((mut v, _)), Some(l)) = (sh, lighting) {
                 self.gpu.submit_and_wait(|cmd| v.record_publish(cmd))?;
                 l.volume = v;
             }
             self.shown = sw.index;
+            self.shown_method = sw.method;
         }
         Ok(())
     }
 
-    fn start(&self, index: usize, vol: &Arc<Volume>, cao: &Cao) -> Result<Switch> {
+    fn start(
+        &self,
+        (index, method): (usize, usize),
+        vol: &Arc<Volume>,
+        cao: &Cao,
+    ) -> Result<Switch> {
+        let filter = match self.methods[method] {
+            AoMethod::Filter(p) => Some(FilterGpu::new(&self.gpu, vol.dims, vol.spacing, p)?),
+            AoMethod::Lao => None,
+        };
         let vol = Arc::clone(vol);
         let tf = self.tfs[index].clone();
         let params = cao.params;
-        let input = cao.filter().map(|f| f.params.input);
+        let input = filter.as_ref().map(|f| f.params.input);
         let name = vol.name.clone();
         let task = HostTask::spawn("cao-xr-classify", move || {
             let mut opacity = tf.opacity_volume(&vol);
@@ -260,6 +308,8 @@ impl TfSwitcher {
         })?;
         Ok(Switch {
             index,
+            method,
+            filter,
             stage: Stage::Classifying(task),
         })
     }
@@ -277,6 +327,7 @@ impl TfSwitcher {
                     slabs,
                     sh,
                 },
+            filter,
             ..
         }) = self.switch.as_mut()
         else {
@@ -284,7 +335,7 @@ impl TfSwitcher {
         };
         if let Some(z) = slabs.next_slab() {
             self.timer.begin(cmd);
-            match cao.filter() {
+            match filter {
                 Some(f) => {
                     let whole = [VoxelBox {
                         min: [0; 3],

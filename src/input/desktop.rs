@@ -3,7 +3,7 @@
 //! Keys: left drag orbits the head around the volume, the wheel zooms; W/S move the tool away /
 //! towards the head, A/D left / right, Q/E down / up (also right drag in the view plane); Space
 //! (held) is the trigger and toggles carving; Tab cycles the tool shape; P switches carve/probe;
-//! +/- resize the tool; M cycles transfer-function presets; 1 / 2 show one eye / both; Esc quits.
+//! +/- resize the tool; M cycles transfer-function presets; O cycles the AO method; 1 / 2 show one eye / both; Esc quits.
 
 use super::{Buttons, FrameInput, HandInput, LEFT, RIGHT};
 use crate::space::{symmetric_fov, Pose, DEFAULT_IPD};
@@ -24,6 +24,8 @@ pub enum Key {
     Grow,
     Shrink,
     Menu,
+    /// The stick click: next AO method.
+    NextAo,
     /// Sideways stick: turn the environment light.
     LightLeft,
     LightRight,
@@ -125,6 +127,7 @@ impl DesktopInput {
                 primary: pressed(Key::CycleShape),
                 secondary: pressed(Key::ToggleProbe),
                 menu: pressed(Key::Menu),
+                stick_click: pressed(Key::NextAo),
                 thumbstick: Vec2::new(
                     (pressed(Key::LightRight) as i32 - pressed(Key::LightLeft) as i32) as f32,
                     (pressed(Key::Grow) as i32 - pressed(Key::Shrink) as i32) as f32,

@@ -16,6 +16,7 @@
 //! | left grip               | grabs the volume: it moves and turns with the hand            |
 //! | both grips              | scale (hand distance), move (midpoint), turn (hand axis)      |
 //! | menu (either hand)      | next transfer-function preset                                 |
+//! | stick click (either)    | next AO method (LAO, the filters)                             |
 //! | thumbstick left/right   | turns the environment light about the up axis (SH lighting)   |
 //!
 //! The left hand gets a tool of its own (tool 1) the first time its trigger is pulled, so a
@@ -96,6 +97,8 @@ pub struct InteractionSettings {
     pub light_turn_rate: f32,
     /// Number of transfer-function presets the menu button cycles through (0: it does nothing).
     pub tf_presets: usize,
+    /// Number of AO methods the stick click cycles through (0 or 1: it does nothing).
+    pub ao_methods: usize,
     /// Number of loaded meshes ([`Shape::Mesh`]) that the primary button cycles through after
     /// the built-in shapes.
     pub mesh_count: usize,
@@ -119,6 +122,7 @@ impl Default for InteractionSettings {
             stick_dead_zone: 0.15,
             light_turn_rate: 1.5,
             tf_presets: crate::volume::transfer::PRESETS.len(),
+            ao_methods: 0,
             mesh_count: 0,
             min_scale: 0.1,
             max_scale: 10.0,
@@ -207,6 +211,7 @@ struct HandButtons {
     primary: Edge,
     secondary: Edge,
     menu: Edge,
+    stick_click: Edge,
 }
 
 /// What this frame's buttons did on one hand (rising edges).
@@ -217,6 +222,7 @@ struct Pressed {
     primary: bool,
     secondary: bool,
     menu: bool,
+    stick_click: bool,
 }
 
 impl HandButtons {
@@ -228,6 +234,7 @@ impl HandButtons {
             primary: self.primary.update(b.primary),
             secondary: self.secondary.update(b.secondary),
             menu: self.menu.update(b.menu),
+            stick_click: self.stick_click.update(b.stick_click),
         }
     }
 }
@@ -529,6 +536,10 @@ impl Interaction {
         if (pressed[LEFT].menu || pressed[RIGHT].menu) && self.settings.tf_presets > 0 {
             scene.tf_index =
                 (scene.tf_index % self.settings.tf_presets + 1) % self.settings.tf_presets;
+        }
+        let n = self.settings.ao_methods;
+        if (pressed[LEFT].stick_click || pressed[RIGHT].stick_click) && n > 0 {
+            scene.ao_index = (scene.ao_index % n + 1) % n;
         }
     }
 

@@ -105,6 +105,8 @@ pub struct Buttons {
     /// Secondary face button (B / Y).
     pub secondary: bool,
     pub menu: bool,
+    /// Thumbstick (or trackpad) click: next AO method.
+    pub stick_click: bool,
     /// Thumbstick (or touchpad), each axis -1 ..= 1, +x right, +y up.
     pub thumbstick: Vec2,
 }

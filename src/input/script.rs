@@ -775,7 +775,7 @@ mod tests {
         let (header, frames) = read_stream(&path).unwrap();
         let _ = std::fs::remove_file(&path);
         assert_eq!(header.source, "script:two-tools");
-        assert_eq!(header.version, 1);
+        assert_eq!(header.version, crate::input::stream::VERSION);
         assert_eq!(frames, generate(ScriptKind::TwoTools, &p));
 
         let bad = ScriptParams { fps: -1.0, ..p };

@@ -9,11 +9,12 @@
 //! (each object is on one line in a file; wrapped here)
 //!
 //! ```text
-//! {"format":"cao-xr-pose-stream","version":1,"units":"m","reference_space":"STAGE",
+//! {"format":"cao-xr-pose-stream","version":2,"units":"m","reference_space":"STAGE",
 //!  "view_configuration":"PRIMARY_STEREO","source":"script:tremor","description":"..."}
 //! {"t":0.0,"views":[{"pose":{"p":[x,y,z],"q":[x,y,z,w]},"fov":[l,r,u,d]},{..}],
 //!  "hands":[{"tracked":true,"grip":{"p":..,"q":..},"aim":{..},"grip_value":0.0,"trigger":1.0,
-//!            "primary":false,"secondary":false,"menu":false,"stick":[0.0,0.0]},{..}]}
+//!            "primary":false,"secondary":false,"menu":false,"stick_click":false,
+//!            "stick":[0.0,0.0]},{..}]}
 //! ```
 //!
 //! The wire format is private serde structs mapped to and from [`FrameInput`], so the in-memory
@@ -38,7 +39,7 @@ use std::time::Duration;
 /// The header's `format` string: what makes a file a pose stream.
 pub const FORMAT: &str = "cao-xr-pose-stream";
 /// The stream version this build writes and the newest it reads.
-pub const VERSION: u64 = 1;
+pub const VERSION: u64 = 2;
 /// Positions are in metres (OpenXR's unit).
 pub const UNITS: &str = "m";
 /// Poses are in OpenXR's STAGE space: floor-level origin, +Y up.
@@ -116,13 +117,13 @@ pub enum LineError {
     )]
     WrongFormat { found: String },
     #[error(
-        "the header has no \"version\"; this build reads version {} streams \
+        "the header has no \"version\"; this build reads versions 1 to {} \
          (add \"version\":1 if the file follows that format)",
         VERSION
     )]
     MissingVersion,
     #[error(
-        "version 0 is not a stream version (versions start at 1); this build reads version {}",
+        "version 0 is not a stream version (versions start at 1); this build reads versions 1 to {}",
         VERSION
     )]
     VersionZero,
@@ -310,6 +311,9 @@ struct WireHand {
     primary: bool,
     secondary: bool,
     menu: bool,
+    /// The thumbstick click: required from version 2 on, absent (so false) in version 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    stick_click: Option<bool>,
     stick: [F32; 2],
 }
 
@@ -353,6 +357,7 @@ impl From<&FrameInput> for WireFrame {
                 primary: h.buttons.primary,
                 secondary: h.buttons.secondary,
                 menu: h.buttons.menu,
+                stick_click: Some(h.buttons.stick_click),
                 stick: wire(h.buttons.thumbstick.to_array()),
             }),
         }
@@ -385,6 +390,7 @@ impl From<&WireFrame> for FrameInput {
                     primary: h.primary,
                     secondary: h.secondary,
                     menu: h.menu,
+                    stick_click: h.stick_click.unwrap_or(false),
                     thumbstick: Vec2::from_array(unwire(h.stick)),
                 },
             }),
@@ -576,6 +582,16 @@ impl<W: Write> PoseStreamWriter<W> {
         };
         let invalid = |e: LineError| invalid_input(path.as_deref(), &format!("header: {e}"));
         let header = check_header(wire).map_err(invalid)?;
+        if header.version != VERSION {
+            // Frames are written in this version's format only.
+            return Err(invalid_input(
+                path.as_deref(),
+                &format!(
+                    "header: this build writes version {VERSION} streams, not version {}",
+                    header.version
+                ),
+            ));
+        }
         let mut line = serde_json::to_vec(&header).map_err(io::Error::other)?;
         line.push(b'\n');
         out.write_all(&line)
@@ -746,7 +762,8 @@ impl<R: BufRead> PoseStreamReader<R> {
         let Some(terminated) = self.next_content_line()? else {
             return Ok(None);
         };
-        let frame = parse_frame(self.buf.trim(), terminated, self.last_t)
+        let version = self.header.version;
+        let frame = parse_frame(self.buf.trim(), terminated, self.last_t, version)
             .map_err(|problem| self.line_error(problem))?;
         self.last_t = Some(frame.time);
         Ok(Some(frame))
@@ -786,8 +803,25 @@ fn parse_frame(
     text: &str,
     terminated: bool,
     previous: Option<f64>,
+    version: u64,
 ) -> Result<FrameInput, LineError> {
     let wire: WireFrame = serde_json::from_str(text).map_err(|e| json_error(&e, terminated))?;
+    // The fields a version added are required from it on and unknown before it.
+    for (i, h) in wire.hands.iter().enumerate() {
+        match (version, h.stick_click) {
+            (1, Some(_)) => {
+                return Err(LineError::Schema(format!(
+                    "hands[{i}].stick_click is a version 2 field, but the header says version 1"
+                )))
+            }
+            (2.., None) => {
+                return Err(LineError::Schema(format!(
+                    "hands[{i}]: missing field `stick_click` (required from version 2 on)"
+                )))
+            }
+            _ => {}
+        }
+    }
     check_frame(FrameInput::from(&wire), previous)
 }
 
@@ -908,6 +942,7 @@ mod tests {
                         primary: rng.next() & 1 == 1,
                         secondary: rng.next() & 1 == 1,
                         menu: rng.next() & 1 == 1,
+                        stick_click: rng.next() & 1 == 1,
                         thumbstick: Vec2::new(rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)),
                     },
                 };
@@ -986,7 +1021,7 @@ mod tests {
             let t = f64::from_bits((bits >> 12) | (((i % 40) as u64 + 1003) << 52));
             let mut f = zero_frame;
             f.time = t;
-            let back = parse_frame(&frame_line(&f), true, None).unwrap();
+            let back = parse_frame(&frame_line(&f), true, None, VERSION).unwrap();
             assert_eq!(back.time.to_bits(), t.to_bits(), "{t:e}");
         }
     }
@@ -1059,7 +1094,7 @@ mod tests {
     }
 
     #[test]
-    fn versions_other_than_1_are_refused_clearly() {
+    fn versions_newer_than_2_missing_or_zero_are_refused_clearly() {
         let frame = frame_line(&random_frames(1, 6)[0]);
         let with = |version: &str| {
             let mut h: serde_json::Value = serde_json::from_str(&header_line()).unwrap();
@@ -1071,12 +1106,12 @@ mod tests {
             }
             err_str(&format!("{h}\n{frame}\n"))
         };
-        let e = with("2");
-        assert_eq!(e.problem(), Some(&LineError::NewerVersion { found: 2 }));
+        let e = with("3");
+        assert_eq!(e.problem(), Some(&LineError::NewerVersion { found: 3 }));
         let msg = e.to_string();
         assert!(msg.contains("line 1"), "{msg}");
         assert!(
-            msg.contains("version 2") && msg.contains("version 1"),
+            msg.contains("version 3") && msg.contains("version 2"),
             "{msg}"
         );
         assert_eq!(with("none").problem(), Some(&LineError::MissingVersion));
@@ -1084,10 +1119,38 @@ mod tests {
         assert_eq!(with("0").problem(), Some(&LineError::VersionZero));
 
         // And the writer will not produce one either.
-        let mut h = StreamHeader::new("x", "");
-        h.version = 2;
-        let e = PoseStreamWriter::new(Vec::new(), &h).err().unwrap();
-        assert_eq!(e.kind(), io::ErrorKind::InvalidInput);
+        for v in [1, 3] {
+            let mut h = StreamHeader::new("x", "");
+            h.version = v;
+            let e = PoseStreamWriter::new(Vec::new(), &h).err().unwrap();
+            assert_eq!(e.kind(), io::ErrorKind::InvalidInput, "version {v}");
+        }
+    }
+
+    #[test]
+    fn version_1_streams_read_without_the_stick_click_and_version_2_requires_it() {
+        let f = random_frames(1, 9)[0];
+        let mut v: serde_json::Value = serde_json::from_str(&frame_line(&f)).unwrap();
+        assert!(v["hands"][1]["stick_click"].is_boolean(), "{v}");
+        let header = |version: u64| {
+            let mut h: serde_json::Value = serde_json::from_str(&header_line()).unwrap();
+            h["version"] = version.into();
+            h
+        };
+        // A version 1 frame has no stick_click: it reads as not pressed.
+        for h in v["hands"].as_array_mut().unwrap() {
+            h.as_object_mut().unwrap().remove("stick_click");
+        }
+        let (h1, frames) = read_str(&format!("{}\n{v}\n", header(1))).unwrap();
+        assert_eq!(h1.version, 1);
+        assert!(frames[0].hands.iter().all(|h| !h.buttons.stick_click));
+        assert_eq!(frames[0].hands[1].buttons.menu, f.hands[1].buttons.menu);
+        // Version 2 requires it, and version 1 does not know it.
+        let e = err_str(&format!("{}\n{v}\n", header(2))).to_string();
+        assert!(e.contains("line 2") && e.contains("stick_click"), "{e}");
+        let v2 = frame_line(&f);
+        let e = err_str(&format!("{}\n{v2}\n", header(1))).to_string();
+        assert!(e.contains("version 2 field"), "{e}");
     }
 
     #[test]

@@ -20,6 +20,7 @@ pub struct HandActions {
     primary: xr::Action<bool>,
     secondary: xr::Action<bool>,
     menu: xr::Action<bool>,
+    stick_click: xr::Action<bool>,
     thumbstick: xr::Action<xr::Vector2f>,
     haptic: xr::Action<xr::Haptic>,
     /// Profiles the runtime accepted, for the log.
@@ -51,6 +52,7 @@ impl HandActions {
         let primary = set.create_action("primary", "Primary button", &hands)?;
         let secondary = set.create_action("secondary", "Secondary button", &hands)?;
         let menu = set.create_action("menu", "Menu", &hands)?;
+        let stick_click = set.create_action("stick_click", "Thumbstick click", &hands)?;
         let thumbstick = set.create_action("thumbstick", "Thumbstick", &hands)?;
         let haptic = set.create_action("haptic", "Haptic pulse", &hands)?;
         let mut a = HandActions {
@@ -63,6 +65,7 @@ impl HandActions {
             primary,
             secondary,
             menu,
+            stick_click,
             thumbstick,
             haptic,
             accepted: Vec::new(),
@@ -91,6 +94,7 @@ impl HandActions {
                     "primary" => xr::Binding::new(&self.primary, path),
                     "secondary" => xr::Binding::new(&self.secondary, path),
                     "menu" => xr::Binding::new(&self.menu, path),
+                    "stick_click" => xr::Binding::new(&self.stick_click, path),
                     "thumbstick" => xr::Binding::new(&self.thumbstick, path),
                     "haptic" => xr::Binding::new(&self.haptic, path),
                     // bindings::parse rejects any other name.
@@ -152,6 +156,7 @@ impl HandActions {
                 primary: b(&self.primary)?,
                 secondary: b(&self.secondary)?,
                 menu: b(&self.menu)?,
+                stick_click: b(&self.stick_click)?,
                 thumbstick: Vec2::new(stick.x, stick.y),
             };
         }

@@ -27,6 +27,7 @@ pub const ACTION_NAMES: &[&str] = &[
     "primary",
     "secondary",
     "menu",
+    "stick_click",
     "thumbstick",
     "haptic",
 ];

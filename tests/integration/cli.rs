@@ -794,7 +794,7 @@ fn replay_switches_the_transfer_function_on_menu() {
         lines
             .next()
             .unwrap()
-            .ends_with(",tf,tf_progress,tf_ms,sh_voxels,sh_ms"),
+            .ends_with(",tf,tf_progress,tf_ms,sh_voxels,sh_ms,ao_method"),
         "{csv}"
     );
     // (tf shown, progress of a switch in flight)

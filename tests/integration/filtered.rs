@@ -18,14 +18,14 @@ use cao_xr::volume::transfer::TransferFunction;
 use cao_xr::volume::{phantom, Volume};
 
 fn config(estimator: Estimator, input: FilterInput, radius_mm: f64) -> AoConfig {
-    AoConfig {
-        method: AoMethod::Filter(FilterParams {
+    AoConfig::new(
+        AoMethod::Filter(FilterParams {
             radius_mm,
             estimator,
             input,
         }),
-        lao: LaoParams::default(),
-    }
+        LaoParams::default(),
+    )
 }
 
 /// A CAO state whose method is the filters, and the density they filtered (host copy).

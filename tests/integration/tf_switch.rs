@@ -6,7 +6,8 @@
 use crate::common;
 
 use cao_xr::ao::cao::Mode;
-use cao_xr::ao::{LaoGpu, LaoParams};
+use cao_xr::ao::filtered::{Estimator, FilterParams};
+use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
 use cao_xr::app::frame_loop::{FrameLoop, FrameOutput};
 use cao_xr::clip::Shape;
 use cao_xr::gpu::{Buffer, Gpu};
@@ -45,11 +46,21 @@ fn soft() -> TransferFunction {
 }
 
 fn new_loop(gpu: &Gpu, vol: &Arc<Volume>, tfs: Vec<TransferFunction>, mode: Mode) -> FrameLoop {
+    new_loop_with(gpu, vol, tfs, mode, PARAMS.into())
+}
+
+fn new_loop_with(
+    gpu: &Gpu,
+    vol: &Arc<Volume>,
+    tfs: Vec<TransferFunction>,
+    mode: Mode,
+    ao: AoConfig,
+) -> FrameLoop {
     let mut fl = FrameLoop::new(
         gpu,
         Arc::clone(vol),
         tfs,
-        PARAMS,
+        ao,
         (48, 48),
         InteractionSettings::default(),
         false,
@@ -83,6 +94,138 @@ fn frame(fl: &mut FrameLoop, vol: &Volume, tool: Tool, menu: bool, i: usize) -> 
     input.hands[0].buttons.menu = menu;
     fl.scene.tools = vec![tool];
     fl.frame(&input).unwrap()
+}
+
+/// [`frame`] with the stick click instead of the menu button, and both eyes at one place when
+/// `one_eye_pose`.
+fn click_frame(
+    fl: &mut FrameLoop,
+    vol: &Volume,
+    tool: Tool,
+    click: bool,
+    i: usize,
+    one_eye_pose: bool,
+) -> FrameOutput {
+    let ipd = if one_eye_pose { 0.0 } else { 0.064 };
+    let views = default_stereo_views(vol, &Placement::default(), ipd);
+    let mut input = FrameInput::without_hands(i as f64 / 60.0, views);
+    input.hands[1].buttons.stick_click = click;
+    fl.scene.tools = vec![tool];
+    fl.frame(&input).unwrap()
+}
+
+fn filter(estimator: Estimator) -> AoMethod {
+    AoMethod::Filter(FilterParams {
+        radius_mm: 12.0,
+        estimator,
+        ..Default::default()
+    })
+}
+
+#[test]
+fn the_stick_click_switches_the_ao_method_to_exactly_a_fresh_start_of_it() {
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(N));
+    let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
+    let start = AoConfig::new(filter(Estimator::Penner), PARAMS);
+    let names: Vec<String> = start.cycle().iter().map(|m| m.name()).collect();
+    assert_eq!(
+        names,
+        ["filter-penner", "lao", "filter-cdf", "filter-gauss"]
+    );
+    let mut fl = new_loop_with(&gpu, &vol, tfs.clone(), Mode::Contextual, start);
+    assert_eq!(fl.interaction.settings().ao_methods, 4);
+    let c = Placement::default().center;
+    let mut i = 0;
+    // Penner -> LAO (progressive, a slab of slices per frame), then LAO -> cdf (one refilter).
+    for (want, progressive) in [("lao", true), ("filter-cdf", false)] {
+        let before = read(&fl.cao.ao);
+        let shown = fl.cao.method_name();
+        let mut switching = 0;
+        let (done, t) = loop {
+            assert!(i < 100, "the switch to {want} never finished");
+            let t = tool(c, i, true);
+            let a = click_frame(&mut fl, &vol, t, switching == 0, i, false);
+            i += 1;
+            let Some(p) = a.stats.tf_progress.clone() else {
+                break (a, t);
+            };
+            // The old method stays on screen until the new one is complete.
+            assert_eq!((p.what, p.name.as_str()), ("AO", want), "frame {i}");
+            assert_eq!(fl.cao.method_name(), shown, "frame {i}");
+            switching += 1;
+        };
+        assert_eq!(fl.cao.method_name(), want);
+        assert_eq!(fl.shown_tf().name, "ct-skin", "the TF stays");
+        if progressive {
+            assert!(
+                switching > N / SLAB,
+                "LAO went {switching} frames, not slab by slab"
+            );
+        }
+        // Equal, bit for bit, to a loop started with that method, on the same carved frame.
+        let mut fresh = new_loop_with(
+            &gpu,
+            &vol,
+            tfs.clone(),
+            Mode::Contextual,
+            AoConfig::new(
+                fl.ao_methods()[names.iter().position(|n| n == want).unwrap()],
+                PARAMS,
+            ),
+        );
+        assert_eq!(fresh.cao.method_name(), want);
+        let f = click_frame(&mut fresh, &vol, t, false, i, false);
+        let got = read(&fl.cao.ao);
+        let d = first_diff(&got, &read(&fresh.cao.ao));
+        assert!(
+            d.is_none(),
+            "{want}: V_AO differs from a fresh start at {d:?}"
+        );
+        assert!(done.image == f.image, "{want}: the image differs");
+        assert!(done.stats.metrics.recomputed > 0, "{want}: the tool carves");
+        assert!(got != before, "{want}: the switch changed nothing");
+    }
+    common::assert_no_validation_messages(&gpu);
+}
+
+#[test]
+fn both_eyes_sample_the_one_ambient_volume_under_every_method() {
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(N));
+    let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
+    let c = Placement::default().center;
+    let mut lefts = Vec::new();
+    for method in [
+        AoMethod::Lao,
+        filter(Estimator::Gauss),
+        filter(Estimator::Cdf),
+    ] {
+        let mut fl = new_loop_with(
+            &gpu,
+            &vol,
+            tfs.clone(),
+            Mode::Contextual,
+            AoConfig::new(method, PARAMS),
+        );
+        for i in 0..3 {
+            let f = click_frame(&mut fl, &vol, tool(c, i, true), false, i, true);
+            // One AO update per frame, for both eyes: with the eyes at one pose the two
+            // pictures are the same bits.
+            assert!(
+                f.image.rgba[0] == f.image.rgba[1],
+                "{}: frame {i}: the eyes differ",
+                method.name()
+            );
+            assert!(f.stats.metrics.recomputed > 0);
+            if i == 2 {
+                lefts.push(f.image.rgba[0].clone());
+            }
+        }
+    }
+    // ...and the pictures are each method's own.
+    assert!(lefts[0] != lefts[1] && lefts[1] != lefts[2] && lefts[0] != lefts[2]);
+    common::assert_no_validation_messages(&gpu);
 }
 
 fn first_diff(a: &[f32], b: &[f32]) -> Option<usize> {

@@ -651,6 +651,51 @@ fn menu_cycles_the_transfer_function_presets() {
 }
 
 #[test]
+fn the_stick_click_cycles_the_ao_methods_and_leaves_the_tf_alone() {
+    let mut ix = Interaction::new(InteractionSettings {
+        tf_presets: 3,
+        ao_methods: 4,
+        ..InteractionSettings::default()
+    });
+    let mut scene = Scene::default();
+    let click = |l: bool, r: bool| {
+        let (mut a, mut b) = (idle_left(), idle_right());
+        a.buttons.stick_click = l;
+        b.buttons.stick_click = r;
+        (a, b)
+    };
+    let mut i = 0;
+    let mut seen = vec![];
+    for (l, r) in [
+        (true, false),
+        (false, true),
+        (true, true),
+        (false, true),
+        (true, false),
+    ] {
+        // Held for two frames: one press.
+        i = run(&mut ix, &mut scene, i, [click(l, r), click(l, r)]);
+        seen.push(scene.ao_index);
+        i = run(&mut ix, &mut scene, i, [click(false, false)]);
+    }
+    assert_eq!(
+        seen,
+        [1, 2, 3, 0, 1],
+        "either hand, once per press, modulo 4"
+    );
+    assert_eq!(scene.tf_index, 0);
+
+    // One method: nothing to cycle.
+    let mut ix = Interaction::new(InteractionSettings {
+        ao_methods: 0,
+        ..InteractionSettings::default()
+    });
+    let mut scene = Scene::default();
+    run(&mut ix, &mut scene, 0, [click(true, true)]);
+    assert_eq!(scene.ao_index, 0);
+}
+
+#[test]
 fn nonsense_input_is_ignored_without_panicking() {
     let mut ix = Interaction::new(InteractionSettings {
         smoothing: Some(SUGGESTED_SMOOTHING_HZ),
