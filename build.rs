@@ -24,6 +24,8 @@ fn constants_glsl() -> String {
         format!("const float EMPTY_OUT = {EMPTY_OUT:?};"),
         format!("const float SH_T_MIN = {SH_T_MIN:?};"),
         format!("const float Y0 = {Y0:?};"),
+        format!("const uint HIST_MAX_BINS = {HIST_MAX_BINS}u;"),
+        format!("const uint HIST_MAX_PACKED = {HIST_MAX_PACKED}u;"),
         "#endif".into(),
     ]
     .join("\n")

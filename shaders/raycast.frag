@@ -1,7 +1,8 @@
 #version 460
 // Stereo ray caster: front-to-back compositing through the volume with early termination.
 // Colour = C_tf * (k * AO + diffuse * |n.l| + w * E_sh), where E_sh = sum_k V_k L_k is the
-// environment light seen through the SH visibility volume (Ritschel), optionally times AO.
+// environment light seen through the SH visibility volume (Ritschel), optionally times AO, and
+// with the local-histogram method C_tf bleeds towards the neighbourhood's colour E.
 // Opacity is corrected per mm; depth is written where
 // the ray enters visible material, so later geometry (tools, hands) is depth-correct.
 #extension GL_GOOGLE_include_directive : require
@@ -17,6 +18,8 @@ layout(set = 0, binding = 8) uniform sampler3D sh2;
 layout(set = 0, binding = 9) uniform sampler3D sh3;
 // var_s of variance opacity modulation (data units squared); read when lighting.w = 1/V_max > 0.
 layout(set = 0, binding = 10) uniform sampler3D variance;
+// The local-histogram method's bleeding colour E (rgb); read when bleeding.x = W > 0.
+layout(set = 0, binding = 11) uniform sampler3D bleeding;
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 4
@@ -102,6 +105,11 @@ void main() {
             if (c.a > 0.0) {
                 float a = 1.0 - pow(1.0 - min(c.a, 0.9999), step_mm);
                 float occl = frame.background.a > 0.5 ? texture(ambient, p).r : 1.0;
+                // Colour bleeding (Ropinski et al.): towards the neighbourhood's colour E, the
+                // more the neighbourhood occludes (O_env = 1 - A).
+                if (frame.bleeding.x > 0.0) {
+                    c.rgb = mix(c.rgb, texture(bleeding, p).rgb, frame.bleeding.x * (1.0 - occl));
+                }
                 vec3 shade = vec3(frame.value_map.z * occl);
                 if (frame.value_map.w > 0.0) {
                     vec3 g = gradient_mm(p);

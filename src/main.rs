@@ -2,6 +2,7 @@
 
 use anyhow::{bail, Context, Result};
 use cao_xr::ao::filtered::{FilterInput, FilterParams, VarianceModulation};
+use cao_xr::ao::histogram::HistParams;
 use cao_xr::ao::sh::ShParams;
 use cao_xr::ao::{AoConfig, AoMethod, LaoParams};
 use cao_xr::app;
@@ -78,9 +79,13 @@ enum Cmd {
         /// Output AO volume (.nrrd); the sidecar goes next to it as .json.
         #[arg(long)]
         out: PathBuf,
-        /// Also write the opacity volume O that the AO was computed from.
+        /// Also write the opacity volume O that the AO was computed from (the filters' density d,
+        /// the local histograms' q).
         #[arg(long)]
         opacity_out: Option<PathBuf>,
+        /// With --ao histogram: also write the bleeding colour E (RGB NRRD).
+        #[arg(long)]
+        bleeding_out: Option<PathBuf>,
         /// Use the CPU reference implementation instead of the GPU.
         #[arg(long)]
         cpu: bool,
@@ -418,10 +423,24 @@ struct LaoArgs {
     /// Step length D in mm.
     #[arg(long, default_value_t = LaoParams::default().step_mm)]
     step_mm: f32,
-    /// The AO method: lao, or volumetric AO by separable filtering (Ruiz et al.) with the
-    /// filter-cdf (t^beta), filter-gauss, filter-penner or filter-exact (brute force) estimator.
+    /// The AO method: lao, volumetric AO by separable filtering (Ruiz et al.) with the
+    /// filter-cdf (t^beta), filter-gauss, filter-penner or filter-exact (brute force) estimator,
+    /// or histogram (local histograms with colour bleeding, Ropinski et al.).
     #[arg(long, default_value = "lao")]
     ao: String,
+    /// The local histograms' radius r in mm.
+    #[arg(long, default_value_t = HistParams::default().radius_mm)]
+    hist_radius_mm: f64,
+    /// The local histograms' bins B over the data's value range.
+    #[arg(long, default_value_t = HistParams::default().bins)]
+    hist_bins: usize,
+    /// Clusters N of the local histograms (0: the direct, unclustered sums).
+    #[arg(long, default_value_t = HistParams::default().clusters)]
+    clusters: usize,
+    /// Colour bleeding weight W of --ao histogram: the TF colour moves towards the
+    /// neighbourhood's colour by W times its occlusion (0: off).
+    #[arg(long, default_value_t = cao_xr::render::DEFAULT_BLEEDING)]
+    bleeding: f32,
     /// The filters' radius R in mm (the tangent box's half-size).
     #[arg(long, default_value_t = FilterParams::default().radius_mm)]
     filter_radius_mm: f64,
@@ -468,10 +487,19 @@ impl LaoArgs {
         };
         // The stick click cycles through the filters whatever --ao says: check them up front.
         filter.validate().map_err(anyhow::Error::msg)?;
+        let hist = HistParams {
+            radius_mm: self.hist_radius_mm,
+            bins: self.hist_bins,
+            clusters: self.clusters,
+        };
+        if !(self.bleeding.is_finite() && (0.0..=1.0).contains(&self.bleeding)) {
+            bail!("--bleeding must be in [0, 1], got {}", self.bleeding);
+        }
         Ok(AoConfig {
-            method: AoMethod::parse(&self.ao, filter).map_err(anyhow::Error::msg)?,
+            method: AoMethod::parse(&self.ao, filter, hist).map_err(anyhow::Error::msg)?,
             lao: self.params(),
             filter,
+            bleeding: self.bleeding,
         })
     }
 }
@@ -636,6 +664,7 @@ fn run(cli: Cli) -> Result<()> {
             lao,
             out,
             opacity_out,
+            bleeding_out,
             cpu,
         } => {
             let (v, tf) = vol.load()?;
@@ -651,6 +680,7 @@ fn run(cli: Cli) -> Result<()> {
                 &lao.config()?,
                 &out,
                 opacity_out.as_deref(),
+                bleeding_out.as_deref(),
             )?;
             println!(
                 "wrote {} and {} ({:.1} ms{})",

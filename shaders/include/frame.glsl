@@ -9,5 +9,6 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     vec4 viewport;           // xy: width, height in pixels; z: number of clipping tools
     vec4 lighting;           // x: SH light weight (0: off), y: SH coefficients, z: 1 = times AO,
                              // w: 1 / V_max of variance opacity modulation (0: off)
+    vec4 bleeding;           // x: bleeding weight W of the local-histogram method (0: off)
     vec4 sh_light[16];       // rgb: Y_0 * L_k per colour channel (the environment in data space)
 } frame;

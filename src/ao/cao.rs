@@ -8,6 +8,7 @@
 //! for bit: both use the same kernels on the same clipped opacity.
 
 use super::filter_gpu::{FilterGpu, FilterMode};
+use super::histogram_gpu::{HistMode, HistogramGpu};
 use super::lao::{index_steps, LaoParams, SkipBuffers};
 use crate::clip::Shape;
 use crate::clip::{shape_mesh, ClipMap, ClipMapGpu, TriMesh};
@@ -145,6 +146,17 @@ struct UpdatePush {
 crate::gpu::glsl_layout!(UpdatePush, 64,
     dims: 0, rays: 16, steps: 20, exponent: 24, naive: 28, box_min: 32, box_max: 48);
 
+/// The AO method CAO drives (docs/design.md, "AO methods"): what recomputes the category-b
+/// voxels, and whose reach the dilation covers. V_PAO holds that method's AO of the unclipped
+/// volume.
+// One per CAO state: the sizes do not matter.
+#[allow(clippy::large_enum_variant)]
+pub enum MethodGpu {
+    Lao,
+    Filter(FilterGpu),
+    Histogram(HistogramGpu),
+}
+
 /// The volume's CAO state on the GPU and the passes that update it every frame.
 pub struct Cao {
     gpu: Gpu,
@@ -183,9 +195,8 @@ pub struct Cao {
     /// Tools uploaded for the last recorded frame.
     pub tool_count: u32,
     timer: GpuTimer,
-    /// The AO method when it is not LAO: the filters recompute the category-b voxels (and the
-    /// reach is theirs); V_PAO then holds their openness of the unclipped volume.
-    filter: Option<FilterGpu>,
+    /// The AO method.
+    method: MethodGpu,
 }
 
 impl Cao {
@@ -284,7 +295,7 @@ impl Cao {
             sh_boxes: Vec::new(),
             tool_count: 0,
             timer: GpuTimer::new(gpu, 8)?,
-            filter: None,
+            method: MethodGpu::Lao,
         };
         // Start unclipped: O_c = O, V_AO = V_PAO everywhere.
         let all = cao.whole();
@@ -298,11 +309,12 @@ impl Cao {
     /// update passes (over the current tools' boxes) start from exactly the state a fresh
     /// [`Cao::new`] has. The old buffers are dropped here: call it only when no submitted
     /// command buffer still uses them (after the frame's wait).
+    /// `skip` None keeps the old skipping data (the local histograms, which do not use it).
     pub fn replace_precomputed(
         &mut self,
         opacity: Buffer,
         pao: Buffer,
-        skip: SkipBuffers,
+        skip: Option<SkipBuffers>,
     ) -> Result<()> {
         let bytes = (self.dims[0] * self.dims[1] * self.dims[2] * 4) as u64;
         if opacity.size != bytes || pao.size != bytes {
@@ -313,7 +325,9 @@ impl Cao {
         }
         self.opacity = opacity;
         self.pao = pao;
-        self.skip = skip;
+        if let Some(skip) = skip {
+            self.skip = skip;
+        }
         self.prev_boxes = vec![self.whole()];
         Ok(())
     }
@@ -325,31 +339,61 @@ impl Cao {
         }
     }
 
-    /// Sets the AO method: the filters, or LAO (None). V_PAO must already hold that method's
-    /// AO of the unclipped volume ([`Cao::replace_precomputed`]).
-    pub fn set_filter(&mut self, filter: Option<FilterGpu>) {
-        self.filter = filter;
+    /// Sets the AO method and returns the one it replaces. V_PAO must already hold the new
+    /// method's AO of the unclipped volume ([`Cao::replace_precomputed`]).
+    pub fn set_method(&mut self, method: MethodGpu) -> MethodGpu {
+        // The next frame restores the whole volume from the new method's values (its bleeding
+        // volume included).
+        self.prev_boxes = vec![self.whole()];
+        std::mem::replace(&mut self.method, method)
     }
 
-    /// The AO method's name, as `--ao` spells it (lao, filter-gauss, ...).
+    /// The AO method's name, as `--ao` spells it (lao, filter-gauss, histogram, ...).
     pub fn method_name(&self) -> String {
-        match &self.filter {
-            Some(f) => super::AoMethod::Filter(f.params).name(),
-            None => super::AoMethod::Lao.name(),
+        self.method().name()
+    }
+
+    /// The AO method, as its parameters.
+    pub fn method(&self) -> super::AoMethod {
+        match &self.method {
+            MethodGpu::Lao => super::AoMethod::Lao,
+            MethodGpu::Filter(f) => super::AoMethod::Filter(f.params),
+            MethodGpu::Histogram(h) => super::AoMethod::Histogram(h.params),
         }
     }
 
     /// The filters, when they are the AO method.
     pub fn filter(&self) -> Option<&FilterGpu> {
-        self.filter.as_ref()
+        match &self.method {
+            MethodGpu::Filter(f) => Some(f),
+            _ => None,
+        }
+    }
+
+    /// The local-histogram method's state, when it is the AO method.
+    pub fn histogram(&self) -> Option<&HistogramGpu> {
+        match &self.method {
+            MethodGpu::Histogram(h) => Some(h),
+            _ => None,
+        }
+    }
+
+    pub fn histogram_mut(&mut self) -> Option<&mut HistogramGpu> {
+        match &mut self.method {
+            MethodGpu::Histogram(h) => Some(h),
+            _ => None,
+        }
     }
 
     /// The AO method's reach in mm: for LAO the farthest sample, (M - 1) D; for the filters the
-    /// farthest box member.
+    /// farthest box member; for the local histograms the farthest member of S_r.
     pub fn reach_mm(&self) -> f64 {
-        match &self.filter {
-            Some(f) => f.params.reach_mm(self.spacing),
-            None => self.params.steps.saturating_sub(1) as f64 * self.params.step_mm as f64,
+        match &self.method {
+            MethodGpu::Filter(f) => f.params.reach_mm(self.spacing),
+            MethodGpu::Histogram(h) => h.reach_mm(),
+            MethodGpu::Lao => {
+                self.params.steps.saturating_sub(1) as f64 * self.params.step_mm as f64
+            }
         }
     }
 
@@ -574,6 +618,18 @@ impl Cao {
         }
         self.timer.begin(cmd);
         self.record_restore(cmd, &restore);
+        if let MethodGpu::Histogram(h) = &self.method {
+            // The bleeding colour of last frame's boxes, restored like V_AO.
+            h.record(
+                cmd,
+                &self.clipped,
+                &self.mask,
+                &self.pao,
+                &self.ao,
+                &restore,
+                HistMode::Restore,
+            );
+        }
         self.gpu.barrier(cmd);
         self.timer.mark(cmd, "restore");
         let maps = self.maps.as_ref().unwrap_or(&self.tools);
@@ -596,22 +652,41 @@ impl Cao {
         }
         self.gpu.barrier(cmd);
         self.timer.mark(cmd, "clip");
-        if let Some(f) = &self.filter {
-            let fmode = match mode {
-                Mode::Contextual => FilterMode::Contextual,
-                Mode::Naive => FilterMode::Naive,
-            };
-            f.record(
-                cmd,
-                &self.clipped,
-                &self.ao,
-                &self.mask,
-                &self.pao,
-                &boxes,
-                fmode,
-            );
+        match &self.method {
+            MethodGpu::Filter(f) => {
+                let fmode = match mode {
+                    Mode::Contextual => FilterMode::Contextual,
+                    Mode::Naive => FilterMode::Naive,
+                };
+                f.record(
+                    cmd,
+                    &self.clipped,
+                    &self.ao,
+                    &self.mask,
+                    &self.pao,
+                    &boxes,
+                    fmode,
+                );
+            }
+            MethodGpu::Histogram(h) => {
+                let hmode = match mode {
+                    Mode::Contextual => HistMode::Contextual,
+                    Mode::Naive => HistMode::Naive,
+                };
+                h.record(
+                    cmd,
+                    &self.clipped,
+                    &self.mask,
+                    &self.pao,
+                    &self.ao,
+                    &boxes,
+                    hmode,
+                );
+            }
+            MethodGpu::Lao => {}
         }
-        for b in boxes.iter().filter(|_| self.filter.is_none()) {
+        let lao = matches!(self.method, MethodGpu::Lao);
+        for b in boxes.iter().filter(|_| lao) {
             let push = UpdatePush {
                 dims: self.dims4(),
                 rays: self.params.rays,
@@ -681,6 +756,12 @@ impl Cao {
     /// O, the unclipped opacity the precomputed volumes were computed from.
     pub fn opacity(&self) -> &Buffer {
         &self.opacity
+    }
+
+    /// The last frame's voxel categories (0: clipped, 1: affected, 2: unaffected; restored
+    /// boxes read 2).
+    pub fn mask(&self) -> &Buffer {
+        &self.mask
     }
 
     pub fn clip_buffers(&self) -> (&Buffer, &Buffer) {

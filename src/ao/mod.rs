@@ -4,6 +4,8 @@ pub mod cao;
 pub mod cpu;
 pub mod filter_gpu;
 pub mod filtered;
+pub mod histogram;
+pub mod histogram_gpu;
 pub mod lao;
 pub mod progressive;
 pub mod sh;
@@ -11,6 +13,7 @@ pub mod sh;
 pub use lao::{directions, LaoGpu, LaoParams};
 
 use filtered::{Estimator, FilterParams};
+use histogram::HistParams;
 
 /// Which AO method fills the one ambient volume every view samples (docs/design.md, "AO
 /// methods"). CAO's clip maps, dilation, mask and boxes make each one clip-aware per frame.
@@ -20,28 +23,38 @@ pub enum AoMethod {
     Lao,
     /// Volumetric AO by separable filtering (Ruiz et al.).
     Filter(FilterParams),
+    /// Local-histogram AO with colour bleeding (Ropinski et al.).
+    Histogram(HistParams),
 }
 
 impl AoMethod {
-    /// The name `--ao` takes: lao, filter-cdf, filter-gauss, filter-penner, filter-exact.
+    /// The name `--ao` takes: lao, filter-cdf, filter-gauss, filter-penner, filter-exact,
+    /// histogram.
     pub fn name(&self) -> String {
         match self {
             AoMethod::Lao => "lao".into(),
             AoMethod::Filter(f) => format!("filter-{}", f.estimator.name()),
+            AoMethod::Histogram(_) => "histogram".into(),
         }
     }
 
-    /// Parses `--ao NAME`; a filter takes the radius and input given beside it.
-    pub fn parse(name: &str, filter: FilterParams) -> Result<AoMethod, String> {
-        if name == "lao" {
-            return Ok(AoMethod::Lao);
+    /// Parses `--ao NAME`; a filter takes the radius and input given beside it, the local
+    /// histograms their parameters.
+    pub fn parse(name: &str, filter: FilterParams, hist: HistParams) -> Result<AoMethod, String> {
+        match name {
+            "lao" => return Ok(AoMethod::Lao),
+            "histogram" => {
+                hist.validate()?;
+                return Ok(AoMethod::Histogram(hist));
+            }
+            _ => {}
         }
         let estimator = name
             .strip_prefix("filter-")
             .and_then(|e| Estimator::ALL.into_iter().find(|x| x.name() == e))
             .ok_or_else(|| {
                 format!(
-                    "--ao '{name}': expected lao, filter-cdf, filter-gauss, filter-penner or filter-exact"
+                    "--ao '{name}': expected lao, filter-cdf, filter-gauss, filter-penner, filter-exact or histogram"
                 )
             })?;
         filter.validate()?;
@@ -59,6 +72,8 @@ pub struct AoConfig {
     pub method: AoMethod,
     pub lao: LaoParams,
     pub filter: FilterParams,
+    /// The local-histogram method's bleeding weight W (`--bleeding`), for the ray caster.
+    pub bleeding: f32,
 }
 
 impl AoConfig {
@@ -67,18 +82,20 @@ impl AoConfig {
     pub fn new(method: AoMethod, lao: LaoParams) -> Self {
         let filter = match method {
             AoMethod::Filter(f) => f,
-            AoMethod::Lao => FilterParams::default(),
+            _ => FilterParams::default(),
         };
         AoConfig {
             method,
             lao,
             filter,
+            bleeding: crate::render::DEFAULT_BLEEDING,
         }
     }
 
     /// The methods the stick click cycles through: the configured one, then LAO and the three
     /// filter estimators (with the configured radius and input), each once. `exact` is for
-    /// tests and the benchmark, not for viewing.
+    /// tests and the benchmark, not for viewing; the local histograms are in the cycle only
+    /// when configured (their precompute takes minutes, so it is not started by a click).
     pub fn cycle(&self) -> Vec<AoMethod> {
         let mut all = vec![self.method, AoMethod::Lao];
         for estimator in [Estimator::Cdf, Estimator::Gauss, Estimator::Penner] {
@@ -113,7 +130,8 @@ mod tests {
             radius_mm: 9.0,
             ..Default::default()
         };
-        let gauss = AoMethod::parse("filter-gauss", f).unwrap();
+        let h = HistParams::default();
+        let gauss = AoMethod::parse("filter-gauss", f, h).unwrap();
         let names = |c: &AoConfig| c.cycle().iter().map(|m| m.name()).collect::<Vec<_>>();
         let cfg = AoConfig::new(gauss, LaoParams::default());
         assert_eq!(
@@ -123,15 +141,19 @@ mod tests {
         // Every filter in the cycle keeps the configured radius.
         assert!(cfg.cycle().iter().all(|m| match m {
             AoMethod::Filter(p) => p.radius_mm == 9.0,
-            AoMethod::Lao => true,
+            _ => true,
         }));
         let lao = AoConfig::from(LaoParams::default());
         assert_eq!(
             names(&lao),
             ["lao", "filter-cdf", "filter-gauss", "filter-penner"]
         );
-        let exact = AoConfig::new(AoMethod::parse("filter-exact", f).unwrap(), lao.lao);
+        let exact = AoConfig::new(AoMethod::parse("filter-exact", f, h).unwrap(), lao.lao);
         assert_eq!(names(&exact)[0], "filter-exact");
         assert_eq!(exact.cycle().len(), 5);
+        let hist = AoConfig::new(AoMethod::parse("histogram", f, h).unwrap(), lao.lao);
+        assert_eq!(names(&hist)[..2], ["histogram", "lao"]);
+        assert!(!names(&lao).contains(&"histogram".to_string()));
+        assert!(AoMethod::parse("histogram", f, HistParams { bins: 1, ..h }).is_err());
     }
 }

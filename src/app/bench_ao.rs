@@ -5,7 +5,7 @@
 
 use super::bench::{median, sweep_tools};
 use super::{precompute, AoVolume, HeadlessRenderer, Result};
-use crate::ao::cao::Mode;
+use crate::ao::cao::{MethodGpu, Mode};
 use crate::ao::filtered::{Estimator, FilterParams};
 use crate::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
 use crate::gpu::{Buffer, Gpu};
@@ -69,9 +69,10 @@ fn pictures(
 /// The method's own GPU memory beyond the volumes every method has (O, O_c, the mask, V_PAO,
 /// V_AO): LAO's skipping data, the filters' two statistics volumes.
 fn resident_bytes(v: &AoVolume) -> u64 {
-    match &v.filter {
-        Some(f) => f.resident_bytes(),
-        None => v.skip.clear.size + v.skip.bricks.size,
+    match &v.method {
+        MethodGpu::Filter(f) => f.resident_bytes(),
+        MethodGpu::Histogram(h) => h.resident_bytes(),
+        MethodGpu::Lao => v.skip.clear.size + v.skip.bricks.size,
     }
 }
 
@@ -177,6 +178,7 @@ pub fn bench_ao(
                 method: method.name(),
                 radius_mm: match method {
                     AoMethod::Filter(p) => Some(p.radius_mm),
+                    AoMethod::Histogram(h) => Some(h.radius_mm),
                     AoMethod::Lao => None,
                 },
                 full_ms: median(&mut full),

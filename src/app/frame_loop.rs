@@ -94,7 +94,8 @@ impl FrameLoop {
         mut interaction: InteractionSettings,
         show_progress: bool,
     ) -> Result<FrameLoop> {
-        let ao: AoConfig = ao.into();
+        let config: AoConfig = ao.into();
+        let ao = config;
         let params = ao.lao;
         let tf = tfs.first().ok_or_else(|| {
             AppError::Usage(format!("{}: no transfer function to show", vol.name))
@@ -105,17 +106,24 @@ impl FrameLoop {
         let lao = LaoGpu::new(gpu)?;
         let ao = precompute(gpu, &lao, &vol, tf, &ao, show_progress)?;
         let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
+        let mut tex = VolumeTextures::new(gpu, &vol, tf)?;
+        let histogram = methods.iter().any(|m| matches!(m, AoMethod::Histogram(_)));
+        tex.set_bleeding(gpu, histogram)?;
+        let settings = RenderSettings {
+            bleeding: config.bleeding,
+            ..Default::default()
+        };
         Ok(FrameLoop {
             gpu: gpu.clone(),
             cao: ao.into_cao(gpu, &vol, params)?,
-            tex: VolumeTextures::new(gpu, &vol, tf)?,
+            tex,
             renderer: Renderer::new(gpu)?,
             overlay: OverlayRenderer::new(gpu)?,
             target: StereoTarget::new(gpu, size.0, size.1)?,
             interaction: Interaction::new(interaction),
             scene: Scene::default(),
             mode: Mode::Contextual,
-            settings: RenderSettings::default(),
+            settings,
             show_overlay: true,
             timer: GpuTimer::new(gpu, 2)?,
             tfs: TfSwitcher::new(gpu, tfs, methods, lao, lao_dirs)?,
@@ -132,6 +140,18 @@ impl FrameLoop {
         self.lighting = None;
         self.cao.sh_radius_mm = None;
         if opts.uses_sh() {
+            if self
+                .tfs
+                .methods()
+                .iter()
+                .any(|m| matches!(m, AoMethod::Histogram(_)))
+            {
+                return Err(AppError::Usage(
+                    "SH lighting is not combined with the local-histogram AO (--ao histogram): \
+                     use --lighting ao, or another AO method"
+                        .into(),
+                ));
+            }
             let scalar =
                 |m: &AoMethod| matches!(m, AoMethod::Filter(f) if f.input == FilterInput::Scalar);
             if self.tfs.methods().iter().any(scalar) {
@@ -243,6 +263,9 @@ impl FrameLoop {
                 let slab = tfs.record_slab(cmd, volume, cao);
                 let pending = cao.record_frame(cmd, &scene.tools, &scene.volume, *mode)?;
                 tex.cmd_update_ambient(cmd, &cao.ao);
+                if let Some(h) = cao.histogram() {
+                    tex.cmd_update_bleeding(cmd, &h.e);
+                }
                 let sh = lighting.as_mut().map(|l| l.record_frame(gpu, cmd, cao));
                 let (tools, maps) = cao.clip_buffers();
                 let frame = FrameViews {
@@ -251,8 +274,13 @@ impl FrameLoop {
                     clip: (count > 0).then_some(ClipBinding { tools, maps, count }),
                     sh: lighting.as_ref().map(|l| l.binding()),
                 };
+                // The bleeding volume is the local histograms' alone.
+                let mut settings = *settings;
+                if cao.histogram().is_none() {
+                    settings.bleeding = 0.0;
+                }
                 timer.begin(cmd);
-                renderer.record(cmd, target, tex, &frame, settings)?;
+                renderer.record(cmd, target, tex, &frame, &settings)?;
                 timer.mark(cmd, "render");
                 if *show_overlay {
                     // Tools and tracked hands over the volume, depth-tested against it.

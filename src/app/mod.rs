@@ -12,8 +12,10 @@ pub mod replay;
 pub mod session;
 pub mod tf_switch;
 
-use crate::ao::cao::{Cao, FrameMetrics};
+use crate::ao::cao::{Cao, FrameMetrics, MethodGpu};
 use crate::ao::filter_gpu::FilterGpu;
+use crate::ao::histogram::{self, HistParams};
+use crate::ao::histogram_gpu::HistogramGpu;
 use crate::ao::lao::{directions, LaoTiming, SkipBuffers};
 use crate::ao::{filtered, AoConfig, AoMethod, LaoGpu, LaoParams};
 use crate::gpu::{Buffer, Gpu, GpuError};
@@ -178,8 +180,8 @@ pub struct AoVolume {
     /// Exact empty-space skipping data of O (valid for every clipped O too).
     pub skip: SkipBuffers,
     pub timing: LaoTiming,
-    /// The filters, when they are the method (they go to the CAO state with the volumes).
-    pub filter: Option<FilterGpu>,
+    /// The method's GPU state (it goes to the CAO state with the volumes).
+    pub method: MethodGpu,
 }
 
 impl AoVolume {
@@ -195,16 +197,18 @@ impl AoVolume {
                 bricks: self.skip.bricks.duplicate(usage, "lao-bricks")?,
             },
             timing: self.timing.clone(),
-            filter: self.filter.as_ref().map(FilterGpu::duplicate).transpose()?,
+            method: match &self.method {
+                MethodGpu::Lao => MethodGpu::Lao,
+                MethodGpu::Filter(f) => MethodGpu::Filter(f.duplicate()?),
+                MethodGpu::Histogram(h) => MethodGpu::Histogram(h.duplicate()?),
+            },
         })
     }
 
     /// Hands O, V_PAO and the skipping data to a CAO state for per-frame clipping.
     pub fn into_cao(self, gpu: &Gpu, vol: &Volume, params: LaoParams) -> Result<Cao> {
         let mut cao = Cao::new(gpu, vol, self.opacity_buf, self.ao_buf, self.skip, params)?;
-        if let Some(f) = self.filter {
-            cao.set_filter(Some(f));
-        }
+        cao.set_method(self.method);
         Ok(cao)
     }
 }
@@ -258,7 +262,7 @@ pub fn precompute_ao(
         ao_buf,
         skip,
         timing,
-        filter: None,
+        method: MethodGpu::Lao,
     })
 }
 
@@ -287,8 +291,19 @@ pub fn precompute(
     ao: &AoConfig,
     show_progress: bool,
 ) -> Result<AoVolume> {
-    let AoMethod::Filter(fp) = ao.method else {
-        return precompute_ao(gpu, lao, vol, tf, &ao.lao, show_progress);
+    let fp = match ao.method {
+        AoMethod::Lao => return precompute_ao(gpu, lao, vol, tf, &ao.lao, show_progress),
+        AoMethod::Histogram(hp) => {
+            let h = histogram_state(
+                gpu,
+                vol,
+                hp,
+                Some(&histogram::default_cache_dir()),
+                show_progress,
+            )?;
+            return precompute_histogram(gpu, lao, vol, tf, &ao.lao, h);
+        }
+        AoMethod::Filter(fp) => fp,
     };
     ao.lao.validate().map_err(AppError::Usage)?;
     fp.validate().map_err(AppError::Usage)?;
@@ -309,7 +324,68 @@ pub fn precompute(
         ao_buf,
         skip,
         timing,
-        filter: Some(filter),
+        method: MethodGpu::Filter(filter),
+    })
+}
+
+/// The local-histogram method set up for `vol` (the clustering loaded from `cache` or computed,
+/// with a progress bar when asked).
+pub fn histogram_state(
+    gpu: &Gpu,
+    vol: &Volume,
+    hp: HistParams,
+    cache: Option<&Path>,
+    show_progress: bool,
+) -> Result<HistogramGpu> {
+    hp.validate().map_err(AppError::Usage)?;
+    crate::render::check_volume_fits_gpu(gpu, vol)?;
+    let bar = show_progress.then(|| progress_bar(1, "local histograms"));
+    let h = HistogramGpu::new(gpu, vol, hp, cache, &mut |done, total, phase| {
+        if let Some(b) = &bar {
+            b.set_length(total.max(1));
+            b.set_position(done);
+            b.set_message(phase.to_string());
+        }
+    })?;
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    Ok(h)
+}
+
+/// V_PAO and the bleeding volume of the local-histogram method `h` under `tf`: one table
+/// update and one pass (the clusters' values, or with N = 0 the direct sums).
+pub fn precompute_histogram(
+    gpu: &Gpu,
+    lao: &LaoGpu,
+    vol: &Volume,
+    tf: &TransferFunction,
+    params: &LaoParams,
+    mut h: HistogramGpu,
+) -> Result<AoVolume> {
+    params.validate().map_err(AppError::Usage)?;
+    let q = h.set_tf(tf)?;
+    let (opacity_buf, skip) = upload_opacity(gpu, lao, vol, &q, params)?;
+    let ao_buf = lao.output_buffer(vol.dims)?;
+    let t0 = std::time::Instant::now();
+    let mut timer = crate::gpu::GpuTimer::new(gpu, 2)?;
+    gpu.submit_and_wait(|cmd| {
+        timer.begin(cmd);
+        h.record_precompute(cmd, &opacity_buf, &ao_buf);
+        timer.mark(cmd, "histogram");
+    })?;
+    let timing = LaoTiming {
+        gpu_ms: timer.read()?.iter().map(|t| t.1).sum(),
+        wall_ms: t0.elapsed().as_secs_f64() * 1e3,
+        ..Default::default()
+    };
+    Ok(AoVolume {
+        opacity: q,
+        opacity_buf,
+        ao_buf,
+        skip,
+        timing,
+        method: MethodGpu::Histogram(h),
     })
 }
 
@@ -510,6 +586,24 @@ pub fn parse_tool(spec: &str, placement: &Placement) -> Result<Tool> {
 /// The JSON sidecar of an AO volume: everything an outside checker needs to recompute it.
 pub fn ao_sidecar(vol: &Volume, tf: &TransferFunction, ao: &AoConfig) -> serde_json::Value {
     let params = &ao.lao;
+    if let AoMethod::Histogram(h) = &ao.method {
+        return serde_json::json!({
+            "volume": vol.name,
+            "method": "histogram",
+            "radius_mm": h.radius_mm,
+            "bins": h.bins,
+            "clusters": h.clusters,
+            "dims": vol.dims,
+            "spacing_mm": vol.spacing,
+            "transfer_function": tf,
+            "value_range": [vol.value_range().0, vol.value_range().1],
+            "definition": "docs/design.md, Local-histogram AO: bin(u) = min(B-1, floor(B (value - v_min) \
+        / (v_max - v_min))); q = coverage * TF opacity at the bin centre (the written opacity file); \
+        S_r = {u != v : |(u - v) s| <= r mm}, w = (s_min / |(u - v) s|)^2, W = sum of w over S_r \
+        (out-of-grid members included, with q = 0); A = 1 - sum w q / W; E = sum w q rgb / sum w q \
+        (the bleeding file); clusters > 0: each voxel its cluster's values",
+        });
+    }
     if let AoMethod::Filter(f) = &ao.method {
         return serde_json::json!({
             "volume": vol.name,
@@ -555,8 +649,9 @@ fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
 }
 
 /// `cao-xr ao`: the AO volume as float32 NRRD, its JSON sidecar, optionally the opacity volume
-/// (for the filters: the density they filtered). With `cpu`, the CPU reference computes it
-/// instead of the GPU.
+/// (for the filters: the density they filtered; for the local histograms: q) and, for the local
+/// histograms, the bleeding colour E (RGB). With `cpu`, the CPU reference computes it instead of
+/// the GPU.
 pub fn write_ao(
     gpu: Option<&Gpu>,
     vol: &Volume,
@@ -564,23 +659,37 @@ pub fn write_ao(
     config: &AoConfig,
     out: &Path,
     opacity_out: Option<&Path>,
+    bleeding_out: Option<&Path>,
 ) -> Result<LaoTiming> {
     let params = &config.lao;
-    let (ao, opacity, timing) = match gpu {
+    let histogram = matches!(config.method, AoMethod::Histogram(_));
+    if bleeding_out.is_some() && !histogram {
+        return Err(AppError::Usage(
+            "--bleeding-out: only the local-histogram method (--ao histogram) has a bleeding colour"
+                .into(),
+        ));
+    }
+    let (ao, opacity, timing, bleeding) = match gpu {
         Some(gpu) => {
             let lao = LaoGpu::new(gpu)?;
             let r = precompute(gpu, &lao, vol, tf, config, true)?;
             let bytes = r.ao_buf.read_back()?;
+            let e = match &r.method {
+                MethodGpu::Histogram(h) => Some(h.read_e(&h.pre_e)?),
+                _ => None,
+            };
             (
                 bytemuck::cast_slice::<u8, f32>(&bytes).to_vec(),
                 r.opacity,
                 r.timing,
+                e,
             )
         }
         None => {
             params.validate().map_err(AppError::Usage)?;
             let opacity = tf.opacity_volume(vol);
             let t0 = std::time::Instant::now();
+            let mut bleeding = None;
             let (ao, opacity) = match &config.method {
                 AoMethod::Lao => (
                     crate::ao::cpu::lao(&opacity, vol.dims, vol.spacing, params),
@@ -591,12 +700,29 @@ pub fn write_ao(
                     let d = filtered::density(f.input, &opacity, vol);
                     (filtered::filtered_ao(&d, vol.dims, vol.spacing, f), d)
                 }
+                AoMethod::Histogram(h) => {
+                    h.validate().map_err(AppError::Usage)?;
+                    if h.clusters > 0 {
+                        return Err(AppError::Usage(
+                            "--cpu computes the direct definition of the local-histogram AO: \
+                             add --clusters 0"
+                                .into(),
+                        ));
+                    }
+                    let bins = histogram::bins(vol, h.bins);
+                    let table = histogram::bin_table(tf, vol.value_range(), h.bins);
+                    let q = histogram::q_volume(&bins, &table);
+                    let nb = histogram::Neighbourhood::new(h.radius_mm, vol.spacing);
+                    let (a, e) = histogram::direct_reference(vol.dims, &q, &bins, &table, &nb);
+                    bleeding = Some(e);
+                    (a, q)
+                }
             };
             let timing = LaoTiming {
                 wall_ms: t0.elapsed().as_secs_f64() * 1e3,
                 ..Default::default()
             };
-            (ao, opacity, timing)
+            (ao, opacity, timing, bleeding)
         }
     };
     let write = |path: &Path, data: &[f32]| {
@@ -615,6 +741,18 @@ pub fn write_ao(
     write_json(&out.with_extension("json"), &ao_sidecar(vol, tf, config))?;
     if let Some(o) = opacity_out {
         write(o, &opacity)?;
+    }
+    if let (Some(path), Some(e)) = (bleeding_out, bleeding) {
+        let flat: Vec<f32> = e.iter().flatten().copied().collect();
+        nrrd::write_rgb(
+            path,
+            vol.dims,
+            vol.spacing,
+            vol.directions,
+            vol.origin,
+            vol.modality,
+            &flat,
+        )?;
     }
     Ok(timing)
 }

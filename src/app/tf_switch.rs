@@ -8,9 +8,10 @@
 
 use super::lighting::ShLighting;
 use super::{AppError, Result};
-use crate::ao::cao::{Cao, VoxelBox};
+use crate::ao::cao::{Cao, MethodGpu, VoxelBox};
 use crate::ao::filter_gpu::{FilterGpu, FilterMode};
 use crate::ao::filtered;
+use crate::ao::histogram_gpu::HistogramGpu;
 use crate::ao::lao::{SkipBuffers, SkipData};
 use crate::ao::progressive::{HostTask, SlabScheduler};
 use crate::ao::sh::ShVolume;
@@ -121,6 +122,9 @@ pub struct TfSwitcher {
     methods: Vec<AoMethod>,
     shown_method: usize,
     switch: Option<Switch>,
+    /// The local-histogram method's state while another method is shown (its clustering is
+    /// kept, so switching back is a table update).
+    parked: Option<HistogramGpu>,
     lao: LaoGpu,
     lao_dirs: Buffer,
     timer: GpuTimer,
@@ -143,6 +147,7 @@ impl TfSwitcher {
             methods,
             shown_method: 0,
             switch: None,
+            parked: None,
             lao,
             lao_dirs,
             timer: GpuTimer::new(gpu, 2)?,
@@ -195,6 +200,11 @@ impl TfSwitcher {
         let want = (want.0 % self.tfs.len(), want.1 % self.methods.len());
         let shown = (self.shown, self.shown_method);
         let target = self.switch.as_ref().map_or(shown, |s| (s.index, s.method));
+        if want != shown && matches!(self.methods[want.1], AoMethod::Histogram(_)) {
+            // The local histograms follow a new TF (or come back) with one table update.
+            self.switch = None;
+            return self.switch_to_histogram(want, vol, cao, tex);
+        }
         if want != target {
             // Dropping the switch in flight frees O', V_PAO' and skip': safe, because every
             // frame waits for its command buffer, so none of them is in use any more; an
@@ -265,8 +275,14 @@ impl TfSwitcher {
                 unreachable!("finished implies computing")
             };
             tex.set_transfer_function(&self.tfs[sw.index])?;
-            cao.replace_precomputed(opacity, pao, skip)?;
-            cao.set_filter(sw.filter);
+            cao.replace_precomputed(opacity, pao, Some(skip))?;
+            let method = match sw.filter {
+                Some(f) => MethodGpu::Filter(f),
+                None => MethodGpu::Lao,
+            };
+            if let MethodGpu::Histogram(h) = cao.set_method(method) {
+                self.parked = Some(h);
+            }
             if let (Some((mut v, _)), Some(l)) = (sh, lighting) {
                 self.gpu.submit_and_wait(|cmd| v.record_publish(cmd))?;
                 l.volume = v;
@@ -274,6 +290,46 @@ impl TfSwitcher {
             self.shown = sw.index;
             self.shown_method = sw.method;
         }
+        Ok(())
+    }
+
+    /// Shows the local-histogram method under TF `index` at once: the bins' and clusters'
+    /// tables, q, and one pass for V_PAO and the bleeding volume.
+    fn switch_to_histogram(
+        &mut self,
+        (index, method): (usize, usize),
+        vol: &Volume,
+        cao: &mut Cao,
+        tex: &mut VolumeTextures,
+    ) -> Result<()> {
+        let tf = &self.tfs[index];
+        let (gpu, lao) = (&self.gpu, &self.lao);
+        let build = |h: &mut HistogramGpu| -> Result<(Buffer, Buffer)> {
+            let q = h.set_tf(tf)?;
+            let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+            let opacity = Buffer::device_local(gpu, &q, usage, "opacity")?;
+            let pao = lao.output_buffer(vol.dims)?;
+            gpu.submit_and_wait(|cmd| h.record_precompute(cmd, &opacity, &pao))?;
+            Ok((opacity, pao))
+        };
+        let shown_here = match cao.histogram_mut() {
+            Some(h) => Some(build(h)?),
+            None => None,
+        };
+        match shown_here {
+            Some((opacity, pao)) => cao.replace_precomputed(opacity, pao, None)?,
+            None => {
+                let mut h = self.parked.take().ok_or_else(|| {
+                    AppError::Usage("the local-histogram method was not set up".into())
+                })?;
+                let (opacity, pao) = build(&mut h)?;
+                cao.replace_precomputed(opacity, pao, None)?;
+                cao.set_method(MethodGpu::Histogram(h));
+            }
+        }
+        tex.set_transfer_function(tf)?;
+        self.shown = index;
+        self.shown_method = method;
         Ok(())
     }
 
@@ -285,7 +341,7 @@ impl TfSwitcher {
     ) -> Result<Switch> {
         let filter = match self.methods[method] {
             AoMethod::Filter(p) => Some(FilterGpu::new(&self.gpu, vol.dims, vol.spacing, p)?),
-            AoMethod::Lao => None,
+            _ => None,
         };
         let vol = Arc::clone(vol);
         let tf = self.tfs[index].clone();

@@ -36,6 +36,10 @@ pub struct RenderSettings {
     /// Variance opacity modulation's V_max (data units squared); 0 = off. Takes effect where
     /// the textures hold a variance volume ([`VolumeTextures::set_variance`]).
     pub variance_max: f32,
+    /// The local-histogram method's bleeding weight W: the TF colour moves towards the
+    /// bleeding colour E by W * O_env. Takes effect where the textures hold a bleeding volume
+    /// ([`VolumeTextures::set_bleeding`]); 0 = off.
+    pub bleeding: f32,
 }
 
 impl Default for RenderSettings {
@@ -49,9 +53,13 @@ impl Default for RenderSettings {
             sh_weight: 1.0,
             sh_times_ao: false,
             variance_max: 0.0,
+            bleeding: DEFAULT_BLEEDING,
         }
     }
 }
+
+/// `--bleeding`'s default: half way to the neighbourhood's colour where it is fully occluded.
+pub const DEFAULT_BLEEDING: f32 = 0.5;
 
 /// The volume as the ray caster samples it: scalars (full precision, R32F), the AO volume and the
 /// transfer function's lookup table.
@@ -61,6 +69,8 @@ pub struct VolumeTextures {
     pub lut: Image,
     /// var_s of variance opacity modulation (R32F, data units squared), when it is on.
     pub variance: Option<Image>,
+    /// The local-histogram method's bleeding colour E (RGBA8 per voxel), when it is the method.
+    pub bleeding: Option<Image>,
     pub dims: [usize; 3],
     pub spacing: [f64; 3],
     pub value_range: (f32, f32),
@@ -235,6 +245,7 @@ impl VolumeTextures {
             ambient,
             lut,
             variance: None,
+            bleeding: None,
             dims: vol.dims,
             spacing: vol.spacing,
             value_range: vol.value_range(),
@@ -258,6 +269,54 @@ impl VolumeTextures {
             None => None,
         };
         Ok(())
+    }
+
+    /// Allocates (or, with `on` false, drops) the bleeding texture that
+    /// [`VolumeTextures::cmd_update_bleeding`] fills.
+    pub fn set_bleeding(&mut self, gpu: &Gpu, on: bool) -> Result<()> {
+        self.bleeding = match on {
+            true => {
+                let img = Image::new(
+                    gpu,
+                    ImageDesc {
+                        image_type: vk::ImageType::TYPE_3D,
+                        view_type: vk::ImageViewType::TYPE_3D,
+                        format: vk::Format::R8G8B8A8_UNORM,
+                        extent: vk::Extent3D {
+                            width: self.dims[0] as u32,
+                            height: self.dims[1] as u32,
+                            depth: self.dims[2] as u32,
+                        },
+                        layers: 1,
+                        usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+                        aspect: vk::ImageAspectFlags::COLOR,
+                    },
+                    "bleeding",
+                )?;
+                let n = self.dims.iter().product::<usize>();
+                img.upload(&vec![0u8; n * 4], vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
+                Some(img)
+            }
+            false => None,
+        };
+        Ok(())
+    }
+
+    /// Records a copy of a bleeding buffer (RGBA8 per voxel) into the bleeding texture, when
+    /// there is one.
+    pub fn cmd_update_bleeding(&self, cmd: vk::CommandBuffer, e: &Buffer) {
+        let Some(img) = &self.bleeding else { return };
+        img.transition(
+            cmd,
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        );
+        img.cmd_copy_from(cmd, e);
+        img.transition(
+            cmd,
+            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        );
     }
 
     pub fn set_transfer_function(&self, tf: &TransferFunction) -> Result<()> {
@@ -421,11 +480,12 @@ struct FrameUniforms {
     background: [f32; 4],
     viewport: [f32; 4],
     lighting: [f32; 4],
+    bleeding: [f32; 4],
     sh_light: [[f32; 4]; 16],
 }
-crate::gpu::glsl_layout!(FrameUniforms, 656,
+crate::gpu::glsl_layout!(FrameUniforms, 672,
     inv_view_proj: 0, view_proj: 128, tex_from_world: 256, extent_mm: 320, value_map: 336,
-    background: 352, viewport: 368, lighting: 384, sh_light: 400);
+    background: 352, viewport: 368, lighting: 384, bleeding: 400, sh_light: 416);
 
 pub struct Renderer {
     gpu: Gpu,
@@ -479,6 +539,7 @@ impl Renderer {
                     sampled,
                     vk::DescriptorType::STORAGE_BUFFER,
                     vk::DescriptorType::STORAGE_BUFFER,
+                    sampled,
                     sampled,
                     sampled,
                     sampled,
@@ -608,6 +669,15 @@ impl Renderer {
                     None => [0.0, 0.0, 0.0, inv_vmax],
                 }
             },
+            bleeding: [
+                match &tex.bleeding {
+                    Some(_) => settings.bleeding,
+                    None => 0.0,
+                },
+                0.0,
+                0.0,
+                0.0,
+            ],
             sh_light: std::array::from_fn(|k| {
                 let l = frame.sh.map_or([[0.0; 16]; 3], |sh| *sh.light);
                 let y0 = crate::light::sh::Y0 as f32;
@@ -659,6 +729,8 @@ impl Renderer {
         let sh_infos = sh_views.map(img);
         // var_s, or a bound image standing in, unread (lighting.w = 0).
         let i10 = img(tex.variance.as_ref().unwrap_or(&tex.ambient).view);
+        // E, or a bound image standing in, unread (bleeding.x = 0).
+        let i11 = img(tex.bleeding.as_ref().unwrap_or(&tex.ambient).view);
         let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
         let clip_maps = [clip.map_or(&self.no_clip, |c| c.maps).descriptor()];
@@ -707,6 +779,10 @@ impl Renderer {
                 .dst_binding(10)
                 .descriptor_type(sampled)
                 .image_info(&i10),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(11)
+                .descriptor_type(sampled)
+                .image_info(&i11),
         ];
         for eye in 0..2u32 {
             let color_att = [vk::RenderingAttachmentInfo::default()

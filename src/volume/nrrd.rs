@@ -677,7 +677,59 @@ pub fn write(
     data: NrrdData,
     gzip: bool,
 ) -> Result<(), VolumeError> {
-    let expected = dims.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+    write_components(
+        path, 1, dims, spacing, directions, origin, modality, data, gzip,
+    )
+}
+
+/// [`write`] for an RGB volume: `data` holds r, g, b per voxel (x fastest after the colour),
+/// written as a 4-D NRRD whose first axis is "RGB-color" (as Slicer and teem read it).
+#[allow(clippy::too_many_arguments)]
+pub fn write_rgb(
+    path: &Path,
+    dims: [usize; 3],
+    spacing: [f64; 3],
+    directions: DMat3,
+    origin: DVec3,
+    modality: Modality,
+    data: &[f32],
+) -> Result<(), VolumeError> {
+    let vol = [dims[0] * 3, dims[1], dims[2]];
+    if data.len() != vol.iter().product::<usize>() {
+        return Err(VolumeError::format(
+            path,
+            format!(
+                "cannot write: {} samples are not RGB of {dims:?}",
+                data.len()
+            ),
+        ));
+    }
+    write_components(
+        path,
+        3,
+        dims,
+        spacing,
+        directions,
+        origin,
+        modality,
+        NrrdData::F32(data),
+        false,
+    )
+}
+
+#[allow(clippy::too_many_arguments)]
+fn write_components(
+    path: &Path,
+    components: usize,
+    dims: [usize; 3],
+    spacing: [f64; 3],
+    directions: DMat3,
+    origin: DVec3,
+    modality: Modality,
+    data: NrrdData,
+    gzip: bool,
+) -> Result<(), VolumeError> {
+    let expected = dims.iter().try_fold(components, |a, &d| a.checked_mul(d));
     if dims.contains(&0) || expected != Some(data.len()) {
         return Err(VolumeError::format(
             path,
@@ -708,16 +760,23 @@ pub fn write(
     header.push_str("# Complete NRRD file format specification at:\n");
     header.push_str("# http://teem.sourceforge.net/nrrd/format.html\n");
     header.push_str(&format!("type: {}\n", data.type_name()));
-    header.push_str("dimension: 3\n");
+    let (dimension, size, direction, kind) = match components {
+        1 => ("3", String::new(), "", ""),
+        c => ("4", format!("{c} "), "none ", "RGB-color "),
+    };
+    header.push_str(&format!("dimension: {dimension}\n"));
     header.push_str("space: left-posterior-superior\n");
-    header.push_str(&format!("sizes: {} {} {}\n", dims[0], dims[1], dims[2]));
     header.push_str(&format!(
-        "space directions: {} {} {}\n",
+        "sizes: {size}{} {} {}\n",
+        dims[0], dims[1], dims[2]
+    ));
+    header.push_str(&format!(
+        "space directions: {direction}{} {} {}\n",
         fmt_vec(cols[0] * spacing[0]),
         fmt_vec(cols[1] * spacing[1]),
         fmt_vec(cols[2] * spacing[2])
     ));
-    header.push_str("kinds: domain domain domain\n");
+    header.push_str(&format!("kinds: {kind}domain domain domain\n"));
     header.push_str("endian: little\n");
     header.push_str(&format!(
         "encoding: {}\n",

@@ -11,6 +11,7 @@ mod desktop;
 mod dicom;
 mod filtered;
 mod foreign;
+mod histogram;
 mod lao;
 mod overlay;
 mod render;

@@ -1,0 +1,34 @@
+#version 460
+// Local histograms of the unclipped volume (Ropinski et al., eq. 2), one row per voxel:
+// LH_k(v) = sum of w / W over the in-grid members of S_r whose bin is k. The voxels are a range
+// (base + row) or a list (the clustering's training sample).
+#extension GL_GOOGLE_include_directive : require
+#include "constants.glsl"
+layout(local_size_x = 64) in;
+
+layout(std430, binding = 0) readonly buffer Bins { uint bins[]; };
+layout(std430, binding = 1) readonly buffer Neighbours { vec4 neighbours[]; };
+layout(std430, binding = 2) readonly buffer List { uint list[]; };
+layout(std430, binding = 3) writeonly buffer Rows { float rows[]; };
+
+layout(push_constant) uniform Push {
+    ivec4 dims;  // w: number of neighbours
+    uvec4 job;   // x: rows, y: bins B, z: first voxel of a range, w: 1 = voxels from the list
+} pc;
+
+void main() {
+    uint r = gl_GlobalInvocationID.x;
+    if (r >= pc.job.x) return;
+    uint i = pc.job.w == 1u ? list[r] : pc.job.z + r;
+    ivec3 v = ivec3(int(i) % pc.dims.x, (int(i) / pc.dims.x) % pc.dims.y,
+                    int(i) / (pc.dims.x * pc.dims.y));
+    float lh[HIST_MAX_BINS];
+    for (uint k = 0u; k < pc.job.y; k++) lh[k] = 0.0;
+    for (int n = 0; n < pc.dims.w; n++) {
+        vec4 nb = neighbours[n];
+        ivec3 u = v + ivec3(nb.xyz);
+        if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
+        lh[bins[u.x + pc.dims.x * (u.y + pc.dims.y * u.z)]] += nb.w;
+    }
+    for (uint k = 0u; k < pc.job.y; k++) rows[r * pc.job.y + k] = lh[k];
+}

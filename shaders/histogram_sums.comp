@@ -1,0 +1,73 @@
+#version 460
+// Local-histogram AO (Ropinski et al.) for every voxel of a box, as docs/design.md defines it:
+// the direct sums over S_r of w q (openness A = 1 - sum w q / W) and of w q rgb (the bleeding
+// colour E = sum w q rgb / sum w q), q = the clip coverage times the bin's opacity; or the
+// clustered values of the voxel's cluster. As an AO method of CAO it writes, per category,
+// a (clipped) -> A = 1 and no colour, c (unaffected) -> the precomputed values, b -> the sums.
+#extension GL_GOOGLE_include_directive : require
+layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
+
+layout(std430, binding = 0) readonly buffer Q { float q[]; };
+layout(std430, binding = 1) readonly buffer Bins { uint bins[]; };
+// Per bin: rgb, and the opacity a (unused here: q already holds it).
+layout(std430, binding = 2) readonly buffer BinTable { vec4 bin_table[]; };
+// S_r: offset xyz, and the weight w / W.
+layout(std430, binding = 3) readonly buffer Neighbours { vec4 neighbours[]; };
+layout(std430, binding = 4) readonly buffer Mask { uint mask[]; };
+layout(std430, binding = 5) readonly buffer PreA { float pre_a[]; };
+layout(std430, binding = 6) readonly buffer PreE { uint pre_e[]; };
+layout(std430, binding = 7) writeonly buffer OutA { float out_a[]; };
+layout(std430, binding = 8) writeonly buffer OutE { uint out_e[]; };
+layout(std430, binding = 9) readonly buffer Ids { uint ids[]; };
+// Per cluster, for the current TF: rgb = E, a = A.
+layout(std430, binding = 10) readonly buffer Clusters { vec4 clusters[]; };
+
+layout(push_constant) uniform Push {
+    ivec4 dims;     // w: number of neighbours
+    ivec4 box_min;  // w: mode (0: direct sums, no mask; 1: CAO by category; 2: naive, a -> 1;
+                    //          3: restore the precomputed values; 4: the clustered values)
+    ivec4 box_max;  // exclusive
+} pc;
+
+void direct(ivec3 v, out float a, out vec3 e) {
+    float occ = 0.0;
+    vec3 rgb = vec3(0.0);
+    for (int n = 0; n < pc.dims.w; n++) {
+        vec4 nb = neighbours[n];
+        ivec3 u = v + ivec3(nb.xyz);
+        if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
+        int j = u.x + pc.dims.x * (u.y + pc.dims.y * u.z);
+        float wq = nb.w * q[j];
+        occ += wq;
+        rgb += wq * bin_table[bins[j]].rgb;
+    }
+    a = 1.0 - occ;
+    e = occ > 0.0 ? rgb / occ : vec3(0.0);
+}
+
+void main() {
+    ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
+    if (any(greaterThanEqual(v, pc.box_max.xyz))) return;
+    int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
+    int mode = pc.box_min.w;
+    if (mode == 4) {
+        vec4 c = clusters[ids[i]];
+        out_a[i] = c.a;
+        out_e[i] = packUnorm4x8(vec4(c.rgb, 1.0));
+        return;
+    }
+    uint category = mode == 0 ? 1u : mask[i];
+    if (mode == 3 || (mode == 1 && category == 2u)) {
+        out_a[i] = pre_a[i];
+        out_e[i] = pre_e[i];
+    } else if (category == 0u) {
+        out_a[i] = 1.0;
+        out_e[i] = packUnorm4x8(vec4(0.0, 0.0, 0.0, 1.0));
+    } else {
+        float a;
+        vec3 e;
+        direct(v, a, e);
+        out_a[i] = a;
+        out_e[i] = packUnorm4x8(vec4(e, 1.0));
+    }
+}

@@ -1,0 +1,737 @@
+//! Local-histogram AO with colour bleeding (Ropinski et al.), exactly as docs/design.md
+//! ("Local-histogram AO") defines it. Every voxel's neighbourhood S_r is summarised, once and
+//! independently of the transfer function, as a histogram of its bins weighted by 1/d^2; the
+//! histograms are clustered (LBG on packed histograms, L2), so that per TF each cluster's
+//! occlusion O_env and bleeding colour E is one dot product with the TF's per-bin opacity and
+//! colour. This file holds the parameters, the definition's CPU reference (f64), the packing,
+//! the LBG training, the per-TF table and the on-disk cache; [`super::histogram_gpu`] runs the
+//! heavy parts (the histograms, the assignment, the direct sums of the clip update).
+
+use crate::rng::SplitMix64;
+use crate::volume::transfer::TransferFunction;
+use crate::volume::Volume;
+use rayon::prelude::*;
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+
+pub use crate::shader_constants::{HIST_MAX_BINS, HIST_MAX_PACKED};
+
+/// The local-histogram AO's parameters.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HistParams {
+    /// r: the neighbourhood's radius in mm.
+    pub radius_mm: f64,
+    /// B: histogram bins over the data's value range.
+    pub bins: usize,
+    /// N: clusters (0: the direct, unclustered definition).
+    pub clusters: usize,
+}
+
+impl Default for HistParams {
+    /// r = 12 mm (the paper's head used 12 to 24 voxels of about 1 mm); 64 bins (64 HU each on
+    /// CT, which keeps air, fat, soft tissue and bone apart); the paper's 2048 clusters.
+    fn default() -> Self {
+        HistParams {
+            radius_mm: 12.0,
+            bins: 64,
+            clusters: 2048,
+        }
+    }
+}
+
+impl HistParams {
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.radius_mm.is_finite() && self.radius_mm > 0.0 && self.radius_mm <= 64.0) {
+            return Err(format!(
+                "--hist-radius-mm must be in (0, 64] mm, got {}",
+                self.radius_mm
+            ));
+        }
+        if !(2..=HIST_MAX_BINS as usize).contains(&self.bins) {
+            return Err(format!(
+                "--hist-bins must be in 2..={HIST_MAX_BINS}, got {}",
+                self.bins
+            ));
+        }
+        if self.clusters > MAX_CLUSTERS {
+            return Err(format!(
+                "--clusters must be at most {MAX_CLUSTERS} (0: the direct sums), got {}",
+                self.clusters
+            ));
+        }
+        Ok(())
+    }
+
+    /// The packed dimension the clustering compares histograms in (the paper packs 256 bins
+    /// into 64; we pack B into at most [`HIST_MAX_PACKED`]).
+    pub fn packed(&self) -> usize {
+        self.bins.min(HIST_MAX_PACKED as usize)
+    }
+}
+
+/// Most clusters `--clusters` takes (cluster ids are stored as u16 in the cache).
+pub const MAX_CLUSTERS: usize = 16384;
+
+/// bin(u) = min(B-1, floor(B (value_u - v_min) / (v_max - v_min))), in f64; 0 for a constant
+/// volume.
+pub fn bins(vol: &Volume, b: usize) -> Vec<u32> {
+    let (lo, hi) = vol.value_range();
+    let span = hi as f64 - lo as f64;
+    (0..vol.voxel_count())
+        .into_par_iter()
+        .map(|i| {
+            if span > 0.0 {
+                let t = b as f64 * (vol.voxels.get(i) as f64 - lo as f64) / span;
+                (t.floor().max(0.0) as usize).min(b - 1) as u32
+            } else {
+                0
+            }
+        })
+        .collect()
+}
+
+/// Per bin k: the TF's colour (rgb) and opacity (a, per mm as in the TF file) at the bin's
+/// centre value v_min + (k + 1/2) (v_max - v_min) / B.
+pub fn bin_table(tf: &TransferFunction, range: (f32, f32), b: usize) -> Vec<[f32; 4]> {
+    let span = range.1 as f64 - range.0 as f64;
+    (0..b)
+        .map(|k| {
+            let v = range.0 as f64 + (k as f64 + 0.5) * span / b as f64;
+            tf.eval(v as f32, range)
+        })
+        .collect()
+}
+
+/// q of the unclipped volume: each voxel's bin opacity.
+pub fn q_volume(bins: &[u32], table: &[[f32; 4]]) -> Vec<f32> {
+    bins.par_iter().map(|&k| table[k as usize][3]).collect()
+}
+
+/// S_r with its weights: every integer offset o != 0 with |o * s| <= r (mm), in z, y, x order,
+/// w(o) = (s_min / |o * s|)^2, and W = the sum of w.
+#[derive(Clone, Debug)]
+pub struct Neighbourhood {
+    pub offsets: Vec<[i32; 3]>,
+    pub weights: Vec<f64>,
+    pub total: f64,
+}
+
+impl Neighbourhood {
+    pub fn new(radius_mm: f64, spacing: [f64; 3]) -> Neighbourhood {
+        let s_min = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+        let h = spacing.map(|s| (radius_mm / s).floor() as i32);
+        let (mut offsets, mut weights) = (Vec::new(), Vec::new());
+        for z in -h[2]..=h[2] {
+            for y in -h[1]..=h[1] {
+                for x in -h[0]..=h[0] {
+                    let d2 = [x, y, z]
+                        .iter()
+                        .zip(spacing)
+                        .map(|(&o, s)| (o as f64 * s).powi(2))
+                        .sum::<f64>();
+                    if d2 > 0.0 && d2 <= radius_mm * radius_mm {
+                        offsets.push([x, y, z]);
+                        weights.push(s_min * s_min / d2);
+                    }
+                }
+            }
+        }
+        let total = weights.iter().sum();
+        Neighbourhood {
+            offsets,
+            weights,
+            total,
+        }
+    }
+
+    /// The farthest member, in mm (the method's reach).
+    pub fn reach_mm(&self, spacing: [f64; 3]) -> f64 {
+        self.offsets
+            .iter()
+            .map(|o| {
+                (0..3)
+                    .map(|a| (o[a] as f64 * spacing[a]).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .fold(0.0, f64::max)
+    }
+
+    /// The GPU's table: offset xyz and the normalised weight w / W, as vec4.
+    pub fn gpu_table(&self) -> Vec<[f32; 4]> {
+        self.offsets
+            .iter()
+            .zip(&self.weights)
+            .map(|(o, w)| {
+                [
+                    o[0] as f32,
+                    o[1] as f32,
+                    o[2] as f32,
+                    (w / self.total) as f32,
+                ]
+            })
+            .collect()
+    }
+}
+
+/// The direct definition on q (clip coverage already applied): openness A = 1 - O_env and the
+/// bleeding colour E (0 where no neighbour is opaque), in f64, voxel by voxel.
+pub fn direct_reference(
+    dims: [usize; 3],
+    q: &[f32],
+    bins: &[u32],
+    table: &[[f32; 4]],
+    nb: &Neighbourhood,
+) -> (Vec<f32>, Vec<[f32; 3]>) {
+    let n = dims[0] * dims[1] * dims[2];
+    (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let v = [
+                (i % dims[0]) as i32,
+                ((i / dims[0]) % dims[1]) as i32,
+                (i / (dims[0] * dims[1])) as i32,
+            ];
+            let (mut occ, mut rgb) = (0.0f64, [0.0f64; 3]);
+            for (o, w) in nb.offsets.iter().zip(&nb.weights) {
+                let u = [v[0] + o[0], v[1] + o[1], v[2] + o[2]];
+                if (0..3).any(|a| u[a] < 0 || u[a] >= dims[a] as i32) {
+                    continue;
+                }
+                let j = u[0] as usize + dims[0] * (u[1] as usize + dims[1] * u[2] as usize);
+                let wq = w * q[j] as f64;
+                occ += wq;
+                let c = &table[bins[j] as usize];
+                for ch in 0..3 {
+                    rgb[ch] += wq * c[ch] as f64;
+                }
+            }
+            let e = if occ > 0.0 {
+                rgb.map(|c| (c / occ) as f32)
+            } else {
+                [0.0; 3]
+            };
+            ((1.0 - occ / nb.total) as f32, e)
+        })
+        .unzip()
+}
+
+/// The local histogram LH(v) of the unclipped volume: per bin, the sum of w over the in-grid
+/// members of S_r in that bin, over W (f64; the reference the GPU's histograms are tested
+/// against).
+pub fn local_histogram(
+    dims: [usize; 3],
+    bins: &[u32],
+    b: usize,
+    nb: &Neighbourhood,
+    voxel: usize,
+) -> Vec<f64> {
+    let v = [
+        (voxel % dims[0]) as i32,
+        ((voxel / dims[0]) % dims[1]) as i32,
+        (voxel / (dims[0] * dims[1])) as i32,
+    ];
+    let mut h = vec![0.0; b];
+    for (o, w) in nb.offsets.iter().zip(&nb.weights) {
+        let u = [v[0] + o[0], v[1] + o[1], v[2] + o[2]];
+        if (0..3).any(|a| u[a] < 0 || u[a] >= dims[a] as i32) {
+            continue;
+        }
+        let j = u[0] as usize + dims[0] * (u[1] as usize + dims[1] * u[2] as usize);
+        h[bins[j] as usize] += w / nb.total;
+    }
+    h
+}
+
+/// The paper's histogram packing: starting from the volume's normalised histogram, the smallest
+/// bin is split repeatedly and its content given in equal halves to its two neighbours (all of
+/// it to the one neighbour at an end) until `packed` bins remain. `matrix[k * packed + p]` is
+/// the share of original bin k in packed bin p, so packed = LH . matrix.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Packing {
+    pub bins: usize,
+    pub packed: usize,
+    pub matrix: Vec<f32>,
+}
+
+impl Packing {
+    pub fn new(bin_ids: &[u32], b: usize, packed: usize) -> Packing {
+        let mut h = vec![0.0f64; b];
+        for &k in bin_ids {
+            h[k as usize] += 1.0;
+        }
+        // Each current bin: its global mass and its shares of the original bins.
+        let mut cols: Vec<(f64, Vec<f64>)> = (0..b)
+            .map(|k| {
+                let mut share = vec![0.0; b];
+                share[k] = 1.0;
+                (h[k], share)
+            })
+            .collect();
+        while cols.len() > packed.max(1) {
+            let j = (0..cols.len())
+                .min_by(|&x, &y| cols[x].0.total_cmp(&cols[y].0))
+                .expect("non-empty");
+            let (mass, share) = cols.remove(j);
+            // Neighbours of the removed bin, in the shortened list.
+            let left = j.checked_sub(1);
+            let right = (j < cols.len()).then_some(j);
+            let parts: Vec<usize> = left.into_iter().chain(right).collect();
+            let f = 1.0 / parts.len() as f64;
+            for p in parts {
+                cols[p].0 += f * mass;
+                for (d, s) in cols[p].1.iter_mut().zip(&share) {
+                    *d += f * s;
+                }
+            }
+        }
+        let packed = cols.len();
+        let mut matrix = vec![0.0f32; b * packed];
+        for (p, (_, share)) in cols.iter().enumerate() {
+            for k in 0..b {
+                matrix[k * packed + p] = share[k] as f32;
+            }
+        }
+        Packing {
+            bins: b,
+            packed,
+            matrix,
+        }
+    }
+
+    pub fn pack(&self, lh: &[f32]) -> Vec<f32> {
+        let mut out = vec![0.0f32; self.packed];
+        for (k, &x) in lh.iter().enumerate() {
+            for (p, o) in out.iter_mut().enumerate() {
+                *o += x * self.matrix[k * self.packed + p];
+            }
+        }
+        out
+    }
+}
+
+/// Squared L2 distance.
+fn dist2(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
+}
+
+/// The nearest centroid (the first of equals), and its squared distance.
+pub fn nearest(centroids: &[f32], dim: usize, p: &[f32]) -> (u32, f32) {
+    let mut best = (0u32, f32::INFINITY);
+    for (c, cen) in centroids.chunks_exact(dim).enumerate() {
+        let d = dist2(cen, p);
+        if d < best.1 {
+            best = (c as u32, d);
+        }
+    }
+    best
+}
+
+/// Lloyd iterations of each LBG stage, and of the last.
+const LBG_ITERATIONS: usize = 4;
+const LBG_FINAL_ITERATIONS: usize = 8;
+
+/// LBG (Linde, Buzo, Gray) on `samples` (rows of `dim`): start from the mean, split every
+/// centroid in two (times 1 +- 1e-3) and run Lloyd's iterations, until `n` centroids; a cluster
+/// left empty takes the sample farthest from its centroid. Deterministic.
+pub fn lbg(samples: &[f32], dim: usize, n: usize) -> Vec<f32> {
+    let count = samples.len() / dim;
+    let n = n.max(1);
+    let mut centroids = vec![0.0f32; dim];
+    for s in samples.chunks_exact(dim) {
+        for (c, x) in centroids.iter_mut().zip(s) {
+            *c += x / count.max(1) as f32;
+        }
+    }
+    let mut k = 1;
+    while k < n {
+        // Split the most populated clusters first when not all of them can split.
+        let splits = (n - k).min(k);
+        let assign = assign_all(samples, dim, &centroids);
+        let mut pop = vec![0usize; k];
+        for &(c, _) in &assign {
+            pop[c as usize] += 1;
+        }
+        let mut order: Vec<usize> = (0..k).collect();
+        order.sort_by_key(|&c| std::cmp::Reverse(pop[c]));
+        for &c in &order[..splits] {
+            let base: Vec<f32> = centroids[c * dim..(c + 1) * dim].to_vec();
+            for (d, x) in base.iter().enumerate() {
+                centroids[c * dim + d] = x * (1.0 + 1e-3);
+            }
+            centroids.extend(base.iter().map(|x| x * (1.0 - 1e-3) + 1e-6));
+        }
+        k += splits;
+        let iterations = if k == n {
+            LBG_FINAL_ITERATIONS
+        } else {
+            LBG_ITERATIONS
+        };
+        for _ in 0..iterations {
+            if !lloyd(samples, dim, &mut centroids) {
+                break;
+            }
+        }
+    }
+    centroids
+}
+
+fn assign_all(samples: &[f32], dim: usize, centroids: &[f32]) -> Vec<(u32, f32)> {
+    samples
+        .par_chunks_exact(dim)
+        .map(|s| nearest(centroids, dim, s))
+        .collect()
+}
+
+/// One Lloyd iteration; returns whether any assignment changed the centroids.
+fn lloyd(samples: &[f32], dim: usize, centroids: &mut [f32]) -> bool {
+    let k = centroids.len() / dim;
+    let assign = assign_all(samples, dim, centroids);
+    let mut sums = vec![0.0f64; k * dim];
+    let mut pop = vec![0usize; k];
+    for (s, &(c, _)) in samples.chunks_exact(dim).zip(&assign) {
+        pop[c as usize] += 1;
+        for (d, x) in s.iter().enumerate() {
+            sums[c as usize * dim + d] += *x as f64;
+        }
+    }
+    // Empty clusters take the samples farthest from their centroids.
+    let mut far: Vec<usize> = (0..assign.len()).collect();
+    far.sort_by(|&a, &b| assign[b].1.total_cmp(&assign[a].1).then(a.cmp(&b)));
+    let mut far = far.into_iter();
+    let mut changed = false;
+    for c in 0..k {
+        let new: Vec<f32> = if pop[c] > 0 {
+            (0..dim)
+                .map(|d| (sums[c * dim + d] / pop[c] as f64) as f32)
+                .collect()
+        } else {
+            match far.next() {
+                Some(s) => samples[s * dim..(s + 1) * dim].to_vec(),
+                None => continue,
+            }
+        };
+        if new[..] != centroids[c * dim..(c + 1) * dim] {
+            changed = true;
+            centroids[c * dim..(c + 1) * dim].copy_from_slice(&new);
+        }
+    }
+    changed
+}
+
+/// The training sample: up to `count` voxel indices, deterministic. Half are drawn from
+/// surface-like voxels (a 6-neighbour in another bin, the paper's |grad| > eps), the rest
+/// from all voxels, so the homogeneous air and tissue do not take every cluster.
+pub fn training_sample(dims: [usize; 3], bins: &[u32], count: usize) -> Vec<u32> {
+    let n = bins.len();
+    if n <= count {
+        return (0..n as u32).collect();
+    }
+    let surface: Vec<u32> = (0..n)
+        .into_par_iter()
+        .filter(|&i| {
+            let v = [
+                i % dims[0],
+                (i / dims[0]) % dims[1],
+                i / (dims[0] * dims[1]),
+            ];
+            let stride = [1, dims[0], dims[0] * dims[1]];
+            (0..3).any(|a| {
+                (v[a] > 0 && bins[i - stride[a]] != bins[i])
+                    || (v[a] + 1 < dims[a] && bins[i + stride[a]] != bins[i])
+            })
+        })
+        .map(|i| i as u32)
+        .collect();
+    let mut rng = SplitMix64(0x4c48_5f73_616d_706c);
+    let mut pick = |from: &dyn Fn(&mut SplitMix64) -> u32, k: usize, out: &mut Vec<u32>| {
+        for _ in 0..k {
+            out.push(from(&mut rng));
+        }
+    };
+    let mut out = Vec::with_capacity(count);
+    let from_surface = if surface.is_empty() { 0 } else { count / 2 };
+    pick(
+        &|r: &mut SplitMix64| surface[(r.next_u64() % surface.len() as u64) as usize],
+        from_surface,
+        &mut out,
+    );
+    pick(
+        &|r: &mut SplitMix64| (r.next_u64() % n as u64) as u32,
+        count - from_surface,
+        &mut out,
+    );
+    out.sort_unstable();
+    out
+}
+
+/// The clustering of one volume: each voxel's cluster and each cluster's representative, the
+/// mean of its members' full histograms (N x B, row-major).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Clusters {
+    pub bins: usize,
+    pub ids: Vec<u32>,
+    pub reps: Vec<f32>,
+}
+
+impl Clusters {
+    pub fn count(&self) -> usize {
+        self.reps.len() / self.bins.max(1)
+    }
+
+    /// Per cluster, for the TF of `table` ([`bin_table`]): rgb = E = sum LH a rgb / sum LH a
+    /// (0 where nothing is opaque), a = the openness 1 - O_env = 1 - sum LH a.
+    pub fn tf_table(&self, table: &[[f32; 4]]) -> Vec<[f32; 4]> {
+        self.reps
+            .chunks_exact(self.bins)
+            .map(|lh| {
+                let (mut occ, mut rgb) = (0.0f64, [0.0f64; 3]);
+                for (x, t) in lh.iter().zip(table) {
+                    let wa = *x as f64 * t[3] as f64;
+                    occ += wa;
+                    for c in 0..3 {
+                        rgb[c] += wa * t[c] as f64;
+                    }
+                }
+                let e = if occ > 0.0 {
+                    rgb.map(|c| (c / occ) as f32)
+                } else {
+                    [0.0; 3]
+                };
+                [e[0], e[1], e[2], (1.0 - occ) as f32]
+            })
+            .collect()
+    }
+}
+
+/// A 64-bit FNV-1a hash, for the cache key.
+struct Fnv(u64);
+
+impl Fnv {
+    fn new() -> Self {
+        Fnv(0xcbf2_9ce4_8422_2325)
+    }
+    fn bytes(&mut self, b: &[u8]) {
+        for &x in b {
+            self.0 = (self.0 ^ x as u64).wrapping_mul(0x0100_0000_01b3);
+        }
+    }
+}
+
+/// Bumped whenever the clustering would give other ids or representatives.
+const CACHE_VERSION: u32 = 1;
+const CACHE_MAGIC: &[u8; 8] = b"CAOXRLH\x01";
+
+/// What a clustering depends on: the volume's bins and geometry, and the parameters.
+pub fn cache_key(dims: [usize; 3], spacing: [f64; 3], bins: &[u32], p: &HistParams) -> u64 {
+    let mut h = Fnv::new();
+    h.bytes(&CACHE_VERSION.to_le_bytes());
+    for d in dims {
+        h.bytes(&(d as u64).to_le_bytes());
+    }
+    for s in spacing {
+        h.bytes(&s.to_le_bytes());
+    }
+    h.bytes(&p.radius_mm.to_le_bytes());
+    h.bytes(&(p.bins as u64).to_le_bytes());
+    h.bytes(&(p.clusters as u64).to_le_bytes());
+    h.bytes(bytemuck::cast_slice(bins));
+    h.0
+}
+
+/// The default cache folder: `histograms/` in the data cache of [`crate::volume::ct_head`].
+pub fn default_cache_dir() -> PathBuf {
+    crate::volume::ct_head::cache_dir().join("histograms")
+}
+
+pub fn cache_path(dir: &Path, key: u64) -> PathBuf {
+    dir.join(format!("{key:016x}.lh"))
+}
+
+/// Reads a cached clustering; None (so it is rebuilt) when the file is missing, is for other
+/// data, or is truncated or corrupt in any way.
+pub fn load_cache(path: &Path, key: u64, voxels: usize, p: &HistParams) -> Option<Clusters> {
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .ok()?
+        .read_to_end(&mut bytes)
+        .ok()?;
+    let want = 8 + 8 + 12 + voxels * 2 + p.clusters * p.bins * 4 + 4;
+    if bytes.len() != want || &bytes[..8] != CACHE_MAGIC {
+        return None;
+    }
+    let (body, crc) = bytes.split_at(want - 4);
+    let mut c = flate2::Crc::new();
+    c.update(body);
+    if c.sum().to_le_bytes() != crc[..] {
+        return None;
+    }
+    let u64_at = |o: usize| u64::from_le_bytes(body[o..o + 8].try_into().unwrap());
+    let u32_at = |o: usize| u32::from_le_bytes(body[o..o + 4].try_into().unwrap()) as usize;
+    if u64_at(8) != key || u32_at(16) != voxels || u32_at(20) != p.bins || u32_at(24) != p.clusters
+    {
+        return None;
+    }
+    let ids_at = 28;
+    let reps_at = ids_at + voxels * 2;
+    let ids: Vec<u32> = body[ids_at..reps_at]
+        .chunks_exact(2)
+        .map(|b| u16::from_le_bytes([b[0], b[1]]) as u32)
+        .collect();
+    if ids.iter().any(|&i| i as usize >= p.clusters) {
+        return None;
+    }
+    let reps = body[reps_at..]
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+        .collect();
+    Some(Clusters {
+        bins: p.bins,
+        ids,
+        reps,
+    })
+}
+
+/// Writes the cache beside its final name, then renames it, so a crash leaves no partial file
+/// under the name [`load_cache`] reads.
+pub fn save_cache(path: &Path, key: u64, c: &Clusters) -> std::io::Result<()> {
+    let mut body = Vec::with_capacity(28 + c.ids.len() * 2 + c.reps.len() * 4 + 4);
+    body.extend_from_slice(CACHE_MAGIC);
+    body.extend_from_slice(&key.to_le_bytes());
+    for x in [c.ids.len(), c.bins, c.count()] {
+        body.extend_from_slice(&(x as u32).to_le_bytes());
+    }
+    for &id in &c.ids {
+        body.extend_from_slice(&(id as u16).to_le_bytes());
+    }
+    for &r in &c.reps {
+        body.extend_from_slice(&r.to_le_bytes());
+    }
+    let mut crc = flate2::Crc::new();
+    crc.update(&body);
+    body.extend_from_slice(&crc.sum().to_le_bytes());
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp = path.with_extension(format!("lh.tmp{}-{n}", std::process::id()));
+    let result = std::fs::File::create(&tmp)
+        .and_then(|mut f| f.write_all(&body).and_then(|_| f.sync_all()))
+        .and_then(|_| std::fs::rename(&tmp, path));
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_neighbourhood_is_the_ball_without_its_centre_weighted_by_inverse_square_distance() {
+        let nb = Neighbourhood::new(2.0, [1.0, 1.0, 2.0]);
+        assert!(!nb.offsets.contains(&[0, 0, 0]));
+        assert!(nb.offsets.contains(&[2, 0, 0]) && nb.offsets.contains(&[0, 0, 1]));
+        assert!(!nb.offsets.contains(&[2, 0, 1]) && !nb.offsets.contains(&[0, 0, 2]));
+        let w = |o: [i32; 3]| nb.weights[nb.offsets.iter().position(|x| *x == o).unwrap()];
+        assert_eq!(w([1, 0, 0]), 1.0);
+        assert_eq!(w([2, 0, 0]), 0.25);
+        assert_eq!(w([0, 0, 1]), 0.25);
+        assert!((nb.total - nb.weights.iter().sum::<f64>()).abs() < 1e-12);
+        assert_eq!(nb.reach_mm([1.0, 1.0, 2.0]), 2.0);
+    }
+
+    #[test]
+    fn packing_merges_the_smallest_bins_into_their_neighbours_and_keeps_mass() {
+        // Global histogram: bin 1 is the rarest, then bin 3.
+        let ids = [0, 0, 0, 1, 2, 2, 2, 2, 3, 3, 4, 4, 4];
+        let p = Packing::new(&ids, 5, 3);
+        assert_eq!(p.packed, 3);
+        // Bin 1 went half to 0 and half to 2; then bin 3 (mass 2) half to 2 and half to 4.
+        let lh = [0.0, 1.0, 0.0, 0.0, 0.0];
+        assert_eq!(p.pack(&lh), [0.5, 0.5, 0.0]);
+        let lh = [0.0, 0.0, 0.0, 1.0, 0.0];
+        assert_eq!(p.pack(&lh), [0.0, 0.5, 0.5]);
+        // Every original bin's shares add up to 1.
+        for k in 0..5 {
+            let s: f32 = p.matrix[k * 3..k * 3 + 3].iter().sum();
+            assert!((s - 1.0).abs() < 1e-6, "bin {k}: {s}");
+        }
+        // Nothing to pack: the identity.
+        let id = Packing::new(&ids, 5, 8);
+        assert_eq!(id.packed, 5);
+        assert_eq!(
+            id.pack(&[0.1, 0.2, 0.3, 0.4, 0.5]),
+            [0.1, 0.2, 0.3, 0.4, 0.5]
+        );
+    }
+
+    #[test]
+    fn lbg_finds_well_separated_clusters_and_gives_n_centroids() {
+        // Four tight groups in 2-D.
+        let centres = [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]];
+        let mut rng = SplitMix64(3);
+        let mut samples = Vec::new();
+        for i in 0..400 {
+            let c = centres[i % 4];
+            samples.push(c[0] + 0.01 * rng.range(-1.0, 1.0) as f32);
+            samples.push(c[1] + 0.01 * rng.range(-1.0, 1.0) as f32);
+        }
+        let cen = lbg(&samples, 2, 4);
+        assert_eq!(cen.len(), 8);
+        for c in centres {
+            let (_, d) = nearest(&cen, 2, &[c[0], c[1]]);
+            assert!(d < 1e-3, "no centroid near {c:?}: {cen:?}");
+        }
+        // More clusters than distinct samples: still n centroids, deterministic.
+        let same = vec![0.5f32; 20];
+        let a = lbg(&same, 2, 7);
+        assert_eq!(a.len(), 14);
+        assert_eq!(a, lbg(&same, 2, 7));
+    }
+
+    #[test]
+    fn the_tf_table_is_the_dot_product_with_the_bins_opacity_and_colour() {
+        let c = Clusters {
+            bins: 2,
+            ids: vec![0, 1],
+            reps: vec![0.5, 0.25, 0.0, 0.0],
+        };
+        let table = [[1.0, 0.0, 0.0, 0.4], [0.0, 1.0, 0.0, 0.8]];
+        let t = c.tf_table(&table);
+        // O_env = 0.5 * 0.4 + 0.25 * 0.8 = 0.4; E = (0.2 red + 0.2 green) / 0.4.
+        assert!((t[0][3] - 0.6).abs() < 1e-6);
+        assert!((t[0][0] - 0.5).abs() < 1e-6 && (t[0][1] - 0.5).abs() < 1e-6);
+        assert_eq!(t[1], [0.0, 0.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn the_cache_round_trips_and_a_damaged_or_foreign_file_is_not_trusted() {
+        let p = HistParams {
+            radius_mm: 3.0,
+            bins: 4,
+            clusters: 3,
+        };
+        let c = Clusters {
+            bins: 4,
+            ids: vec![0, 2, 1, 1, 0],
+            reps: (0..12).map(|x| x as f32 / 12.0).collect(),
+        };
+        let dir = std::env::temp_dir().join(format!("cao-lh-cache-{}", std::process::id()));
+        let path = cache_path(&dir, 42);
+        save_cache(&path, 42, &c).unwrap();
+        assert_eq!(load_cache(&path, 42, 5, &p), Some(c.clone()));
+        assert_eq!(load_cache(&path, 43, 5, &p), None, "another key");
+        assert_eq!(load_cache(&path, 42, 6, &p), None, "another volume");
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &bytes[..bytes.len() - 7]).unwrap();
+        assert_eq!(load_cache(&path, 42, 5, &p), None, "truncated");
+        let mut flipped = bytes.clone();
+        flipped[40] ^= 1;
+        std::fs::write(&path, &flipped).unwrap();
+        assert_eq!(load_cache(&path, 42, 5, &p), None, "corrupt");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

@@ -1,0 +1,507 @@
+//! Local-histogram AO on the GPU (shaders histogram_local.comp, histogram_assign.comp,
+//! histogram_sums.comp): the clustering's heavy parts (every voxel's local histogram, in
+//! batches so memory stays bounded, and its assignment to the nearest centroid), the per-TF
+//! expansion of the clusters' table into V_PAO and the bleeding volume, and the direct sums of
+//! the clip update over any set of voxel boxes. [`super::histogram`] holds the CPU side and the
+//! reference.
+
+use super::cao::{dispatch_box, VoxelBox};
+use super::histogram::{self as hist, Clusters, HistParams, Neighbourhood, Packing};
+use crate::gpu::{Buffer, ComputePipeline, Gpu, Result};
+use crate::volume::transfer::TransferFunction;
+use crate::volume::Volume;
+use ash::vk;
+use gpu_allocator::MemoryLocation;
+use std::path::Path;
+
+/// How [`HistogramGpu::record`] treats each voxel of its boxes (histogram_sums.comp's modes).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HistMode {
+    /// The direct sums for every voxel, no mask (the unclipped precompute with `--clusters 0`).
+    Direct = 0,
+    /// CAO's categories: a -> 1, c -> the precomputed values, b -> the direct sums.
+    Contextual = 1,
+    /// a -> 1, everything else the direct sums (the naive baseline).
+    Naive = 2,
+    /// The precomputed values (last frame's boxes, before this frame's clip).
+    Restore = 3,
+    /// Every voxel its cluster's values (the clustered precompute).
+    Clustered = 4,
+}
+
+/// Voxels per batch of local histograms: rows x B floats stay within this many bytes.
+const BATCH_BYTES: usize = 64 << 20;
+
+/// The training sample's size: 16 samples per cluster, at least this many.
+const MIN_TRAINING: usize = 32768;
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct JobPush {
+    dims: [i32; 4],
+    job: [u32; 4],
+}
+crate::gpu::glsl_layout!(JobPush, 32, dims: 0, job: 16);
+
+/// How long each phase of the clustering took (wall ms) and the host memory it peaked at.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ClusterTiming {
+    pub histograms_ms: f64,
+    pub training_ms: f64,
+    pub assignment_ms: f64,
+    /// Bytes of the largest host buffers held at once (batch rows, sums, sample).
+    pub peak_host_bytes: u64,
+    /// Whether the clustering came from the cache.
+    pub cached: bool,
+}
+
+/// The method's state: pipelines, the volume's bins, S_r, the clusters (when N > 0), the TF's
+/// tables, and the precomputed and current bleeding volumes (RGBA8 per voxel).
+pub struct HistogramGpu {
+    gpu: Gpu,
+    sums: ComputePipeline,
+    pub params: HistParams,
+    pub dims: [usize; 3],
+    pub spacing: [f64; 3],
+    range: (f32, f32),
+    nb: Neighbourhood,
+    neighbours: Buffer,
+    /// Each voxel's bin (host copy for q under a new TF, and on the GPU).
+    bin_ids: Vec<u32>,
+    bins: Buffer,
+    bin_table: Buffer,
+    /// Cluster ids and the representatives (host), with N > 0.
+    clusters: Option<Clusters>,
+    ids: Buffer,
+    cluster_table: Buffer,
+    /// The bins' table of the last TF (host copy).
+    last_table: Vec<[f32; 4]>,
+    /// E of the unclipped volume, and this frame's E (RGBA8 per voxel).
+    pub pre_e: Buffer,
+    pub e: Buffer,
+    pub timing: ClusterTiming,
+}
+
+fn spv(name: &str) -> &'static [u8] {
+    match name {
+        "sums" => include_bytes!(concat!(env!("OUT_DIR"), "/histogram_sums.comp.spv")),
+        "local" => include_bytes!(concat!(env!("OUT_DIR"), "/histogram_local.comp.spv")),
+        _ => include_bytes!(concat!(env!("OUT_DIR"), "/histogram_assign.comp.spv")),
+    }
+}
+
+impl HistogramGpu {
+    /// Sets the method up for `vol`: bins, S_r and, with N > 0, the clustering, read from
+    /// `cache_dir` when a valid entry for this volume and these parameters is there, else
+    /// computed (`progress(done, total, phase)` is told along the way) and written there.
+    pub fn new(
+        gpu: &Gpu,
+        vol: &Volume,
+        params: HistParams,
+        cache_dir: Option<&Path>,
+        progress: &mut dyn FnMut(u64, u64, &str),
+    ) -> Result<HistogramGpu> {
+        params.validate().map_err(crate::gpu::GpuError::Other)?;
+        let n = vol.voxel_count();
+        let bin_ids = hist::bins(vol, params.bins);
+        let nb = Neighbourhood::new(params.radius_mm, vol.spacing);
+        let geometry = (vol.dims, vol.spacing, vol.value_range());
+        let mut h = HistogramGpu::with_state(gpu, geometry, params, bin_ids, nb, None)?;
+        if params.clusters > 0 {
+            let key = hist::cache_key(vol.dims, vol.spacing, &h.bin_ids, &params);
+            let path = cache_dir.map(|d| hist::cache_path(d, key));
+            let cached = path
+                .as_deref()
+                .and_then(|p| hist::load_cache(p, key, n, &params));
+            let clusters = match cached {
+                Some(c) => {
+                    h.timing.cached = true;
+                    c
+                }
+                None => {
+                    let c = h.cluster(progress)?;
+                    if let Some(p) = &path {
+                        if let Err(e) = hist::save_cache(p, key, &c) {
+                            eprintln!("{}: cannot cache the clustering: {e}", p.display());
+                        }
+                    }
+                    c
+                }
+            };
+            h.set_clusters(clusters)?;
+        }
+        Ok(h)
+    }
+
+    /// The GPU state for the given bins, S_r and clusters (tables empty until
+    /// [`HistogramGpu::set_tf`]).
+    fn with_state(
+        gpu: &Gpu,
+        (dims, spacing, range): ([usize; 3], [f64; 3], (f32, f32)),
+        params: HistParams,
+        bin_ids: Vec<u32>,
+        nb: Neighbourhood,
+        clusters: Option<Clusters>,
+    ) -> Result<HistogramGpu> {
+        let b = vk::DescriptorType::STORAGE_BUFFER;
+        let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        let n = bin_ids.len();
+        let rgba8 = |name| {
+            Buffer::new(
+                gpu,
+                (n.max(1) * 4) as u64,
+                storage | vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST,
+                MemoryLocation::GpuOnly,
+                name,
+            )
+        };
+        let mut h = HistogramGpu {
+            gpu: gpu.clone(),
+            sums: ComputePipeline::new(gpu, spv("sums"), &[b; 11], 48)?,
+            params,
+            dims,
+            spacing,
+            range,
+            neighbours: Buffer::from_slice(gpu, &nb.gpu_table(), storage, "hist-neighbours")?,
+            bins: Buffer::device_local(gpu, &bin_ids, storage, "hist-bins")?,
+            bin_table: Buffer::new(
+                gpu,
+                (params.bins * 16) as u64,
+                storage,
+                MemoryLocation::CpuToGpu,
+                "hist-bin-table",
+            )?,
+            clusters: None,
+            // Stand-ins until a clustering exists (the shader only reads them in mode 4).
+            ids: Buffer::new(gpu, 4, storage, MemoryLocation::GpuOnly, "hist-ids")?,
+            cluster_table: Buffer::new(gpu, 16, storage, MemoryLocation::CpuToGpu, "hist-table")?,
+            last_table: Vec::new(),
+            pre_e: rgba8("hist-pre-e")?,
+            e: rgba8("hist-e")?,
+            timing: ClusterTiming::default(),
+            nb,
+            bin_ids,
+        };
+        if let Some(c) = clusters {
+            h.set_clusters(c)?;
+        }
+        Ok(h)
+    }
+
+    fn set_clusters(&mut self, clusters: Clusters) -> Result<()> {
+        let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        self.ids = Buffer::device_local(&self.gpu, &clusters.ids, storage, "hist-ids")?;
+        self.cluster_table = Buffer::new(
+            &self.gpu,
+            (clusters.count() * 16) as u64,
+            storage,
+            MemoryLocation::CpuToGpu,
+            "hist-table",
+        )?;
+        self.clusters = Some(clusters);
+        Ok(())
+    }
+
+    /// An independent copy (buffers of its own, the same clustering, tables and V_PAO's
+    /// bleeding volume), for a second CAO state.
+    pub fn duplicate(&self) -> Result<HistogramGpu> {
+        let geometry = (self.dims, self.spacing, self.range);
+        let mut h = HistogramGpu::with_state(
+            &self.gpu,
+            geometry,
+            self.params,
+            self.bin_ids.clone(),
+            self.nb.clone(),
+            self.clusters.clone(),
+        )?;
+        h.write_tables(self.last_table.clone())?;
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
+        h.pre_e = self.pre_e.duplicate(usage, "hist-pre-e")?;
+        h.timing = self.timing;
+        Ok(h)
+    }
+
+    /// The clusters, when N > 0.
+    pub fn clusters(&self) -> Option<&Clusters> {
+        self.clusters.as_ref()
+    }
+
+    /// S_r's farthest member in mm: the method's reach.
+    pub fn reach_mm(&self) -> f64 {
+        self.nb.reach_mm(self.spacing)
+    }
+
+    /// GPU memory the method holds beyond the volumes every method has.
+    pub fn resident_bytes(&self) -> u64 {
+        [
+            &self.neighbours,
+            &self.bins,
+            &self.bin_table,
+            &self.ids,
+            &self.cluster_table,
+            &self.pre_e,
+            &self.e,
+        ]
+        .iter()
+        .map(|b| b.size)
+        .sum()
+    }
+
+    /// The local histograms of `rows` voxels (from `first`, or the voxels of `list`), read back.
+    fn local_rows(
+        &self,
+        local: &ComputePipeline,
+        first: usize,
+        rows: usize,
+        list: Option<&Buffer>,
+        out: &Buffer,
+    ) -> Result<()> {
+        let push = JobPush {
+            dims: self.dims4(self.nb.offsets.len() as i32),
+            job: [
+                rows as u32,
+                self.params.bins as u32,
+                first as u32,
+                list.is_some() as u32,
+            ],
+        };
+        self.gpu.submit_and_wait(|cmd| {
+            let l = list.unwrap_or(&self.bins);
+            local.bind(
+                cmd,
+                &[&self.bins, &self.neighbours, l, out],
+                bytemuck::bytes_of(&push),
+            );
+            local.dispatch(cmd, [(rows as u32).div_ceil(64), 1, 1]);
+        })?;
+        Ok(())
+    }
+
+    fn dims4(&self, w: i32) -> [i32; 4] {
+        [
+            self.dims[0] as i32,
+            self.dims[1] as i32,
+            self.dims[2] as i32,
+            w,
+        ]
+    }
+
+    /// The clustering: the training sample's histograms on the GPU, packed and trained (LBG) on
+    /// the host, then every voxel's histogram and nearest centroid on the GPU batch by batch,
+    /// each cluster's representative the mean of its members' full histograms.
+    fn cluster(&mut self, progress: &mut dyn FnMut(u64, u64, &str)) -> Result<Clusters> {
+        let (b, n) = (self.params.bins, self.bin_ids.len());
+        let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        let packing = Packing::new(&self.bin_ids, b, self.params.packed());
+        let p = packing.packed;
+        let readable = |bytes: usize, name| {
+            Buffer::new(
+                &self.gpu,
+                bytes.max(4) as u64,
+                storage,
+                MemoryLocation::GpuToCpu,
+                name,
+            )
+        };
+
+        let local = ComputePipeline::new(
+            &self.gpu,
+            spv("local"),
+            &[vk::DescriptorType::STORAGE_BUFFER; 4],
+            32,
+        )?;
+        // Training: the sample's histograms, packed.
+        let t0 = std::time::Instant::now();
+        progress(0, 1, "histograms of the training sample");
+        let sample = hist::training_sample(
+            self.dims,
+            &self.bin_ids,
+            MIN_TRAINING.max(16 * self.params.clusters),
+        );
+        let list = Buffer::from_slice(&self.gpu, &sample, storage, "hist-sample")?;
+        let rows = readable(sample.len() * b * 4, "hist-sample-rows")?;
+        self.local_rows(&local, 0, sample.len(), Some(&list), &rows)?;
+        let sample_rows: &[f32] = bytemuck::cast_slice(rows.mapped()?);
+        let packed: Vec<f32> = sample_rows
+            .chunks_exact(b)
+            .flat_map(|lh| packing.pack(lh))
+            .collect();
+        let sample_ms = t0.elapsed().as_secs_f64() * 1e3;
+        progress(0, 1, "training the clusters (LBG)");
+        let t1 = std::time::Instant::now();
+        let centroids = hist::lbg(&packed, p, self.params.clusters);
+        self.timing.training_ms = t1.elapsed().as_secs_f64() * 1e3;
+        drop(rows);
+
+        // Assignment, batch by batch.
+        let assign = ComputePipeline::new(
+            &self.gpu,
+            spv("assign"),
+            &[vk::DescriptorType::STORAGE_BUFFER; 4],
+            16,
+        )?;
+        let packing_buf = Buffer::from_slice(&self.gpu, &packing.matrix, storage, "hist-packing")?;
+        let centroid_buf = Buffer::from_slice(&self.gpu, &centroids, storage, "hist-centroids")?;
+        let batch = (BATCH_BYTES / (b * 4)).clamp(64, n.max(64));
+        let rows = readable(batch * b * 4, "hist-rows")?;
+        let ids_buf = readable(batch * 4, "hist-batch-ids")?;
+        let k = self.params.clusters;
+        let mut sums = vec![0.0f64; k * b];
+        let mut pop = vec![0u64; k];
+        let mut ids = Vec::with_capacity(n);
+        let (mut hist_ms, mut assign_ms) = (sample_ms, 0.0);
+        let batches = n.div_ceil(batch);
+        for (i, first) in (0..n).step_by(batch).enumerate() {
+            progress(i as u64, batches as u64, "local histograms and assignment");
+            let count = batch.min(n - first);
+            let t = std::time::Instant::now();
+            self.local_rows(&local, first, count, None, &rows)?;
+            hist_ms += t.elapsed().as_secs_f64() * 1e3;
+            let t = std::time::Instant::now();
+            let push = [count as u32, b as u32, p as u32, k as u32];
+            self.gpu.submit_and_wait(|cmd| {
+                assign.bind(
+                    cmd,
+                    &[&rows, &packing_buf, &centroid_buf, &ids_buf],
+                    bytemuck::bytes_of(&push),
+                );
+                assign.dispatch(cmd, [(count as u32).div_ceil(64), 1, 1]);
+            })?;
+            let batch_ids: &[u32] = &bytemuck::cast_slice(ids_buf.mapped()?)[..count];
+            let batch_rows: &[f32] = bytemuck::cast_slice(rows.mapped()?);
+            for (r, &c) in batch_ids.iter().enumerate() {
+                pop[c as usize] += 1;
+                let dst = &mut sums[c as usize * b..(c as usize + 1) * b];
+                for (d, x) in dst.iter_mut().zip(&batch_rows[r * b..(r + 1) * b]) {
+                    *d += *x as f64;
+                }
+            }
+            ids.extend_from_slice(batch_ids);
+            assign_ms += t.elapsed().as_secs_f64() * 1e3;
+        }
+        progress(
+            batches as u64,
+            batches as u64,
+            "local histograms and assignment",
+        );
+        self.timing.histograms_ms = hist_ms;
+        self.timing.assignment_ms = assign_ms;
+        self.timing.peak_host_bytes =
+            (batch * b * 4 + k * b * 8 + n * 4 + packed.len() * 4 + sample.len() * b * 4) as u64;
+        let reps = sums
+            .chunks_exact(b)
+            .zip(&pop)
+            .flat_map(|(s, &m)| {
+                s.iter()
+                    .map(move |x| if m > 0 { (x / m as f64) as f32 } else { 0.0 })
+            })
+            .collect();
+        Ok(Clusters { bins: b, ids, reps })
+    }
+
+    /// Takes `tf`: the bins' colours and opacities, and with clusters each cluster's A and E
+    /// (one small table). Returns q of the unclipped volume (each voxel's bin opacity), the
+    /// "opacity" CAO clips for this method.
+    pub fn set_tf(&mut self, tf: &TransferFunction) -> Result<Vec<f32>> {
+        let table = hist::bin_table(tf, self.range, self.params.bins);
+        let q = hist::q_volume(&self.bin_ids, &table);
+        self.write_tables(table)?;
+        Ok(q)
+    }
+
+    fn write_tables(&mut self, table: Vec<[f32; 4]>) -> Result<()> {
+        if table.is_empty() {
+            return Ok(());
+        }
+        self.bin_table.write(0, bytemuck::cast_slice(&table))?;
+        if let Some(c) = &self.clusters {
+            self.cluster_table
+                .write(0, bytemuck::cast_slice(&c.tf_table(&table)))?;
+        }
+        self.last_table = table;
+        Ok(())
+    }
+
+    fn whole(&self) -> VoxelBox {
+        VoxelBox {
+            min: [0; 3],
+            max: self.dims.map(|d| d as i32),
+        }
+    }
+
+    /// Records V_PAO (`pre_a`) and [`HistogramGpu::pre_e`] of the unclipped volume for the TF
+    /// last given to [`HistogramGpu::set_tf`]: the clusters' values, or with N = 0 the direct
+    /// sums over `q`.
+    pub fn record_precompute(&self, cmd: vk::CommandBuffer, q: &Buffer, pre_a: &Buffer) {
+        let mode = if self.clusters.is_some() {
+            HistMode::Clustered
+        } else {
+            HistMode::Direct
+        };
+        self.dispatch(cmd, q, q, pre_a, pre_a, &self.pre_e, &[self.whole()], mode);
+    }
+
+    /// Records this method's values for the voxels of `boxes` into `out_a` and
+    /// [`HistogramGpu::e`], from the clipped `q` and CAO's `mask` as `mode` says (`pre_a` is
+    /// V_PAO).
+    #[allow(clippy::too_many_arguments)]
+    pub fn record(
+        &self,
+        cmd: vk::CommandBuffer,
+        q: &Buffer,
+        mask: &Buffer,
+        pre_a: &Buffer,
+        out_a: &Buffer,
+        boxes: &[VoxelBox],
+        mode: HistMode,
+    ) {
+        self.dispatch(cmd, q, mask, pre_a, out_a, &self.e, boxes, mode);
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn dispatch(
+        &self,
+        cmd: vk::CommandBuffer,
+        q: &Buffer,
+        mask: &Buffer,
+        pre_a: &Buffer,
+        out_a: &Buffer,
+        out_e: &Buffer,
+        boxes: &[VoxelBox],
+        mode: HistMode,
+    ) {
+        for bx in boxes {
+            let push = super::cao::BoxPush {
+                dims: self.dims4(self.nb.offsets.len() as i32),
+                box_min: [bx.min[0], bx.min[1], bx.min[2], mode as i32],
+                box_max: [bx.max[0], bx.max[1], bx.max[2], 0],
+            };
+            let bufs = [
+                q,
+                &self.bins,
+                &self.bin_table,
+                &self.neighbours,
+                mask,
+                pre_a,
+                &self.pre_e,
+                out_a,
+                out_e,
+                &self.ids,
+                &self.cluster_table,
+            ];
+            self.sums.bind(cmd, &bufs, bytemuck::bytes_of(&push));
+            dispatch_box(&self.sums, cmd, bx);
+        }
+        self.gpu.barrier(cmd);
+    }
+
+    /// The bleeding volume of the last recorded frame, unpacked to RGB in [0, 1] (for export
+    /// and tests).
+    pub fn read_e(&self, buf: &Buffer) -> Result<Vec<[f32; 3]>> {
+        let bytes = buf.read_back()?;
+        Ok(bytemuck::cast_slice::<u8, u32>(&bytes)
+            .iter()
+            .map(|&x| [0, 8, 16].map(|s| ((x >> s) & 0xff) as f32 / 255.0))
+            .collect())
+    }
+}

@@ -1,0 +1,386 @@
+//! Local-histogram AO (Ropinski et al.) on lavapipe with validation on: the GPU's direct sums
+//! against the CPU reference of docs/design.md's definition, analytic cases, the clustering
+//! against the direct sums, the per-frame clip update against a direct recompute bit for bit, a
+//! TF change as a table update, and the on-disk cache.
+
+use crate::cao::{frames, read};
+use crate::common;
+
+use cao_xr::ao::cao::{Cao, Mode};
+use cao_xr::ao::histogram::{self, HistParams};
+use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
+use cao_xr::app::{histogram_state, precompute_histogram};
+use cao_xr::gpu::{Buffer, Gpu};
+use cao_xr::scene::ToolMode;
+use cao_xr::space::Placement;
+use cao_xr::volume::transfer::TransferFunction;
+use cao_xr::volume::{phantom, Modality, Volume, Voxels};
+use glam::{DMat3, DVec3};
+
+fn e_of(b: &Buffer) -> Vec<[f32; 3]> {
+    bytemuck::cast_slice::<u8, u32>(&b.read_back().unwrap())
+        .iter()
+        .map(|&x| [0, 8, 16].map(|s| ((x >> s) & 0xff) as f32 / 255.0))
+        .collect()
+}
+
+/// A cache folder of this test's own.
+fn cache(tag: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("cao-lh-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+/// The CAO state of the method on `vol` under `tf`, and its q (host).
+fn setup(
+    gpu: &Gpu,
+    vol: &Volume,
+    tf: &TransferFunction,
+    p: HistParams,
+    tag: &str,
+) -> (Cao, Vec<f32>) {
+    let lao = LaoGpu::new(gpu).unwrap();
+    let h = histogram_state(gpu, vol, p, Some(&cache(tag)), false).unwrap();
+    let v = precompute_histogram(gpu, &lao, vol, tf, &LaoParams::default(), h).unwrap();
+    let q = v.opacity.clone();
+    (v.into_cao(gpu, vol, LaoParams::default()).unwrap(), q)
+}
+
+fn volume(dims: [usize; 3], spacing: f64, v: Vec<f32>) -> Volume {
+    Volume {
+        name: "test".into(),
+        dims,
+        spacing: [spacing; 3],
+        directions: DMat3::IDENTITY,
+        origin: DVec3::ZERO,
+        modality: Modality::Unknown,
+        voxels: Voxels::F32(v),
+    }
+}
+
+/// Transparent below half the range, then opaque red towards the top.
+fn red_tf() -> TransferFunction {
+    TransferFunction::from_json(
+        r#"{"name":"red","domain":"normalized","points":[
+            {"value":0.0,"color":[0,0,0],"alpha":0.0},
+            {"value":0.5,"color":[1,0,0],"alpha":0.0},
+            {"value":1.0,"color":[1,0,0],"alpha":1.0}]}"#,
+    )
+    .unwrap()
+}
+
+#[test]
+fn the_gpu_direct_sums_agree_with_the_cpu_reference() {
+    let gpu = common::gpu();
+    let vol = phantom::head(24);
+    let tf = TransferFunction::preset("ct-skin").unwrap();
+    // 9.2 mm voxels: r = 20 mm reaches two voxels along each axis.
+    let p = HistParams {
+        radius_mm: 20.0,
+        bins: 32,
+        clusters: 0,
+    };
+    let (cao, q) = setup(&gpu, &vol, &tf, p, "reference");
+    let h = cao.histogram().unwrap();
+    let bins = histogram::bins(&vol, p.bins);
+    let table = histogram::bin_table(&tf, vol.value_range(), p.bins);
+    assert_eq!(q, histogram::q_volume(&bins, &table));
+    let nb = histogram::Neighbourhood::new(p.radius_mm, vol.spacing);
+    let (want_a, want_e) = histogram::direct_reference(vol.dims, &q, &bins, &table, &nb);
+    let got_a = read(&cao.ao);
+    let diffs: Vec<f64> = got_a
+        .iter()
+        .zip(&want_a)
+        .map(|(a, b)| (*a as f64 - *b as f64).abs())
+        .collect();
+    let close = diffs.iter().filter(|d| **d <= 1e-4).count() as f64 / diffs.len() as f64;
+    let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
+    assert!(
+        close >= 0.999 && mean <= 1e-5,
+        "{:.4} % within 1e-4, mean {mean:e}",
+        100.0 * close
+    );
+    assert!(
+        got_a.iter().any(|&a| a < 0.7),
+        "the phantom occludes somewhere"
+    );
+    // E is stored as 8 bits per channel.
+    let got_e = e_of(&h.pre_e);
+    for (i, (g, w)) in got_e.iter().zip(&want_e).enumerate() {
+        for c in 0..3 {
+            assert!(
+                (g[c] - w[c]).abs() <= 0.5 / 255.0 + 1e-4,
+                "voxel {i}: E {g:?} vs {w:?}"
+            );
+        }
+    }
+    assert!(want_e.iter().any(|e| e[0] > 0.1), "some bleeding colour");
+    common::assert_no_validation_messages(&gpu);
+}
+
+#[test]
+fn analytic_cases_empty_opaque_and_one_coloured_voxel() {
+    let gpu = common::gpu();
+    let n = 15;
+    let p = HistParams {
+        radius_mm: 4.0,
+        bins: 4,
+        clusters: 0,
+    };
+    // Empty: every voxel open, no colour.
+    let (cao, _) = setup(
+        &gpu,
+        &volume([n; 3], 1.0, vec![0.0; n * n * n]),
+        &red_tf(),
+        p,
+        "empty",
+    );
+    assert!(read(&cao.ao).iter().all(|&a| a == 1.0));
+    assert!(e_of(&cao.histogram().unwrap().pre_e)
+        .iter()
+        .all(|e| *e == [0.0; 3]));
+
+    // Uniform and opaque: every voxel but one (the range's bottom, far away) in the top bin,
+    // whose opacity is 0.75; deep inside O_env = q everywhere, so A = 1 - q.
+    let mut v = vec![0.0f32; n * n * n];
+    v[0] = -1.0; // the range's bottom, so the rest sits in the top bin
+    for x in v.iter_mut().skip(1) {
+        *x = 1.0;
+    }
+    let (cao, q) = setup(&gpu, &volume([n; 3], 1.0, v), &red_tf(), p, "opaque");
+    let centre = n / 2 + n * (n / 2 + n * (n / 2));
+    let a = read(&cao.ao);
+    assert!((q[centre] - 0.75).abs() < 1e-6, "{}", q[centre]);
+    assert!((a[centre] - 0.25).abs() < 1e-5, "{}", a[centre]);
+
+    // One opaque red voxel at the centre: its neighbours' O_env falls off as 1/d^2 within r,
+    // is 0 beyond, and their bleeding colour is red.
+    let mut v = vec![0.0f32; n * n * n];
+    v[centre] = 1.0;
+    let (cao, q) = setup(&gpu, &volume([n; 3], 1.0, v), &red_tf(), p, "single");
+    let a = read(&cao.ao);
+    let e = e_of(&cao.histogram().unwrap().pre_e);
+    let nb = histogram::Neighbourhood::new(4.0, [1.0; 3]);
+    let occ = |d: usize| 1.0 - a[centre + d] as f64;
+    for d in 1..=4 {
+        let want = q[centre] as f64 / (d * d) as f64 / nb.total;
+        assert!(
+            (occ(d) - want).abs() < 1e-6,
+            "d = {d}: {} vs {want}",
+            occ(d)
+        );
+        assert_eq!(e[centre + d], [1.0, 0.0, 0.0], "d = {d}");
+    }
+    assert!((occ(1) / occ(2) - 4.0).abs() < 1e-3, "1/d^2");
+    assert_eq!(a[centre + 5], 1.0, "beyond r");
+    assert_eq!(e[centre + 5], [0.0; 3]);
+    assert_eq!(a[centre], 1.0, "the voxel itself is not in S_r");
+    common::assert_no_validation_messages(&gpu);
+}
+
+#[test]
+fn the_clustering_is_close_to_the_direct_sums_and_its_cache_is_reused_and_checked() {
+    let gpu = common::gpu();
+    let vol = phantom::head(20);
+    let tf = TransferFunction::preset("ct-skin").unwrap();
+    let direct = HistParams {
+        radius_mm: 24.0,
+        bins: 32,
+        clusters: 0,
+    };
+    let clustered = HistParams {
+        clusters: 512,
+        ..direct
+    };
+    let (d, q) = setup(&gpu, &vol, &tf, direct, "direct");
+    let dir = cache("clustered");
+    let lao = LaoGpu::new(&gpu).unwrap();
+    let run = |expect_cached: bool| {
+        let h = histogram_state(&gpu, &vol, clustered, Some(&dir), false).unwrap();
+        assert_eq!(h.timing.cached, expect_cached);
+        let ids = h.clusters().unwrap().ids.clone();
+        let v = precompute_histogram(&gpu, &lao, &vol, &tf, &LaoParams::default(), h).unwrap();
+        (read(&v.ao_buf), ids)
+    };
+    let (a, ids) = run(false);
+    let want = read(&d.ao);
+    let (mut sum, mut count) = (0.0, 0);
+    for i in 0..a.len() {
+        if q[i] > 0.001 {
+            sum += (a[i] as f64 - want[i] as f64).abs();
+            count += 1;
+        }
+    }
+    let mean = sum / count.max(1) as f64;
+    assert!(
+        count > 100 && mean <= 0.03,
+        "mean |clustered - direct| = {mean} over {count}"
+    );
+    assert!(a != want, "the clusters are not the direct sums");
+    assert!(
+        ids.iter().collect::<std::collections::HashSet<_>>().len() > 64,
+        "many clusters used"
+    );
+    // The second start reads the cache and gets the same clustering.
+    let (b, ids2) = run(true);
+    assert_eq!(ids, ids2);
+    assert!(a == b);
+    // A truncated cache is rebuilt, not trusted.
+    let file = std::fs::read_dir(&dir)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let bytes = std::fs::read(&file).unwrap();
+    std::fs::write(&file, &bytes[..bytes.len() / 2]).unwrap();
+    let (c, _) = run(false);
+    assert!(a == c);
+    assert_eq!(
+        std::fs::read(&file).unwrap().len(),
+        bytes.len(),
+        "rewritten whole"
+    );
+    common::assert_no_validation_messages(&gpu);
+}
+
+#[test]
+fn the_clip_update_equals_a_direct_recompute_of_the_affected_voxels_bit_for_bit_every_frame() {
+    let gpu = common::gpu();
+    let vol = phantom::head(32);
+    let tf = TransferFunction::preset("ct-skin").unwrap();
+    let placement = Placement::default();
+    for clusters in [0, 128] {
+        let p = HistParams {
+            radius_mm: 14.0,
+            bins: 16,
+            clusters,
+        };
+        let (mut cao, _) = setup(&gpu, &vol, &tf, p, "frames");
+        let (mut naive, _) = setup(&gpu, &vol, &tf, p, "frames");
+        let pre = read(&cao.ao);
+        let pre_e = cao.histogram().unwrap().pre_e.read_back().unwrap();
+        let mut some = false;
+        for (i, tools) in frames(placement.center).iter().enumerate() {
+            let m = cao.run_frame(tools, &placement, Mode::Contextual).unwrap();
+            naive.run_frame(tools, &placement, Mode::Naive).unwrap();
+            let (a, b) = (read(&cao.ao), read(&naive.ao));
+            let ea = cao.histogram().unwrap().e.read_back().unwrap();
+            let eb = naive.histogram().unwrap().e.read_back().unwrap();
+            let (ea, eb, pe): (&[u32], &[u32], &[u32]) = (
+                bytemuck::cast_slice(&ea),
+                bytemuck::cast_slice(&eb),
+                bytemuck::cast_slice(&pre_e),
+            );
+            let mask = cao.mask().read_back().unwrap();
+            let mask: &[u32] = bytemuck::cast_slice(&mask);
+            for v in 0..a.len() {
+                let ok = match mask[v] {
+                    // Affected: the direct sums on the clipped volume, as the naive pass.
+                    1 => a[v].to_bits() == b[v].to_bits() && ea[v] == eb[v],
+                    // Unaffected: the precomputed (clustered or direct) values.
+                    2 => a[v].to_bits() == pre[v].to_bits() && ea[v] == pe[v],
+                    _ => a[v] == 1.0 && b[v] == 1.0,
+                };
+                assert!(
+                    ok,
+                    "N = {clusters}, frame {i}, voxel {v} (category {}): {} vs naive {} / pre {}",
+                    mask[v], a[v], b[v], pre[v]
+                );
+            }
+            if clusters == 0 {
+                assert!(
+                    a == b && ea == eb,
+                    "N = 0, frame {i}: equal to the direct sums everywhere"
+                );
+            }
+            if tools.is_empty() {
+                assert!(a == pre, "frame {i}: with no tool the AO is V_PAO again");
+            } else if tools[0].mode == ToolMode::Carve {
+                some |= m.recomputed > 0 && a != pre;
+                assert!(
+                    m.visited < (32 * 32 * 32) as u64,
+                    "frame {i}: boxes, not the volume"
+                );
+            }
+        }
+        assert!(some, "N = {clusters}: some frame recomputed something");
+    }
+    common::assert_no_validation_messages(&gpu);
+}
+
+#[test]
+fn a_tf_change_is_a_table_update_shown_in_the_next_frame() {
+    use cao_xr::app::frame_loop::FrameLoop;
+    use cao_xr::input::{FrameInput, InteractionSettings};
+    use cao_xr::space::{default_stereo_views, DEFAULT_IPD};
+    use std::sync::Arc;
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(24));
+    let p = HistParams {
+        radius_mm: 20.0,
+        bins: 32,
+        clusters: 64,
+    };
+    let skin = TransferFunction::preset("ct-skin").unwrap();
+    // The same opacities in other colours: A stays, E changes.
+    let mut recoloured = skin.clone();
+    recoloured.name = "ct-skin-blue".into();
+    for pt in &mut recoloured.points {
+        pt.color = [pt.color[2], pt.color[1], pt.color[0]];
+    }
+    let bone = TransferFunction::preset("ct-bone").unwrap();
+    let ao = AoConfig::new(AoMethod::Histogram(p), LaoParams::default());
+    // The default cache: the phantom's clustering at these parameters is small.
+    let mut fl = FrameLoop::new(
+        &gpu,
+        Arc::clone(&vol),
+        vec![skin.clone(), recoloured, bone.clone()],
+        ao,
+        (32, 32),
+        InteractionSettings::default(),
+        false,
+    )
+    .unwrap();
+    let views = default_stereo_views(&vol, &Placement::default(), DEFAULT_IPD);
+    let frame = |fl: &mut FrameLoop, i: usize, menu: bool| {
+        let mut input = FrameInput::without_hands(i as f64 / 60.0, views);
+        input.hands[0].buttons.menu = menu;
+        fl.frame(&input).unwrap()
+    };
+    let f0 = frame(&mut fl, 0, false);
+    let (a0, e0) = (
+        read(&fl.cao.ao),
+        fl.cao.histogram().unwrap().e.read_back().unwrap(),
+    );
+    let f1 = frame(&mut fl, 1, true);
+    assert!(f1.stats.tf_progress.is_none(), "no progressive switch");
+    assert_eq!(
+        fl.shown_tf().name,
+        "ct-skin-blue",
+        "switched in the frame of the press"
+    );
+    assert!(
+        read(&fl.cao.ao) == a0,
+        "no bin's opacity changed: A unchanged"
+    );
+    assert!(
+        fl.cao.histogram().unwrap().e.read_back().unwrap() != e0,
+        "E follows the colours"
+    );
+    assert!(f1.image != f0.image);
+    frame(&mut fl, 2, false);
+    frame(&mut fl, 3, true);
+    assert_eq!(fl.shown_tf().name, "ct-bone");
+    let got = read(&fl.cao.ao);
+    assert!(got != a0, "new opacities: new A");
+    // ...equal to a fresh precompute under the new TF.
+    let lao = LaoGpu::new(&gpu).unwrap();
+    let h = histogram_state(&gpu, &vol, p, Some(&histogram::default_cache_dir()), false).unwrap();
+    let fresh = precompute_histogram(&gpu, &lao, &vol, &bone, &LaoParams::default(), h).unwrap();
+    assert!(
+        got == read(&fresh.ao_buf),
+        "equal to a fresh precompute under ct-bone"
+    );
+    common::assert_no_validation_messages(&gpu);
+}
