@@ -1,6 +1,8 @@
 #version 460
 // The clustering's assignment: each local histogram, packed (the paper's packing matrix), goes
-// to the nearest centroid in L2 (the first of equals), as histogram::nearest does on the CPU.
+// to its nearest centroid in L2 among the members of the GROUPS_SEARCHED groups of centroids
+// whose centres are nearest (a two-level search: about 13 times fewer distances than all N at
+// N = 2048, 64 groups; histogram::assign_two_level is the CPU twin).
 #extension GL_GOOGLE_include_directive : require
 #include "constants.glsl"
 layout(local_size_x = 64) in;
@@ -9,32 +11,71 @@ layout(std430, binding = 0) readonly buffer Rows { float rows[]; };
 layout(std430, binding = 1) readonly buffer Packing { float packing[]; };
 layout(std430, binding = 2) readonly buffer Centroids { float centroids[]; };
 layout(std430, binding = 3) writeonly buffer Ids { uint ids[]; };
+layout(std430, binding = 4) readonly buffer GroupCentres { float group_centres[]; };
+// Group g's members are members[first[g] .. first[g + 1]].
+layout(std430, binding = 5) readonly buffer GroupFirst { uint first[]; };
+layout(std430, binding = 6) readonly buffer GroupMembers { uint members[]; };
 
 layout(push_constant) uniform Push {
-    uvec4 job;  // x: rows, y: bins B, z: packed dimension P, w: clusters N
+    uvec4 job;     // x: rows, y: bins B, z: packed dimension P, w: clusters N
+    uvec4 groups;  // x: groups G
 } pc;
+
+const uint GROUPS_SEARCHED = 3u;
+
+float packed[HIST_MAX_PACKED];
+
+float dist(uint base_is_group, uint c) {
+    uint p = pc.job.z;
+    float d = 0.0;
+    for (uint k = 0u; k < p; k++) {
+        float t = (base_is_group == 1u ? group_centres[c * p + k] : centroids[c * p + k]) - packed[k];
+        d += t * t;
+    }
+    return d;
+}
 
 void main() {
     uint r = gl_GlobalInvocationID.x;
     if (r >= pc.job.x) return;
     uint b = pc.job.y, p = pc.job.z;
-    float packed[HIST_MAX_PACKED];
     for (uint d = 0u; d < p; d++) packed[d] = 0.0;
     for (uint k = 0u; k < b; k++) {
         float x = rows[r * b + k];
         for (uint d = 0u; d < p; d++) packed[d] += x * packing[k * p + d];
     }
+    // The nearest groups (first of equals), kept sorted.
+    uint near_g[GROUPS_SEARCHED];
+    float near_d[GROUPS_SEARCHED];
+    for (uint i = 0u; i < GROUPS_SEARCHED; i++) {
+        near_g[i] = 0xffffffffu;
+        near_d[i] = 1.0 / 0.0;
+    }
+    for (uint g = 0u; g < pc.groups.x; g++) {
+        float d = dist(1u, g);
+        if (d < near_d[GROUPS_SEARCHED - 1u]) {
+            uint i = GROUPS_SEARCHED - 1u;
+            while (i > 0u && d < near_d[i - 1u]) {
+                near_d[i] = near_d[i - 1u];
+                near_g[i] = near_g[i - 1u];
+                i--;
+            }
+            near_d[i] = d;
+            near_g[i] = g;
+        }
+    }
     uint best = 0u;
     float best_d = 1.0 / 0.0;
-    for (uint c = 0u; c < pc.job.w; c++) {
-        float dist = 0.0;
-        for (uint d = 0u; d < p; d++) {
-            float t = centroids[c * p + d] - packed[d];
-            dist += t * t;
-        }
-        if (dist < best_d) {
-            best_d = dist;
-            best = c;
+    for (uint i = 0u; i < GROUPS_SEARCHED; i++) {
+        uint g = near_g[i];
+        if (g == 0xffffffffu) continue;
+        for (uint m = first[g]; m < first[g + 1u]; m++) {
+            uint c = members[m];
+            float d = dist(0u, c);
+            if (d < best_d || (d == best_d && c < best)) {
+                best_d = d;
+                best = c;
+            }
         }
     }
     ids[r] = best;

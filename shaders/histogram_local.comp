@@ -12,8 +12,9 @@ layout(std430, binding = 2) readonly buffer List { uint list[]; };
 layout(std430, binding = 3) writeonly buffer Rows { float rows[]; };
 
 layout(push_constant) uniform Push {
-    ivec4 dims;  // w: number of neighbours
-    uvec4 job;   // x: rows, y: bins B, z: first voxel of a range, w: 1 = voxels from the list
+    ivec4 dims;   // w: number of neighbours
+    uvec4 job;    // x: rows, y: bins B, z: first voxel of a range, w: 1 = voxels from the list
+    ivec4 reach;  // xyz: S_r's largest offset per axis
 } pc;
 
 void main() {
@@ -24,11 +25,23 @@ void main() {
                     int(i) / (pc.dims.x * pc.dims.y));
     float lh[HIST_MAX_BINS];
     for (uint k = 0u; k < pc.job.y; k++) lh[k] = 0.0;
-    for (int n = 0; n < pc.dims.w; n++) {
-        vec4 nb = neighbours[n];
-        ivec3 u = v + ivec3(nb.xyz);
-        if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
-        lh[bins[u.x + pc.dims.x * (u.y + pc.dims.y * u.z)]] += nb.w;
+    // Away from the border every member is in the grid: no test per member.
+    bool inside = all(greaterThanEqual(v, pc.reach.xyz)) && all(lessThan(v + pc.reach.xyz, pc.dims.xyz));
+    int row = pc.dims.x, slice = pc.dims.x * pc.dims.y;
+    int i0 = v.x + row * v.y + slice * v.z;
+    if (inside) {
+        for (int n = 0; n < pc.dims.w; n++) {
+            vec4 nb = neighbours[n];
+            ivec3 o = ivec3(nb.xyz);
+            lh[bins[i0 + o.x + row * o.y + slice * o.z]] += nb.w;
+        }
+    } else {
+        for (int n = 0; n < pc.dims.w; n++) {
+            vec4 nb = neighbours[n];
+            ivec3 u = v + ivec3(nb.xyz);
+            if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
+            lh[bins[u.x + row * u.y + slice * u.z]] += nb.w;
+        }
     }
     for (uint k = 0u; k < pc.job.y; k++) rows[r * pc.job.y + k] = lh[k];
 }

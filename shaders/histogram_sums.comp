@@ -27,16 +27,25 @@ layout(push_constant) uniform Push {
     ivec4 box_min;  // w: mode (0: direct sums, no mask; 1: CAO by category; 2: naive, a -> 1;
                     //          3: restore the precomputed values; 4: the clustered values)
     ivec4 box_max;  // exclusive
+    ivec4 reach;    // xyz: S_r's largest offset per axis
 } pc;
 
 void direct(ivec3 v, out float a, out vec3 e) {
     float occ = 0.0;
     vec3 rgb = vec3(0.0);
+    // Away from the border every member is in the grid: no test per member. The sum runs in
+    // the same order either way, so a region's values equal the whole volume's bit for bit.
+    bool inside = all(greaterThanEqual(v, pc.reach.xyz)) && all(lessThan(v + pc.reach.xyz, pc.dims.xyz));
+    int row = pc.dims.x, slice = pc.dims.x * pc.dims.y;
+    int i0 = v.x + row * v.y + slice * v.z;
     for (int n = 0; n < pc.dims.w; n++) {
         vec4 nb = neighbours[n];
-        ivec3 u = v + ivec3(nb.xyz);
-        if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
-        int j = u.x + pc.dims.x * (u.y + pc.dims.y * u.z);
+        ivec3 o = ivec3(nb.xyz);
+        if (!inside) {
+            ivec3 u = v + o;
+            if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
+        }
+        int j = i0 + o.x + row * o.y + slice * o.z;
         float wq = nb.w * q[j];
         occ += wq;
         rgb += wq * bin_table[bins[j]].rgb;

@@ -243,6 +243,15 @@ enum BenchCmd {
         /// The transfer function the TF change switches to.
         #[arg(long, default_value = "ct-skin")]
         tf_after: String,
+        /// Cluster counts N of the local-histogram table (0: the direct sums; none: skip it).
+        #[arg(long, value_delimiter = ',', default_value = "256,512,1024,2048")]
+        hist_clusters: Vec<usize>,
+        /// The local histograms' radius r in mm.
+        #[arg(long, default_value_t = HistParams::default().radius_mm)]
+        hist_radius_mm: f64,
+        /// The local histograms' bins B.
+        #[arg(long, default_value_t = HistParams::default().bins)]
+        hist_bins: usize,
     },
     /// CAO vs the naive full LAO recompute per frame, a 25 mm sphere sweeping through the
     /// phantom at 64^3 and 128^3 and the CT head (or VOLUME).
@@ -732,6 +741,9 @@ fn run(cli: Cli) -> Result<()> {
                     radii,
                     frames,
                     tf_after,
+                    hist_clusters,
+                    hist_radius_mm,
+                    hist_bins,
                 },
         } => {
             let b = common.setup(cli.validation)?;
@@ -747,6 +759,25 @@ fn run(cli: Cli) -> Result<()> {
                 frames.max(1),
                 b.runs,
             )?;
+            if !hist_clusters.is_empty() {
+                let p = HistParams {
+                    radius_mm: hist_radius_mm,
+                    bins: hist_bins,
+                    clusters: 0,
+                };
+                p.validate().map_err(anyhow::Error::msg)?;
+                println!();
+                app::bench_ao::bench_histogram(
+                    &b.gpu,
+                    &b.volumes,
+                    &b.tf,
+                    &tf_after,
+                    p,
+                    &hist_clusters,
+                    &base,
+                    frames.max(1),
+                )?;
+            }
         }
         Cmd::Bench {
             what: BenchCmd::Lao { common, rays },

@@ -62,10 +62,10 @@ impl HistParams {
         Ok(())
     }
 
-    /// The packed dimension the clustering compares histograms in (the paper packs 256 bins
-    /// into 64; we pack B into at most [`HIST_MAX_PACKED`]).
+    /// The packed dimension the clustering compares histograms in: B / 4 (the paper packs 256
+    /// bins into 64), at least 8 (or B) and at most [`HIST_MAX_PACKED`].
     pub fn packed(&self) -> usize {
-        self.bins.min(HIST_MAX_PACKED as usize)
+        (self.bins / 4).clamp(self.bins.min(8), HIST_MAX_PACKED as usize)
     }
 }
 
@@ -186,34 +186,44 @@ pub fn direct_reference(
     let n = dims[0] * dims[1] * dims[2];
     (0..n)
         .into_par_iter()
-        .map(|i| {
-            let v = [
-                (i % dims[0]) as i32,
-                ((i / dims[0]) % dims[1]) as i32,
-                (i / (dims[0] * dims[1])) as i32,
-            ];
-            let (mut occ, mut rgb) = (0.0f64, [0.0f64; 3]);
-            for (o, w) in nb.offsets.iter().zip(&nb.weights) {
-                let u = [v[0] + o[0], v[1] + o[1], v[2] + o[2]];
-                if (0..3).any(|a| u[a] < 0 || u[a] >= dims[a] as i32) {
-                    continue;
-                }
-                let j = u[0] as usize + dims[0] * (u[1] as usize + dims[1] * u[2] as usize);
-                let wq = w * q[j] as f64;
-                occ += wq;
-                let c = &table[bins[j] as usize];
-                for ch in 0..3 {
-                    rgb[ch] += wq * c[ch] as f64;
-                }
-            }
-            let e = if occ > 0.0 {
-                rgb.map(|c| (c / occ) as f32)
-            } else {
-                [0.0; 3]
-            };
-            ((1.0 - occ / nb.total) as f32, e)
-        })
+        .map(|i| direct_at(dims, q, bins, table, nb, i))
         .unzip()
+}
+
+/// [`direct_reference`] of one voxel.
+pub fn direct_at(
+    dims: [usize; 3],
+    q: &[f32],
+    bins: &[u32],
+    table: &[[f32; 4]],
+    nb: &Neighbourhood,
+    i: usize,
+) -> (f32, [f32; 3]) {
+    let v = [
+        (i % dims[0]) as i32,
+        ((i / dims[0]) % dims[1]) as i32,
+        (i / (dims[0] * dims[1])) as i32,
+    ];
+    let (mut occ, mut rgb) = (0.0f64, [0.0f64; 3]);
+    for (o, w) in nb.offsets.iter().zip(&nb.weights) {
+        let u = [v[0] + o[0], v[1] + o[1], v[2] + o[2]];
+        if (0..3).any(|a| u[a] < 0 || u[a] >= dims[a] as i32) {
+            continue;
+        }
+        let j = u[0] as usize + dims[0] * (u[1] as usize + dims[1] * u[2] as usize);
+        let wq = w * q[j] as f64;
+        occ += wq;
+        let c = &table[bins[j] as usize];
+        for ch in 0..3 {
+            rgb[ch] += wq * c[ch] as f64;
+        }
+    }
+    let e = if occ > 0.0 {
+        rgb.map(|c| (c / occ) as f32)
+    } else {
+        [0.0; 3]
+    };
+    ((1.0 - occ / nb.total) as f32, e)
 }
 
 /// The local histogram LH(v) of the unclipped volume: per bin, the sum of w over the in-grid
@@ -310,9 +320,13 @@ impl Packing {
     }
 }
 
-/// Squared L2 distance.
+/// Squared L2 distance, summed in the same order as histogram_assign.comp.
 fn dist2(a: &[f32], b: &[f32]) -> f32 {
-    a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
+    let mut s = 0.0;
+    for (x, y) in a.iter().zip(b) {
+        s += (x - y) * (x - y);
+    }
+    s
 }
 
 /// The nearest centroid (the first of equals), and its squared distance.
@@ -374,6 +388,79 @@ pub fn lbg(samples: &[f32], dim: usize, n: usize) -> Vec<f32> {
         }
     }
     centroids
+}
+
+/// Groups of centroids for the two-level assignment: `centres` (G x dim), and group g's
+/// members (centroid indices, ascending) `members[first[g]..first[g + 1]]`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Groups {
+    pub centres: Vec<f32>,
+    pub first: Vec<u32>,
+    pub members: Vec<u32>,
+}
+
+/// How many groups the assignment searches (histogram_assign.comp's GROUPS_SEARCHED).
+pub const GROUPS_SEARCHED: usize = 3;
+
+impl Groups {
+    /// About sqrt(2 N) groups from k-means (Lloyd) on the centroids themselves, started from
+    /// evenly spaced centroids; each centroid belongs to its nearest centre.
+    pub fn new(centroids: &[f32], dim: usize) -> Groups {
+        let n = centroids.len() / dim;
+        let g = ((2.0 * n as f64).sqrt().ceil() as usize).clamp(1, n.max(1));
+        let mut centres: Vec<f32> = (0..g)
+            .flat_map(|i| centroids[(i * n / g) * dim..(i * n / g + 1) * dim].to_vec())
+            .collect();
+        for _ in 0..10 {
+            if !lloyd(centroids, dim, &mut centres) {
+                break;
+            }
+        }
+        let owner: Vec<u32> = assign_all(centroids, dim, &centres)
+            .iter()
+            .map(|a| a.0)
+            .collect();
+        let mut first = vec![0u32; g + 1];
+        for &o in &owner {
+            first[o as usize + 1] += 1;
+        }
+        for i in 0..g {
+            first[i + 1] += first[i];
+        }
+        let mut fill = first.clone();
+        let mut members = vec![0u32; n];
+        for (c, &o) in owner.iter().enumerate() {
+            members[fill[o as usize] as usize] = c as u32;
+            fill[o as usize] += 1;
+        }
+        Groups {
+            centres,
+            first,
+            members,
+        }
+    }
+
+    /// The assignment histogram_assign.comp makes: the nearest centroid among the members of
+    /// the [`GROUPS_SEARCHED`] groups whose centres are nearest.
+    pub fn assign(&self, centroids: &[f32], dim: usize, p: &[f32]) -> u32 {
+        let mut groups: Vec<(f32, usize)> = self
+            .centres
+            .chunks_exact(dim)
+            .enumerate()
+            .map(|(g, c)| (dist2(c, p), g))
+            .collect();
+        groups.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let mut best = (f32::INFINITY, 0u32);
+        for &(_, g) in groups.iter().take(GROUPS_SEARCHED) {
+            for &c in &self.members[self.first[g] as usize..self.first[g + 1] as usize] {
+                let d = dist2(&centroids[c as usize * dim..(c as usize + 1) * dim], p);
+                if d < best.0 || (d == best.0 && c < best.1) {
+                    best = (d, c);
+                }
+            }
+        }
+        best.1
+    }
 }
 
 fn assign_all(samples: &[f32], dim: usize, centroids: &[f32]) -> Vec<(u32, f32)> {
@@ -690,6 +777,28 @@ mod tests {
         let a = lbg(&same, 2, 7);
         assert_eq!(a.len(), 14);
         assert_eq!(a, lbg(&same, 2, 7));
+    }
+
+    #[test]
+    fn the_two_level_assignment_mostly_finds_the_nearest_centroid() {
+        let mut rng = SplitMix64(5);
+        let dim = 4;
+        let samples: Vec<f32> = (0..4000 * dim).map(|_| rng.unit() as f32).collect();
+        let cen = lbg(&samples, dim, 256);
+        let groups = Groups::new(&cen, dim);
+        assert_eq!(groups.members.len(), 256);
+        assert_eq!(*groups.first.last().unwrap(), 256);
+        let mut seen = groups.members.clone();
+        seen.sort();
+        assert!(
+            seen.iter().enumerate().all(|(i, &c)| c == i as u32),
+            "each centroid once"
+        );
+        let same = samples
+            .chunks_exact(dim)
+            .filter(|s| groups.assign(&cen, dim, s) == nearest(&cen, dim, s).0)
+            .count();
+        assert!(same as f64 >= 0.95 * 4000.0, "{same} of 4000 exact");
     }
 
     #[test]

@@ -40,8 +40,20 @@ const MIN_TRAINING: usize = 32768;
 struct JobPush {
     dims: [i32; 4],
     job: [u32; 4],
+    reach: [i32; 4],
 }
-crate::gpu::glsl_layout!(JobPush, 32, dims: 0, job: 16);
+crate::gpu::glsl_layout!(JobPush, 48, dims: 0, job: 16, reach: 32);
+
+/// Push constants of histogram_sums.comp: a box, and S_r's reach per axis.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct SumsPush {
+    dims: [i32; 4],
+    box_min: [i32; 4],
+    box_max: [i32; 4],
+    reach: [i32; 4],
+}
+crate::gpu::glsl_layout!(SumsPush, 64, dims: 0, box_min: 16, box_max: 32, reach: 48);
 
 /// How long each phase of the clustering took (wall ms) and the host memory it peaked at.
 #[derive(Clone, Copy, Debug, Default)]
@@ -157,7 +169,7 @@ impl HistogramGpu {
         };
         let mut h = HistogramGpu {
             gpu: gpu.clone(),
-            sums: ComputePipeline::new(gpu, spv("sums"), &[b; 11], 48)?,
+            sums: ComputePipeline::new(gpu, spv("sums"), &[b; 11], 64)?,
             params,
             dims,
             spacing,
@@ -264,6 +276,7 @@ impl HistogramGpu {
                 first as u32,
                 list.is_some() as u32,
             ],
+            reach: self.reach4(),
         };
         self.gpu.submit_and_wait(|cmd| {
             let l = list.unwrap_or(&self.bins);
@@ -275,6 +288,19 @@ impl HistogramGpu {
             local.dispatch(cmd, [(rows as u32).div_ceil(64), 1, 1]);
         })?;
         Ok(())
+    }
+
+    /// S_r's largest offset per axis.
+    fn reach4(&self) -> [i32; 4] {
+        let m = |a: usize| {
+            self.nb
+                .offsets
+                .iter()
+                .map(|o| o[a].abs())
+                .max()
+                .unwrap_or(0)
+        };
+        [m(0), m(1), m(2), 0]
     }
 
     fn dims4(&self, w: i32) -> [i32; 4] {
@@ -308,7 +334,7 @@ impl HistogramGpu {
             &self.gpu,
             spv("local"),
             &[vk::DescriptorType::STORAGE_BUFFER; 4],
-            32,
+            48,
         )?;
         // Training: the sample's histograms, packed.
         let t0 = std::time::Instant::now();
@@ -337,9 +363,16 @@ impl HistogramGpu {
         let assign = ComputePipeline::new(
             &self.gpu,
             spv("assign"),
-            &[vk::DescriptorType::STORAGE_BUFFER; 4],
-            16,
+            &[vk::DescriptorType::STORAGE_BUFFER; 7],
+            32,
         )?;
+        let groups = hist::Groups::new(&centroids, p);
+        let group_bufs = [
+            Buffer::from_slice(&self.gpu, &groups.centres, storage, "hist-group-centres")?,
+            Buffer::from_slice(&self.gpu, &groups.first, storage, "hist-group-first")?,
+            Buffer::from_slice(&self.gpu, &groups.members, storage, "hist-group-members")?,
+        ];
+        let group_count = groups.first.len() as u32 - 1;
         let packing_buf = Buffer::from_slice(&self.gpu, &packing.matrix, storage, "hist-packing")?;
         let centroid_buf = Buffer::from_slice(&self.gpu, &centroids, storage, "hist-centroids")?;
         let batch = (BATCH_BYTES / (b * 4)).clamp(64, n.max(64));
@@ -358,11 +391,21 @@ impl HistogramGpu {
             self.local_rows(&local, first, count, None, &rows)?;
             hist_ms += t.elapsed().as_secs_f64() * 1e3;
             let t = std::time::Instant::now();
-            let push = [count as u32, b as u32, p as u32, k as u32];
+            let push = [
+                count as u32,
+                b as u32,
+                p as u32,
+                k as u32,
+                group_count,
+                0,
+                0,
+                0,
+            ];
             self.gpu.submit_and_wait(|cmd| {
+                let [gc, gf, gm] = &group_bufs;
                 assign.bind(
                     cmd,
-                    &[&rows, &packing_buf, &centroid_buf, &ids_buf],
+                    &[&rows, &packing_buf, &centroid_buf, &ids_buf, gc, gf, gm],
                     bytemuck::bytes_of(&push),
                 );
                 assign.dispatch(cmd, [(count as u32).div_ceil(64), 1, 1]);
@@ -471,10 +514,11 @@ impl HistogramGpu {
         mode: HistMode,
     ) {
         for bx in boxes {
-            let push = super::cao::BoxPush {
+            let push = SumsPush {
                 dims: self.dims4(self.nb.offsets.len() as i32),
                 box_min: [bx.min[0], bx.min[1], bx.min[2], mode as i32],
                 box_max: [bx.max[0], bx.max[1], bx.max[2], 0],
+                reach: self.reach4(),
             };
             let bufs = [
                 q,

@@ -7,6 +7,7 @@ use super::bench::{median, sweep_tools};
 use super::{precompute, AoVolume, HeadlessRenderer, Result};
 use crate::ao::cao::{MethodGpu, Mode};
 use crate::ao::filtered::{Estimator, FilterParams};
+use crate::ao::histogram::{self, HistParams};
 use crate::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
 use crate::gpu::{Buffer, Gpu};
 use crate::render::compare::{luma, psnr, ssim};
@@ -15,6 +16,7 @@ use crate::space::{default_stereo_views, world_from_tex, Placement, DEFAULT_IPD}
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use glam::Quat;
+use rayon::prelude::*;
 
 /// Pixels per side of the comparison renders.
 const VIEW_SIZE: u32 = 256;
@@ -223,6 +225,164 @@ pub fn bench_ao(
                 vol.name,
                 fastest / lao_row.full_ms
             );
+        }
+    }
+    Ok(rows)
+}
+
+/// Peak resident memory of this process so far (VmHWM), in bytes; 0 where /proc lacks it.
+fn peak_rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        })
+        .map_or(0, |kb| kb * 1024)
+}
+
+/// One row of [`bench_histogram`].
+#[derive(Clone, Debug)]
+pub struct HistBenchRow {
+    pub volume: String,
+    pub clusters: usize,
+    pub histograms_s: f64,
+    pub training_s: f64,
+    pub assignment_s: f64,
+    pub total_s: f64,
+    pub peak_host_mb: f64,
+    pub gpu_mb: f64,
+    pub tf_change_ms: f64,
+    pub clip_ms: f64,
+    pub mean_error: f64,
+    pub p99_error: f64,
+}
+
+/// Voxels (with q > 0.001) the clustered openness is compared with the direct sums on.
+const ERROR_SAMPLE: usize = 4096;
+
+/// The local-histogram AO at each of `clusters`: the precompute phase by phase (no cache), the
+/// process's peak memory and the method's GPU memory, the TF change (one table update and one
+/// pass), the mean CAO update per frame of the sphere sweep, and the clustered openness against
+/// the direct sums (mean and p99 of |A - A_direct| over a sample of voxels with q > 0.001).
+#[allow(clippy::too_many_arguments)]
+pub fn bench_histogram(
+    gpu: &Gpu,
+    volumes: &[Volume],
+    tf: &TransferFunction,
+    tf_after: &TransferFunction,
+    params: HistParams,
+    clusters: &[usize],
+    base: &LaoParams,
+    frames: usize,
+) -> Result<Vec<HistBenchRow>> {
+    let lao = LaoGpu::new(gpu)?;
+    let placement = Placement::default();
+    println!(
+        "Local-histogram AO on {} (r = {} mm, B = {} bins; no cache; s = wall seconds of each \
+         phase; host MB = the process's peak RSS; GPU MB = the method's buffers and CAO's five \
+         volumes; TF = wall ms of a {} -> {} change (table + one pass); clip = mean GPU ms of the \
+         25 mm sphere sweep's CAO update over {frames} frames; error = |A - direct sum| over {} \
+         voxels with q > 0.001)",
+        gpu.device_name, params.radius_mm, params.bins, tf.name, tf_after.name, ERROR_SAMPLE
+    );
+    println!(
+        "{:<12} {:>5} {:>8} {:>8} {:>8} {:>8} {:>8} {:>7} {:>8} {:>8} {:>8} {:>8}",
+        "volume",
+        "N",
+        "hist s",
+        "train s",
+        "assign s",
+        "total s",
+        "host MB",
+        "GPU MB",
+        "TF ms",
+        "clip ms",
+        "mean err",
+        "p99 err"
+    );
+    let mut rows = Vec::new();
+    for vol in volumes {
+        let bins = histogram::bins(vol, params.bins);
+        let table = histogram::bin_table(tf, vol.value_range(), params.bins);
+        let q = histogram::q_volume(&bins, &table);
+        let nb = histogram::Neighbourhood::new(params.radius_mm, vol.spacing);
+        // The error sample: voxels with q > 0.001, spread deterministically.
+        let candidates: Vec<usize> = (0..q.len()).filter(|&i| q[i] > 0.001).collect();
+        let step = (candidates.len() / ERROR_SAMPLE).max(1);
+        let sample: Vec<usize> = candidates.iter().step_by(step).copied().collect();
+        let direct: Vec<f32> = sample
+            .par_iter()
+            .map(|&i| histogram::direct_at(vol.dims, &q, &bins, &table, &nb, i).0)
+            .collect();
+        let sweep = sweep_tools(vol, 25.0, frames);
+        for &n in clusters {
+            let p = HistParams {
+                clusters: n,
+                ..params
+            };
+            let t0 = std::time::Instant::now();
+            let h = super::histogram_state(gpu, vol, p, None, false)?;
+            let total_s = t0.elapsed().as_secs_f64();
+            let timing = h.timing;
+            let v = super::precompute_histogram(gpu, &lao, vol, tf, base, h)?;
+            let a = read(&v.ao_buf)?;
+            let mut err: Vec<f64> = sample
+                .iter()
+                .zip(&direct)
+                .map(|(&i, d)| (a[i] as f64 - *d as f64).abs())
+                .collect();
+            let mean_error = err.iter().sum::<f64>() / err.len().max(1) as f64;
+            err.sort_by(f64::total_cmp);
+            let p99_error = err
+                .get((err.len() * 99 / 100).min(err.len().saturating_sub(1)))
+                .copied()
+                .unwrap_or(0.0);
+            let voxels = vol.voxel_count() as f64;
+            let gpu_mb = (resident_bytes(&v) as f64 + 5.0 * 4.0 * voxels) / (1 << 20) as f64;
+            let mut cao = v.into_cao(gpu, vol, *base)?;
+            let mut ms = 0.0;
+            for tools in &sweep {
+                ms += cao.run_frame(tools, &placement, Mode::Contextual)?.gpu_ms();
+            }
+            let clip_ms = ms / sweep.len().max(1) as f64;
+            let t1 = std::time::Instant::now();
+            let h = cao
+                .histogram_mut()
+                .expect("the method is the local histograms");
+            drop(super::histogram_tables(gpu, &lao, vol.dims, h, tf_after)?);
+            let tf_change_ms = t1.elapsed().as_secs_f64() * 1e3;
+            let row = HistBenchRow {
+                volume: vol.name.clone(),
+                clusters: n,
+                histograms_s: timing.histograms_ms / 1e3,
+                training_s: timing.training_ms / 1e3,
+                assignment_s: timing.assignment_ms / 1e3,
+                total_s,
+                peak_host_mb: peak_rss_bytes() as f64 / (1 << 20) as f64,
+                gpu_mb,
+                tf_change_ms,
+                clip_ms,
+                mean_error,
+                p99_error,
+            };
+            println!(
+                "{:<12} {:>5} {:>8.1} {:>8.1} {:>8.1} {:>8.1} {:>8.0} {:>7.0} {:>8.1} {:>8.1} {:>8.4} {:>8.4}",
+                row.volume,
+                row.clusters,
+                row.histograms_s,
+                row.training_s,
+                row.assignment_s,
+                row.total_s,
+                row.peak_host_mb,
+                row.gpu_mb,
+                row.tf_change_ms,
+                row.clip_ms,
+                row.mean_error,
+                row.p99_error
+            );
+            rows.push(row);
         }
     }
     Ok(rows)

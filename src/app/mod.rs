@@ -213,13 +213,18 @@ impl AoVolume {
     }
 }
 
-/// A terminal progress bar (hidden when stderr is not a terminal).
+/// A terminal progress bar counting slices (hidden when stderr is not a terminal).
 pub fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
+    progress_bar_of(len, label, "slices")
+}
+
+/// A terminal progress bar counting `unit`.
+pub fn progress_bar_of(len: u64, label: &str, unit: &str) -> indicatif::ProgressBar {
     let bar = indicatif::ProgressBar::new(len);
     bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "{msg:>12} [{bar:40}] {pos}/{len} slices  {elapsed_precise} (eta {eta})",
-        )
+        indicatif::ProgressStyle::with_template(&format!(
+            "{{msg:>12}} [{{bar:40}}] {{pos}}/{{len}} {unit}  {{elapsed_precise}} (eta {{eta}})"
+        ))
         .unwrap()
         .progress_chars("=> "),
     );
@@ -339,7 +344,7 @@ pub fn histogram_state(
 ) -> Result<HistogramGpu> {
     hp.validate().map_err(AppError::Usage)?;
     crate::render::check_volume_fits_gpu(gpu, vol)?;
-    let bar = show_progress.then(|| progress_bar(1, "local histograms"));
+    let bar = show_progress.then(|| progress_bar_of(1, "local histograms", "batches"));
     let h = HistogramGpu::new(gpu, vol, hp, cache, &mut |done, total, phase| {
         if let Some(b) = &bar {
             b.set_length(total.max(1));
@@ -349,8 +354,36 @@ pub fn histogram_state(
     })?;
     if let Some(b) = bar {
         b.finish_and_clear();
+        let t = &h.timing;
+        if t.cached {
+            eprintln!("{}: local histograms read from the cache", vol.name);
+        } else if hp.clusters > 0 {
+            eprintln!(
+                "{}: local histograms {:.1} s, LBG training {:.1} s, assignment {:.1} s",
+                vol.name,
+                t.histograms_ms / 1e3,
+                t.training_ms / 1e3,
+                t.assignment_ms / 1e3
+            );
+        }
     }
     Ok(h)
+}
+
+/// A TF change of the local-histogram method `h`: its tables for `tf`, then q (the opacity CAO
+/// clips) and V_PAO with the bleeding volume in one pass. Returns q and V_PAO on the GPU.
+pub fn histogram_tables(
+    gpu: &Gpu,
+    lao: &LaoGpu,
+    dims: [usize; 3],
+    h: &mut HistogramGpu,
+    tf: &TransferFunction,
+) -> Result<(Buffer, Buffer)> {
+    let q = h.set_tf(tf)?;
+    let opacity = Buffer::device_local(gpu, &q, vk::BufferUsageFlags::STORAGE_BUFFER, "opacity")?;
+    let pao = lao.output_buffer(dims)?;
+    gpu.submit_and_wait(|cmd| h.record_precompute(cmd, &opacity, &pao))?;
+    Ok((opacity, pao))
 }
 
 /// V_PAO and the bleeding volume of the local-histogram method `h` under `tf`: one table
@@ -368,6 +401,7 @@ pub fn precompute_histogram(
     let (opacity_buf, skip) = upload_opacity(gpu, lao, vol, &q, params)?;
     let ao_buf = lao.output_buffer(vol.dims)?;
     let t0 = std::time::Instant::now();
+    // (the same pass as histogram_tables, timed on the GPU)
     let mut timer = crate::gpu::GpuTimer::new(gpu, 2)?;
     gpu.submit_and_wait(|cmd| {
         timer.begin(cmd);
@@ -451,7 +485,10 @@ pub fn render_to_dir(
         InteractionSettings::default(),
         true,
     )?;
-    fl.settings = *settings;
+    fl.settings = RenderSettings {
+        bleeding: spec.ao.bleeding,
+        ..*settings
+    };
     fl.set_lighting(&spec.lighting, true)?;
     fl.set_variance(spec.variance)?;
     fl.show_overlay = false;

@@ -304,14 +304,7 @@ impl TfSwitcher {
     ) -> Result<()> {
         let tf = &self.tfs[index];
         let (gpu, lao) = (&self.gpu, &self.lao);
-        let build = |h: &mut HistogramGpu| -> Result<(Buffer, Buffer)> {
-            let q = h.set_tf(tf)?;
-            let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
-            let opacity = Buffer::device_local(gpu, &q, usage, "opacity")?;
-            let pao = lao.output_buffer(vol.dims)?;
-            gpu.submit_and_wait(|cmd| h.record_precompute(cmd, &opacity, &pao))?;
-            Ok((opacity, pao))
-        };
+        let build = |h: &mut HistogramGpu| super::histogram_tables(gpu, lao, vol.dims, h, tf);
         let shown_here = match cao.histogram_mut() {
             Some(h) => Some(build(h)?),
             None => None,

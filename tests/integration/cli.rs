@@ -351,6 +351,208 @@ fn ao_command_filters_agree_with_an_independent_implementation() {
     assert!(String::from_utf8_lossy(&bad.stderr).contains("filter-gauss"));
 }
 
+/// The local histograms' direct openness written straight from docs/design.md, sharing no code
+/// with cao-xr: A = 1 - sum w q / W over S_r, W over every member (in the grid or not).
+fn independent_histogram_openness(q: &[f32], dims: &[usize], s: &[f64], r: f64) -> Vec<f64> {
+    let s_min = s.iter().cloned().fold(f64::MAX, f64::min);
+    let h: Vec<i64> = s.iter().map(|s| (r / s).floor() as i64).collect();
+    let mut members = Vec::new();
+    for z in -h[2]..=h[2] {
+        for y in -h[1]..=h[1] {
+            for x in -h[0]..=h[0] {
+                let d2 = (x as f64 * s[0]).powi(2)
+                    + (y as f64 * s[1]).powi(2)
+                    + (z as f64 * s[2]).powi(2);
+                if d2 > 0.0 && d2 <= r * r {
+                    members.push(([x, y, z], s_min * s_min / d2));
+                }
+            }
+        }
+    }
+    let total: f64 = members.iter().map(|m| m.1).sum();
+    let mut out = Vec::new();
+    for z in 0..dims[2] as i64 {
+        for y in 0..dims[1] as i64 {
+            for x in 0..dims[0] as i64 {
+                let mut occ = 0.0;
+                for (o, w) in &members {
+                    let p = [x + o[0], y + o[1], z + o[2]];
+                    if (0..3).all(|a| p[a] >= 0 && (p[a] as usize) < dims[a]) {
+                        occ += w * q
+                            [p[0] as usize + dims[0] * (p[1] as usize + dims[1] * p[2] as usize)]
+                            as f64;
+                    }
+                }
+                out.push(1.0 - occ / total);
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn ao_command_histogram_agrees_with_an_independent_implementation_and_the_cpu_reference() {
+    let dir = tmp("ao-histogram");
+    let vol = dir.join("head.nrrd");
+    assert!(
+        cao(&["phantom", "--size", "20", "--out", vol.to_str().unwrap()])
+            .status
+            .success()
+    );
+    let run = |tag: &str, extra: &[&str]| {
+        let (a, q, e) = (
+            dir.join(format!("{tag}-a.nrrd")),
+            dir.join(format!("{tag}-q.nrrd")),
+            dir.join(format!("{tag}-e.nrrd")),
+        );
+        let mut args = vec![
+            "ao",
+            vol.to_str().unwrap(),
+            "--tf",
+            "ct-skin",
+            "--ao",
+            "histogram",
+            "--clusters",
+            "0",
+            "--hist-radius-mm",
+            "25",
+            "--hist-bins",
+            "32",
+            "--out",
+            a.to_str().unwrap(),
+            "--opacity-out",
+            q.to_str().unwrap(),
+            "--bleeding-out",
+            e.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let out = cao(&args);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        (a, q, e)
+    };
+    let (a, q, e) = run("gpu", &[]);
+    let side: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(a.with_extension("json")).unwrap()).unwrap();
+    assert_eq!(side["method"], "histogram");
+    assert_eq!(side["radius_mm"], 25.0);
+    assert_eq!(side["bins"], 32);
+    assert_eq!(side["clusters"], 0);
+    for key in ["spacing_mm", "dims"] {
+        assert!(side.get(key).is_some(), "sidecar lacks {key}");
+    }
+    let (dims, spacing, got) = read_nrrd_f32(&a);
+    let (_, _, qv) = read_nrrd_f32(&q);
+    assert!(qv.iter().any(|&x| x > 0.0));
+    let want = independent_histogram_openness(&qv, &dims, &spacing, 25.0);
+    let diffs: Vec<f64> = got
+        .iter()
+        .zip(&want)
+        .map(|(x, y)| (*x as f64 - y).abs())
+        .collect();
+    let close = diffs.iter().filter(|x| **x <= 1e-4).count() as f64 / diffs.len() as f64;
+    let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
+    assert!(
+        close >= 0.999 && mean <= 1e-5,
+        "{:.3} % within 1e-4, mean {mean:e}",
+        100.0 * close
+    );
+    assert!(got.iter().any(|&x| x < 0.8), "no occlusion");
+    // E: RGB, equal to the CPU reference's within the GPU's 8 bits.
+    let text = std::fs::read(&e).unwrap();
+    let header = String::from_utf8_lossy(
+        &text[..text
+            .windows(2)
+            .position(|w| {
+                w == b"
+
+"
+            })
+            .unwrap()],
+    )
+    .to_string();
+    assert!(
+        header.contains("sizes: 3 20 20 20")
+            && header.contains("kinds: RGB-color domain domain domain"),
+        "{header}"
+    );
+    let (_, _, ce) = run("cpu", &["--cpu"]);
+    let floats = |p: &Path| -> Vec<f32> {
+        let b = std::fs::read(p).unwrap();
+        let at = b
+            .windows(2)
+            .position(|w| {
+                w == b"
+
+"
+            })
+            .unwrap()
+            + 2;
+        b[at..]
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect()
+    };
+    let (ge, ce) = (floats(&e), floats(&ce));
+    assert_eq!(ge.len(), 3 * 20 * 20 * 20);
+    let worst = ge
+        .iter()
+        .zip(&ce)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max);
+    assert!(
+        worst <= 0.5 / 255.0 + 1e-4,
+        "E differs from the CPU reference by {worst}"
+    );
+    assert!(ce.iter().any(|&x| x > 0.1), "some bleeding colour");
+    // A render under the method, carved, with and without bleeding.
+    let render = |tag: &str, bleeding: &str| {
+        let out = dir.join(tag);
+        let o = cao(&[
+            "render",
+            vol.to_str().unwrap(),
+            "--tf",
+            "ct-skin",
+            "--ao",
+            "histogram",
+            "--clusters",
+            "16",
+            "--hist-radius-mm",
+            "25",
+            "--hist-bins",
+            "16",
+            "--bleeding",
+            bleeding,
+            "--size",
+            "32x32",
+            "--tool",
+            "sphere:40",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        std::fs::read(out.join("stereo.png")).unwrap()
+    };
+    assert!(
+        render("bleed", "0.9") != render("plain", "0"),
+        "--bleeding changes the picture"
+    );
+    // The bleeding colour is the local histograms' alone.
+    let bad = cao(&[
+        "ao",
+        vol.to_str().unwrap(),
+        "--out",
+        dir.join("x.nrrd").to_str().unwrap(),
+        "--bleeding-out",
+        dir.join("y.nrrd").to_str().unwrap(),
+    ]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("histogram"));
+}
+
 #[test]
 fn render_writes_three_pngs() {
     let dir = tmp("render");

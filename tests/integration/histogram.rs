@@ -384,3 +384,74 @@ fn a_tf_change_is_a_table_update_shown_in_the_next_frame() {
     );
     common::assert_no_validation_messages(&gpu);
 }
+
+#[test]
+fn the_stick_click_leaves_the_local_histograms_and_comes_back_to_them() {
+    use cao_xr::app::frame_loop::FrameLoop;
+    use cao_xr::input::{FrameInput, InteractionSettings};
+    use cao_xr::space::{default_stereo_views, DEFAULT_IPD};
+    use std::sync::Arc;
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(20));
+    let p = HistParams {
+        radius_mm: 24.0,
+        bins: 16,
+        clusters: 32,
+    };
+    let lao = LaoParams {
+        rays: 6,
+        steps: 4,
+        step_mm: 4.0,
+    };
+    let ao = AoConfig::new(AoMethod::Histogram(p), lao);
+    let tf = TransferFunction::preset("ct-skin").unwrap();
+    let mut fl = FrameLoop::new(
+        &gpu,
+        Arc::clone(&vol),
+        vec![tf],
+        ao,
+        (24, 24),
+        InteractionSettings::default(),
+        false,
+    )
+    .unwrap();
+    fl.tf_samples_per_frame = 1e9;
+    let names: Vec<String> = fl.ao_methods().iter().map(|m| m.name()).collect();
+    assert_eq!(names[..2], ["histogram", "lao"]);
+    let views = default_stereo_views(&vol, &Placement::default(), DEFAULT_IPD);
+    let mut i = 0;
+    let mut click = |fl: &mut FrameLoop| {
+        // A press, then frames until no switch is in flight.
+        for n in 0..50 {
+            let mut input = FrameInput::without_hands(i as f64 / 60.0, views);
+            input.hands[1].buttons.stick_click = n == 0;
+            i += 1;
+            if fl.frame(&input).unwrap().stats.tf_progress.is_none() && n > 0 {
+                return;
+            }
+        }
+        panic!("the switch never finished");
+    };
+    let first = read(&fl.cao.ao);
+    let first_frame = fl
+        .frame(&FrameInput::without_hands(0.0, views))
+        .unwrap()
+        .image;
+    click(&mut fl);
+    assert_eq!(fl.cao.method_name(), "lao");
+    assert!(read(&fl.cao.ao) != first);
+    for _ in 0..names.len() - 1 {
+        click(&mut fl);
+    }
+    assert_eq!(fl.cao.method_name(), "histogram");
+    assert!(read(&fl.cao.ao) == first, "back to the same clustered AO");
+    let back = fl
+        .frame(&FrameInput::without_hands(9.0, views))
+        .unwrap()
+        .image;
+    assert!(
+        back == first_frame,
+        "and the same picture, bleeding included"
+    );
+    common::assert_no_validation_messages(&gpu);
+}
