@@ -69,6 +69,10 @@ enum Cmd {
         /// the viewer). Repeatable. The AO around the cut is CAO.
         #[arg(long)]
         tool: Vec<String>,
+        /// The background: R,G,B (0..1), or `transparent` for RGBA PNGs (straight alpha) of what
+        /// an ALPHA_BLEND (passthrough) runtime composites over the world.
+        #[arg(long, value_parser = parse_background)]
+        background: Option<Background>,
     },
     /// Precompute the LAO volume; write it as float32 NRRD plus a JSON sidecar.
     Ao {
@@ -198,6 +202,14 @@ enum Cmd {
         /// Also show the left eye in a desktop window (X11) while the session runs.
         #[arg(long)]
         mirror: bool,
+        /// The environment blend mode: auto (the runtime's preferred one, or with --passthrough
+        /// the first of alpha-blend and additive it offers), opaque, additive or alpha-blend. A
+        /// mode the runtime does not offer is refused, with the list it does offer.
+        #[arg(long, default_value = "auto")]
+        blend: cao_xr::xr::blend::BlendRequest,
+        /// Mixed reality: the world shows through where the volume is not.
+        #[arg(long)]
+        passthrough: bool,
     },
     /// Generate a scripted pose stream (JSON Lines) for replay and tests.
     Script {
@@ -252,6 +264,9 @@ enum BenchCmd {
         /// The local histograms' bins B.
         #[arg(long, default_value_t = HistParams::default().bins)]
         hist_bins: usize,
+        /// Only the local-histogram table (its clusterings take minutes on a large volume).
+        #[arg(long)]
+        histogram_only: bool,
     },
     /// CAO vs the naive full LAO recompute per frame, a 25 mm sphere sweeping through the
     /// phantom at 64^3 and 128^3 and the CT head (or VOLUME).
@@ -590,6 +605,35 @@ fn session_spec(vol: &VolumeArgs, lao: &LaoArgs, light: &LightArgs) -> Result<Se
     })
 }
 
+/// `render --background`.
+#[derive(Clone, Copy, Debug)]
+enum Background {
+    Transparent,
+    Colour([f32; 3]),
+}
+
+fn parse_background(s: &str) -> std::result::Result<Background, String> {
+    if s == "transparent" {
+        return Ok(Background::Transparent);
+    }
+    let c: Vec<f32> = s
+        .split(',')
+        .map(|x| {
+            x.trim()
+                .parse::<f32>()
+                .ok()
+                .filter(|v| (0.0..=1.0).contains(v))
+        })
+        .collect::<Option<_>>()
+        .ok_or_else(|| format!("'{s}': expected transparent or R,G,B with each in 0..1"))?;
+    match c[..] {
+        [r, g, b] => Ok(Background::Colour([r, g, b])),
+        _ => Err(format!(
+            "'{s}': expected transparent or three numbers R,G,B"
+        )),
+    }
+}
+
 fn main() -> std::process::ExitCode {
     // Output piped into `head` and closed early ends the process quietly, as Unix tools do,
     // instead of panicking in println!.
@@ -631,6 +675,7 @@ fn run(cli: Cli) -> Result<()> {
             no_ao,
             diffuse,
             tool,
+            background,
         } => {
             let spec = session_spec(&vol, &lao, &light)?;
             let v = &spec.volume;
@@ -639,11 +684,16 @@ fn run(cli: Cli) -> Result<()> {
                 v.name, v.dims, v.spacing, spec.tf.name
             );
             let gpu = gpu(cli.validation)?;
-            let settings = RenderSettings {
+            let mut settings = RenderSettings {
                 use_ao: !no_ao,
                 diffuse,
                 ..Default::default()
             };
+            match background {
+                Some(Background::Transparent) => settings.transparent = true,
+                Some(Background::Colour(c)) => settings.background = c,
+                None => {}
+            }
             let placement = cao_xr::space::Placement::default();
             let tools = tool
                 .iter()
@@ -744,21 +794,24 @@ fn run(cli: Cli) -> Result<()> {
                     hist_clusters,
                     hist_radius_mm,
                     hist_bins,
+                    histogram_only,
                 },
         } => {
             let b = common.setup(cli.validation)?;
             let tf_after = TransferFunction::resolve(&tf_after)?;
             let base = LaoParams { rays, ..b.base };
-            app::bench_ao::bench_ao(
-                &b.gpu,
-                &b.volumes,
-                &b.tf,
-                &tf_after,
-                &radii,
-                &base,
-                frames.max(1),
-                b.runs,
-            )?;
+            if !histogram_only {
+                app::bench_ao::bench_ao(
+                    &b.gpu,
+                    &b.volumes,
+                    &b.tf,
+                    &tf_after,
+                    &radii,
+                    &base,
+                    frames.max(1),
+                    b.runs,
+                )?;
+            }
             if !hist_clusters.is_empty() {
                 let p = HistParams {
                     radius_mm: hist_radius_mm,
@@ -896,6 +949,8 @@ fn run(cli: Cli) -> Result<()> {
             carve,
             volume_at,
             mirror,
+            blend,
+            passthrough,
         } => {
             let spec = session_spec(&vol, &lao, &light)?;
             let opts = cao_xr::xr::XrOptions {
@@ -907,16 +962,20 @@ fn run(cli: Cli) -> Result<()> {
                 volume_at,
                 mirror,
                 validation: cli.validation,
+                blend,
+                passthrough,
             };
             let s = app::headset::run(&spec, opts)?;
             println!(
-                "xr session ended cleanly: {} frames submitted, {} with tracked hands, states {}, focused {}, haptic pulses {}, space {}",
+                "xr session ended cleanly: {} frames submitted, {} with tracked hands, states {}, focused {}, haptic pulses {}, space {}, blend {} (offered {})",
                 s.frames,
                 s.tracked_frames,
                 s.states.join(">"),
                 s.focused,
                 s.pulses,
-                s.space
+                s.space,
+                s.blend,
+                s.blend_offered.join(", ")
             );
             match &s.depth_missing {
                 None => println!("depth layer: submitted with {} frames", s.depth_frames),

@@ -384,6 +384,24 @@ pub fn bench_histogram(
             );
             rows.push(row);
         }
+        // LAO's TF change in the same run: its V_PAO' recomputed (the progressive switch
+        // spreads exactly this work over frames).
+        let t = std::time::Instant::now();
+        drop(precompute(
+            gpu,
+            &lao,
+            vol,
+            tf_after,
+            &AoConfig::from(*base),
+            false,
+        )?);
+        println!(
+            "{:<12} LAO K={}'s TF change (a full V_PAO' recompute, spread over frames by the \
+             progressive switch) takes {:.1} ms in this run",
+            vol.name,
+            base.rays,
+            t.elapsed().as_secs_f64() * 1e3
+        );
     }
     Ok(rows)
 }

@@ -25,6 +25,11 @@ pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
         if let Some(c) = opts.volume_at {
             fl.scene.volume.center = c;
         }
+        if xs.blend.see_through() {
+            // ADDITIVE adds the colour to the world (black adds nothing); ALPHA_BLEND lays the
+            // premultiplied colour over it by alpha (the ray caster's alpha, 0 where it misses).
+            fl.settings.background = [0.0; 3];
+        }
         let mut mirror = opts.mirror.then(|| Mirror::new(&gpu, extent)).transpose()?;
         let description = format!("cao-xr xr of {} on {}", spec.volume.name, runtime.name);
         let mut recorder = recorder(

@@ -489,13 +489,20 @@ pub fn render_to_dir(
         bleeding: spec.ao.bleeding,
         ..*settings
     };
+    if settings.transparent {
+        fl.settings.background = [0.0; 3];
+    }
     fl.set_lighting(&spec.lighting, true)?;
     fl.set_variance(spec.variance)?;
     fl.show_overlay = false;
     fl.scene.tools = tools.to_vec();
     let views = default_stereo_views(vol, &fl.scene.volume, DEFAULT_IPD);
     let frame = fl.frame(&FrameInput::without_hands(0.0, views))?;
-    frame.image.write_pngs(out)?;
+    if settings.transparent {
+        frame.image.write_pngs_rgba(out)?;
+    } else {
+        frame.image.write_pngs(out)?;
+    }
     Ok((!tools.is_empty()).then_some(frame.stats.metrics))
 }
 

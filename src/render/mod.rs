@@ -40,6 +40,9 @@ pub struct RenderSettings {
     /// bleeding colour E by W * O_env. Takes effect where the textures hold a bleeding volume
     /// ([`VolumeTextures::set_bleeding`]); 0 = off.
     pub bleeding: f32,
+    /// A transparent background (`render --background transparent`): black, alpha 0 where a
+    /// ray misses, premultiplied colour; the PNGs get straight alpha.
+    pub transparent: bool,
 }
 
 impl Default for RenderSettings {
@@ -54,6 +57,7 @@ impl Default for RenderSettings {
             sh_times_ao: false,
             variance_max: 0.0,
             bleeding: DEFAULT_BLEEDING,
+            transparent: false,
         }
     }
 }

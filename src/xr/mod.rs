@@ -13,6 +13,7 @@
 
 pub mod actions;
 pub mod bindings;
+pub mod blend;
 pub mod conversions;
 pub mod debug;
 pub mod session;
@@ -66,6 +67,10 @@ pub struct XrOptions {
     pub mirror: bool,
     /// Vulkan validation on (`--validation`; also on in debug builds).
     pub validation: bool,
+    /// `--blend`: the environment blend mode asked for.
+    pub blend: blend::BlendRequest,
+    /// `--passthrough`: the world should show through (a see-through blend mode).
+    pub passthrough: bool,
 }
 
 /// What a session did.
@@ -86,6 +91,9 @@ pub struct XrSummary {
     pub depth_frames: usize,
     /// Why depth was not submitted (None when it was offered and used).
     pub depth_missing: Option<String>,
+    /// The environment blend mode submitted with, and the runtime's offer (its order).
+    pub blend: String,
+    pub blend_offered: Vec<String>,
 }
 
 /// Parses `X,Y,Z` (metres) for the command line.

@@ -3,6 +3,7 @@
 //! and swapchains, and each frame's wait, locate, acquire, release and submit. The frame loop
 //! that fills the images is the caller's (`app::headset`).
 
+use super::blend::{choose_blend, BlendMode};
 use super::conversions::{frame_views, projection_views};
 use super::swapchain::{
     create_depth_swapchain, create_swapchain, record_blit, record_depth_copy, Swapchain,
@@ -167,7 +168,8 @@ pub struct XrSession<'a> {
     session: xr::Session<xr::Vulkan>,
     actions: actions::HandActions,
     runtime: &'a XrRuntime,
-    blend: xr::EnvironmentBlendMode,
+    /// The environment blend mode every frame is submitted with.
+    pub blend: super::blend::BlendMode,
     machine: StateMachine,
     exit_requested: bool,
     /// The first frame's display time: input times count from it.
@@ -181,6 +183,23 @@ impl<'a> XrSession<'a> {
     /// binding files, the STAGE (else LOCAL) space and the swapchains.
     pub fn new(runtime: &'a XrRuntime, gpu: &Gpu, opts: &XrOptions) -> Result<Self> {
         let (instance, system) = (&runtime.instance, runtime.system);
+        // The blend mode first: a mode the runtime does not offer ends here, before a session.
+        let offered: Vec<BlendMode> = instance
+            .enumerate_environment_blend_modes(system, VIEW_TYPE)?
+            .into_iter()
+            .filter_map(BlendMode::from_xr)
+            .collect();
+        let blend =
+            choose_blend(&offered, opts.blend, opts.passthrough).map_err(XrError::Runtime)?;
+        eprintln!(
+            "xr: blend mode {} (the runtime offers {})",
+            blend.name(),
+            offered
+                .iter()
+                .map(|m| m.name())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
         let profiles = bindings::load(
             opts.bindings
                 .clone()
@@ -263,7 +282,6 @@ impl<'a> XrSession<'a> {
         if let Some(why) = &depth_missing {
             eprintln!("xr: no depth layer: {why}");
         }
-        let blend = instance.enumerate_environment_blend_modes(system, VIEW_TYPE)?[0];
         Ok(XrSession {
             swapchain,
             depth_swapchain,
@@ -282,6 +300,8 @@ impl<'a> XrSession<'a> {
             summary: XrSummary {
                 space: space_name.into(),
                 depth_missing,
+                blend: blend.name().into(),
+                blend_offered: offered.iter().map(|m| m.name().to_string()).collect(),
                 ..Default::default()
             },
         })
@@ -361,14 +381,14 @@ impl<'a> XrSession<'a> {
         self.stream.begin()?;
         let time = fs.predicted_display_time;
         if !fs.should_render || skip {
-            self.stream.end(time, self.blend, &[])?;
+            self.stream.end(time, self.blend.to_xr(), &[])?;
             return Ok(None);
         }
         self.session
             .sync_actions(&[xr::ActiveActionSet::new(&self.actions.set)])?;
         let (flags, located) = self.session.locate_views(VIEW_TYPE, time, &self.base)?;
         let Some(views) = frame_views(flags, &located, &mut self.last_views) else {
-            self.stream.end(time, self.blend, &[])?;
+            self.stream.end(time, self.blend.to_xr(), &[])?;
             return Ok(None);
         };
         let mut hands = self
@@ -483,10 +503,15 @@ impl<'a> XrSession<'a> {
             }),
             None => proj,
         };
-        let layer = xr::CompositionLayerProjection::new()
+        let mut layer = xr::CompositionLayerProjection::new()
             .space(&self.base)
             .views(&proj);
-        self.stream.end(time, self.blend, &[&layer])?;
+        if self.blend == BlendMode::AlphaBlend {
+            // Premultiplied colour, alpha = the volume's accumulated opacity: the runtime
+            // composites the layer over the world by its alpha.
+            layer = layer.layer_flags(xr::CompositionLayerFlags::BLEND_TEXTURE_SOURCE_ALPHA);
+        }
+        self.stream.end(time, self.blend.to_xr(), &[&layer])?;
         if depth_info.is_some() {
             self.summary.depth_frames += 1;
         }

@@ -553,6 +553,86 @@ fn ao_command_histogram_agrees_with_an_independent_implementation_and_the_cpu_re
     assert!(String::from_utf8_lossy(&bad.stderr).contains("histogram"));
 }
 
+/// A PNG's pixels: (width, height, channels, bytes).
+fn read_png(path: &Path) -> (usize, usize, usize, Vec<u8>) {
+    let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+    let mut r = dec.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size().unwrap()];
+    let info = r.next_frame(&mut buf).unwrap();
+    buf.truncate(info.buffer_size());
+    (
+        info.width as usize,
+        info.height as usize,
+        info.color_type.samples(),
+        buf,
+    )
+}
+
+#[test]
+fn a_transparent_render_composites_over_a_background_as_the_opaque_render_with_it() {
+    let dir = tmp("transparent");
+    let render = |tag: &str, bg: &str| {
+        let out = dir.join(tag);
+        let o = cao(&[
+            "render",
+            "phantom:24",
+            "--rays",
+            "6",
+            "--steps",
+            "4",
+            "--size",
+            "40x40",
+            "--tool",
+            "sphere:50",
+            "--background",
+            bg,
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        read_png(&out.join("left.png"))
+    };
+    let (w, h, ch, rgba) = render("rgba", "transparent");
+    assert_eq!((w, h, ch), (40, 40, 4), "RGBA");
+    assert_eq!(rgba[3], 0, "a ray that misses the volume has alpha 0");
+    assert!(
+        rgba.chunks(4).any(|p| p[3] == 255),
+        "the volume is opaque somewhere"
+    );
+    assert!(
+        rgba.chunks(4).any(|p| p[3] > 0 && p[3] < 255),
+        "and translucent somewhere"
+    );
+    let bg = [0.2f64, 0.5, 0.8];
+    let (_, _, ch, opaque) = render("opaque", "0.2,0.5,0.8");
+    assert_eq!(ch, 3);
+    let mut worst = 0.0f64;
+    for (p, q) in rgba.chunks(4).zip(opaque.chunks(3)) {
+        let a = p[3] as f64 / 255.0;
+        for c in 0..3 {
+            let over = p[c] as f64 / 255.0 * a + bg[c] * (1.0 - a);
+            worst = worst.max((over - q[c] as f64 / 255.0).abs());
+        }
+    }
+    // Both are 8-bit: the premultiplied colour, its alpha and the straight colour each round
+    // once.
+    assert!(
+        worst <= 2.0 / 255.0 + 1e-9,
+        "the composite is {:.2}/255 off",
+        worst * 255.0
+    );
+    let bad = cao(&[
+        "render",
+        "phantom:8",
+        "--background",
+        "purple",
+        "--out",
+        dir.join("x").to_str().unwrap(),
+    ]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("transparent"));
+}
+
 #[test]
 fn render_writes_three_pngs() {
     let dir = tmp("render");

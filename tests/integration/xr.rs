@@ -78,6 +78,11 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
         "{summary}"
     );
     assert!(summary.contains("focused true"), "{summary}");
+    // Monado's simulated HMD offers OPAQUE only; auto takes it.
+    assert!(
+        summary.contains("blend opaque (offered opaque)"),
+        "{summary}"
+    );
     assert!(
         summary.contains("IDLE>READY>SYNCHRONIZED>VISIBLE>FOCUSED>")
             && summary.contains(">STOPPING>IDLE>EXITING"),
@@ -152,4 +157,34 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
         "the head never moved: views not located per frame"
     );
     let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn monado_refuses_a_blend_mode_it_does_not_offer_and_lists_what_it_offers() {
+    let Some(root) = xr_root() else { return };
+    for (n, args) in [["--blend", "alpha-blend"], ["--passthrough", "--frames"]]
+        .iter()
+        .enumerate()
+    {
+        let out = Path::new(env!("CARGO_TARGET_TMPDIR"))
+            .join(format!("xr-blend-{n}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&out);
+        let mut cmd = Command::new(repo().join("scripts/xr-session.sh"));
+        cmd.arg(&root)
+            .arg(env!("CARGO_BIN_EXE_cao-xr"))
+            .arg(&out)
+            .args(["phantom:16", "--rays", "6", "--size", "32x32"]);
+        match args {
+            ["--blend", mode] => cmd.args(["--blend", mode, "--frames", "5"]),
+            _ => cmd.args(["--passthrough", "--frames", "5"]),
+        };
+        let run = cmd.output().expect("run scripts/xr-session.sh");
+        let stderr = String::from_utf8_lossy(&run.stderr);
+        assert!(!run.status.success(), "{args:?} was accepted:\n{stderr}");
+        let want = match args {
+            ["--blend", _] => "--blend alpha-blend: the runtime does not offer it; it offers: opaque",
+            _ => "--passthrough needs the alpha-blend or additive blend mode; the runtime offers only: opaque",
+        };
+        assert!(stderr.contains(want), "{args:?}: no '{want}' in\n{stderr}");
+    }
 }
