@@ -17,7 +17,7 @@ use crate::ao::filtered::{variance_volume, FilterInput, VarianceModulation};
 use crate::ao::{AoConfig, AoMethod, LaoGpu};
 use crate::gpu::{Gpu, GpuTimer};
 use crate::input::{FrameInput, Interaction, InteractionSettings};
-use crate::render::{scene_overlay, OverlayRenderer};
+use crate::render::{joint_overlay, scene_overlay, OverlayRenderer};
 use crate::render::{
     ClipBinding, FrameViews, RenderSettings, Renderer, StereoImage, StereoTarget, VolumeTextures,
 };
@@ -289,7 +289,9 @@ impl FrameLoop {
                             .hand_pose(h)
                             .filter(|_| interaction.is_tracked(h))
                     });
-                    let items = scene_overlay(scene, &hands, interaction.settings().tool_offset);
+                    let mut items =
+                        scene_overlay(scene, &hands, interaction.settings().tool_offset);
+                    joint_overlay(&input.joints, &mut items);
                     overlay.record(cmd, target, &input.views, &items)?;
                 }
                 target.cmd_finish(cmd);

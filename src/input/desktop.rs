@@ -138,7 +138,12 @@ impl DesktopInput {
         let mut hands = [HandInput::default(), HandInput::default()];
         hands[RIGHT] = right;
         hands[LEFT].tracked = false;
-        FrameInput { time, views, hands }
+        FrameInput {
+            time,
+            views,
+            hands,
+            joints: [None; 2],
+        }
     }
 }
 

@@ -9,6 +9,7 @@
 //! origin looking down -Z.
 
 pub mod desktop;
+pub mod hands;
 pub mod interaction;
 pub mod script;
 pub mod stream;
@@ -41,6 +42,10 @@ pub struct FrameInput {
     pub views: [View; 2],
     /// The two hands: [`LEFT`] = 0, [`RIGHT`] = 1.
     pub hands: [HandInput; 2],
+    /// Tracked hand joints, per hand, where a hand (not a controller) drives it: drawn in the
+    /// overlay and recorded; `hands` already holds what they mean ([`hands::HandGesture`]).
+    #[serde(default)]
+    pub joints: [Option<hands::HandJoints>; 2],
 }
 
 impl FrameInput {
@@ -63,6 +68,7 @@ impl FrameInput {
             time,
             views,
             hands: [HandInput::default(); 2],
+            joints: [None; 2],
         }
     }
 }

@@ -9,6 +9,7 @@
 //! set trigger and grip values (the header's description names the shape each script is meant
 //! for).
 
+use super::hands::{synthetic_hand, HandGesture};
 use super::stream::{PoseStreamWriter, StreamError, StreamHeader};
 use super::{pose, Buttons, FrameInput, HandInput, LEFT, RIGHT};
 use crate::rng::SplitMix64;
@@ -42,10 +43,13 @@ pub enum ScriptKind {
     /// The sphere sweep, and the left hand presses menu once a quarter of the way through (the
     /// next transfer function, recomputed progressively while the sweep goes on).
     TfSwitch,
+    /// The sphere sweep by a tracked hand instead of a controller: its joints are recorded, a
+    /// pinch from 10 % on is the trigger, and tracking is lost from 55 % to 70 %.
+    HandPinch,
 }
 
 impl ScriptKind {
-    pub const ALL: [ScriptKind; 7] = [
+    pub const ALL: [ScriptKind; 8] = [
         ScriptKind::SphereSweep,
         ScriptKind::BoxPushPull,
         ScriptKind::TorusPass,
@@ -53,6 +57,7 @@ impl ScriptKind {
         ScriptKind::GrabScale,
         ScriptKind::Tremor,
         ScriptKind::TfSwitch,
+        ScriptKind::HandPinch,
     ];
 
     /// The kebab-case name, as parsed by `FromStr` and used for `controllers/scripts/<name>.jsonl`.
@@ -65,6 +70,7 @@ impl ScriptKind {
             ScriptKind::GrabScale => "grab-scale",
             ScriptKind::Tremor => "tremor",
             ScriptKind::TfSwitch => "tf-switch",
+            ScriptKind::HandPinch => "hand-pinch",
         }
     }
 
@@ -98,6 +104,11 @@ impl ScriptKind {
             ScriptKind::TfSwitch => {
                 "sphere tool: right hand sweeps left to right through the volume centre, \
                  trigger pressed; the left hand presses menu (next transfer function) at 25 %"
+            }
+            ScriptKind::HandPinch => {
+                "sphere tool on a tracked hand (joints, no controller): the right hand sweeps \
+                 left to right through the volume centre, pinching (the trigger) from 10 %; \
+                 tracking is lost from 55 % to 70 %"
             }
         }
     }
@@ -203,6 +214,7 @@ pub fn generate(kind: ScriptKind, params: &ScriptParams) -> Vec<FrameInput> {
     let stage = Stage::new(params);
     let n = params.frames;
     let tremor = Tremor::new(params.seed);
+    let mut gesture = HandGesture::default();
     (0..n)
         .map(|i| {
             let time = i as f64 / params.fps;
@@ -212,7 +224,16 @@ pub fn generate(kind: ScriptKind, params: &ScriptParams) -> Vec<FrameInput> {
             } else {
                 0.0
             };
+            let mut joints = [None; 2];
             let hands = match kind {
+                ScriptKind::HandPinch => {
+                    let mut hands = stage.sphere_sweep(s);
+                    let pinch = if s < 0.1 { 0.06 } else { 0.01 };
+                    let seen = !(0.55..0.7).contains(&s);
+                    joints[RIGHT] = seen.then(|| synthetic_hand(hands[RIGHT].grip, pinch, 0.09));
+                    hands[RIGHT] = gesture.update(joints[RIGHT].as_ref());
+                    hands
+                }
                 ScriptKind::SphereSweep => stage.sphere_sweep(s),
                 ScriptKind::BoxPushPull => stage.box_push_pull(s),
                 ScriptKind::TorusPass => stage.torus_pass(s),
@@ -225,6 +246,7 @@ pub fn generate(kind: ScriptKind, params: &ScriptParams) -> Vec<FrameInput> {
                 time,
                 views: stage.views,
                 hands,
+                joints,
             }
         })
         .collect()
@@ -567,6 +589,29 @@ mod tests {
             assert!(generate(ScriptKind::SphereSweep, &bad).is_empty());
             let e = bad.validate().unwrap_err();
             assert!(e.to_string().starts_with("script parameters:"), "{e}");
+        }
+    }
+
+    #[test]
+    fn hand_pinch_records_joints_pinches_and_loses_tracking() {
+        let frames = generate(ScriptKind::HandPinch, &params(100));
+        for (i, f) in frames.iter().enumerate() {
+            let s = i as f64 / 99.0;
+            let r = &f.hands[RIGHT];
+            let lost = (0.55..0.7).contains(&s);
+            assert_eq!(f.joints[RIGHT].is_none(), lost, "frame {i}");
+            assert_eq!(r.tracked, !lost, "frame {i}");
+            assert!(f.joints[LEFT].is_none());
+            if !lost {
+                let j = f.joints[RIGHT].unwrap();
+                assert_eq!(r.grip, j.poses[crate::input::hands::PALM], "frame {i}");
+                let pinched = s >= 0.1;
+                assert_eq!(
+                    r.buttons.trigger,
+                    if pinched { 1.0 } else { 0.0 },
+                    "frame {i}"
+                );
+            }
         }
     }
 

@@ -27,6 +27,7 @@
 //!
 //! The writer refuses what the reader would refuse, so a recording can always be replayed.
 
+use super::hands::{HandJoints, JOINT_COUNT};
 use super::{Buttons, FrameInput, HandInput};
 use crate::space::{Fov, Pose, View};
 use glam::{Quat, Vec2, Vec3};
@@ -39,7 +40,7 @@ use std::time::Duration;
 /// The header's `format` string: what makes a file a pose stream.
 pub const FORMAT: &str = "cao-xr-pose-stream";
 /// The stream version this build writes and the newest it reads.
-pub const VERSION: u64 = 2;
+pub const VERSION: u64 = 3;
 /// Positions are in metres (OpenXR's unit).
 pub const UNITS: &str = "m";
 /// Poses are in OpenXR's STAGE space: floor-level origin, +Y up.
@@ -247,6 +248,22 @@ struct WireFrame {
     t: f64,
     views: [WireView; 2],
     hands: [WireHand; 2],
+    /// Tracked hand joints per hand, or null: required from version 3 on, absent before.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    joints: Option<[Option<WireJoints>; 2]>,
+}
+
+/// One hand's 26 joints (XR_EXT_hand_tracking's order): positions, orientations [x,y,z,w] and
+/// radii (m).
+#[derive(Serialize, Deserialize)]
+#[serde(
+    deny_unknown_fields,
+    expecting = "a hand's joints {\"p\":[[x,y,z] x26],\"q\":[[x,y,z,w] x26],\"r\":[r x26]}"
+)]
+struct WireJoints {
+    p: Vec<[F32; 3]>,
+    q: Vec<[F32; 4]>,
+    r: Vec<F32>,
 }
 
 /// An f32 on the wire: written in its shortest round-tripping form, read through a correctly
@@ -360,8 +377,44 @@ impl From<&FrameInput> for WireFrame {
                 stick_click: Some(h.buttons.stick_click),
                 stick: wire(h.buttons.thumbstick.to_array()),
             }),
+            joints: Some(f.joints.each_ref().map(|j| {
+                j.as_ref().map(|j| WireJoints {
+                    p: j.poses
+                        .iter()
+                        .map(|p| wire(p.position.to_array()))
+                        .collect(),
+                    q: j.poses
+                        .iter()
+                        .map(|p| wire(p.orientation.to_array()))
+                        .collect(),
+                    r: j.radii.iter().map(|&r| F32(r)).collect(),
+                })
+            })),
         }
     }
+}
+
+/// A hand's joints from the wire, or why not (lengths; the values are checked by check_frame).
+fn joints_from_wire(i: usize, w: &WireJoints) -> Result<HandJoints, LineError> {
+    let n = JOINT_COUNT;
+    if w.p.len() != n || w.q.len() != n || w.r.len() != n {
+        return Err(LineError::Schema(format!(
+            "joints[{i}]: expected {n} positions, orientations and radii, found {}, {} and {}",
+            w.p.len(),
+            w.q.len(),
+            w.r.len()
+        )));
+    }
+    let mut poses = [Pose::IDENTITY; JOINT_COUNT];
+    let mut radii = [0.0; JOINT_COUNT];
+    for k in 0..n {
+        poses[k] = Pose {
+            position: Vec3::from_array(unwire(w.p[k])),
+            orientation: Quat::from_array(unwire(w.q[k])),
+        };
+        radii[k] = w.r[k].0;
+    }
+    Ok(HandJoints { poses, radii })
 }
 
 impl From<&WireFrame> for FrameInput {
@@ -394,6 +447,8 @@ impl From<&WireFrame> for FrameInput {
                     thumbstick: Vec2::from_array(unwire(h.stick)),
                 },
             }),
+            // Filled in by parse_frame, which can say what is wrong with them.
+            joints: [None; 2],
         }
     }
 }
@@ -537,6 +592,21 @@ pub(super) fn check_frame(
         in_range(|| format!("hands[{i}].trigger"), b.trigger, 0.0, 1.0)?;
         in_range(|| format!("hands[{i}].stick[0]"), b.thumbstick.x, -1.0, 1.0)?;
         in_range(|| format!("hands[{i}].stick[1]"), b.thumbstick.y, -1.0, 1.0)?;
+    }
+    for (i, j) in f.joints.iter_mut().enumerate() {
+        let Some(j) = j else { continue };
+        for k in 0..JOINT_COUNT {
+            j.poses[k] = check_pose(&format!("joints[{i}] joint {k}"), j.poses[k])?;
+            let r = j.radii[k];
+            if !(r.is_finite() && r > 0.0) {
+                return Err(LineError::OutOfRange {
+                    what: format!("joints[{i}].r[{k}]"),
+                    value: r as f64,
+                    lo: f32::MIN_POSITIVE as f64,
+                    hi: f32::MAX as f64,
+                });
+            }
+        }
     }
     Ok(f)
 }
@@ -822,7 +892,27 @@ fn parse_frame(
             _ => {}
         }
     }
-    check_frame(FrameInput::from(&wire), previous)
+    let mut frame = FrameInput::from(&wire);
+    match (version, &wire.joints) {
+        (1 | 2, Some(_)) => {
+            return Err(LineError::Schema(format!(
+                "joints is a version 3 field, but the header says version {version}"
+            )))
+        }
+        (3.., None) => {
+            return Err(LineError::Schema(
+                "missing field `joints` (required from version 3 on; null for a hand without)"
+                    .into(),
+            ))
+        }
+        (_, Some(js)) => {
+            for (i, j) in js.iter().enumerate() {
+                frame.joints[i] = j.as_ref().map(|j| joints_from_wire(i, j)).transpose()?;
+            }
+        }
+        _ => {}
+    }
+    check_frame(frame, previous)
 }
 
 /// serde_json's message without its position (always "line 1" here, which would contradict
@@ -954,6 +1044,10 @@ mod tests {
                         symmetric_fov(rng.range(0.3, 0.9)),
                     ),
                     hands: [hand(&mut rng, i % 3 != 0), hand(&mut rng, true)],
+                    joints: [
+                        None,
+                        (i % 2 == 0).then(|| super::super::hands::synthetic_hand(head, 0.03, 0.05)),
+                    ],
                 }
             })
             .collect()
@@ -1106,12 +1200,12 @@ mod tests {
             }
             err_str(&format!("{h}\n{frame}\n"))
         };
-        let e = with("3");
-        assert_eq!(e.problem(), Some(&LineError::NewerVersion { found: 3 }));
+        let e = with("4");
+        assert_eq!(e.problem(), Some(&LineError::NewerVersion { found: 4 }));
         let msg = e.to_string();
         assert!(msg.contains("line 1"), "{msg}");
         assert!(
-            msg.contains("version 3") && msg.contains("version 2"),
+            msg.contains("version 4") && msg.contains("version 3"),
             "{msg}"
         );
         assert_eq!(with("none").problem(), Some(&LineError::MissingVersion));
@@ -1119,7 +1213,7 @@ mod tests {
         assert_eq!(with("0").problem(), Some(&LineError::VersionZero));
 
         // And the writer will not produce one either.
-        for v in [1, 3] {
+        for v in [1, 2, 4] {
             let mut h = StreamHeader::new("x", "");
             h.version = v;
             let e = PoseStreamWriter::new(Vec::new(), &h).err().unwrap();
@@ -1137,7 +1231,8 @@ mod tests {
             h["version"] = version.into();
             h
         };
-        // A version 1 frame has no stick_click: it reads as not pressed.
+        // A version 1 frame has no stick_click (nor joints): it reads as not pressed.
+        v.as_object_mut().unwrap().remove("joints");
         for h in v["hands"].as_array_mut().unwrap() {
             h.as_object_mut().unwrap().remove("stick_click");
         }
@@ -1148,9 +1243,38 @@ mod tests {
         // Version 2 requires it, and version 1 does not know it.
         let e = err_str(&format!("{}\n{v}\n", header(2))).to_string();
         assert!(e.contains("line 2") && e.contains("stick_click"), "{e}");
-        let v2 = frame_line(&f);
-        let e = err_str(&format!("{}\n{v2}\n", header(1))).to_string();
+        let v3 = frame_line(&f);
+        let e = err_str(&format!("{}\n{v3}\n", header(1))).to_string();
         assert!(e.contains("version 2 field"), "{e}");
+    }
+
+    #[test]
+    fn version_3_carries_the_joints_exactly_and_earlier_versions_do_not_know_them() {
+        let frames = random_frames(4, 11);
+        assert!(frames[0].joints[1].is_some() && frames[1].joints[1].is_none());
+        let text = format!("{}\n{}\n", header_line(), frame_line(&frames[0]));
+        let (_, back) = read_str(&text).unwrap();
+        assert_eq!(back[0], frames[0], "joints round trip bit for bit");
+        let mut v: serde_json::Value = serde_json::from_str(&frame_line(&frames[0])).unwrap();
+        let with_header = |version: u64, v: &serde_json::Value| {
+            let mut h: serde_json::Value = serde_json::from_str(&header_line()).unwrap();
+            h["version"] = version.into();
+            format!("{h}\n{v}\n")
+        };
+        let e = err_str(&with_header(2, &v)).to_string();
+        assert!(e.contains("joints is a version 3 field"), "{e}");
+        v["joints"][1]["r"].as_array_mut().unwrap().pop();
+        let e = err_str(&with_header(3, &v)).to_string();
+        assert!(e.contains("joints[1]") && e.contains("26"), "{e}");
+        v["joints"][1]["r"]
+            .as_array_mut()
+            .unwrap()
+            .push((-1.0).into());
+        let e = err_str(&with_header(3, &v)).to_string();
+        assert!(e.contains("joints[1].r[25]"), "{e}");
+        v.as_object_mut().unwrap().remove("joints");
+        let e = err_str(&with_header(3, &v)).to_string();
+        assert!(e.contains("missing field `joints`"), "{e}");
     }
 
     #[test]

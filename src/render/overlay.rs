@@ -36,6 +36,8 @@ pub mod colors {
     pub const PROBE_IDLE: [f32; 4] = [0.3, 0.8, 0.75, 0.2];
     /// A tracked controller.
     pub const HAND: [f32; 4] = [0.92, 0.92, 0.88, 0.6];
+    /// A tracked hand's joints.
+    pub const JOINT: [f32; 4] = [0.95, 0.8, 0.7, 0.7];
     /// The rod from the right grip to the centre of its tool.
     pub const OFFSET: [f32; 4] = [1.0, 0.85, 0.3, 0.6];
 }
@@ -119,6 +121,26 @@ pub fn scene_overlay(
         }
     }
     items
+}
+
+/// Small spheres at the tracked hands' joints (their radii), appended to `items`.
+pub fn joint_overlay(
+    joints: &[Option<crate::input::hands::HandJoints>; 2],
+    items: &mut Vec<OverlayItem>,
+) {
+    for j in joints.iter().flatten() {
+        for (p, r) in j.poses.iter().zip(&j.radii) {
+            items.push(OverlayItem {
+                mesh: OverlayMesh::Tool(crate::clip::Shape::Sphere),
+                model: Mat4::from_scale_rotation_translation(
+                    Vec3::splat(*r),
+                    p.orientation,
+                    p.position,
+                ),
+                color: colors::JOINT,
+            });
+        }
+    }
 }
 
 /// The controller marker's mesh (see [`OverlayMesh::Marker`]).

@@ -407,6 +407,7 @@ impl<'a> XrSession<'a> {
                 time: (time.as_nanos() - start) as f64 * 1e-9,
                 views,
                 hands,
+                joints: [None; 2],
             },
         }))
     }

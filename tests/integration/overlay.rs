@@ -303,3 +303,80 @@ fn scene_overlay_lists_tools_tracked_hands_and_the_right_offset() {
     assert_eq!(none.len(), 2, "untracked hands draw nothing");
     assert!(scene_overlay(&Scene::default(), &[None, None], offset).is_empty());
 }
+
+#[test]
+fn a_tracked_hand_pinches_carves_and_its_joints_are_drawn_and_replay_identically() {
+    use cao_xr::app::frame_loop::FrameLoop;
+    use cao_xr::input::{
+        generate, read_stream, write_script, InteractionSettings, ScriptKind, ScriptParams,
+    };
+    use std::sync::Arc;
+    let gpu = common::gpu();
+    let vol = Arc::new(cao_xr::volume::phantom::head(24));
+    let tf = TransferFunction::preset("ct-skin").unwrap();
+    let lao = cao_xr::ao::LaoParams {
+        rays: 6,
+        steps: 4,
+        step_mm: 4.0,
+    };
+    let p = ScriptParams {
+        frames: 40,
+        ..ScriptParams::default()
+    };
+    // Through the pose stream: the joints are recorded (version 3) and read back.
+    let path = std::env::temp_dir().join(format!("cao-hand-pinch-{}.jsonl", std::process::id()));
+    write_script(ScriptKind::HandPinch, &p, &path).unwrap();
+    let (header, frames) = read_stream(&path).unwrap();
+    let _ = std::fs::remove_file(&path);
+    assert_eq!(header.version, cao_xr::input::stream::VERSION);
+    assert_eq!(
+        frames,
+        generate(ScriptKind::HandPinch, &p),
+        "the joints survive the stream"
+    );
+    let run = |strip: bool| {
+        let mut fl = FrameLoop::new(
+            &gpu,
+            Arc::clone(&vol),
+            vec![tf.clone()],
+            lao,
+            (48, 48),
+            InteractionSettings::default(),
+            false,
+        )
+        .unwrap();
+        frames
+            .iter()
+            .map(|f| {
+                let mut f = *f;
+                if strip {
+                    f.joints = [None; 2];
+                }
+                let out = fl.frame(&f).unwrap();
+                (out.image, out.stats.metrics.recomputed)
+            })
+            .collect::<Vec<_>>()
+    };
+    let (a, b, bare) = (run(false), run(false), run(true));
+    assert!(
+        a.iter().zip(&b).all(|(x, y)| x.0 == y.0),
+        "replays render identically"
+    );
+    assert!(a.iter().any(|f| f.1 > 0), "the pinch carved");
+    // Joints are drawn where the hand is tracked (where they are not inside the volume, which
+    // hides them, as it hides a tool), and only there.
+    let (mut tracked, mut drawn) = (0, 0);
+    for (i, ((img, _), (plain, _))) in a.iter().zip(&bare).enumerate() {
+        if frames[i].joints[1].is_some() {
+            tracked += 1;
+            drawn += (img != plain) as usize;
+        } else {
+            assert!(img == plain, "frame {i}: no joints, nothing drawn");
+        }
+    }
+    assert!(
+        tracked > 20 && drawn * 2 > tracked,
+        "joints drawn in {drawn} of {tracked} frames"
+    );
+    common::assert_no_validation_messages(&gpu);
+}

@@ -15,6 +15,7 @@ fn frame(time: f64, left: HandInput, right: HandInput) -> FrameInput {
         time,
         views: FrameInput::head_views(head, DEFAULT_IPD, symmetric_fov(0.6)),
         hands: [left, right],
+        joints: [None; 2],
     }
 }
 
@@ -874,6 +875,18 @@ fn scripts_replay_to_plausible_scenes() {
             let (first, last) = (&scenes[0], scenes.last().unwrap());
             let unmoved = scenes.iter().all(|s| s.volume == Placement::default());
             match kind {
+                ScriptKind::HandPinch => {
+                    // The pinch (from 10 %) switched carving on, once.
+                    assert!(!scenes[0].tools[RIGHT_TOOL].active, "{kind}");
+                    assert!(active(RIGHT_TOOL) > 0.85, "{kind}");
+                    assert!(last.tools[RIGHT_TOOL].active, "{kind}");
+                    // Tracking lost from 55 % to 70 %: the tool freezes, then follows again.
+                    let at = |f: f64| &scenes[(f * (n - 1.0) as f64) as usize];
+                    let frozen = at(0.56).tools[RIGHT_TOOL].pose;
+                    assert_eq!(at(0.69).tools[RIGHT_TOOL].pose, frozen, "{kind}");
+                    assert!(tool_x(last) > frozen.position.x + 0.01, "{kind}");
+                    assert!(unmoved, "{kind}");
+                }
                 ScriptKind::SphereSweep => {
                     assert!(active(RIGHT_TOOL) > 0.9, "{kind}");
                     assert!(tool_x(first) < c.x - r / 2.0, "{kind}");
