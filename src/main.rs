@@ -981,6 +981,11 @@ fn run(cli: Cli) -> Result<()> {
                 None => println!("depth layer: submitted with {} frames", s.depth_frames),
                 Some(why) => println!("depth layer: {why}"),
             }
+            println!(
+                "hand tracking: {}, joints drove {} frames",
+                if s.hand_tracking { "on" } else { "off" },
+                s.hand_frames
+            );
         }
         Cmd::Script {
             kind,

@@ -72,6 +72,19 @@ impl HandActions {
             last: [HandInput::default(); 2],
         };
         for p in profiles {
+            let enabled = match p.requires_extension.as_deref() {
+                None => true,
+                Some("XR_EXT_hand_interaction") => instance.exts().ext_hand_interaction.is_some(),
+                Some(_) => false,
+            };
+            if !enabled {
+                eprintln!(
+                    "xr: bindings for {} not suggested: the runtime lacks {}",
+                    p.profile,
+                    p.requires_extension.as_deref().unwrap_or_default()
+                );
+                continue;
+            }
             match a.suggest(instance, p) {
                 Ok(()) => a.accepted.push(p.profile.clone()),
                 Err(e) => eprintln!("xr: bindings for {} not used: {e}", p.profile),
@@ -161,6 +174,16 @@ impl HandActions {
             };
         }
         Ok(self.last)
+    }
+
+    /// Whether hand `h`'s controller is active (its grip pose action is bound and delivering):
+    /// when it is not, a tracked hand takes its place.
+    pub fn controller_active<G: xr::Graphics>(
+        &self,
+        session: &xr::Session<G>,
+        h: usize,
+    ) -> Result<bool, XrError> {
+        Ok(self.grip_pose.is_active(session, self.hands[h])?)
     }
 
     /// A short pulse on one hand (the tool touching tissue).

@@ -55,6 +55,10 @@ pub const BUILTIN: &[(&str, &str)] = &[
         "microsoft_motion_controller.json",
         include_str!("../../controllers/bindings/microsoft_motion_controller.json"),
     ),
+    (
+        "ext_hand_interaction.json",
+        include_str!("../../controllers/bindings/ext_hand_interaction.json"),
+    ),
 ];
 
 #[derive(Debug, thiserror::Error)]
@@ -80,6 +84,10 @@ pub struct ProfileBindings {
     /// Free text for people.
     #[serde(default)]
     pub description: String,
+    /// The OpenXR extension that defines the profile (e.g. XR_EXT_hand_interaction): the
+    /// profile is suggested only when the runtime offers it.
+    #[serde(default)]
+    pub requires_extension: Option<String>,
 }
 
 /// Parses one file's text; `name` is used in messages.

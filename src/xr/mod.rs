@@ -91,6 +91,10 @@ pub struct XrSummary {
     pub depth_frames: usize,
     /// Why depth was not submitted (None when it was offered and used).
     pub depth_missing: Option<String>,
+    /// Whether XR_EXT_hand_tracking is in use (offered and supported by the system), and in how
+    /// many frames a tracked hand drove the interaction with its joints.
+    pub hand_tracking: bool,
+    pub hand_frames: usize,
     /// The environment blend mode submitted with, and the runtime's offer (its order).
     pub blend: String,
     pub blend_offered: Vec<String>,
@@ -136,6 +140,10 @@ pub(crate) fn open_instance() -> Result<(xr::Entry, xr::Instance, xr::ExtensionS
     exts.ext_debug_utils = available.ext_debug_utils;
     // Depth submitted with each projection view, when the runtime takes it (reprojection).
     exts.khr_composition_layer_depth = available.khr_composition_layer_depth;
+    // Tracked hands drive the interaction where a controller is not active.
+    exts.ext_hand_tracking = available.ext_hand_tracking;
+    // Its interaction profile (pinch_ext, grasp_ext), for controllers/bindings/ext_hand_interaction.json.
+    exts.ext_hand_interaction = available.ext_hand_interaction;
     let instance = entry
         .create_instance(
             &xr::ApplicationInfo {

@@ -4,6 +4,7 @@
 //! that fills the images is the caller's (`app::headset`).
 
 use super::blend::{choose_blend, BlendMode};
+use super::conversions::pose_from_xr;
 use super::conversions::{frame_views, projection_views};
 use super::swapchain::{
     create_depth_swapchain, create_swapchain, record_blit, record_depth_copy, Swapchain,
@@ -13,6 +14,7 @@ use super::{
     VIEW_TYPE,
 };
 use crate::gpu::{Gpu, GpuOptions};
+use crate::input::hands::{HandGesture, HandJoints};
 use crate::input::{FrameInput, RIGHT};
 use crate::render::StereoTarget;
 use crate::space::View;
@@ -165,6 +167,9 @@ pub struct XrSession<'a> {
     base: xr::Space,
     stream: xr::FrameStream<xr::Vulkan>,
     waiter: xr::FrameWaiter,
+    /// XR_EXT_hand_tracking's trackers (left, right), dropped before the session.
+    hand_trackers: Option<[xr::HandTracker; 2]>,
+    gestures: [HandGesture; 2],
     session: xr::Session<xr::Vulkan>,
     actions: actions::HandActions,
     runtime: &'a XrRuntime,
@@ -282,7 +287,11 @@ impl<'a> XrSession<'a> {
         if let Some(why) = &depth_missing {
             eprintln!("xr: no depth layer: {why}");
         }
+        let hand_trackers = hand_trackers(runtime, &session);
+        let hand_trackers_ok = hand_trackers.is_some();
         Ok(XrSession {
+            hand_trackers,
+            gestures: [HandGesture::default(); 2],
             swapchain,
             depth_swapchain,
             spaces,
@@ -300,6 +309,7 @@ impl<'a> XrSession<'a> {
             summary: XrSummary {
                 space: space_name.into(),
                 depth_missing,
+                hand_tracking: hand_trackers_ok,
                 blend: blend.name().into(),
                 blend_offered: offered.iter().map(|m| m.name().to_string()).collect(),
                 ..Default::default()
@@ -394,6 +404,24 @@ impl<'a> XrSession<'a> {
         let mut hands = self
             .actions
             .read(&self.session, &self.spaces, &self.base, time)?;
+        // A hand whose controller is not active drives the interaction with its joints.
+        let mut joints = [None; 2];
+        if let Some(trackers) = &self.hand_trackers {
+            for (h, tracker) in trackers.iter().enumerate() {
+                let active = self.actions.controller_active(&self.session, h)?;
+                if active {
+                    continue;
+                }
+                joints[h] = self
+                    .base
+                    .locate_hand_joints(tracker, time)?
+                    .and_then(|locs| hand_joints_from_xr(&locs));
+                hands[h] = self.gestures[h].update(joints[h].as_ref());
+            }
+            if joints.iter().any(|j| j.is_some()) {
+                self.summary.hand_frames += 1;
+            }
+        }
         if carve {
             hands[RIGHT].buttons.trigger = hands[RIGHT].buttons.trigger.max(1.0);
         }
@@ -407,7 +435,7 @@ impl<'a> XrSession<'a> {
                 time: (time.as_nanos() - start) as f64 * 1e-9,
                 views,
                 hands,
-                joints: [None; 2],
+                joints,
             },
         }))
     }
@@ -519,6 +547,51 @@ impl<'a> XrSession<'a> {
         self.summary.frames += 1;
         Ok(())
     }
+}
+
+/// Both hands' trackers when the runtime offers XR_EXT_hand_tracking and the system supports
+/// it; None (logged) otherwise, so a runtime without hands still runs with controllers.
+fn hand_trackers(
+    runtime: &XrRuntime,
+    session: &xr::Session<xr::Vulkan>,
+) -> Option<[xr::HandTracker; 2]> {
+    if !runtime.exts.ext_hand_tracking {
+        eprintln!("xr: no hand tracking: the runtime lacks XR_EXT_hand_tracking");
+        return None;
+    }
+    match runtime.instance.supports_hand_tracking(runtime.system) {
+        Ok(true) => {}
+        Ok(false) => {
+            eprintln!("xr: no hand tracking: the system does not support it");
+            return None;
+        }
+        Err(e) => {
+            eprintln!("xr: no hand tracking: {e}");
+            return None;
+        }
+    }
+    let make = |hand| session.create_hand_tracker(hand);
+    match (make(xr::Hand::LEFT), make(xr::Hand::RIGHT)) {
+        (Ok(l), Ok(r)) => {
+            eprintln!("xr: hand tracking on (XR_EXT_hand_tracking)");
+            Some([l, r])
+        }
+        (Err(e), _) | (_, Err(e)) => {
+            eprintln!("xr: no hand tracking: xrCreateHandTrackerEXT failed: {e}");
+            None
+        }
+    }
+}
+
+/// The 26 joints as [`HandJoints`], when every one has a valid position and orientation.
+fn hand_joints_from_xr(locs: &xr::HandJointLocations) -> Option<HandJoints> {
+    let valid = xr::SpaceLocationFlags::POSITION_VALID | xr::SpaceLocationFlags::ORIENTATION_VALID;
+    if !locs.iter().all(|l| l.location_flags.contains(valid)) {
+        return None;
+    }
+    let poses = std::array::from_fn(|k| pose_from_xr(&locs[k].pose));
+    let radii = std::array::from_fn(|k| locs[k].radius);
+    Some(HandJoints { poses, radii })
 }
 
 #[cfg(test)]

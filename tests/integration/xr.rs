@@ -78,6 +78,16 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
         "{summary}"
     );
     assert!(summary.contains("focused true"), "{summary}");
+    // Monado offers XR_EXT_hand_tracking, but its simulated devices track no hands: the session
+    // says so and runs on the controllers.
+    assert!(
+        stdout.contains("hand tracking: off, joints drove 0 frames"),
+        "{context}"
+    );
+    assert!(
+        stderr.contains("xr: no hand tracking: the system does not support it"),
+        "{context}"
+    );
     // Monado's simulated HMD offers OPAQUE only; auto takes it.
     assert!(
         summary.contains("blend opaque (offered opaque)"),
