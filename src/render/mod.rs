@@ -183,6 +183,21 @@ fn check_linear_filter(gpu: &Gpu, format: vk::Format) -> Result<()> {
     Ok(())
 }
 
+/// Records a copy of `src` into a sampled image, which stays in SHADER_READ_ONLY_OPTIMAL.
+fn cmd_refill(img: &Image, cmd: vk::CommandBuffer, src: &Buffer) {
+    img.transition(
+        cmd,
+        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+    );
+    img.cmd_copy_from(cmd, src);
+    img.transition(
+        cmd,
+        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+    );
+}
+
 fn volume_image(gpu: &Gpu, dims: [usize; 3], name: &str) -> Result<Image> {
     let max = gpu.limits.max_image_dimension3_d as usize;
     if dims.iter().any(|&d| d > max) {
@@ -309,18 +324,9 @@ impl VolumeTextures {
     /// Records a copy of a bleeding buffer (RGBA8 per voxel) into the bleeding texture, when
     /// there is one.
     pub fn cmd_update_bleeding(&self, cmd: vk::CommandBuffer, e: &Buffer) {
-        let Some(img) = &self.bleeding else { return };
-        img.transition(
-            cmd,
-            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-        );
-        img.cmd_copy_from(cmd, e);
-        img.transition(
-            cmd,
-            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-        );
+        if let Some(img) = &self.bleeding {
+            cmd_refill(img, cmd, e);
+        }
     }
 
     pub fn set_transfer_function(&self, tf: &TransferFunction) -> Result<()> {
@@ -333,18 +339,7 @@ impl VolumeTextures {
 
     /// Records a copy of an AO buffer (f32, x fastest) into the AO texture.
     pub fn cmd_update_ambient(&self, cmd: vk::CommandBuffer, ao: &Buffer) {
-        let img = &self.ambient;
-        img.transition(
-            cmd,
-            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-        );
-        img.cmd_copy_from(cmd, ao);
-        img.transition(
-            cmd,
-            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-        );
+        cmd_refill(&self.ambient, cmd, ao);
     }
 
     /// Lookup-table coordinate = value * scale + offset, hitting the first and last texel centres

@@ -322,18 +322,7 @@ fn ao_command_filters_agree_with_an_independent_implementation() {
         let (_, _, d) = read_nrrd_f32(&op);
         assert!(d.iter().any(|&x| x > 0.0));
         let want = independent_filter(&d, &dims, &spacing, 20.0, estimator);
-        let diffs: Vec<f64> = a
-            .iter()
-            .zip(&want)
-            .map(|(x, y)| (*x as f64 - y).abs())
-            .collect();
-        let close = diffs.iter().filter(|x| **x <= 1e-4).count() as f64 / diffs.len() as f64;
-        let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
-        assert!(
-            close >= 0.999 && mean <= 1e-5,
-            "filter-{estimator}: {:.3} % within 1e-4, mean {mean:e}",
-            100.0 * close
-        );
+        crate::common::assert_agrees(&a, &want, &format!("filter-{estimator}"));
         assert!(
             a.iter().any(|&x| x < 0.5),
             "filter-{estimator}: no occlusion"
@@ -448,18 +437,7 @@ fn ao_command_histogram_agrees_with_an_independent_implementation_and_the_cpu_re
     let (_, _, qv) = read_nrrd_f32(&q);
     assert!(qv.iter().any(|&x| x > 0.0));
     let want = independent_histogram_openness(&qv, &dims, &spacing, 25.0);
-    let diffs: Vec<f64> = got
-        .iter()
-        .zip(&want)
-        .map(|(x, y)| (*x as f64 - y).abs())
-        .collect();
-    let close = diffs.iter().filter(|x| **x <= 1e-4).count() as f64 / diffs.len() as f64;
-    let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
-    assert!(
-        close >= 0.999 && mean <= 1e-5,
-        "{:.3} % within 1e-4, mean {mean:e}",
-        100.0 * close
-    );
+    crate::common::assert_agrees(&got, &want, "histogram --clusters 0");
     assert!(got.iter().any(|&x| x < 0.8), "no occlusion");
     // E: RGB, equal to the CPU reference's within the GPU's 8 bits.
     let text = std::fs::read(&e).unwrap();

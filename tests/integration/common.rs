@@ -83,3 +83,21 @@ pub fn centroid(img: &cao_xr::render::StereoImage, eye: usize) -> Option<(f64, f
     }
     (sw > 0.0).then(|| (sx / sw, sy / sw))
 }
+
+/// Asserts the GPU's `got` agrees with a reference: at least 99.9 % of values within 1e-4 and a
+/// mean |difference| of at most 1e-5 (the bar every AO method's GPU kernel meets).
+pub fn assert_agrees<T: Copy + Into<f64>>(got: &[f32], want: &[T], what: &str) {
+    assert_eq!(got.len(), want.len(), "{what}");
+    let diffs: Vec<f64> = got
+        .iter()
+        .zip(want)
+        .map(|(a, b)| (*a as f64 - (*b).into()).abs())
+        .collect();
+    let close = diffs.iter().filter(|d| **d <= 1e-4).count() as f64 / diffs.len().max(1) as f64;
+    let mean = diffs.iter().sum::<f64>() / diffs.len().max(1) as f64;
+    assert!(
+        close >= 0.999 && mean <= 1e-5,
+        "{what}: {:.4} % within 1e-4, mean |diff| {mean:e}",
+        100.0 * close
+    );
+}

@@ -51,18 +51,7 @@ fn the_gpu_filters_agree_with_the_cpu_reference() {
             };
             let want = filtered::filtered_ao(&density, vol.dims, vol.spacing, &p);
             let got = read(&cao.ao);
-            let diffs: Vec<f64> = got
-                .iter()
-                .zip(&want)
-                .map(|(a, b)| (*a as f64 - *b as f64).abs())
-                .collect();
-            let close = diffs.iter().filter(|d| **d <= 1e-4).count() as f64 / diffs.len() as f64;
-            let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
-            assert!(
-                close >= 0.999 && mean <= 1e-5,
-                "{estimator:?} {input:?}: {:.4} % within 1e-4, mean |diff| {mean:e}",
-                100.0 * close
-            );
+            common::assert_agrees(&got, &want, &format!("{estimator:?} {input:?}"));
             // Not trivially open: the phantom has surfaces, so some voxels are occluded.
             assert!(got.iter().any(|&a| a < 0.5), "{estimator:?} {input:?}");
         }

@@ -88,18 +88,7 @@ fn the_gpu_direct_sums_agree_with_the_cpu_reference() {
     let nb = histogram::Neighbourhood::new(p.radius_mm, vol.spacing);
     let (want_a, want_e) = histogram::direct_reference(vol.dims, &q, &bins, &table, &nb);
     let got_a = read(&cao.ao);
-    let diffs: Vec<f64> = got_a
-        .iter()
-        .zip(&want_a)
-        .map(|(a, b)| (*a as f64 - *b as f64).abs())
-        .collect();
-    let close = diffs.iter().filter(|d| **d <= 1e-4).count() as f64 / diffs.len() as f64;
-    let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
-    assert!(
-        close >= 0.999 && mean <= 1e-5,
-        "{:.4} % within 1e-4, mean {mean:e}",
-        100.0 * close
-    );
+    common::assert_agrees(&got_a, &want_a, "the direct sums");
     assert!(
         got_a.iter().any(|&a| a < 0.7),
         "the phantom occludes somewhere"
