@@ -9,12 +9,13 @@
 //! (each object is on one line in a file; wrapped here)
 //!
 //! ```text
-//! {"format":"cao-xr-pose-stream","version":2,"units":"m","reference_space":"STAGE",
+//! {"format":"cao-xr-pose-stream","version":3,"units":"m","reference_space":"STAGE",
 //!  "view_configuration":"PRIMARY_STEREO","source":"script:tremor","description":"..."}
 //! {"t":0.0,"views":[{"pose":{"p":[x,y,z],"q":[x,y,z,w]},"fov":[l,r,u,d]},{..}],
 //!  "hands":[{"tracked":true,"grip":{"p":..,"q":..},"aim":{..},"grip_value":0.0,"trigger":1.0,
 //!            "primary":false,"secondary":false,"menu":false,"stick_click":false,
-//!            "stick":[0.0,0.0]},{..}]}
+//!            "stick":[0.0,0.0]},{..}],
+//!  "joints":[null,{"p":[[x,y,z] x26],"q":[[x,y,z,w] x26],"r":[r x26]}]}
 //! ```
 //!
 //! The wire format is private serde structs mapped to and from [`FrameInput`], so the in-memory
@@ -55,7 +56,7 @@ pub const UNIT_TOLERANCE: f32 = 1e-3;
 /// that a round trip is exact.
 const UNIT_EXACT: f32 = 1e-6;
 
-/// The first line of a pose stream. For version 1 only `source` and `description` are free;
+/// The first line of a pose stream. Only `source` and `description` are free;
 /// [`StreamHeader::new`] fills in the rest.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct StreamHeader {
