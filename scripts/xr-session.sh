@@ -9,7 +9,8 @@
 # The mounts live in a private mount namespace (unshare), so they vanish with it even when the
 # run fails; monado-service is stopped on every exit path. OUTDIR receives monado.log,
 # xr-validation.txt and whatever the session wrote into its working directory (e.g. a
-# recording named with a relative path). Exit status: that of cao-xr.
+# recording named with a relative path). Exit status: that of cao-xr. With
+# CAO_XR_KILL_RUNTIME_AFTER=S, monado-service is killed S seconds after it is up.
 set -euo pipefail
 ROOT=$(realpath "$1"); BIN=$2; OUT=$3; shift 3
 [ -f "$ROOT/.cao-xr-ready" ] || { echo "xr-session: $ROOT is not a built root (run scripts/xr-root.sh)" >&2; exit 2; }
@@ -41,6 +42,11 @@ if [ ! -S "$XDG_RUNTIME_DIR/monado_comp_ipc" ]; then
   echo "xr-session: monado-service did not come up; its log:" >&2; cat "$W/monado.log" >&2; stop; exit 3
 fi
 echo "xr-session: monado-service is up" >&2
+# A runtime fault, for the tests: CAO_XR_KILL_RUNTIME_AFTER=S kills monado-service (SIGKILL) S
+# seconds into the session, and writes the moment to runtime-killed.txt.
+if [ -n "${CAO_XR_KILL_RUNTIME_AFTER:-}" ]; then
+  ( sleep "$CAO_XR_KILL_RUNTIME_AFTER"; date +%s.%N > "$W/runtime-killed.txt"; kill -9 $MON ) &
+fi
 XR_ENABLE_API_LAYERS=XR_APILAYER_LUNARG_core_validation \
 XR_CORE_VALIDATION_EXPORT_TYPE=text XR_CORE_VALIDATION_FILE_NAME="$W/xr-validation.txt" \
 CAO_XR_VALIDATION="${CAO_XR_VALIDATION:-1}" CAO_XR_BINDINGS="$W/bindings" \

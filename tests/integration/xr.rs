@@ -198,3 +198,66 @@ fn monado_refuses_a_blend_mode_it_does_not_offer_and_lists_what_it_offers() {
         assert!(stderr.contains(want), "{args:?}: no '{want}' in\n{stderr}");
     }
 }
+
+#[test]
+fn killing_the_runtime_mid_session_ends_it_at_once_with_a_clear_error_and_a_valid_recording() {
+    let Some(root) = xr_root() else { return };
+    let out =
+        Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("xr-kill-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let run = Command::new(repo().join("scripts/xr-session.sh"))
+        .arg(&root)
+        .arg(env!("CARGO_BIN_EXE_cao-xr"))
+        .arg(&out)
+        .args(["phantom:16", "--rays", "6", "--size", "32x32"])
+        .args(["--frames", "1000000", "--record", "rec.jsonl"])
+        // monado-service is killed (SIGKILL) 6 s after it is up.
+        .env("CAO_XR_KILL_RUNTIME_AFTER", "6")
+        .output()
+        .expect("run scripts/xr-session.sh");
+    let ended = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs_f64();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("the XrInstance was lost"), "{stderr}");
+    let killed: f64 = std::fs::read_to_string(out.join("runtime-killed.txt"))
+        .expect("the runtime was killed")
+        .trim()
+        .parse()
+        .unwrap();
+    // The session ends within a second or so (the rest is the script's teardown).
+    assert!(
+        ended - killed < 3.0,
+        "ended {:.2} s after the kill",
+        ended - killed
+    );
+    // Every frame up to the kill was recorded, and the recording replays.
+    let rec = out.join("rec.jsonl");
+    let (_, frames) = cao_xr::input::read_stream(&rec).unwrap();
+    assert!(!frames.is_empty(), "no frame recorded before the kill");
+    let replay = Command::new(env!("CARGO_BIN_EXE_cao-xr"))
+        .args([
+            "replay",
+            rec.to_str().unwrap(),
+            "phantom:16",
+            "--rays",
+            "6",
+            "--size",
+            "16x16",
+        ])
+        .args([
+            "--every",
+            "100000",
+            "--out",
+            out.join("replay").to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        replay.status.success(),
+        "{}",
+        String::from_utf8_lossy(&replay.stderr)
+    );
+}
