@@ -1320,3 +1320,30 @@ fn every_subcommand_has_consistent_help() {
         );
     }
 }
+
+#[test]
+fn a_signal_during_the_ao_precompute_leaves_no_output_under_the_final_name() {
+    use std::os::unix::process::ExitStatusExt;
+    let dir = tmp("signal");
+    for sig in [libc::SIGTERM, libc::SIGINT] {
+        let out = dir.join(format!("ao-{sig}.nrrd"));
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_cao-xr"))
+            .args(["ao", "phantom:128", "--rays", "54", "--steps", "16", "--out"])
+            .arg(&out)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        // Well inside the precompute (about a minute on lavapipe).
+        std::thread::sleep(std::time::Duration::from_secs(2));
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "finished before the signal"
+        );
+        unsafe { libc::kill(child.id() as i32, sig) };
+        let status = child.wait().unwrap();
+        assert_eq!(status.signal(), Some(sig), "{status:?}");
+        assert!(!out.exists(), "a partial {} exists", out.display());
+        assert!(!out.with_extension("json").exists());
+    }
+}
