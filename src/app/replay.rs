@@ -96,7 +96,10 @@ pub fn replay(
         active: false,
     });
 
-    let csv_path = out.join("metrics.csv");
+    // Written beside its name and renamed once complete, so an interrupted replay leaves no
+    // partial metrics.csv (the frames' PNGs are written the same way, each).
+    let csv_final = out.join("metrics.csv");
+    let csv_path = out.join("metrics.csv.partial");
     let mut csv = std::io::BufWriter::new(
         std::fs::File::create(&csv_path).map_err(|e| out_err(&csv_path, e))?,
     );
@@ -177,6 +180,8 @@ pub fn replay(
         }
     }
     csv.flush().map_err(|e| out_err(&csv_path, e))?;
+    drop(csv);
+    std::fs::rename(&csv_path, &csv_final).map_err(|e| out_err(&csv_final, e))?;
     if let Some(p) = &opts.preview {
         let fps = frames.len() as f64 / (frames.last().unwrap().time - frames[0].time).max(1e-3);
         write_apng(
@@ -199,7 +204,9 @@ pub fn write_apng(
     fps: f64,
 ) -> Result<()> {
     let err = |e: png::EncodingError| out_err(path, e);
-    let file = std::fs::File::create(path).map_err(|e| out_err(path, e))?;
+    // Beside its name, renamed once complete.
+    let tmp = path.with_extension("png.partial");
+    let file = std::fs::File::create(&tmp).map_err(|e| out_err(path, e))?;
     let mut enc = png::Encoder::new(std::io::BufWriter::new(file), width, height);
     enc.set_color(png::ColorType::Rgb);
     enc.set_depth(png::BitDepth::Eight);
@@ -211,5 +218,6 @@ pub fn write_apng(
     for f in frames {
         w.write_image_data(f).map_err(err)?;
     }
-    w.finish().map_err(err)
+    w.finish().map_err(err)?;
+    std::fs::rename(&tmp, path).map_err(|e| out_err(path, e))
 }

@@ -1328,7 +1328,15 @@ fn a_signal_during_the_ao_precompute_leaves_no_output_under_the_final_name() {
     for sig in [libc::SIGTERM, libc::SIGINT] {
         let out = dir.join(format!("ao-{sig}.nrrd"));
         let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_cao-xr"))
-            .args(["ao", "phantom:128", "--rays", "54", "--steps", "16", "--out"])
+            .args([
+                "ao",
+                "phantom:128",
+                "--rays",
+                "54",
+                "--steps",
+                "16",
+                "--out",
+            ])
             .arg(&out)
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null())
@@ -1345,5 +1353,59 @@ fn a_signal_during_the_ao_precompute_leaves_no_output_under_the_final_name() {
         assert_eq!(status.signal(), Some(sig), "{status:?}");
         assert!(!out.exists(), "a partial {} exists", out.display());
         assert!(!out.with_extension("json").exists());
+    }
+}
+
+#[test]
+fn a_signal_during_a_replay_leaves_no_partial_metrics_under_the_final_name() {
+    use std::os::unix::process::ExitStatusExt;
+    let dir = tmp("signal-replay");
+    let script = dir.join("long.jsonl");
+    let made = cao(&[
+        "script",
+        "sphere-sweep",
+        "--frames",
+        "5000",
+        "--out",
+        script.to_str().unwrap(),
+    ]);
+    assert!(made.status.success());
+    let out = dir.join("frames");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_cao-xr"))
+        .args([
+            "replay",
+            script.to_str().unwrap(),
+            "phantom:32",
+            "--rays",
+            "6",
+            "--size",
+            "32x32",
+        ])
+        .args(["--every", "1", "--out", out.to_str().unwrap()])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // Wait for the first frames, then stop it.
+    let t0 = std::time::Instant::now();
+    while !out.join("frame-00002.png").exists() {
+        assert!(t0.elapsed().as_secs() < 120, "no frame after two minutes");
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the replay ended early"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+    let status = child.wait().unwrap();
+    assert_eq!(status.signal(), Some(libc::SIGTERM), "{status:?}");
+    assert!(!out.join("metrics.csv").exists(), "a partial metrics.csv");
+    // Every frame written is a whole PNG.
+    for e in std::fs::read_dir(&out).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_some_and(|x| x == "png") {
+            let (w, _, _, _) = read_png(&p);
+            assert_eq!(w, 64, "{}", p.display());
+        }
     }
 }
