@@ -309,7 +309,8 @@ impl Cao {
     /// update passes (over the current tools' boxes) start from exactly the state a fresh
     /// [`Cao::new`] has. The old buffers are dropped here: call it only when no submitted
     /// command buffer still uses them (after the frame's wait).
-    /// `skip` None keeps the old skipping data (the local histograms, which do not use it).
+    /// `skip` None keeps the old skipping data (for the methods that do not read it: all but
+    /// LAO).
     pub fn replace_precomputed(
         &mut self,
         opacity: Buffer,

@@ -236,6 +236,16 @@ impl LaoGpu {
         self.upload_skip(&SkipData::new(opacity, dims, spacing, params))
     }
 
+    /// Stand-ins for the skipping data of a CAO state whose method is not LAO (the filters and
+    /// the local histograms never read it); a switch to LAO brings real ones.
+    pub fn skip_stand_in(&self) -> Result<SkipBuffers> {
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        Ok(SkipBuffers {
+            clear: Buffer::device_local(&self.gpu, &[0u32], usage, "lao-clear")?,
+            bricks: Buffer::device_local(&self.gpu, &[0u32], usage, "lao-bricks")?,
+        })
+    }
+
     /// Uploads skipping data computed on the host (possibly on another thread).
     pub fn upload_skip(&self, data: &SkipData) -> Result<SkipBuffers> {
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER;

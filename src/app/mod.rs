@@ -177,7 +177,8 @@ pub struct AoVolume {
     pub opacity_buf: Buffer,
     /// V_PAO: the AO method's openness of the unclipped volume (f32, x fastest).
     pub ao_buf: Buffer,
-    /// Exact empty-space skipping data of O (valid for every clipped O too).
+    /// Exact empty-space skipping data of O (valid for every clipped O too); stand-ins for the
+    /// methods that do not read it ([`LaoGpu::skip_stand_in`]).
     pub skip: SkipBuffers,
     pub timing: LaoTiming,
     /// The method's GPU state (it goes to the CAO state with the volumes).
@@ -271,8 +272,7 @@ pub fn precompute_ao(
     })
 }
 
-/// The opacity volume CAO clips (O, or the density the filters filter) on the GPU, with its
-/// exact empty-space skipping data.
+/// LAO's opacity volume O on the GPU, with its exact empty-space skipping data.
 fn upload_opacity(
     gpu: &Gpu,
     lao: &LaoGpu,
@@ -314,7 +314,9 @@ pub fn precompute(
     fp.validate().map_err(AppError::Usage)?;
     crate::render::check_volume_fits_gpu(gpu, vol)?;
     let density = filtered::density(fp.input, &tf.opacity_volume(vol), vol);
-    let (opacity_buf, skip) = upload_opacity(gpu, lao, vol, &density, &ao.lao)?;
+    let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+    let opacity_buf = Buffer::device_local(gpu, &density, usage, "opacity")?;
+    let skip = lao.skip_stand_in()?;
     let filter = FilterGpu::new(gpu, vol.dims, vol.spacing, fp)?;
     let t0 = std::time::Instant::now();
     let (ao_buf, gpu_ms) = filter.compute(&opacity_buf)?;
@@ -370,20 +372,39 @@ pub fn histogram_state(
     Ok(h)
 }
 
-/// A TF change of the local-histogram method `h`: its tables for `tf`, then q (the opacity CAO
-/// clips) and V_PAO with the bleeding volume in one pass. Returns q and V_PAO on the GPU.
+/// What [`histogram_tables`] made: q (host and GPU), V_PAO, and the pass's GPU ms.
+pub struct HistogramTables {
+    pub q: Vec<f32>,
+    pub opacity: Buffer,
+    pub pao: Buffer,
+    pub gpu_ms: f64,
+}
+
+/// The local-histogram method `h` under `tf` (its first TF, or a TF change): its tables, then
+/// q (the opacity CAO clips) and V_PAO with the bleeding volume in one pass.
 pub fn histogram_tables(
     gpu: &Gpu,
     lao: &LaoGpu,
     dims: [usize; 3],
     h: &mut HistogramGpu,
     tf: &TransferFunction,
-) -> Result<(Buffer, Buffer)> {
+) -> Result<HistogramTables> {
     let q = h.set_tf(tf)?;
     let opacity = Buffer::device_local(gpu, &q, vk::BufferUsageFlags::STORAGE_BUFFER, "opacity")?;
     let pao = lao.output_buffer(dims)?;
-    gpu.submit_and_wait(|cmd| h.record_precompute(cmd, &opacity, &pao))?;
-    Ok((opacity, pao))
+    let mut timer = crate::gpu::GpuTimer::new(gpu, 2)?;
+    gpu.submit_and_wait(|cmd| {
+        timer.begin(cmd);
+        h.record_precompute(cmd, &opacity, &pao);
+        timer.mark(cmd, "histogram");
+    })?;
+    let gpu_ms = timer.read()?.iter().map(|t| t.1).sum();
+    Ok(HistogramTables {
+        q,
+        opacity,
+        pao,
+        gpu_ms,
+    })
 }
 
 /// V_PAO and the bleeding volume of the local-histogram method `h` under `tf`: one table
@@ -397,27 +418,18 @@ pub fn precompute_histogram(
     mut h: HistogramGpu,
 ) -> Result<AoVolume> {
     params.validate().map_err(AppError::Usage)?;
-    let q = h.set_tf(tf)?;
-    let (opacity_buf, skip) = upload_opacity(gpu, lao, vol, &q, params)?;
-    let ao_buf = lao.output_buffer(vol.dims)?;
     let t0 = std::time::Instant::now();
-    // (the same pass as histogram_tables, timed on the GPU)
-    let mut timer = crate::gpu::GpuTimer::new(gpu, 2)?;
-    gpu.submit_and_wait(|cmd| {
-        timer.begin(cmd);
-        h.record_precompute(cmd, &opacity_buf, &ao_buf);
-        timer.mark(cmd, "histogram");
-    })?;
+    let t = histogram_tables(gpu, lao, vol.dims, &mut h, tf)?;
     let timing = LaoTiming {
-        gpu_ms: timer.read()?.iter().map(|t| t.1).sum(),
+        gpu_ms: t.gpu_ms,
         wall_ms: t0.elapsed().as_secs_f64() * 1e3,
         ..Default::default()
     };
     Ok(AoVolume {
-        opacity: q,
-        opacity_buf,
-        ao_buf,
-        skip,
+        opacity: t.q,
+        opacity_buf: t.opacity,
+        ao_buf: t.pao,
+        skip: lao.skip_stand_in()?,
         timing,
         method: MethodGpu::Histogram(h),
     })

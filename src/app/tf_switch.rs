@@ -85,12 +85,12 @@ struct Switch {
 // At most one exists per loop: its size does not matter.
 #[allow(clippy::large_enum_variant)]
 enum Stage {
-    /// O' and its skipping data, on a worker thread.
-    Classifying(HostTask<(Vec<f32>, SkipData)>),
+    /// O' and, for LAO (the only method that reads them), its skipping data, on a worker thread.
+    Classifying(HostTask<(Vec<f32>, Option<SkipData>)>),
     /// One slab of V_PAO' per frame, then (with SH lighting) one slab of V_PSH'.
     Computing {
         opacity: Buffer,
-        skip: SkipBuffers,
+        skip: Option<SkipBuffers>,
         pao: Buffer,
         slabs: SlabScheduler,
         sh: Option<(ShVolume, SlabScheduler)>,
@@ -246,7 +246,7 @@ impl TfSwitcher {
                     vk::BufferUsageFlags::STORAGE_BUFFER,
                     "opacity",
                 )?,
-                skip: self.lao.upload_skip(&skip)?,
+                skip: skip.map(|s| self.lao.upload_skip(&s)).transpose()?,
                 pao: self.lao.output_buffer(vol.dims)?,
                 // The filters refilter the whole volume in one go (they are cheap); LAO goes a
                 // bounded slab of slices per frame.
@@ -275,7 +275,7 @@ impl TfSwitcher {
                 unreachable!("finished implies computing")
             };
             tex.set_transfer_function(&self.tfs[sw.index])?;
-            cao.replace_precomputed(opacity, pao, Some(skip))?;
+            cao.replace_precomputed(opacity, pao, skip)?;
             let method = match sw.filter {
                 Some(f) => MethodGpu::Filter(f),
                 None => MethodGpu::Lao,
@@ -310,13 +310,13 @@ impl TfSwitcher {
             None => None,
         };
         match shown_here {
-            Some((opacity, pao)) => cao.replace_precomputed(opacity, pao, None)?,
+            Some(t) => cao.replace_precomputed(t.opacity, t.pao, None)?,
             None => {
                 let mut h = self.parked.take().ok_or_else(|| {
                     AppError::Usage("the local-histogram method was not set up".into())
                 })?;
-                let (opacity, pao) = build(&mut h)?;
-                cao.replace_precomputed(opacity, pao, None)?;
+                let t = build(&mut h)?;
+                cao.replace_precomputed(t.opacity, t.pao, None)?;
                 cao.set_method(MethodGpu::Histogram(h));
             }
         }
@@ -342,12 +342,14 @@ impl TfSwitcher {
         let input = filter.as_ref().map(|f| f.params.input);
         let name = vol.name.clone();
         let task = HostTask::spawn("cao-xr-classify", move || {
-            let mut opacity = tf.opacity_volume(&vol);
-            if let Some(input) = input {
-                opacity = filtered::density(input, &opacity, &vol);
+            let opacity = tf.opacity_volume(&vol);
+            match input {
+                Some(input) => (filtered::density(input, &opacity, &vol), None),
+                None => {
+                    let skip = SkipData::new(&opacity, vol.dims, vol.spacing, &params);
+                    (opacity, Some(skip))
+                }
             }
-            let skip = SkipData::new(&opacity, vol.dims, vol.spacing, &params);
-            (opacity, skip)
         })
         .map_err(|e| {
             AppError::Usage(format!(
@@ -394,6 +396,9 @@ impl TfSwitcher {
                 }
                 None => {
                     let (lao, dirs) = (&self.lao, &self.lao_dirs);
+                    let skip = skip
+                        .as_ref()
+                        .expect("an LAO switch classifies its skipping data");
                     lao.record_slab(cmd, opacity, dirs, skip, pao, vol.dims, &cao.params, z);
                 }
             }
