@@ -1,13 +1,17 @@
 #version 460
 // Stereo ray caster: front-to-back compositing through the volume with early termination.
-// Colour = C_tf * (k * AO + diffuse * |n.l| + w * E_sh), where E_sh = sum_k V_k L_k is the
-// environment light seen through the SH visibility volume (Ritschel), optionally times AO, and
-// with the local-histogram method C_tf bleeds towards the neighbourhood's colour E.
-// Opacity is corrected per mm; depth is written where
-// the ray enters visible material, so later geometry (tools, hands) is depth-correct.
+// Shading (docs/design.md, "Shading"): Blinn-Phong from the data's gradient with a headlight per
+// eye, the AO multiplying the ambient term and a share of the diffuse one,
+//   C = C_tf * (ka * AO + kd * (1 - s + s * AO) * |n.l|) + ks * (n.h)^p  (+ w * E_sh),
+// where E_sh = sum_k V_k L_k is the environment light seen through the SH visibility volume
+// (Ritschel), and with the local-histogram method C_tf bleeds towards the neighbourhood's colour
+// E. Where a tool cut the volume, the tool's surface normal lights a thin layer (the cut face).
+// Segments are pre-integrated over (front, back) scalar pairs; the start is jittered by blue
+// noise. Opacity is corrected per mm; depth is written where the ray enters visible material, so
+// later geometry (tools, hands) is depth-correct.
 #extension GL_GOOGLE_include_directive : require
 #include "frame.glsl"
-
+#include "constants.glsl"
 layout(set = 0, binding = 1) uniform sampler3D scalars;
 layout(set = 0, binding = 2) uniform sampler3D ambient;
 layout(set = 0, binding = 3) uniform sampler1D tf_lut;
@@ -20,6 +24,10 @@ layout(set = 0, binding = 9) uniform sampler3D sh3;
 layout(set = 0, binding = 10) uniform sampler3D variance;
 // The local-histogram method's bleeding colour E (rgb); read when bleeding.x = W > 0.
 layout(set = 0, binding = 11) uniform sampler3D bleeding;
+// Pre-integrated TF: premultiplied colour and opacity of a step from front to back value.
+layout(set = 0, binding = 12) uniform sampler2D preint;
+// Blue-noise thresholds in (0, 1), tiled over the screen (src/render/blue_noise.rs).
+layout(set = 0, binding = 13) uniform sampler2D blue_noise;
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 4
@@ -35,8 +43,43 @@ layout(location = 0) out vec4 out_color;
 const float OPAQUE = 0.99;
 const float DEPTH_ALPHA = 0.05;
 
-vec4 classify(vec3 t) {
-    float s = texture(scalars, t).r;
+const uint PREINTEGRATED = 1u;
+const uint JITTER = 2u;
+const uint TRICUBIC = 4u;
+
+bool flag(uint f) { return (uint(frame.viewport.w) & f) != 0u; }
+
+// Cubic B-spline of the scalars through eight trilinear fetches (Sigg and Hadwiger, GPU Gems 2
+// ch. 20): smooth reconstruction for small volumes and close-ups.
+float scalar_tricubic(vec3 t) {
+    vec3 size = vec3(textureSize(scalars, 0));
+    vec3 x = t * size - 0.5;
+    vec3 i = floor(x);
+    vec3 f = x - i;
+    vec3 f2 = f * f;
+    vec3 f3 = f2 * f;
+    vec3 w0 = (1.0 - 3.0 * f + 3.0 * f2 - f3) / 6.0;
+    vec3 w1 = (4.0 - 6.0 * f2 + 3.0 * f3) / 6.0;
+    vec3 w2 = (1.0 + 3.0 * f + 3.0 * f2 - 3.0 * f3) / 6.0;
+    vec3 w3 = f3 / 6.0;
+    vec3 g0 = w0 + w1;
+    vec3 g1 = w2 + w3;
+    vec3 h0 = (i - 0.5 + w1 / g0) / size;
+    vec3 h1 = (i + 1.5 + w3 / g1) / size;
+    float r = 0.0;
+    for (int k = 0; k < 8; k++) {
+        vec3 h = vec3((k & 1) != 0 ? h1.x : h0.x, (k & 2) != 0 ? h1.y : h0.y, (k & 4) != 0 ? h1.z : h0.z);
+        vec3 g = vec3((k & 1) != 0 ? g1.x : g0.x, (k & 2) != 0 ? g1.y : g0.y, (k & 4) != 0 ? g1.z : g0.z);
+        r += g.x * g.y * g.z * texture(scalars, h).r;
+    }
+    return r;
+}
+
+float scalar_at(vec3 t) {
+    return flag(TRICUBIC) ? scalar_tricubic(t) : texture(scalars, t).r;
+}
+
+vec4 classify_value(float s) {
     return texture(tf_lut, s * frame.value_map.y + frame.value_map.x);
 }
 
@@ -44,9 +87,9 @@ vec4 classify(vec3 t) {
 vec3 gradient_mm(vec3 t) {
     vec3 texel = 1.0 / vec3(textureSize(scalars, 0));
     vec3 mm = frame.extent_mm.xyz * texel;
-    float gx = texture(scalars, t + vec3(texel.x, 0, 0)).r - texture(scalars, t - vec3(texel.x, 0, 0)).r;
-    float gy = texture(scalars, t + vec3(0, texel.y, 0)).r - texture(scalars, t - vec3(0, texel.y, 0)).r;
-    float gz = texture(scalars, t + vec3(0, 0, texel.z)).r - texture(scalars, t - vec3(0, 0, texel.z)).r;
+    float gx = scalar_at(t + vec3(texel.x, 0, 0)) - scalar_at(t - vec3(texel.x, 0, 0));
+    float gy = scalar_at(t + vec3(0, texel.y, 0)) - scalar_at(t - vec3(0, texel.y, 0));
+    float gz = scalar_at(t + vec3(0, 0, texel.z)) - scalar_at(t - vec3(0, 0, texel.z));
     return vec3(gx, gy, gz) / (2.0 * mm);
 }
 
@@ -64,9 +107,64 @@ vec3 sh_emission(vec3 t) {
     return max(e, vec3(0.0));
 }
 
-// Deterministic per-pixel offset in [0,1) that breaks up wood-grain artefacts.
-float pixel_jitter(vec2 p) {
-    return fract(52.9829189 * fract(dot(p, vec2(0.06711056, 0.00583715))));
+// The start offset in [0,1): the blue-noise tile, at a fixed offset per eye, so each eye's
+// pattern is the same every frame and the two eyes' patterns differ.
+float pixel_jitter(vec2 p, uint eye_index) {
+    if (!flag(JITTER)) return 0.0;
+    ivec2 size = textureSize(blue_noise, 0);
+    vec2 off = eye_index == 0u ? frame.jitter.xy : frame.jitter.zw;
+    ivec2 q = (ivec2(p) + ivec2(off)) % size;
+    return texelFetch(blue_noise, q, 0).r;
+}
+
+// The first tool that hides world point w, or -1.
+int hiding_tool(vec3 w) {
+    for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
+        bool inside = (tool_test(t, (tools[t].local_from_world * vec4(w, 1.0)).xyz) & 1u) != 0u;
+        if (tools[t].map.w > 0.5 ? !inside : inside) return int(t);
+    }
+    return -1;
+}
+
+// The surface depth of texel q of tool t's clip map nearest to z, or EMPTY_IN where the texel
+// is empty or outside the map; `which` picks the same peel boundary at the neighbours.
+float map_depth(ClipTool tool, ivec2 q, int which) {
+    int res = int(tool.map.z);
+    if (any(lessThan(q, ivec2(0))) || any(greaterThanEqual(q, ivec2(res)))) return EMPTY_IN;
+    vec4 c = clip_maps[tool.offsets.x + uint(q.y * res + q.x)];
+    vec2 iv = which < 2 ? c.xy : c.zw;
+    if (iv.x > iv.y) return EMPTY_IN;
+    return (which & 1) == 0 ? iv.x : iv.y;
+}
+
+// The normal of tool t's surface near world point w (just outside what it hides), in the
+// volume's mm frame, from the clip map's depth differences (any shape, meshes included).
+vec3 cut_normal_mm(uint t, vec3 w) {
+    ClipTool tool = tools[t];
+    vec3 local = (tool.local_from_world * vec4(w, 1.0)).xyz;
+    ivec2 px = ivec2(floor((local.xy + tool.map.x) * tool.map.y));
+    int which = 0;
+    float best = 1e38;
+    for (int k = 0; k < 4; k++) {
+        float z = map_depth(tool, px, k);
+        if (z != EMPTY_IN && abs(z - local.z) < best) { best = abs(z - local.z); which = k; }
+    }
+    float texel = 1.0 / tool.map.y;
+    vec2 dh = vec2(0.0);
+    for (int a = 0; a < 2; a++) {
+        ivec2 e = a == 0 ? ivec2(1, 0) : ivec2(0, 1);
+        float h0 = map_depth(tool, px, which);
+        float hp = map_depth(tool, px + e, which);
+        float hm = map_depth(tool, px - e, which);
+        if (hp != EMPTY_IN && hm != EMPTY_IN) dh[a] = (hp - hm) / (2.0 * texel);
+        else if (hp != EMPTY_IN && h0 != EMPTY_IN) dh[a] = (hp - h0) / texel;
+        else if (hm != EMPTY_IN && h0 != EMPTY_IN) dh[a] = (h0 - hm) / texel;
+    }
+    vec3 n_local = vec3(-dh, 1.0);
+    // Normals go back through the transpose; index space to mm divides by the spacing.
+    vec3 n_index = transpose(mat3(tool.local_from_index)) * n_local;
+    vec3 spacing = frame.extent_mm.xyz / vec3(textureSize(scalars, 0));
+    return n_index / spacing;
 }
 
 void main() {
@@ -92,35 +190,99 @@ void main() {
     if (tn < tf) {
         float step_mm = frame.extent_mm.w;
         vec3 d_mm = d * frame.extent_mm.xyz;
-        float dt = step_mm / length(d_mm);
-        vec3 light = -normalize(d_mm);
-        float t = tn + dt * pixel_jitter(gl_FragCoord.xy);
+        float len_mm = length(d_mm);
+        float dt = step_mm / len_mm;
+        // The headlight: from the eye along the ray, so l = v = h.
+        vec3 light = -d_mm / len_mm;
+        float t = tn + dt * pixel_jitter(gl_FragCoord.xy, v);
+        bool clipping = frame.viewport.z > 0.0;
+        // The previous sample's value (pre-integration), or none after a gap in the material.
+        float s_prev = 0.0;
+        bool have_prev = false;
+        // The cut face: where the ray leaves a tool that hid the samples before.
+        int prev_tool = -1;
+        float cut_t = -1.0;
+        vec3 cut_n = vec3(0.0);
         for (int i = 0; i < 8192 && t < tf; i++, t += dt) {
             vec3 p = o + t * d;
             // Shadow-test clipping: the same maps the AO update used.
-            if (frame.viewport.z > 0.0 && clipped_world(a_w + t * (b_w - a_w))) continue;
-            vec4 c = classify(p);
+            if (clipping) {
+                vec3 w = a_w + t * (b_w - a_w);
+                int hider = hiding_tool(w);
+                if (hider >= 0) {
+                    prev_tool = hider;
+                    have_prev = false;
+                    continue;
+                }
+                if (prev_tool >= 0 && frame.surface.y > 0.0) {
+                    cut_t = t;
+                    cut_n = cut_normal_mm(uint(prev_tool), w);
+                }
+                prev_tool = -1;
+            }
+            float s = scalar_at(p);
+            vec4 c = classify_value(s);
+            float a;
+            vec3 premult;
+            bool pre_mid = flag(PREINTEGRATED) && have_prev;
+            if (flag(PREINTEGRATED)) {
+                float sf = have_prev ? s_prev : s;
+                vec4 pre = texture(preint, vec2(sf, s) * frame.value_map.w + frame.value_map.z);
+                a = pre.a;
+                premult = pre.rgb;
+            } else {
+                a = c.a > 0.0 ? 1.0 - pow(1.0 - min(c.a, 0.9999), step_mm) : 0.0;
+                premult = c.rgb * a;
+            }
+            s_prev = s;
+            have_prev = true;
             // Variance opacity modulation: homogeneous tissue fades, boundaries stay.
-            if (frame.lighting.w > 0.0) c.a *= min(texture(variance, p).r * frame.lighting.w, 1.0);
-            if (c.a > 0.0) {
-                float a = 1.0 - pow(1.0 - min(c.a, 0.9999), step_mm);
-                float occl = frame.background.a > 0.5 ? texture(ambient, p).r : 1.0;
+            if (frame.lighting.w > 0.0) {
+                float m = min(texture(variance, p).r * frame.lighting.w, 1.0);
+                a *= m;
+                premult *= m;
+            }
+            if (a > 0.0) {
+                // A pre-integrated step is shaded at its middle: its opacity lies anywhere
+                // between the two samples, not at the back one.
+                vec3 q = pre_mid ? o + (t - 0.5 * dt) * d : p;
+                float occl = frame.background.a > 0.5 ? texture(ambient, q).r : 1.0;
                 // Colour bleeding (Ropinski et al.): towards the neighbourhood's colour E, the
                 // more the neighbourhood occludes (O_env = 1 - A).
                 if (frame.bleeding.x > 0.0) {
-                    c.rgb = mix(c.rgb, texture(bleeding, p).rgb, frame.bleeding.x * (1.0 - occl));
+                    premult = mix(premult, texture(bleeding, q).rgb * a,
+                                  frame.bleeding.x * (1.0 - occl));
                 }
-                vec3 shade = vec3(frame.value_map.z * occl);
-                if (frame.value_map.w > 0.0) {
-                    vec3 g = gradient_mm(p);
-                    float gl = length(g);
-                    if (gl > 1e-3) shade += frame.value_map.w * abs(dot(g / gl, light));
+                // The normal: the tool's within the cut layer, else the data's gradient, which
+                // lights only where it is steep enough to mean a surface.
+                vec3 n = vec3(0.0);
+                float lit = 0.0;
+                bool on_cut = cut_t >= 0.0 && (t - cut_t) * len_mm <= frame.surface.y;
+                if (on_cut) {
+                    n = cut_n;
+                    lit = 1.0;
+                    if (frame.cut_tint.a > 0.0) {
+                        premult = mix(premult, frame.cut_tint.rgb * a, frame.cut_tint.a);
+                    }
+                } else if (frame.phong.y > 0.0 || frame.phong.z > 0.0) {
+                    n = gradient_mm(q);
+                    float g = length(n);
+                    float gmin = frame.surface.x;
+                    lit = gmin > 0.0 ? smoothstep(gmin, 2.0 * gmin, g) : float(g > 0.0);
                 }
+                float ndl = 0.0;
+                if (lit > 0.0) {
+                    // Two-sided: a surface is lit from whichever side the eye sees it.
+                    ndl = abs(dot(normalize(n), light));
+                }
+                float ao_diffuse = 1.0 - frame.surface.z + frame.surface.z * occl;
+                vec3 shade = vec3(frame.phong.x * occl + lit * frame.phong.y * ao_diffuse * ndl);
                 if (frame.lighting.x > 0.0) {
                     float ao_factor = frame.lighting.z > 0.5 ? occl : 1.0;
-                    shade += frame.lighting.x * ao_factor * sh_emission(p);
+                    shade += frame.lighting.x * ao_factor * sh_emission(q);
                 }
-                color += (1.0 - alpha) * a * c.rgb * shade;
+                float spec = lit * frame.phong.z * pow(ndl, frame.phong.w);
+                color += (1.0 - alpha) * (premult * shade + a * spec);
                 alpha += (1.0 - alpha) * a;
                 if (depth == 1.0 && alpha >= DEPTH_ALPHA) {
                     vec4 clip = frame.view_proj[v] * vec4(a_w + t * (b_w - a_w), 1.0);

@@ -6,11 +6,11 @@ use cao_xr::ao::histogram::HistParams;
 use cao_xr::ao::sh::ShParams;
 use cao_xr::ao::{AoConfig, AoMethod, LaoParams};
 use cao_xr::app;
-use cao_xr::app::lighting::{LightingMode, LightingOptions};
+use cao_xr::app::lighting::{LightingMode, LightingOptions, ShadingOptions};
 use cao_xr::app::session::SessionSpec;
 use cao_xr::gpu::Gpu;
 use cao_xr::input::{write_script, ScriptKind, ScriptParams};
-use cao_xr::render::RenderSettings;
+use cao_xr::render::{RenderSettings, Shading};
 use cao_xr::volume::raw::{RawSpec, RawType};
 use cao_xr::volume::transfer::TransferFunction;
 use cao_xr::volume::{ct_head, phantom};
@@ -61,9 +61,13 @@ enum Cmd {
         /// Render without ambient occlusion (for comparison).
         #[arg(long)]
         no_ao: bool,
-        /// Weight of the gradient diffuse term (0 = AO only).
-        #[arg(long, default_value_t = 0.35)]
-        diffuse: f32,
+        /// Weight of the gradient diffuse term (overrides the --shading mode's).
+        #[arg(long)]
+        diffuse: Option<f32>,
+        /// Render the reference to measure against: a step 1/16 of the default, point samples,
+        /// no jitter (compare with `cao-xr compare`).
+        #[arg(long)]
+        reference: bool,
         /// A clipping tool, SHAPE[:SIZE_MM[:X,Y,Z]] (sphere, box, cylinder, torus; prefix probe-
         /// to keep only its inside; offset in mm from the volume centre, x right, y up, z towards
         /// the viewer). Repeatable. The AO around the cut is CAO.
@@ -98,6 +102,15 @@ enum Cmd {
     Bench {
         #[command(subcommand)]
         what: BenchCmd,
+    },
+    /// PSNR and SSIM (on luma) of picture B against picture A, e.g. a render against
+    /// `render --reference`; optionally a difference image.
+    Compare {
+        a: PathBuf,
+        b: PathBuf,
+        /// Write |A - B| (luma, times 8) as a PNG here.
+        #[arg(long)]
+        diff: Option<PathBuf>,
     },
     /// Fetch the real CT head (Debian's invesalius-examples) and convert it to NRRD in the cache.
     FetchCt {
@@ -300,6 +313,16 @@ enum BenchCmd {
         #[arg(long, default_value_t = ShParams::default().length_mm)]
         sh_length: f32,
     },
+    /// The ray caster's pictures against the reference render (PSNR, SSIM) and their GPU time,
+    /// for step multiples 1, 2, 4 with and without pre-integration, two views each: phantom
+    /// 64^3 and 128^3 and the CT head (or VOLUME).
+    Quality {
+        #[command(flatten)]
+        common: BenchArgs,
+        /// Pixels per side of each eye.
+        #[arg(long, default_value_t = 256)]
+        size: u32,
+    },
     /// LAO precompute time and throughput: phantom 64^3 and 128^3 and the CT head (or VOLUME).
     Lao {
         #[command(flatten)]
@@ -416,6 +439,29 @@ struct LightArgs {
     /// March the full-resolution opacity instead of the expected-opacity pyramid.
     #[arg(long)]
     sh_no_hierarchy: bool,
+    /// ao: AO alone (C = AO * C_tf); phong: Blinn-Phong with a headlight; phong+ao: Phong whose
+    /// ambient and part of whose diffuse term the AO multiplies.
+    #[arg(long, default_value = "phong+ao")]
+    shading: Shading,
+    /// Light cut faces by the data's gradient instead of the tool's surface normal.
+    #[arg(long)]
+    no_cut_lighting: bool,
+    /// Tint the faces a tool cut (R,G,B in 0..1; without a value a warm yellow), to show where
+    /// tissue was removed.
+    #[arg(long, value_parser = parse_rgb, num_args = 0..=1, default_missing_value = "1,0.8,0.3")]
+    cut_tint: Option<[f32; 3]>,
+    /// Classify point samples instead of pre-integrating the transfer function over each step.
+    #[arg(long)]
+    no_preintegration: bool,
+    /// Start every ray at the same offset instead of a blue-noise jitter.
+    #[arg(long)]
+    no_jitter: bool,
+    /// Reconstruct the scalars with a cubic B-spline (smoother close-ups, 8x the fetches).
+    #[arg(long)]
+    tricubic: bool,
+    /// Ray-casting step in mm (default: half the smallest voxel spacing).
+    #[arg(long, default_value_t = 0.0)]
+    ray_step_mm: f32,
 }
 
 impl LightArgs {
@@ -432,6 +478,16 @@ impl LightArgs {
                 ..Default::default()
             },
             yaw_deg: self.light_yaw,
+            shading: ShadingOptions {
+                shading: self.shading,
+                cut_lighting: !self.no_cut_lighting,
+                cut_tint: self.cut_tint,
+                preintegrated: !self.no_preintegration,
+                jitter: !self.no_jitter,
+                tricubic: self.tricubic,
+                step_mm: self.ray_step_mm,
+                ..Default::default()
+            },
         }
     }
 }
@@ -616,6 +672,13 @@ fn parse_background(s: &str) -> std::result::Result<Background, String> {
     if s == "transparent" {
         return Ok(Background::Transparent);
     }
+    parse_rgb(s)
+        .map(Background::Colour)
+        .map_err(|e| format!("{e} (or transparent)"))
+}
+
+/// R,G,B with each in 0..1.
+fn parse_rgb(s: &str) -> std::result::Result<[f32; 3], String> {
     let c: Vec<f32> = s
         .split(',')
         .map(|x| {
@@ -625,12 +688,10 @@ fn parse_background(s: &str) -> std::result::Result<Background, String> {
                 .filter(|v| (0.0..=1.0).contains(v))
         })
         .collect::<Option<_>>()
-        .ok_or_else(|| format!("'{s}': expected transparent or R,G,B with each in 0..1"))?;
+        .ok_or_else(|| format!("'{s}': expected R,G,B with each in 0..1"))?;
     match c[..] {
-        [r, g, b] => Ok(Background::Colour([r, g, b])),
-        _ => Err(format!(
-            "'{s}': expected transparent or three numbers R,G,B"
-        )),
+        [r, g, b] => Ok([r, g, b]),
+        _ => Err(format!("'{s}': expected three numbers R,G,B")),
     }
 }
 
@@ -662,6 +723,21 @@ fn main() -> std::process::ExitCode {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
+        Cmd::Compare { a, b, diff } => {
+            use cao_xr::render::compare;
+            let read = |p: &PathBuf| compare::read_png(p).map_err(anyhow::Error::msg);
+            let (pa, pb) = (read(&a)?, read(&b)?);
+            let (c, image) = compare::compare(&pa, &pb)
+                .map_err(|e| anyhow::anyhow!("{} against {}: {e}", b.display(), a.display()))?;
+            if let Some(path) = &diff {
+                cao_xr::render::png_out::write_rgb(path, pa.width as u32, pa.height as u32, &image)
+                    .with_context(|| format!("cannot write {}", path.display()))?;
+            }
+            println!(
+                "PSNR {:.2} dB  SSIM {:.4}  max |d luma| {:.0}  ({}x{})",
+                c.psnr, c.ssim, c.max_diff, pa.width, pa.height
+            );
+        }
         Cmd::Start { vol, lao, light } => {
             let spec = session_spec(&vol, &lao, &light)?;
             println!("{}", app::start(&spec, cli.validation)?);
@@ -674,21 +750,24 @@ fn run(cli: Cli) -> Result<()> {
             size,
             no_ao,
             diffuse,
+            reference,
             tool,
             background,
         } => {
-            let spec = session_spec(&vol, &lao, &light)?;
+            let mut spec = session_spec(&vol, &lao, &light)?;
+            let shading = &mut spec.lighting.shading;
+            shading.no_ao = no_ao;
+            shading.diffuse = diffuse;
+            if reference {
+                *shading = shading.reference(spec.volume.spacing);
+            }
             let v = &spec.volume;
             eprintln!(
                 "volume {} {:?} spacing {:?} mm, tf {}",
                 v.name, v.dims, v.spacing, spec.tf.name
             );
             let gpu = gpu(cli.validation)?;
-            let mut settings = RenderSettings {
-                use_ao: !no_ao,
-                diffuse,
-                ..Default::default()
-            };
+            let mut settings = RenderSettings::default();
             match background {
                 Some(Background::Transparent) => settings.transparent = true,
                 Some(Background::Colour(c)) => settings.background = c,
@@ -831,6 +910,16 @@ fn run(cli: Cli) -> Result<()> {
                     frames.max(1),
                 )?;
             }
+        }
+        Cmd::Bench {
+            what: BenchCmd::Quality { common, size },
+        } => {
+            let b = common.setup(cli.validation)?;
+            let lao = LaoParams {
+                rays: LaoParams::default().rays,
+                ..b.base
+            };
+            app::bench_quality::bench_quality(&b.gpu, &b.volumes, &b.tf, lao, size, b.runs)?;
         }
         Cmd::Bench {
             what: BenchCmd::Lao { common, rays },

@@ -4,9 +4,16 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     mat4 view_proj[2];       // world -> clip, per view
     mat4 tex_from_world;     // world -> volume texture coordinates [0,1]^3
     vec4 extent_mm;          // xyz: volume extent in mm along i,j,k; w: step in mm
-    vec4 value_map;          // lut coordinate = value * y + x; z: ambient k, w: diffuse weight
+    vec4 value_map;          // lut coordinate = value * y + x; pre-integration table's: * w + z
     vec4 background;         // rgb background, a: 1 = modulate by AO
-    vec4 viewport;           // xy: width, height in pixels; z: number of clipping tools
+    vec4 viewport;           // xy: width, height in pixels; z: number of clipping tools;
+                             // w: flags (1 pre-integrated, 2 jitter, 4 tricubic)
+    vec4 phong;              // Blinn-Phong ka, kd, ks, shininess (headlight per eye)
+    vec4 surface;            // x: least gradient (data units / mm) that lights a sample,
+                             // y: cut layer in mm (0: cut faces lit by the data's gradient),
+                             // z: share of the diffuse term the AO multiplies
+    vec4 cut_tint;           // rgb: tint of cut faces, a: its weight (0: none)
+    vec4 jitter;             // xy: left eye's blue-noise offset in pixels, zw: right eye's
     vec4 lighting;           // x: SH light weight (0: off), y: SH coefficients, z: 1 = times AO,
                              // w: 1 / V_max of variance opacity modulation (0: off)
     vec4 bleeding;           // x: bleeding weight W of the local-histogram method (0: off)

@@ -191,6 +191,11 @@ impl FrameLoop {
         self.tfs.shown()
     }
 
+    /// The volume the frames show.
+    pub fn volume(&self) -> &Volume {
+        &self.volume
+    }
+
     /// The AO methods the stick click cycles through (the first is the one configured).
     pub fn ao_methods(&self) -> &[AoMethod] {
         self.tfs.methods()
@@ -257,6 +262,7 @@ impl FrameLoop {
             l.update_light(volume, &scene.volume, scene.light_yaw);
         }
         let count = scene.tools.iter().filter(|t| t.active).count() as u32;
+        tex.prepare(settings)?;
         let mut recorded = Ok(None);
         gpu.submit_and_wait(|cmd| {
             recorded = (|| {

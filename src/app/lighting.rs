@@ -7,7 +7,7 @@ use crate::ao::cao::Cao;
 use crate::ao::sh::{ShFrameMetrics, ShParams, ShVolume};
 use crate::gpu::Gpu;
 use crate::light::environment::{Environment, ShLight};
-use crate::render::{RenderSettings, ShBinding};
+use crate::render::{RenderSettings, ShBinding, Shading};
 use crate::space::world_from_lps;
 use crate::space::Placement;
 use crate::volume::Volume;
@@ -47,6 +47,74 @@ pub struct LightingOptions {
     pub sh: ShParams,
     /// Turn of the environment about the world's up axis, degrees.
     pub yaw_deg: f32,
+    /// How the ray caster shades and samples.
+    pub shading: ShadingOptions,
+}
+
+/// The ray caster's shading and sampling as the command line asks for them (`--shading`,
+/// `--cut-tint`, `--ray-step-mm`, ...), the same for every front end.
+#[derive(Clone, Copy, Debug)]
+pub struct ShadingOptions {
+    pub shading: Shading,
+    /// Overrides the mode's diffuse weight (`render --diffuse`).
+    pub diffuse: Option<f32>,
+    /// No AO at all, whatever the mode (`render --no-ao`).
+    pub no_ao: bool,
+    pub cut_lighting: bool,
+    pub cut_tint: Option<[f32; 3]>,
+    pub preintegrated: bool,
+    pub jitter: bool,
+    pub tricubic: bool,
+    /// Ray step in mm; 0 = a fraction of the smallest spacing.
+    pub step_mm: f32,
+}
+
+impl Default for ShadingOptions {
+    fn default() -> Self {
+        let s = RenderSettings::default();
+        ShadingOptions {
+            shading: Shading::default(),
+            diffuse: None,
+            no_ao: false,
+            cut_lighting: s.cut_lighting,
+            cut_tint: s.cut_tint,
+            preintegrated: s.preintegrated,
+            jitter: s.jitter,
+            tricubic: s.tricubic,
+            step_mm: s.step_mm,
+        }
+    }
+}
+
+impl ShadingOptions {
+    /// `render --reference`: [`RenderSettings::reference`]'s finer step, point samples, no jitter.
+    pub fn reference(self, spacing: [f64; 3]) -> ShadingOptions {
+        let r = RenderSettings {
+            step_mm: self.step_mm,
+            ..RenderSettings::default()
+        }
+        .reference(spacing);
+        ShadingOptions {
+            step_mm: r.step_mm,
+            preintegrated: r.preintegrated,
+            jitter: r.jitter,
+            ..self
+        }
+    }
+
+    pub fn apply(&self, s: &mut RenderSettings) {
+        self.shading.apply(s);
+        if let Some(kd) = self.diffuse {
+            s.diffuse = kd;
+        }
+        s.use_ao &= !self.no_ao;
+        s.cut_lighting = self.cut_lighting;
+        s.cut_tint = self.cut_tint;
+        s.preintegrated = self.preintegrated;
+        s.jitter = self.jitter;
+        s.tricubic = self.tricubic;
+        s.step_mm = self.step_mm;
+    }
 }
 
 impl Default for LightingOptions {
@@ -56,6 +124,7 @@ impl Default for LightingOptions {
             environment: "studio".into(),
             sh: ShParams::default(),
             yaw_deg: 0.0,
+            shading: ShadingOptions::default(),
         }
     }
 }
@@ -65,13 +134,15 @@ impl LightingOptions {
         self.mode != LightingMode::Ao
     }
 
-    /// Sets the ray caster's weights for this mode.
+    /// Sets the ray caster's shading, then its weights for this lighting mode.
     pub fn apply(&self, s: &mut RenderSettings) {
+        self.shading.apply(s);
         match self.mode {
             LightingMode::Ao => s.sh_weight = 0.0,
             LightingMode::Sh => {
                 s.ambient = 0.0;
                 s.diffuse = 0.0;
+                s.specular = 0.0;
                 s.sh_weight = 1.0;
                 s.sh_times_ao = false;
             }

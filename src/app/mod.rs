@@ -3,6 +3,7 @@
 
 pub mod bench;
 pub mod bench_ao;
+pub mod bench_quality;
 pub mod desktop;
 pub mod frame_loop;
 pub mod headset;
@@ -461,6 +462,7 @@ impl HeadlessRenderer {
         settings: &RenderSettings,
     ) -> Result<StereoImage> {
         let target = StereoTarget::new(&self.gpu, size.0, size.1)?;
+        tex.prepare(settings)?;
         let renderer = &mut self.renderer;
         let mut rec = Ok(());
         self.gpu.submit_and_wait(|cmd| {

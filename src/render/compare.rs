@@ -1,5 +1,93 @@
 //! How alike two pictures are: PSNR and SSIM (Wang et al. 2004) on luma, for comparing an AO
-//! method's render with a reference render.
+//! method's render with a reference render, and `cao-xr compare` on two PNG files.
+
+use std::path::Path;
+
+/// A PNG file as 8-bit RGBA.
+pub struct Picture {
+    pub width: usize,
+    pub height: usize,
+    pub rgba: Vec<u8>,
+}
+
+/// Reads any 8- or 16-bit PNG (grey, grey + alpha, RGB, RGBA, palette) as 8-bit RGBA; the
+/// error names the file.
+pub fn read_png(path: &Path) -> Result<Picture, String> {
+    let fail = |e: &dyn std::fmt::Display| format!("{}: {e}", path.display());
+    let file = std::fs::File::open(path).map_err(|e| fail(&e))?;
+    let mut dec = png::Decoder::new(std::io::BufReader::new(file));
+    dec.set_transformations(png::Transformations::normalize_to_color8());
+    let mut reader = dec.read_info().map_err(|e| fail(&e))?;
+    let size = reader
+        .output_buffer_size()
+        .ok_or_else(|| fail(&"the picture is too large"))?;
+    let mut buf = vec![0; size];
+    let info = reader.next_frame(&mut buf).map_err(|e| fail(&e))?;
+    let px = &buf[..info.buffer_size()];
+    let rgba: Vec<u8> = match info.color_type {
+        png::ColorType::Rgba => px.to_vec(),
+        png::ColorType::Rgb => px
+            .chunks_exact(3)
+            .flat_map(|p| [p[0], p[1], p[2], 255])
+            .collect(),
+        png::ColorType::Grayscale => px.iter().flat_map(|&g| [g, g, g, 255]).collect(),
+        png::ColorType::GrayscaleAlpha => px
+            .chunks_exact(2)
+            .flat_map(|p| [p[0], p[0], p[0], p[1]])
+            .collect(),
+        png::ColorType::Indexed => return Err(fail(&"a palette the decoder did not expand")),
+    };
+    Ok(Picture {
+        width: info.width as usize,
+        height: info.height as usize,
+        rgba,
+    })
+}
+
+/// How far picture `b` is from `a`.
+#[derive(Clone, Copy, Debug)]
+pub struct Comparison {
+    pub psnr: f64,
+    pub ssim: f64,
+    /// The largest difference of luma, 0..255.
+    pub max_diff: f64,
+}
+
+/// PSNR and SSIM of two equally sized pictures, and their difference image (luma difference
+/// times [`DIFF_GAIN`], grey, so small errors show).
+pub fn compare(a: &Picture, b: &Picture) -> Result<(Comparison, Vec<u8>), String> {
+    if (a.width, a.height) != (b.width, b.height) {
+        return Err(format!(
+            "the pictures differ in size: {}x{} and {}x{}",
+            a.width, a.height, b.width, b.height
+        ));
+    }
+    let (la, lb) = (luma(&a.rgba), luma(&b.rgba));
+    let diff: Vec<u8> = la
+        .iter()
+        .zip(&lb)
+        .flat_map(|(x, y)| {
+            let d = ((x - y).abs() * DIFF_GAIN).min(255.0) as u8;
+            [d, d, d]
+        })
+        .collect();
+    let max_diff = la
+        .iter()
+        .zip(&lb)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max);
+    Ok((
+        Comparison {
+            psnr: psnr(&la, &lb),
+            ssim: ssim(&la, &lb, a.width, a.height),
+            max_diff,
+        },
+        diff,
+    ))
+}
+
+/// The difference image's gain: a luma error of 32 shows white.
+pub const DIFF_GAIN: f64 = 8.0;
 
 /// Rec. 601 luma of 8-bit RGBA pixels, 0..255.
 pub fn luma(rgba: &[u8]) -> Vec<f64> {

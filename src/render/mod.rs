@@ -1,9 +1,11 @@
 //! The stereo ray caster: both eyes, one draw each in one command buffer, into a two-layer
 //! colour + depth target (one layer per eye), sampling the scalar volume, the transfer function and the shared AO volume.
 
+pub mod blue_noise;
 pub mod compare;
 pub mod overlay;
 pub mod png_out;
+pub mod preintegration;
 
 use crate::gpu::{pipeline, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
 use crate::space::View;
@@ -18,16 +20,85 @@ pub const COLOR_FORMAT: vk::Format = vk::Format::R8G8B8A8_UNORM;
 pub const DEPTH_FORMAT: vk::Format = vk::Format::D32_SFLOAT;
 const LUT_SIZE: u32 = 4096;
 
+/// The shading modes of the CAO paper: AO alone, Phong alone, and Phong with the AO.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Shading {
+    /// C = AO * C_tf: the paper's "CAO" pictures, flat but honest about occlusion.
+    Ao,
+    /// Blinn-Phong from the gradient with a headlight, no AO.
+    Phong,
+    /// Blinn-Phong whose ambient term and a share of the diffuse one the AO multiplies.
+    #[default]
+    PhongAo,
+}
+
+impl std::str::FromStr for Shading {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "ao" => Ok(Shading::Ao),
+            "phong" => Ok(Shading::Phong),
+            "phong+ao" => Ok(Shading::PhongAo),
+            _ => Err(format!("'{s}': expected ao, phong or phong+ao")),
+        }
+    }
+}
+
+impl Shading {
+    /// The ray caster's settings for this mode: (ambient, diffuse, specular) weights and
+    /// whether the AO modulates them.
+    pub fn apply(self, s: &mut RenderSettings) {
+        let (ka, kd, ks) = match self {
+            Shading::Ao => (1.0, 0.0, 0.0),
+            Shading::Phong | Shading::PhongAo => (PHONG[0], PHONG[1], PHONG[2]),
+        };
+        s.ambient = ka;
+        s.diffuse = kd;
+        s.specular = ks;
+        s.use_ao = self != Shading::Phong;
+    }
+}
+
+/// Blinn-Phong's ambient, diffuse and specular weights and shininess: a surface facing the
+/// headlight, unoccluded, comes out at 0.3 + 0.75 of its TF colour plus a soft white highlight.
+pub const PHONG: [f32; 4] = [0.3, 0.75, 0.2, 24.0];
+/// The share of the diffuse term that the AO multiplies (the rest lights crevices directly).
+pub const AO_DIFFUSE_SHARE: f32 = 0.5;
+/// Gradients below this fraction of the value range per mm are noise, not surfaces: such
+/// samples are lit by the ambient term alone (faded in up to twice this).
+pub const MIN_GRADIENT: f32 = 0.004;
+/// Default ray step as a fraction of the smallest voxel spacing.
+pub const STEP_PER_SPACING: f32 = 0.5;
+/// `render --reference`: the step is this many times finer than the default.
+pub const REFERENCE_REFINEMENT: f32 = 16.0;
+/// The cut-face layer behind a tool's surface, in voxels of the largest spacing: thick enough
+/// that an opaque TF reaches full opacity inside it.
+const CUT_LAYER_VOXELS: f32 = 2.0;
+/// `--cut-tint`'s weight: the cut face's colour moves this far towards the tint.
+pub const CUT_TINT_WEIGHT: f32 = 0.35;
+
 /// Shading knobs of the ray caster.
 #[derive(Clone, Copy, Debug)]
 pub struct RenderSettings {
-    /// Sampling step along the ray in mm; 0 = half the smallest voxel spacing.
+    /// Sampling step along the ray in mm; 0 = [`STEP_PER_SPACING`] of the smallest spacing.
     pub step_mm: f32,
-    /// k in C = k * AO * C_tf.
+    /// Weight of the ambient term (the AO multiplies it).
     pub ambient: f32,
     /// Weight of the gradient (headlight) diffuse term; 0 turns it off.
     pub diffuse: f32,
+    /// Weight of the headlight's specular highlight.
+    pub specular: f32,
     pub use_ao: bool,
+    /// The tool's surface normal lights the cut face (else the data's meaningless gradient).
+    pub cut_lighting: bool,
+    /// Cut faces tinted towards this colour ([`CUT_TINT_WEIGHT`]), if any.
+    pub cut_tint: Option<[f32; 3]>,
+    /// Pre-integrated transfer function over each step (else point samples).
+    pub preintegrated: bool,
+    /// Blue-noise jitter of each ray's start.
+    pub jitter: bool,
+    /// Cubic B-spline reconstruction of the scalars (else trilinear).
+    pub tricubic: bool,
     pub background: [f32; 3],
     /// Weight of the SH environment light (used when the frame has an SH volume bound).
     pub sh_weight: f32,
@@ -47,17 +118,47 @@ pub struct RenderSettings {
 
 impl Default for RenderSettings {
     fn default() -> Self {
-        RenderSettings {
+        let mut s = RenderSettings {
             step_mm: 0.0,
-            ambient: 1.0,
-            diffuse: 0.35,
+            ambient: 0.0,
+            diffuse: 0.0,
+            specular: 0.0,
             use_ao: true,
+            cut_lighting: true,
+            cut_tint: None,
+            preintegrated: true,
+            jitter: true,
+            tricubic: false,
             background: [0.06, 0.07, 0.09],
             sh_weight: 1.0,
             sh_times_ao: false,
             variance_max: 0.0,
             bleeding: DEFAULT_BLEEDING,
             transparent: false,
+        };
+        Shading::default().apply(&mut s);
+        s
+    }
+}
+
+impl RenderSettings {
+    /// The step in mm for a volume of this spacing.
+    pub fn step_for(&self, spacing: [f64; 3]) -> f32 {
+        if self.step_mm > 0.0 {
+            self.step_mm
+        } else {
+            STEP_PER_SPACING * spacing.iter().cloned().fold(f64::MAX, f64::min) as f32
+        }
+    }
+
+    /// `render --reference`: the same view integrated [`REFERENCE_REFINEMENT`] times finer,
+    /// with point samples and no jitter, to measure the default against.
+    pub fn reference(self, spacing: [f64; 3]) -> RenderSettings {
+        RenderSettings {
+            step_mm: self.step_for(spacing) / REFERENCE_REFINEMENT,
+            preintegrated: false,
+            jitter: false,
+            ..self
         }
     }
 }
@@ -71,6 +172,12 @@ pub struct VolumeTextures {
     pub scalars: Image,
     pub ambient: Image,
     pub lut: Image,
+    /// The pre-integrated TF ([`preintegration`]) for the step in `preint_step`.
+    preint: Image,
+    /// The shown TF's lookup table (the pre-integration's input) and the step (mm) the
+    /// pre-integrated table was built for (0: not yet).
+    tf_lut: std::cell::RefCell<Vec<[f32; 4]>>,
+    preint_step: std::cell::Cell<f32>,
     /// var_s of variance opacity modulation (R32F, data units squared), when it is on.
     pub variance: Option<Image>,
     /// The local-histogram method's bleeding colour E (RGBA8 per voxel), when it is the method.
@@ -259,10 +366,36 @@ impl VolumeTextures {
             },
             "tf-lut",
         )?;
+        let n = preintegration::SIZE as u32;
+        let preint = Image::new(
+            gpu,
+            ImageDesc {
+                image_type: vk::ImageType::TYPE_2D,
+                view_type: vk::ImageViewType::TYPE_2D,
+                format: vk::Format::R32G32B32A32_SFLOAT,
+                extent: vk::Extent3D {
+                    width: n,
+                    height: n,
+                    depth: 1,
+                },
+                layers: 1,
+                usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+                aspect: vk::ImageAspectFlags::COLOR,
+            },
+            "tf-preintegrated",
+        )?;
+        // Bound (unread) while point sampling; filled by [`VolumeTextures::prepare`].
+        preint.upload(
+            &vec![0u8; (n * n * 16) as usize],
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        )?;
         let t = VolumeTextures {
             scalars,
             ambient,
             lut,
+            preint,
+            tf_lut: Default::default(),
+            preint_step: Default::default(),
             variance: None,
             bleeding: None,
             dims: vol.dims,
@@ -334,7 +467,32 @@ impl VolumeTextures {
         self.lut.upload(
             bytemuck::cast_slice(&lut),
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-        )
+        )?;
+        *self.tf_lut.borrow_mut() = lut;
+        match self.preint_step.get() {
+            0.0 => Ok(()),
+            step => self.upload_preintegrated(step),
+        }
+    }
+
+    /// Makes the pre-integrated table fit `settings`' step (built once per TF and step; call
+    /// before recording a frame that uses it).
+    pub fn prepare(&self, settings: &RenderSettings) -> Result<()> {
+        let step = settings.step_for(self.spacing);
+        if settings.preintegrated && self.preint_step.get() != step {
+            self.upload_preintegrated(step)?;
+        }
+        Ok(())
+    }
+
+    fn upload_preintegrated(&self, step: f32) -> Result<()> {
+        let table = preintegration::table(&self.tf_lut.borrow(), step, preintegration::SIZE);
+        self.preint.upload(
+            bytemuck::cast_slice(&table),
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        )?;
+        self.preint_step.set(step);
+        Ok(())
     }
 
     /// Records a copy of an AO buffer (f32, x fastest) into the AO texture.
@@ -342,11 +500,11 @@ impl VolumeTextures {
         cmd_refill(&self.ambient, cmd, ao);
     }
 
-    /// Lookup-table coordinate = value * scale + offset, hitting the first and last texel centres
-    /// at the ends of the value range.
-    fn lut_map(&self) -> (f32, f32) {
+    /// Coordinate in a lookup table of `n` texels over the value range = value * scale +
+    /// offset, hitting the first and last texel centres at the ends of the range.
+    fn lut_map(&self, n: usize) -> (f32, f32) {
         let (lo, hi) = self.value_range;
-        let n = LUT_SIZE as f32;
+        let n = n as f32;
         let scale = (n - 1.0) / (n * (hi - lo).max(1e-6));
         (0.5 / n - lo * scale, scale)
     }
@@ -478,13 +636,23 @@ struct FrameUniforms {
     value_map: [f32; 4],
     background: [f32; 4],
     viewport: [f32; 4],
+    phong: [f32; 4],
+    surface: [f32; 4],
+    cut_tint: [f32; 4],
+    jitter: [f32; 4],
     lighting: [f32; 4],
     bleeding: [f32; 4],
     sh_light: [[f32; 4]; 16],
 }
-crate::gpu::glsl_layout!(FrameUniforms, 672,
+crate::gpu::glsl_layout!(FrameUniforms, 736,
     inv_view_proj: 0, view_proj: 128, tex_from_world: 256, extent_mm: 320, value_map: 336,
-    background: 352, viewport: 368, lighting: 384, bleeding: 400, sh_light: 416);
+    background: 352, viewport: 368, phong: 384, surface: 400, cut_tint: 416, jitter: 432,
+    lighting: 448, bleeding: 464, sh_light: 480);
+
+/// Flags of `viewport.w` (shaders/raycast.frag).
+const FLAG_PREINTEGRATED: u32 = 1;
+const FLAG_JITTER: u32 = 2;
+const FLAG_TRICUBIC: u32 = 4;
 
 pub struct Renderer {
     gpu: Gpu,
@@ -494,6 +662,7 @@ pub struct Renderer {
     sampler: vk::Sampler,
     uniforms: Buffer,
     no_clip: Buffer,
+    blue_noise: Image,
 }
 
 /// What one stereo frame looks at: both views, the volume's model matrix ([`world_from_tex`])
@@ -538,6 +707,8 @@ impl Renderer {
                     sampled,
                     vk::DescriptorType::STORAGE_BUFFER,
                     vk::DescriptorType::STORAGE_BUFFER,
+                    sampled,
+                    sampled,
                     sampled,
                     sampled,
                     sampled,
@@ -600,6 +771,28 @@ impl Renderer {
                 MemoryLocation::GpuOnly,
                 "no-clip",
             )?;
+            let side = blue_noise::SIZE as u32;
+            let blue_noise = Image::new(
+                gpu,
+                ImageDesc {
+                    image_type: vk::ImageType::TYPE_2D,
+                    view_type: vk::ImageViewType::TYPE_2D,
+                    format: vk::Format::R32_SFLOAT,
+                    extent: vk::Extent3D {
+                        width: side,
+                        height: side,
+                        depth: 1,
+                    },
+                    layers: 1,
+                    usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+                    aspect: vk::ImageAspectFlags::COLOR,
+                },
+                "blue-noise",
+            )?;
+            blue_noise.upload(
+                bytemuck::cast_slice(blue_noise::tile()),
+                vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+            )?;
             Ok(Renderer {
                 gpu: gpu.clone(),
                 pipeline,
@@ -608,6 +801,7 @@ impl Renderer {
                 sampler,
                 uniforms,
                 no_clip,
+                blue_noise,
             })
         }
     }
@@ -627,20 +821,35 @@ impl Renderer {
     ) -> Result<()> {
         let (views, world_from_tex, clip) = (frame.views, frame.model, frame.clip);
         let ext = tex.extent_mm();
-        let min_spacing = tex.spacing.iter().cloned().fold(f64::MAX, f64::min) as f32;
-        let step = if settings.step_mm > 0.0 {
-            settings.step_mm
-        } else {
-            0.5 * min_spacing
-        };
-        let (offset, scale) = tex.lut_map();
+        let step = settings.step_for(tex.spacing);
+        let preintegrated = settings.preintegrated && tex.preint_step.get() == step;
+        if settings.preintegrated && !preintegrated {
+            return Err(GpuError::Other(format!(
+                "the pre-integrated TF is for a step of {} mm, not {step} mm: call \
+                 VolumeTextures::prepare before recording",
+                tex.preint_step.get()
+            )));
+        }
+        let (offset, scale) = tex.lut_map(LUT_SIZE as usize);
+        let (pre_offset, pre_scale) = tex.lut_map(preintegration::SIZE);
+        let max_spacing = tex.spacing.iter().cloned().fold(0.0, f64::max) as f32;
+        let (lo, hi) = tex.value_range;
+        let flags = [
+            (preintegrated, FLAG_PREINTEGRATED),
+            (settings.jitter, FLAG_JITTER),
+            (settings.tricubic, FLAG_TRICUBIC),
+        ]
+        .iter()
+        .filter(|f| f.0)
+        .fold(0, |acc, f| acc | f.1);
+        let [ox, oy] = blue_noise::RIGHT_EYE_OFFSET;
         let vp = views.map(|v| v.view_proj());
         let u = FrameUniforms {
             inv_view_proj: vp.map(|m| m.inverse().to_cols_array()),
             view_proj: vp.map(|m| m.to_cols_array()),
             tex_from_world: world_from_tex.inverse().to_cols_array(),
             extent_mm: [ext.x, ext.y, ext.z, step],
-            value_map: [offset, scale, settings.ambient, settings.diffuse],
+            value_map: [offset, scale, pre_offset, pre_scale],
             background: [
                 settings.background[0],
                 settings.background[1],
@@ -651,8 +860,33 @@ impl Renderer {
                 target.width as f32,
                 target.height as f32,
                 clip.map_or(0, |c| c.count) as f32,
+                flags as f32,
+            ],
+            phong: [
+                settings.ambient,
+                settings.diffuse,
+                settings.specular,
+                PHONG[3],
+            ],
+            surface: [
+                MIN_GRADIENT * (hi - lo),
+                if settings.cut_lighting {
+                    CUT_LAYER_VOXELS * max_spacing
+                } else {
+                    0.0
+                },
+                if settings.use_ao {
+                    AO_DIFFUSE_SHARE
+                } else {
+                    0.0
+                },
                 0.0,
             ],
+            cut_tint: match settings.cut_tint {
+                Some([r, g, b]) => [r, g, b, CUT_TINT_WEIGHT],
+                None => [0.0; 4],
+            },
+            jitter: [0.0, 0.0, ox as f32, oy as f32],
             lighting: {
                 let inv_vmax = match &tex.variance {
                     Some(_) if settings.variance_max > 0.0 => 1.0 / settings.variance_max,
@@ -730,6 +964,7 @@ impl Renderer {
         let i10 = img(tex.variance.as_ref().unwrap_or(&tex.ambient).view);
         // E, or a bound image standing in, unread (bleeding.x = 0).
         let i11 = img(tex.bleeding.as_ref().unwrap_or(&tex.ambient).view);
+        let (i12, i13) = (img(tex.preint.view), img(self.blue_noise.view));
         let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
         let clip_maps = [clip.map_or(&self.no_clip, |c| c.maps).descriptor()];
@@ -782,6 +1017,14 @@ impl Renderer {
                 .dst_binding(11)
                 .descriptor_type(sampled)
                 .image_info(&i11),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(12)
+                .descriptor_type(sampled)
+                .image_info(&i12),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(13)
+                .descriptor_type(sampled)
+                .image_info(&i13),
         ];
         for eye in 0..2u32 {
             let color_att = [vk::RenderingAttachmentInfo::default()

@@ -342,12 +342,16 @@ fn constant_environment_lights_with_albedo_times_light() {
         clip: None,
         sh: None,
     };
+    // Albedo alone: ambient 1, no diffuse or specular term, no AO; point samples, so that
+    // the two renders' colours go through the same arithmetic.
     let black = RenderSettings {
         background: [0.0; 3],
+        ambient: 1.0,
         diffuse: 0.0,
+        specular: 0.0,
+        preintegrated: false,
         ..RenderSettings::default()
     };
-    // Albedo alone: ambient 1, no AO.
     let flat = RenderSettings {
         use_ao: false,
         ..black

@@ -38,6 +38,7 @@ fn lighting() -> LightingOptions {
             ..Default::default()
         },
         yaw_deg: 0.0,
+        shading: Default::default(),
     }
 }
 

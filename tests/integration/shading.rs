@@ -1,0 +1,264 @@
+//! Picture quality of the ray caster on lavapipe with validation on: the default settings
+//! against the reference render (a 16x finer step, point samples, no jitter), cut faces lit by
+//! the tool's normal, and a jitter pattern that is fixed per eye.
+
+use crate::common;
+use cao_xr::ao::lao::LaoParams;
+use cao_xr::app::frame_loop::FrameLoop;
+use cao_xr::gpu::Gpu;
+use cao_xr::input::{FrameInput, InteractionSettings};
+use cao_xr::render::compare::{luma, psnr, ssim};
+use cao_xr::render::{RenderSettings, StereoImage};
+use cao_xr::scene::{Tool, ToolMode};
+use cao_xr::space::{default_stereo_views, Placement, Pose, DEFAULT_IPD};
+use cao_xr::volume::transfer::TransferFunction;
+use cao_xr::volume::{phantom, Modality, Volume, Voxels};
+use glam::{DMat3, DVec3, Quat, Vec3};
+use std::sync::Arc;
+
+const W: u32 = 128;
+
+fn frame_loop(gpu: &Gpu, vol: &Arc<Volume>, lao: LaoParams) -> FrameLoop {
+    let tf = TransferFunction::preset("ct-bone").unwrap();
+    let mut fl = FrameLoop::new(
+        gpu,
+        Arc::clone(vol),
+        vec![tf],
+        lao,
+        (W, W),
+        InteractionSettings::default(),
+        false,
+    )
+    .unwrap();
+    fl.show_overlay = false;
+    fl
+}
+
+/// One frame of `fl` with `settings`, the volume at `placement`, eyes `ipd` apart.
+fn frame(
+    fl: &mut FrameLoop,
+    settings: RenderSettings,
+    placement: Placement,
+    ipd: f32,
+) -> StereoImage {
+    fl.settings = settings;
+    fl.scene.volume = placement;
+    let views = default_stereo_views(fl.volume(), &placement, ipd);
+    fl.frame(&FrameInput::without_hands(0.0, views))
+        .unwrap()
+        .image
+}
+
+/// PSNR (dB) and SSIM of the left eye of `b` against that of `a`, on luma.
+fn quality(a: &StereoImage, b: &StereoImage) -> (f64, f64) {
+    let (la, lb) = (luma(&a.rgba[0]), luma(&b.rgba[0]));
+    (psnr(&la, &lb), ssim(&la, &lb, W as usize, W as usize))
+}
+
+/// The issue's bar: at the default step PSNR >= 35 dB and SSIM >= 0.97 against the reference
+/// on two views; with pre-integration a step twice the default still >= 32 dB. Point samples
+/// at that coarser step are shown to fall short, so the test measures what pre-integration buys.
+#[test]
+fn the_default_render_is_within_35_db_of_the_reference_on_two_views() {
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(40));
+    let mut fl = frame_loop(
+        &gpu,
+        &vol,
+        LaoParams {
+            rays: 6,
+            ..Default::default()
+        },
+    );
+    let default = RenderSettings::default();
+    let step = default.step_for(vol.spacing);
+    let turned = Quat::from_rotation_y(std::f32::consts::FRAC_PI_2) * Quat::from_rotation_x(0.4);
+    for (name, rotation) in [("front", Quat::IDENTITY), ("side", turned)] {
+        let placement = Placement {
+            rotation,
+            ..Placement::default()
+        };
+        let reference = frame(
+            &mut fl,
+            default.reference(vol.spacing),
+            placement,
+            DEFAULT_IPD,
+        );
+        let got = frame(&mut fl, default, placement, DEFAULT_IPD);
+        let (p, s) = quality(&reference, &got);
+        eprintln!("{name}: default PSNR {p:.2} dB SSIM {s:.4}");
+        assert!(
+            p >= 35.0 && s >= 0.97,
+            "{name}: PSNR {p:.2} dB, SSIM {s:.4}"
+        );
+        let coarse = RenderSettings {
+            step_mm: 2.0 * step,
+            ..default
+        };
+        let (p2, _) = quality(&reference, &frame(&mut fl, coarse, placement, DEFAULT_IPD));
+        let point = RenderSettings {
+            preintegrated: false,
+            ..coarse
+        };
+        let (p2_point, _) = quality(&reference, &frame(&mut fl, point, placement, DEFAULT_IPD));
+        eprintln!("{name}: 2x step PSNR {p2:.2} dB pre-integrated, {p2_point:.2} dB point samples");
+        assert!(p2 >= 32.0, "{name}: 2x step pre-integrated PSNR {p2:.2} dB");
+    }
+    common::assert_no_validation_messages(&gpu);
+}
+
+/// A solid cube (1 mm voxels) with a closed spherical cavity at its centre.
+fn cube_with_cavity(n: usize, cavity_mm: f64) -> Volume {
+    let c = n as f64 / 2.0;
+    let mut v = vec![-1000i16; n * n * n];
+    for k in 0..n {
+        for j in 0..n {
+            for i in 0..n {
+                let p = DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5);
+                let inside = [i, j, k].iter().all(|&x| (4..n - 4).contains(&x));
+                if inside && (p - DVec3::splat(c)).length() > cavity_mm {
+                    v[i + n * (j + n * k)] = 1500;
+                }
+            }
+        }
+    }
+    Volume {
+        name: "cube-with-cavity".into(),
+        dims: [n; 3],
+        spacing: [1.0; 3],
+        directions: DMat3::IDENTITY,
+        origin: DVec3::ZERO,
+        modality: Modality::Ct,
+        voxels: Voxels::I16(v),
+    }
+}
+
+/// Mean luma of the left eye's pixels whose distance from the image centre, in pixels, lies in
+/// [r0, r1).
+fn ring_mean(img: &StereoImage, r0: f64, r1: f64) -> f64 {
+    let l = luma(&img.rgba[0]);
+    let c = W as f64 / 2.0;
+    let (mut sum, mut n) = (0.0, 0);
+    for y in 0..W as usize {
+        for x in 0..W as usize {
+            let r = ((x as f64 + 0.5 - c).powi(2) + (y as f64 + 0.5 - c).powi(2)).sqrt();
+            if (r0..r1).contains(&r) {
+                sum += l[y * W as usize + x];
+                n += 1;
+            }
+        }
+    }
+    assert!(n > 0);
+    sum / n as f64
+}
+
+/// A box tool cuts the front off a solid cube just in front of a closed cavity: the cut face
+/// (a plane facing the headlight) must read brighter than the cavity seen through the hole in
+/// it, which the AO darkens. The data's gradient is zero inside the solid, so with cut-face
+/// lighting off the cut face is lit by the ambient term alone and the order flips.
+#[test]
+fn the_cut_face_is_lit_by_the_tools_normal_and_the_cavity_behind_it_darkens() {
+    let gpu = common::gpu();
+    let n = 40;
+    let vol = Arc::new(cube_with_cavity(n, 6.0));
+    let lao = LaoParams {
+        rays: 14,
+        steps: 12,
+        step_mm: 1.0,
+    };
+    let mut fl = frame_loop(&gpu, &vol, lao);
+    let placement = Placement::default();
+    // A box of half-edge 30 mm whose back face is 2 mm in front of the cavity's centre (towards
+    // the eye).
+    let cut_mm = 2.0;
+    fl.scene.tools = vec![Tool {
+        shape: cao_xr::clip::Shape::builtin("box").unwrap(),
+        pose: Pose {
+            position: placement.center + Vec3::new(0.0, 0.0, (cut_mm + 30.0) * 1e-3),
+            orientation: Quat::IDENTITY,
+        },
+        size: 0.03,
+        mode: ToolMode::Carve,
+        active: true,
+    }];
+    // Pixels per mm at the volume's centre plane: the views frame its bounding sphere.
+    let views = default_stereo_views(&vol, &placement, 0.0);
+    let half_width_mm = views[0].pose.position.z - placement.center.z;
+    let px_per_mm = W as f64 / (2.0 * (half_width_mm * views[0].fov.angle_up.tan()) as f64 * 1e3);
+    let hole_mm = (6.0f64 * 6.0 - cut_mm as f64 * cut_mm as f64).sqrt();
+    let measure = |fl: &mut FrameLoop, cut_lighting: bool| {
+        let img = frame(
+            fl,
+            RenderSettings {
+                cut_lighting,
+                ..RenderSettings::default()
+            },
+            placement,
+            0.0,
+        );
+        let cavity = ring_mean(&img, 0.0, 0.5 * hole_mm * px_per_mm);
+        let face = ring_mean(&img, (hole_mm + 3.0) * px_per_mm, 13.0 * px_per_mm);
+        (face, cavity)
+    };
+    let (face, cavity) = measure(&mut fl, true);
+    eprintln!("cut lighting on: cut face {face:.1}, cavity {cavity:.1}");
+    assert!(
+        face > 1.15 * cavity,
+        "the cut face ({face:.1}) does not read brighter than the cavity ({cavity:.1})"
+    );
+    let (face_off, cavity_off) = measure(&mut fl, false);
+    eprintln!("cut lighting off: cut face {face_off:.1}, cavity {cavity_off:.1}");
+    assert!(
+        face_off <= 1.15 * cavity_off,
+        "without cut-face lighting the cut face ({face_off:.1}) still beats the cavity \
+         ({cavity_off:.1}): the test does not measure the tool's normal"
+    );
+    assert!(
+        (cavity - cavity_off).abs() < 2.0,
+        "the cavity's light changed: {cavity} vs {cavity_off}"
+    );
+    common::assert_no_validation_messages(&gpu);
+}
+
+/// Each eye has its own blue-noise pattern, the same every frame: with both eyes at one pose the
+/// two pictures differ only by their jitter, and a second frame repeats the first bit for bit.
+#[test]
+fn the_jitter_pattern_is_fixed_per_eye() {
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(32));
+    let mut fl = frame_loop(
+        &gpu,
+        &vol,
+        LaoParams {
+            rays: 6,
+            ..Default::default()
+        },
+    );
+    let coarse = RenderSettings {
+        step_mm: 4.0,
+        ..RenderSettings::default()
+    };
+    let p = Placement::default();
+    let a = frame(&mut fl, coarse, p, 0.0);
+    let b = frame(&mut fl, coarse, p, 0.0);
+    assert!(a == b, "the same frame rendered twice differs");
+    assert!(
+        a.rgba[0] != a.rgba[1],
+        "both eyes got the same jitter pattern"
+    );
+    let still = frame(
+        &mut fl,
+        RenderSettings {
+            jitter: false,
+            ..coarse
+        },
+        p,
+        0.0,
+    );
+    assert!(
+        still.rgba[0] == still.rgba[1],
+        "without jitter the two eyes at one pose differ"
+    );
+    assert!(still.rgba[0] != a.rgba[0], "the jitter changed nothing");
+    common::assert_no_validation_messages(&gpu);
+}
