@@ -11,16 +11,30 @@
 # xr-validation.txt and whatever the session wrote into its working directory (e.g. a
 # recording named with a relative path). Exit status: that of cao-xr. With
 # CAO_XR_KILL_RUNTIME_AFTER=S, monado-service is killed S seconds after it is up.
+#
+# CAO_XR_MONADO=remote runs Monado's remote driver instead of the simulated devices: an HMD and
+# two Index controllers with simulated hands, driven over TCP port 4242 (struct r_remote_data).
+# The session then gets its own network namespace with only loopback, so the port is reachable
+# from nowhere else; the pid of a process inside it is written to OUTDIR/netns.pid for the
+# client to join (setns), and cao-xr starts once Monado has logged the client's connection
+# (waiting at most CAO_XR_REMOTE_WAIT seconds, default 60).
 set -euo pipefail
 ROOT=$(realpath "$1"); BIN=$2; OUT=$3; shift 3
 [ -f "$ROOT/.cao-xr-ready" ] || { echo "xr-session: $ROOT is not a built root (run scripts/xr-root.sh)" >&2; exit 2; }
+export CAO_XR_MONADO=${CAO_XR_MONADO:-simulated}
+case $CAO_XR_MONADO in
+  simulated) NET= ;;
+  remote) NET=--net ;;
+  *) echo "xr-session: CAO_XR_MONADO is '$CAO_XR_MONADO'; it must be simulated or remote" >&2; exit 2 ;;
+esac
 mkdir -p "$OUT"; OUT=$(realpath "$OUT")
+rm -f "$OUT/netns.pid"
 mkdir -p "$ROOT/tmp"
 WORK=$(mktemp -d "$ROOT/tmp/cao-xr.XXXXXX")
 chmod 755 "$WORK"
 REL=${WORK#"$ROOT"}
 # Keep what the session wrote (logs, recordings), not the binary, the bindings or the fifo.
-trap 'find "$WORK" -maxdepth 1 -type f ! -name cao-xr ! -name inner.sh -exec cp {} "$OUT"/ \; ; rm -rf "$WORK"' EXIT
+trap 'find "$WORK" -maxdepth 1 -type f ! -name cao-xr ! -name inner.sh -exec cp {} "$OUT"/ \; ; rm -rf "$WORK" "$OUT/netns.pid"' EXIT
 cp "$BIN" "$WORK/cao-xr"
 cp -r "$(dirname "$0")/../controllers/bindings" "$WORK/bindings"
 cat > "$WORK/inner.sh" <<'INNER'
@@ -30,7 +44,13 @@ cd "$W"
 export XDG_RUNTIME_DIR=$W/run
 mkdir -p -m 700 "$XDG_RUNTIME_DIR"
 export VK_DRIVER_FILES=/usr/share/vulkan/icd.d/lvp_icd.json
-export XRT_COMPOSITOR_NULL=1 SIMULATED_ENABLE=1 SIMULATED_LEFT=simple SIMULATED_RIGHT=simple
+# Monado's configuration comes from the session alone, never from the root's home.
+export XRT_COMPOSITOR_NULL=1 XDG_CONFIG_HOME=$W/config
+if [ "$CAO_XR_MONADO" = remote ]; then
+  export P_OVERRIDE_ACTIVE_CONFIG=remote
+else
+  export SIMULATED_ENABLE=1 SIMULATED_LEFT=simple SIMULATED_RIGHT=simple
+fi
 # monado-service reads stdin (and quits on EOF): give it a pipe that stays open until we close it.
 mkfifo "$W/service-stdin"
 monado-service < "$W/service-stdin" > "$W/monado.log" 2>&1 &
@@ -42,6 +62,15 @@ if [ ! -S "$XDG_RUNTIME_DIR/monado_comp_ipc" ]; then
   echo "xr-session: monado-service did not come up; its log:" >&2; cat "$W/monado.log" >&2; stop; exit 3
 fi
 echo "xr-session: monado-service is up" >&2
+if [ "$CAO_XR_MONADO" = remote ]; then
+  for _ in $(seq $((${CAO_XR_REMOTE_WAIT:-60} * 10))); do
+    grep -q "Connection received" "$W/monado.log" && break; kill -0 $MON 2>/dev/null || break; sleep 0.1
+  done
+  if ! grep -q "Connection received" "$W/monado.log"; then
+    echo "xr-session: no client connected to Monado's remote driver; its log:" >&2; cat "$W/monado.log" >&2; stop; exit 3
+  fi
+  echo "xr-session: a client drives Monado's remote devices" >&2
+fi
 # A runtime fault, for the tests: CAO_XR_KILL_RUNTIME_AFTER=S kills monado-service (SIGKILL) S
 # seconds into the session, and writes the moment to runtime-killed.txt.
 if [ -n "${CAO_XR_KILL_RUNTIME_AFTER:-}" ]; then
@@ -55,9 +84,10 @@ rc=$?
 stop
 exit $rc
 INNER
-unshare --mount --propagation private -- bash -c '
+unshare --mount $NET --propagation private -- bash -c '
   set -e
+  if [ -n "$4" ]; then ip link set lo up; echo $$ > "$3/netns.pid"; fi
   mount --rbind /dev "$1/dev"
   mount -t proc proc "$1/proc"
   mount --rbind /sys "$1/sys"
-  exec chroot "$1" /bin/bash "$2/inner.sh" "$2" "${@:3}"' _ "$ROOT" "$REL" "$@"
+  exec chroot "$1" /bin/bash "$2/inner.sh" "$2" "${@:5}"' _ "$ROOT" "$REL" "$OUT" "$NET" "$@"
