@@ -1409,3 +1409,101 @@ fn a_signal_during_a_replay_leaves_no_partial_metrics_under_the_final_name() {
         }
     }
 }
+
+#[test]
+fn compare_measures_a_render_against_the_reference_and_refuses_bad_pictures() {
+    let dir = tmp("compare");
+    let render = |name: &str, extra: &[&str]| {
+        let out_dir = dir.join(name);
+        let mut args = vec!["render", "phantom:24", "--rays", "6", "--size", "48x48"];
+        args.extend_from_slice(extra);
+        args.extend(["--out", out_dir.to_str().unwrap()]);
+        let o = cao(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        out_dir
+    };
+    let (def, reference) = (
+        render("default", &[]),
+        render("reference", &["--reference"]),
+    );
+    let flat = render("flat", &["--shading", "ao"]);
+    let diff = dir.join("diff.png");
+    let psnr_of = |a: &Path, b: &Path, extra: &[&str]| -> f64 {
+        let mut args = vec!["compare", a.to_str().unwrap(), b.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        let o = cao(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let text = String::from_utf8_lossy(&o.stdout).to_string();
+        assert!(text.contains("SSIM") && text.contains("48x48"), "{text}");
+        text.split_whitespace().nth(1).unwrap().parse().unwrap()
+    };
+    let near = psnr_of(
+        &reference.join("left.png"),
+        &def.join("left.png"),
+        &["--diff", diff.to_str().unwrap()],
+    );
+    // Another shading mode is a different picture: much further from the reference.
+    let far = psnr_of(&reference.join("left.png"), &flat.join("left.png"), &[]);
+    assert!(
+        near > 30.0 && far < near - 5.0,
+        "near {near} dB, far {far} dB"
+    );
+    assert!(psnr_of(&def.join("left.png"), &def.join("left.png"), &[]).is_infinite());
+    let (w, h, _, _) = read_png(&diff);
+    assert_eq!((w, h), (48, 48));
+    // Pictures of different sizes, and a file that is no PNG, are refused by name.
+    let o = cao(&[
+        "compare",
+        def.join("left.png").to_str().unwrap(),
+        def.join("stereo.png").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("differ in size"));
+    let junk = dir.join("junk.png");
+    std::fs::write(&junk, b"not a picture").unwrap();
+    let o = cao(&[
+        "compare",
+        junk.to_str().unwrap(),
+        def.join("left.png").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("junk.png"));
+    // A shading mode or tint that does not exist is refused with what does.
+    let o = cao(&["render", "phantom:16", "--shading", "toon"]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("phong+ao"));
+    let o = cao(&["render", "phantom:16", "--cut-tint", "2,0,0"]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("0..1"));
+}
+
+#[test]
+fn bench_quality_prints_every_step_multiple_against_the_reference() {
+    let out = cao(&[
+        "bench",
+        "quality",
+        "phantom:20",
+        "--size",
+        "32",
+        "--runs",
+        "1",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    let rows: Vec<&str> = text
+        .lines()
+        .filter(|l| l.starts_with("phantom-20"))
+        .collect();
+    // Per view: the reference, then 1x, 2x, 4x each with pre-integration on and off.
+    assert_eq!(rows.len(), 2 * 7, "{text}");
+    assert!(
+        rows.iter().filter(|r| r.contains(" ref ")).count() == 2,
+        "{text}"
+    );
+    assert!(
+        text.contains("PSNR dB") && text.contains("render ms"),
+        "{text}"
+    );
+}
