@@ -41,6 +41,8 @@ layout(push_constant) uniform Eye { uint index; } eye;
 layout(location = 0) out vec4 out_color;
 
 const float OPAQUE = 0.99;
+// Bisections that place a cut face within 1/64 of a step.
+const int CUT_BISECTIONS = 6;
 const float DEPTH_ALPHA = 0.05;
 
 const uint PREINTEGRATED = 1u;
@@ -214,9 +216,21 @@ void main() {
                     have_prev = false;
                     continue;
                 }
-                if (prev_tool >= 0 && frame.surface.y > 0.0) {
-                    cut_t = t;
-                    cut_n = cut_normal_mm(uint(prev_tool), w);
+                if (prev_tool >= 0) {
+                    // The cut lies between the last hidden sample and this one: find it, and
+                    // step on from there, so a cut face sits where the tool is rather than
+                    // where the jittered samples happen to fall.
+                    float lo = t - dt;
+                    for (int k = 0; k < CUT_BISECTIONS; k++) {
+                        float mid = 0.5 * (lo + t);
+                        if (hiding_tool(a_w + mid * (b_w - a_w)) >= 0) lo = mid; else t = mid;
+                    }
+                    p = o + t * d;
+                    w = a_w + t * (b_w - a_w);
+                    if (frame.surface.y > 0.0) {
+                        cut_t = t;
+                        cut_n = cut_normal_mm(uint(prev_tool), w);
+                    }
                 }
                 prev_tool = -1;
             }
