@@ -144,6 +144,8 @@ pub(crate) fn open_instance() -> Result<(xr::Entry, xr::Instance, xr::ExtensionS
     exts.ext_hand_tracking = available.ext_hand_tracking;
     // Its interaction profile (pinch_ext, grasp_ext), for controllers/bindings/ext_hand_interaction.json.
     exts.ext_hand_interaction = available.ext_hand_interaction;
+    // Passthrough cameras composited under the volume (Quest, Pico), for --passthrough.
+    exts.fb_passthrough = available.fb_passthrough;
     let instance = entry
         .create_instance(
             &xr::ApplicationInfo {

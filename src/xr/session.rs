@@ -3,7 +3,7 @@
 //! and swapchains, and each frame's wait, locate, acquire, release and submit. The frame loop
 //! that fills the images is the caller's (`app::headset`).
 
-use super::blend::{choose_blend, BlendMode};
+use super::blend::{choose_blend, BlendMode, Composition};
 use super::conversions::pose_from_xr;
 use super::conversions::{frame_views, projection_views};
 use super::swapchain::{
@@ -161,6 +161,9 @@ impl FrameImages {
 /// to bottom): swapchains and spaces before the session, and all of it before the runtime and
 /// the Gpu, which the caller holds and which outlive it.
 pub struct XrSession<'a> {
+    /// XR_FB_passthrough's layer and feature, when frames composite over its cameras (the layer
+    /// drops before the feature it was made from).
+    fb_passthrough: Option<(xr::PassthroughLayerFB, xr::Passthrough)>,
     swapchain: Swapchain,
     depth_swapchain: Option<Swapchain>,
     spaces: actions::HandSpaces,
@@ -173,8 +176,9 @@ pub struct XrSession<'a> {
     session: xr::Session<xr::Vulkan>,
     actions: actions::HandActions,
     runtime: &'a XrRuntime,
-    /// The environment blend mode every frame is submitted with.
-    pub blend: super::blend::BlendMode,
+    /// The environment blend mode every frame is submitted with (and XR_FB_passthrough's
+    /// layer under it, or not).
+    pub blend: Composition,
     machine: StateMachine,
     exit_requested: bool,
     /// The first frame's display time: input times count from it.
@@ -194,8 +198,13 @@ impl<'a> XrSession<'a> {
             .into_iter()
             .filter_map(BlendMode::from_xr)
             .collect();
-        let blend =
-            choose_blend(&offered, opts.blend, opts.passthrough).map_err(XrError::Runtime)?;
+        let blend = choose_blend(
+            &offered,
+            opts.blend,
+            opts.passthrough,
+            runtime.exts.fb_passthrough,
+        )
+        .map_err(XrError::Runtime)?;
         eprintln!(
             "xr: blend mode {} (the runtime offers {})",
             blend.name(),
@@ -289,7 +298,21 @@ impl<'a> XrSession<'a> {
         }
         let hand_trackers = hand_trackers(runtime, &session);
         let hand_trackers_ok = hand_trackers.is_some();
+        let fb_passthrough = if blend.fb_passthrough {
+            // Created running: openxr 0.22's Passthrough::start calls the pause function.
+            let running = xr::PassthroughFlagsFB::IS_RUNNING_AT_CREATION;
+            let feature = session.create_passthrough(running)?;
+            let layer = session.create_passthrough_layer(
+                &feature,
+                running,
+                xr::PassthroughLayerPurposeFB::RECONSTRUCTION,
+            )?;
+            Some((layer, feature))
+        } else {
+            None
+        };
         Ok(XrSession {
+            fb_passthrough,
             hand_trackers,
             gestures: [HandGesture::default(); 2],
             swapchain,
@@ -391,14 +414,14 @@ impl<'a> XrSession<'a> {
         self.stream.begin()?;
         let time = fs.predicted_display_time;
         if !fs.should_render || skip {
-            self.stream.end(time, self.blend.to_xr(), &[])?;
+            self.stream.end(time, self.blend.blend.to_xr(), &[])?;
             return Ok(None);
         }
         self.session
             .sync_actions(&[xr::ActiveActionSet::new(&self.actions.set)])?;
         let (flags, located) = self.session.locate_views(VIEW_TYPE, time, &self.base)?;
         let Some(views) = frame_views(flags, &located, &mut self.last_views) else {
-            self.stream.end(time, self.blend.to_xr(), &[])?;
+            self.stream.end(time, self.blend.blend.to_xr(), &[])?;
             return Ok(None);
         };
         let mut hands = self
@@ -535,12 +558,32 @@ impl<'a> XrSession<'a> {
         let mut layer = xr::CompositionLayerProjection::new()
             .space(&self.base)
             .views(&proj);
-        if self.blend == BlendMode::AlphaBlend {
+        if self.blend.source_alpha() {
             // Premultiplied colour, alpha = the volume's accumulated opacity: the runtime
-            // composites the layer over the world by its alpha.
+            // composites the layer over the world (or the passthrough layer) by its alpha.
             layer = layer.layer_flags(xr::CompositionLayerFlags::BLEND_TEXTURE_SOURCE_ALPHA);
         }
-        self.stream.end(time, self.blend.to_xr(), &[&layer])?;
+        let mode = self.blend.blend.to_xr();
+        match &self.fb_passthrough {
+            // The cameras' layer first, so the volume's layer composites over it.
+            Some((cameras, _)) => {
+                let raw = xr::sys::CompositionLayerPassthroughFB {
+                    ty: xr::sys::CompositionLayerPassthroughFB::TYPE,
+                    next: std::ptr::null(),
+                    flags: xr::CompositionLayerFlags::BLEND_TEXTURE_SOURCE_ALPHA,
+                    space: <xr::sys::Space as xr::sys::Handle>::NULL,
+                    layer_handle: cameras.as_raw(),
+                };
+                // SAFETY: openxr 0.22 builds this layer but does not export its builder; every
+                // XrCompositionLayer* begins with the base header (type, next), which is all
+                // that CompositionLayerBase wraps (repr(transparent)), and `raw` outlives the
+                // xrEndFrame below.
+                let under: &xr::CompositionLayerBase<xr::Vulkan> =
+                    unsafe { &*(&raw as *const _ as *const xr::CompositionLayerBase<xr::Vulkan>) };
+                self.stream.end(time, mode, &[under, &layer])?;
+            }
+            None => self.stream.end(time, mode, &[&layer])?,
+        }
         if depth_info.is_some() {
             self.summary.depth_frames += 1;
         }

@@ -202,7 +202,7 @@ fn monado_refuses_a_blend_mode_it_does_not_offer_and_lists_what_it_offers() {
         assert!(!run.status.success(), "{args:?} was accepted:\n{stderr}");
         let want = match args {
             ["--blend", _] => "--blend alpha-blend: the runtime does not offer it; it offers: opaque",
-            _ => "--passthrough needs the alpha-blend or additive blend mode; the runtime offers only: opaque",
+            _ => "--passthrough needs the alpha-blend or additive blend mode or XR_FB_passthrough; the runtime offers only: opaque (nor XR_FB_passthrough)",
         };
         assert!(stderr.contains(want), "{args:?}: no '{want}' in\n{stderr}");
     }
