@@ -333,7 +333,7 @@ impl<'a> XrSession<'a> {
                 space: space_name.into(),
                 depth_missing,
                 hand_tracking: hand_trackers_ok,
-                blend: blend.name().into(),
+                blend: blend.name(),
                 blend_offered: offered.iter().map(|m| m.name().to_string()).collect(),
                 ..Default::default()
             },
