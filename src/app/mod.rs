@@ -135,14 +135,21 @@ pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>) -> Result<Volume> 
                     Ok(crate::volume::nifti::load_frame(p, frame)?)
                 }
                 "mha" | "mhd" => Ok(crate::volume::metaimage::load(p)?),
+                // one file of a DICOM series (named so, or found to be one): the whole series
+                "dcm" | "dicom" | "ima" if p.exists() => {
+                    Ok(crate::volume::dicom::load_file_series(p)?)
+                }
                 "raw" | "dat" | "bin" => Err(AppError::Usage(format!(
                     "{path}: a raw volume needs --raw-dims X,Y,Z (and --raw-type, --raw-spacing)"
                 ))),
+                _ if crate::volume::dicom::is_dicom_file(p) => {
+                    Ok(crate::volume::dicom::load_file_series(p)?)
+                }
                 _ if !p.exists() => Err(AppError::Usage(format!(
-                    "{path}: no such file or directory (volumes: a .nrrd/.nhdr/.nii/.nii.gz/.mha/.mhd file, a DICOM series directory DIR or DIR#N, raw with --raw-dims, phantom[:N], ct-head)"
+                    "{path}: no such file or directory (volumes: a .nrrd/.nhdr/.nii/.nii.gz/.mha/.mhd file, a DICOM series directory DIR or DIR#N or one of its files, raw with --raw-dims, phantom[:N], ct-head)"
                 ))),
                 _ => Err(AppError::Usage(format!(
-                    "{path}: unknown volume format (supported: .nrrd, .nhdr, .nii, .nii.gz, .mha, .mhd, a DICOM series directory, raw with --raw-dims)"
+                    "{path}: unknown volume format (supported: .nrrd, .nhdr, .nii, .nii.gz, .mha, .mhd, a DICOM series directory or file, raw with --raw-dims)"
                 ))),
             }
         }
