@@ -84,17 +84,31 @@ pub struct FrameLoop {
 impl FrameLoop {
     /// Classifies the volume with the first of `tfs`, precomputes V_PAO (with a progress bar
     /// when asked) and sets up CAO and the renderer for `size` pixels per eye. The menu button
-    /// cycles through `tfs` ([`super::tf_switch::tf_cycle`] makes the usual list).
+    /// cycles through `tfs` ([`super::tf_switch::tf_cycle`] makes the usual list). Running out
+    /// of GPU memory is told with [`super::fit_advice`].
     pub fn new(
         gpu: &Gpu,
         vol: Arc<Volume>,
         tfs: Vec<TransferFunction>,
         ao: impl Into<AoConfig>,
         size: (u32, u32),
+        interaction: InteractionSettings,
+        show_progress: bool,
+    ) -> Result<FrameLoop> {
+        let v = vol.clone();
+        Self::build(gpu, vol, tfs, ao.into(), size, interaction, show_progress)
+            .map_err(|e| super::fit_advice(&v, e))
+    }
+
+    fn build(
+        gpu: &Gpu,
+        vol: Arc<Volume>,
+        tfs: Vec<TransferFunction>,
+        config: AoConfig,
+        size: (u32, u32),
         mut interaction: InteractionSettings,
         show_progress: bool,
     ) -> Result<FrameLoop> {
-        let config: AoConfig = ao.into();
         let ao = config;
         let params = ao.lao;
         let tf = tfs.first().ok_or_else(|| {
@@ -161,13 +175,10 @@ impl FrameLoop {
                         .into(),
                 ));
             }
-            self.lighting = Some(ShLighting::new(
-                &self.gpu,
-                &self.volume,
-                opts,
-                &mut self.cao,
-                show_progress,
-            )?);
+            self.lighting = Some(
+                ShLighting::new(&self.gpu, &self.volume, opts, &mut self.cao, show_progress)
+                    .map_err(|e| super::fit_advice(&self.volume, e))?,
+            );
         }
         Ok(())
     }

@@ -293,9 +293,54 @@ fn upload_opacity(
     Ok((buf, skip))
 }
 
+/// Bytes per voxel of an upload's host-visible staging copy (one f32 volume at a time).
+const STAGING_BYTES_PER_VOXEL: u64 = 4;
+
+/// GPU memory running out while `vol` is set up (past the limits check: beside everything else
+/// the GPU holds), told with the volume and the `--downsample N` that would fit. Allocations of
+/// at least a byte per voxel are taken to scale with the volume, at no less than
+/// [`crate::render::GPU_BYTES_PER_VOXEL`] plus a staging copy per voxel in all; the others to
+/// stay as they are. Any other error is returned as it is.
+pub fn fit_advice(vol: &Volume, e: AppError) -> AppError {
+    let AppError::Gpu(GpuError::OutOfMemory(m)) = &e else {
+        return e;
+    };
+    let voxels = vol.voxel_count().max(1) as u64;
+    let (scaled, fixed): (Vec<u64>, Vec<u64>) =
+        m.held.iter().chain([&m.bytes]).partition(|&&b| b >= voxels);
+    let per_voxel = (scaled.iter().sum::<u64>() as f64 / voxels as f64)
+        .max((crate::render::GPU_BYTES_PER_VOXEL + STAGING_BYTES_PER_VOXEL) as f64);
+    let fixed: u64 = fixed.iter().sum();
+    let fits = (2..=64u64).find(|&n| {
+        let v: u64 = vol.dims.iter().map(|&d| (d as u64).div_ceil(n)).product();
+        fixed as f64 + per_voxel * v as f64 <= m.available as f64
+    });
+    let [x, y, z] = vol.dims;
+    AppError::Gpu(GpuError::Other(format!(
+        "volume {} ({x} x {y} x {z}) does not fit beside everything else on the GPU: {m}; {}",
+        vol.name,
+        match fits {
+            Some(n) => format!("try --downsample {n}"),
+            None => "not even --downsample 64 makes it fit: free GPU memory first".into(),
+        }
+    )))
+}
+
 /// Classifies the volume and precomputes V_PAO with the configured AO method: LAO (with a
 /// progress bar when asked), or the filters over the density they filter (one fast pass).
+/// Running out of GPU memory is told with [`fit_advice`].
 pub fn precompute(
+    gpu: &Gpu,
+    lao: &LaoGpu,
+    vol: &Volume,
+    tf: &TransferFunction,
+    ao: &AoConfig,
+    show_progress: bool,
+) -> Result<AoVolume> {
+    precompute_method(gpu, lao, vol, tf, ao, show_progress).map_err(|e| fit_advice(vol, e))
+}
+
+fn precompute_method(
     gpu: &Gpu,
     lao: &LaoGpu,
     vol: &Volume,
