@@ -18,7 +18,7 @@ use crate::ao::histogram::{self, HistParams};
 use crate::ao::histogram_gpu::HistogramGpu;
 use crate::ao::lao::{directions, LaoTiming, SkipBuffers};
 use crate::ao::{filtered, AoConfig, AoMethod, LaoGpu, LaoParams};
-use crate::gpu::{Buffer, Gpu, GpuError};
+use crate::gpu::{Buffer, Gpu, GpuError, OutOfMemory};
 use crate::input::{FrameInput, InteractionSettings};
 use crate::render::png_out::PngError;
 use crate::render::{
@@ -296,32 +296,46 @@ fn upload_opacity(
 /// Bytes per voxel of an upload's host-visible staging copy (one f32 volume at a time).
 const STAGING_BYTES_PER_VOXEL: u64 = 4;
 
-/// GPU memory running out while `vol` is set up (past the limits check: beside everything else
-/// the GPU holds), told with the volume and the `--downsample N` that would fit. Allocations of
-/// at least a byte per voxel are taken to scale with the volume, at no less than
-/// [`crate::render::GPU_BYTES_PER_VOXEL`] plus a staging copy per voxel in all; the others to
-/// stay as they are. Any other error is returned as it is.
-pub fn fit_advice(vol: &Volume, e: AppError) -> AppError {
-    let AppError::Gpu(GpuError::OutOfMemory(m)) = &e else {
-        return e;
-    };
+/// The smallest `--downsample N` that the GPU memory `m` says was missing would make room for:
+/// allocations of at least a byte per voxel are taken to scale with the volume, at no less
+/// than [`crate::render::GPU_BYTES_PER_VOXEL`] plus a staging copy per voxel in all; the others
+/// to stay as they are. None where not even N = 64 fits.
+pub fn downsample_estimate(vol: &Volume, m: &OutOfMemory) -> Option<usize> {
     let voxels = vol.voxel_count().max(1) as u64;
     let (scaled, fixed): (Vec<u64>, Vec<u64>) =
         m.held.iter().chain([&m.bytes]).partition(|&&b| b >= voxels);
     let per_voxel = (scaled.iter().sum::<u64>() as f64 / voxels as f64)
         .max((crate::render::GPU_BYTES_PER_VOXEL + STAGING_BYTES_PER_VOXEL) as f64);
     let fixed: u64 = fixed.iter().sum();
-    let fits = (2..=64u64).find(|&n| {
-        let v: u64 = vol.dims.iter().map(|&d| (d as u64).div_ceil(n)).product();
+    (2..=MAX_DOWNSAMPLE).find(|&n| {
+        let v: u64 = vol
+            .dims
+            .iter()
+            .map(|&d| (d as u64).div_ceil(n as u64))
+            .product();
         fixed as f64 + per_voxel * v as f64 <= m.available as f64
-    });
+    })
+}
+
+/// The largest `--downsample` suggested.
+pub const MAX_DOWNSAMPLE: usize = 64;
+
+/// GPU memory running out while `vol` is set up (past the limits check: beside everything else
+/// the GPU holds), told with the volume and the `--downsample N` that would fit (`fits`, else
+/// [`downsample_estimate`]). Any other error is returned as it is.
+pub fn fit_advice(vol: &Volume, e: AppError, fits: Option<usize>) -> AppError {
+    let AppError::Gpu(GpuError::OutOfMemory(m)) = &e else {
+        return e;
+    };
     let [x, y, z] = vol.dims;
     AppError::Gpu(GpuError::Other(format!(
         "volume {} ({x} x {y} x {z}) does not fit beside everything else on the GPU: {m}; {}",
         vol.name,
-        match fits {
+        match fits.or_else(|| downsample_estimate(vol, m)) {
             Some(n) => format!("try --downsample {n}"),
-            None => "not even --downsample 64 makes it fit: free GPU memory first".into(),
+            None => format!(
+                "not even --downsample {MAX_DOWNSAMPLE} makes it fit: free GPU memory first"
+            ),
         }
     )))
 }
@@ -337,10 +351,11 @@ pub fn precompute(
     ao: &AoConfig,
     show_progress: bool,
 ) -> Result<AoVolume> {
-    precompute_method(gpu, lao, vol, tf, ao, show_progress).map_err(|e| fit_advice(vol, e))
+    precompute_method(gpu, lao, vol, tf, ao, show_progress).map_err(|e| fit_advice(vol, e, None))
 }
 
-fn precompute_method(
+/// [`precompute`] with GPU memory exhaustion left as it is (for a caller that tells it).
+pub(crate) fn precompute_method(
     gpu: &Gpu,
     lao: &LaoGpu,
     vol: &Volume,
@@ -540,15 +555,14 @@ pub fn render_to_dir(
     out: &Path,
 ) -> Result<Option<FrameMetrics>> {
     let vol = &spec.volume;
-    let mut fl = FrameLoop::new(
-        gpu,
-        Arc::clone(vol),
-        vec![spec.tf.clone()],
-        spec.ao,
+    let built = frame_loop::Built {
+        config: spec.ao,
         size,
-        InteractionSettings::default(),
-        true,
-    )?;
+        interaction: InteractionSettings::default(),
+    };
+    let lighting = Some(&spec.lighting);
+    let tfs = vec![spec.tf.clone()];
+    let mut fl = FrameLoop::new_lit(gpu, Arc::clone(vol), tfs, built, lighting, true)?;
     fl.settings = RenderSettings {
         bleeding: spec.ao.bleeding,
         ..*settings
@@ -556,7 +570,8 @@ pub fn render_to_dir(
     if settings.transparent {
         fl.settings.background = [0.0; 3];
     }
-    fl.set_lighting(&spec.lighting, true)?;
+    // the lighting's shading on these settings (new_lit applied it to the defaults)
+    spec.lighting.apply(&mut fl.settings);
     fl.set_variance(spec.variance)?;
     fl.show_overlay = false;
     fl.scene.tools = tools.to_vec();

@@ -49,40 +49,49 @@ fn suggested(stderr: &str) -> usize {
 #[test]
 fn a_volume_beyond_the_gpu_memory_budget_is_refused_with_the_downsample_that_fits() {
     let dir = tmp("budget");
-    // the budget runs out at different points: the first upload's staging copy, a device
-    // buffer beside others, an image late in the set-up
-    for (budget, want) in [("3", 3), ("12", 2), ("40", 2)] {
-        let out = render(budget, &[], &dir.join(format!("full-{budget}")));
+    // the budget runs out at different points (the first upload's staging copy, a device
+    // buffer beside others, an image late in the set-up), with LAO, a filter and SH lighting
+    let cases: [(&str, &[&str], usize); 5] = [
+        ("3", &[], 3),
+        ("12", &[], 2),
+        ("40", &[], 2),
+        ("12", &["--ao", "filter-gauss"], 3),
+        ("3", &["--lighting", "sh"], 4),
+    ];
+    for (budget, extra, want) in cases {
+        let what = format!("budget {budget} MiB {extra:?}");
+        let out = render(budget, extra, &dir.join("full"));
         let stderr = String::from_utf8_lossy(&out.stderr);
-        assert_eq!(out.status.code(), Some(1), "budget {budget} MiB: {stderr}");
+        assert_eq!(out.status.code(), Some(1), "{what}: {stderr}");
         for s in [
             "volume phantom-128 (128 x 128 x 128) does not fit beside everything else on the GPU",
             "out of GPU memory: ",
             " MiB budget (CAO_XR_GPU_BUDGET_MB) are in use",
         ] {
-            assert!(
-                stderr.contains(s),
-                "budget {budget} MiB: no {s:?} in {stderr}"
-            );
+            assert!(stderr.contains(s), "{what}: no {s:?} in {stderr}");
         }
         let n = suggested(&stderr);
-        assert_eq!(n, want, "budget {budget} MiB: {stderr}");
+        assert_eq!(n, want, "{what}: {stderr}");
         // the suggestion fits, and no smaller one does
-        let fits = dir.join(format!("ds{n}-{budget}"));
-        let out = render(budget, &["--downsample", &n.to_string()], &fits);
+        let fits = dir.join(format!("ds{n}"));
+        let n_text = n.to_string();
+        let with_n = [extra, &["--downsample", &n_text]].concat();
+        let out = render(budget, &with_n, &fits);
         assert!(
             out.status.success(),
-            "budget {budget} MiB with --downsample {n}: {}",
+            "{what} with --downsample {n}: {}",
             String::from_utf8_lossy(&out.stderr)
         );
         assert!(fits.join("stereo.png").exists());
         if n > 2 {
-            let smaller = (n - 1).to_string();
-            let out = render(budget, &["--downsample", &smaller], &dir.join("smaller"));
+            let n_text = (n - 1).to_string();
+            let smaller = [extra, &["--downsample", &n_text]].concat();
+            let out = render(budget, &smaller, &dir.join("smaller"));
             assert_eq!(
                 out.status.code(),
                 Some(1),
-                "--downsample {smaller} fits too"
+                "{what}: --downsample {} fits",
+                n - 1
             );
         }
     }
