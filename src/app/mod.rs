@@ -328,13 +328,16 @@ pub fn fit_advice(vol: &Volume, e: AppError, fits: Option<usize>) -> AppError {
         return e;
     };
     let [x, y, z] = vol.dims;
+    // N is for this volume; a volume already downsampled by D needs D x N from the file
+    let done = vol.downsampled_by();
     AppError::Gpu(GpuError::Other(format!(
         "volume {} ({x} x {y} x {z}) does not fit beside everything else on the GPU: {m}; {}",
         vol.name,
         match fits.or_else(|| downsample_estimate(vol, m)) {
-            Some(n) => format!("try --downsample {n}"),
+            Some(n) => format!("try --downsample {}", n * done),
             None => format!(
-                "not even --downsample {MAX_DOWNSAMPLE} makes it fit: free GPU memory first"
+                "not even --downsample {} makes it fit: free GPU memory first",
+                MAX_DOWNSAMPLE * done
             ),
         }
     )))

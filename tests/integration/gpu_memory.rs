@@ -95,6 +95,15 @@ fn a_volume_beyond_the_gpu_memory_budget_is_refused_with_the_downsample_that_fit
             );
         }
     }
+    // a volume downsampled already: the factor counts from the file (2 then 2 is 4 at once)
+    let out = render("3", &["--downsample", "2"], &dir.join("twice"));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("volume phantom-128-ds2 (64 x 64 x 64)"),
+        "{stderr}"
+    );
+    assert_eq!(suggested(&stderr), 4, "{stderr}");
     // a budget that is not a number is refused by name
     let out = render("lots", &[], &dir.join("bad"));
     assert_eq!(out.status.code(), Some(1));
