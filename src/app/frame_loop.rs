@@ -11,11 +11,11 @@
 
 use super::lighting::{LightingOptions, ShLighting};
 use super::tf_switch::{default_tf_samples_per_frame, TfProgress, TfSwitcher};
-use super::{precompute, AppError, Result};
+use super::{precompute_method, AppError, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
 use crate::ao::filtered::{variance_volume, FilterInput, VarianceModulation};
 use crate::ao::{AoConfig, AoMethod, LaoGpu};
-use crate::gpu::{Gpu, GpuTimer};
+use crate::gpu::{Gpu, GpuError, GpuTimer};
 use crate::input::{FrameInput, Interaction, InteractionSettings};
 use crate::render::{joint_overlay, scene_overlay, OverlayRenderer};
 use crate::render::{
@@ -81,20 +81,87 @@ pub struct FrameLoop {
     pub lighting: Option<ShLighting>,
 }
 
+/// How a frame loop is set up beside its volume and transfer functions ([`FrameLoop::new`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Built {
+    pub config: AoConfig,
+    /// Pixels per eye.
+    pub size: (u32, u32),
+    pub interaction: InteractionSettings,
+}
+
+/// Downsampling factors tried, from the estimate up, for the one that fits.
+const FIT_TRIES: usize = 4;
+
 impl FrameLoop {
     /// Classifies the volume with the first of `tfs`, precomputes V_PAO (with a progress bar
     /// when asked) and sets up CAO and the renderer for `size` pixels per eye. The menu button
-    /// cycles through `tfs` ([`super::tf_switch::tf_cycle`] makes the usual list).
+    /// cycles through `tfs` ([`super::tf_switch::tf_cycle`] makes the usual list). Running out
+    /// of GPU memory is told as in [`FrameLoop::new_lit`].
     pub fn new(
         gpu: &Gpu,
         vol: Arc<Volume>,
         tfs: Vec<TransferFunction>,
         ao: impl Into<AoConfig>,
         size: (u32, u32),
-        mut interaction: InteractionSettings,
+        interaction: InteractionSettings,
         show_progress: bool,
     ) -> Result<FrameLoop> {
-        let config: AoConfig = ao.into();
+        let built = Built {
+            config: ao.into(),
+            size,
+            interaction,
+        };
+        Self::new_lit(gpu, vol, tfs, built, None, show_progress)
+    }
+
+    /// [`FrameLoop::new`], then lit as `lighting` says ([`FrameLoop::set_lighting`]). Running
+    /// out of GPU memory in either is told with [`super::fit_advice`] and the `--downsample N`
+    /// that fits: [`super::downsample_estimate`]'s, checked by setting the downsampled volume
+    /// up the same way (a few larger N are tried where it does not fit).
+    pub fn new_lit(
+        gpu: &Gpu,
+        vol: Arc<Volume>,
+        tfs: Vec<TransferFunction>,
+        built: Built,
+        lighting: Option<&LightingOptions>,
+        show_progress: bool,
+    ) -> Result<FrameLoop> {
+        let setup = |vol: Arc<Volume>, progress: bool| {
+            let mut fl = Self::build(gpu, vol, tfs.clone(), built, progress)?;
+            if let Some(l) = lighting {
+                fl.light(l, progress)?;
+            }
+            Ok(fl)
+        };
+        let m = match setup(vol.clone(), show_progress) {
+            Err(AppError::Gpu(GpuError::OutOfMemory(m))) => m,
+            r => return r,
+        };
+        // the failed set-up is dropped: its memory is free for the tries
+        let fits = super::downsample_estimate(&vol, &m).and_then(|first| {
+            (first..=(first + FIT_TRIES - 1).min(super::MAX_DOWNSAMPLE))
+                .find(|&n| setup(Arc::new(vol.downsample(n)), false).is_ok())
+        });
+        Err(super::fit_advice(
+            &vol,
+            AppError::Gpu(GpuError::OutOfMemory(m)),
+            fits,
+        ))
+    }
+
+    fn build(
+        gpu: &Gpu,
+        vol: Arc<Volume>,
+        tfs: Vec<TransferFunction>,
+        built: Built,
+        show_progress: bool,
+    ) -> Result<FrameLoop> {
+        let Built {
+            config,
+            size,
+            mut interaction,
+        } = built;
         let ao = config;
         let params = ao.lao;
         let tf = tfs.first().ok_or_else(|| {
@@ -104,7 +171,7 @@ impl FrameLoop {
         let methods = ao.cycle();
         interaction.ao_methods = methods.len();
         let lao = LaoGpu::new(gpu)?;
-        let ao = precompute(gpu, &lao, &vol, tf, &ao, show_progress)?;
+        let ao = precompute_method(gpu, &lao, &vol, tf, &ao, show_progress)?;
         let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
         let mut tex = VolumeTextures::new(gpu, &vol, tf)?;
         let histogram = methods.iter().any(|m| matches!(m, AoMethod::Histogram(_)));
@@ -135,7 +202,15 @@ impl FrameLoop {
 
     /// Lights the frames as `opts` says: with SH, precomputes the shared SH visibility volume
     /// of the shown TF's opacity (a progress bar when asked).
+    /// Running out of GPU memory is told with [`super::fit_advice`] (the frame loop holds its
+    /// memory meanwhile, so the `--downsample N` is [`super::downsample_estimate`]'s, untried;
+    /// [`FrameLoop::new_lit`] tries it).
     pub fn set_lighting(&mut self, opts: &LightingOptions, show_progress: bool) -> Result<()> {
+        self.light(opts, show_progress)
+            .map_err(|e| super::fit_advice(&self.volume, e, None))
+    }
+
+    fn light(&mut self, opts: &LightingOptions, show_progress: bool) -> Result<()> {
         opts.apply(&mut self.settings);
         self.lighting = None;
         self.cao.sh_radius_mm = None;

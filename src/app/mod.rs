@@ -19,7 +19,7 @@ use crate::ao::histogram::{self, HistParams};
 use crate::ao::histogram_gpu::HistogramGpu;
 use crate::ao::lao::{directions, LaoTiming, SkipBuffers};
 use crate::ao::{filtered, AoConfig, AoMethod, LaoGpu, LaoParams};
-use crate::gpu::{Buffer, Gpu, GpuError};
+use crate::gpu::{Buffer, Gpu, GpuError, OutOfMemory};
 use crate::input::{FrameInput, InteractionSettings};
 use crate::render::png_out::PngError;
 use crate::render::{
@@ -136,14 +136,21 @@ pub fn load_volume(spec: Option<&str>, raw: Option<&RawSpec>) -> Result<Volume> 
                     Ok(crate::volume::nifti::load_frame(p, frame)?)
                 }
                 "mha" | "mhd" => Ok(crate::volume::metaimage::load(p)?),
+                // one file of a DICOM series (named so, or found to be one): the whole series
+                "dcm" | "dicom" | "ima" if p.exists() => {
+                    Ok(crate::volume::dicom::load_file_series(p)?)
+                }
                 "raw" | "dat" | "bin" => Err(AppError::Usage(format!(
                     "{path}: a raw volume needs --raw-dims X,Y,Z (and --raw-type, --raw-spacing)"
                 ))),
+                _ if crate::volume::dicom::is_dicom_file(p) => {
+                    Ok(crate::volume::dicom::load_file_series(p)?)
+                }
                 _ if !p.exists() => Err(AppError::Usage(format!(
-                    "{path}: no such file or directory (volumes: a .nrrd/.nhdr/.nii/.nii.gz/.mha/.mhd file, a DICOM series directory DIR or DIR#N, raw with --raw-dims, phantom[:N], ct-head)"
+                    "{path}: no such file or directory (volumes: a .nrrd/.nhdr/.nii/.nii.gz/.mha/.mhd file, a DICOM series directory DIR or DIR#N or one of its files, raw with --raw-dims, phantom[:N], ct-head)"
                 ))),
                 _ => Err(AppError::Usage(format!(
-                    "{path}: unknown volume format (supported: .nrrd, .nhdr, .nii, .nii.gz, .mha, .mhd, a DICOM series directory, raw with --raw-dims)"
+                    "{path}: unknown volume format (supported: .nrrd, .nhdr, .nii, .nii.gz, .mha, .mhd, a DICOM series directory or file, raw with --raw-dims)"
                 ))),
             }
         }
@@ -287,9 +294,72 @@ fn upload_opacity(
     Ok((buf, skip))
 }
 
+/// Bytes per voxel of an upload's host-visible staging copy (one f32 volume at a time).
+const STAGING_BYTES_PER_VOXEL: u64 = 4;
+
+/// The smallest `--downsample N` that the GPU memory `m` says was missing would make room for:
+/// allocations of at least a byte per voxel are taken to scale with the volume, at no less
+/// than [`crate::render::GPU_BYTES_PER_VOXEL`] plus a staging copy per voxel in all; the others
+/// to stay as they are. None where not even N = 64 fits.
+pub fn downsample_estimate(vol: &Volume, m: &OutOfMemory) -> Option<usize> {
+    let voxels = vol.voxel_count().max(1) as u64;
+    let (scaled, fixed): (Vec<u64>, Vec<u64>) =
+        m.held.iter().chain([&m.bytes]).partition(|&&b| b >= voxels);
+    let per_voxel = (scaled.iter().sum::<u64>() as f64 / voxels as f64)
+        .max((crate::render::GPU_BYTES_PER_VOXEL + STAGING_BYTES_PER_VOXEL) as f64);
+    let fixed: u64 = fixed.iter().sum();
+    (2..=MAX_DOWNSAMPLE).find(|&n| {
+        let v: u64 = vol
+            .dims
+            .iter()
+            .map(|&d| (d as u64).div_ceil(n as u64))
+            .product();
+        fixed as f64 + per_voxel * v as f64 <= m.available as f64
+    })
+}
+
+/// The largest `--downsample` suggested.
+pub const MAX_DOWNSAMPLE: usize = 64;
+
+/// GPU memory running out while `vol` is set up (past the limits check: beside everything else
+/// the GPU holds), told with the volume and the `--downsample N` that would fit (`fits`, else
+/// [`downsample_estimate`]). Any other error is returned as it is.
+pub fn fit_advice(vol: &Volume, e: AppError, fits: Option<usize>) -> AppError {
+    let AppError::Gpu(GpuError::OutOfMemory(m)) = &e else {
+        return e;
+    };
+    let [x, y, z] = vol.dims;
+    // N is for this volume; a volume already downsampled by D needs D x N from the file
+    let done = vol.downsampled_by();
+    AppError::Gpu(GpuError::Other(format!(
+        "volume {} ({x} x {y} x {z}) does not fit beside everything else on the GPU: {m}; {}",
+        vol.name,
+        match fits.or_else(|| downsample_estimate(vol, m)) {
+            Some(n) => format!("try --downsample {}", n * done),
+            None => format!(
+                "not even --downsample {} makes it fit: free GPU memory first",
+                MAX_DOWNSAMPLE * done
+            ),
+        }
+    )))
+}
+
 /// Classifies the volume and precomputes V_PAO with the configured AO method: LAO (with a
 /// progress bar when asked), or the filters over the density they filter (one fast pass).
+/// Running out of GPU memory is told with [`fit_advice`].
 pub fn precompute(
+    gpu: &Gpu,
+    lao: &LaoGpu,
+    vol: &Volume,
+    tf: &TransferFunction,
+    ao: &AoConfig,
+    show_progress: bool,
+) -> Result<AoVolume> {
+    precompute_method(gpu, lao, vol, tf, ao, show_progress).map_err(|e| fit_advice(vol, e, None))
+}
+
+/// [`precompute`] with GPU memory exhaustion left as it is (for a caller that tells it).
+pub(crate) fn precompute_method(
     gpu: &Gpu,
     lao: &LaoGpu,
     vol: &Volume,
@@ -490,15 +560,14 @@ pub fn render_to_dir(
     out: &Path,
 ) -> Result<Option<FrameMetrics>> {
     let vol = &spec.volume;
-    let mut fl = FrameLoop::new(
-        gpu,
-        Arc::clone(vol),
-        vec![spec.tf.clone()],
-        spec.ao,
+    let built = frame_loop::Built {
+        config: spec.ao,
         size,
-        InteractionSettings::default(),
-        true,
-    )?;
+        interaction: InteractionSettings::default(),
+    };
+    let lighting = Some(&spec.lighting);
+    let tfs = vec![spec.tf.clone()];
+    let mut fl = FrameLoop::new_lit(gpu, Arc::clone(vol), tfs, built, lighting, true)?;
     fl.settings = RenderSettings {
         bleeding: spec.ao.bleeding,
         ..*settings
@@ -506,7 +575,8 @@ pub fn render_to_dir(
     if settings.transparent {
         fl.settings.background = [0.0; 3];
     }
-    fl.set_lighting(&spec.lighting, true)?;
+    // the lighting's shading on these settings (new_lit applied it to the defaults)
+    spec.lighting.apply(&mut fl.settings);
     fl.set_variance(spec.variance)?;
     fl.show_overlay = false;
     fl.scene.tools = tools.to_vec();

@@ -64,16 +64,14 @@ impl SessionSpec {
         show_progress: bool,
     ) -> Result<FrameLoop> {
         let tfs = tf_cycle(&self.tf, &self.volume);
-        let mut fl = FrameLoop::new(
-            gpu,
-            Arc::clone(&self.volume),
-            tfs,
-            self.ao,
+        let built = super::frame_loop::Built {
+            config: self.ao,
             size,
             interaction,
-            show_progress,
-        )?;
-        fl.set_lighting(&self.lighting, show_progress)?;
+        };
+        let lighting = Some(&self.lighting);
+        let vol = Arc::clone(&self.volume);
+        let mut fl = FrameLoop::new_lit(gpu, vol, tfs, built, lighting, show_progress)?;
         fl.set_variance(self.variance)?;
         Ok(fl)
     }

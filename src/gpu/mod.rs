@@ -26,6 +26,8 @@ pub enum GpuError {
     Vk(#[from] vk::Result),
     #[error("GPU memory allocation failed: {0}")]
     Alloc(#[from] gpu_allocator::AllocationError),
+    #[error("{0}")]
+    OutOfMemory(Box<OutOfMemory>),
     #[error("no usable Vulkan 1.3 device: {0}")]
     NoDevice(String),
     #[error("Vulkan validation layer VK_LAYER_KHRONOS_validation was asked for but is not installed (apt-get install vulkan-validationlayers)")]
@@ -35,6 +37,53 @@ pub enum GpuError {
 }
 
 pub type Result<T> = std::result::Result<T, GpuError>;
+
+/// Caps the GPU memory handed out through [`Buffer`] and [`Image`] at this many MiB, as if
+/// other programs (or a smaller card) left only that much: simulates memory exhaustion.
+pub const BUDGET_ENV: &str = "CAO_XR_GPU_BUDGET_MB";
+
+/// An allocation the GPU (or the budget) could not hold, and what was in use when it failed.
+#[derive(Debug, Clone)]
+pub struct OutOfMemory {
+    /// The buffer or image asked for.
+    pub what: String,
+    pub bytes: u64,
+    /// Bytes held through Buffer and Image when it failed.
+    pub in_use: u64,
+    /// The sizes of the allocations held then.
+    pub held: Vec<u64>,
+    /// The budget, or the device-local heap.
+    pub available: u64,
+    /// Whether `available` is the [`BUDGET_ENV`] budget.
+    pub budget: bool,
+}
+
+impl std::fmt::Display for OutOfMemory {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let mib = |b: u64| b as f64 / (1u64 << 20) as f64;
+        write!(
+            f,
+            "out of GPU memory: {} needs {:.1} MiB while {:.1} MiB of the {:.1} MiB {} are in use",
+            self.what,
+            mib(self.bytes),
+            mib(self.in_use),
+            mib(self.available),
+            if self.budget {
+                "budget (CAO_XR_GPU_BUDGET_MB)"
+            } else {
+                "device-local heap"
+            }
+        )
+    }
+}
+
+/// GPU memory held through Buffer and Image: allocation id -> bytes.
+#[derive(Default)]
+struct MemoryUse {
+    next: u64,
+    held: std::collections::BTreeMap<u64, u64>,
+    total: u64,
+}
 
 /// Fails the build unless a `#[repr(C)]` struct that a shader reads has the size and field
 /// offsets of its GLSL block (std140 for uniform blocks, std430 for push constants and storage
@@ -98,6 +147,9 @@ pub struct Core {
     pub queue_family: u32,
     pub allocator: Mutex<ManuallyDrop<Allocator>>,
     cmd_pool: Mutex<vk::CommandPool>,
+    memory: Mutex<MemoryUse>,
+    /// The [`BUDGET_ENV`] cap, in bytes.
+    pub memory_budget: Option<u64>,
     pub device_name: String,
     pub device_type: vk::PhysicalDeviceType,
     /// Whether the context can present to windows (GpuOptions::present).
@@ -214,6 +266,17 @@ impl Gpu {
     }
 
     unsafe fn create(opts: &GpuOptions, factory: &mut dyn VulkanFactory) -> Result<Gpu> {
+        let budget = match std::env::var(BUDGET_ENV) {
+            Err(_) => None,
+            Ok(v) => match v.trim().parse::<u64>() {
+                Ok(mb) if mb > 0 && mb < 1 << 40 => Some(mb << 20),
+                _ => {
+                    return Err(GpuError::Other(format!(
+                        "{BUDGET_ENV}={v}: expected a whole number of MiB above 0"
+                    )))
+                }
+            },
+        };
         let entry = ash::Entry::load()?;
         let log = Arc::new(ValidationLog::default());
 
@@ -339,6 +402,8 @@ impl Gpu {
             queue_family,
             allocator: Mutex::new(ManuallyDrop::new(allocator)),
             cmd_pool: Mutex::new(cmd_pool),
+            memory: Mutex::new(MemoryUse::default()),
+            memory_budget: budget,
             device_name,
             device_type: props.device_type,
             present: opts.present,
@@ -433,6 +498,65 @@ impl Core {
             .map(|h| h.size)
             .max()
             .unwrap_or(0)
+    }
+
+    /// Bytes of GPU memory held through [`Buffer`] and [`Image`].
+    pub fn memory_in_use(&self) -> u64 {
+        self.memory.lock().map_or(0, |m| m.total)
+    }
+
+    /// Counts `bytes` for `what` before they are allocated; refused beyond the budget. The
+    /// id returned is given back with [`Core::release`].
+    pub(crate) fn reserve(&self, what: &str, bytes: u64) -> Result<u64> {
+        let mut m = self.memory.lock().unwrap();
+        if let Some(budget) = self.memory_budget {
+            if m.total + bytes > budget {
+                return Err(GpuError::OutOfMemory(Box::new(OutOfMemory {
+                    what: what.to_string(),
+                    bytes,
+                    in_use: m.total,
+                    held: m.held.values().copied().collect(),
+                    available: budget,
+                    budget: true,
+                })));
+            }
+        }
+        let id = m.next;
+        m.next += 1;
+        m.held.insert(id, bytes);
+        m.total += bytes;
+        Ok(id)
+    }
+
+    /// Gives back what [`Core::reserve`] counted.
+    pub(crate) fn release(&self, id: u64) {
+        if let Ok(mut m) = self.memory.lock() {
+            if let Some(b) = m.held.remove(&id) {
+                m.total -= b;
+            }
+        }
+    }
+
+    /// The allocator's error for `what` (already released): the device's own exhaustion says
+    /// what was in use, like the budget's.
+    pub(crate) fn allocation_failed(
+        &self,
+        what: &str,
+        bytes: u64,
+        e: gpu_allocator::AllocationError,
+    ) -> GpuError {
+        if !matches!(e, gpu_allocator::AllocationError::OutOfMemory) {
+            return e.into();
+        }
+        let m = self.memory.lock().unwrap();
+        GpuError::OutOfMemory(Box::new(OutOfMemory {
+            what: what.to_string(),
+            bytes,
+            in_use: m.total,
+            held: m.held.values().copied().collect(),
+            available: self.device_local_heap_bytes(),
+            budget: false,
+        }))
     }
 
     /// Validation warnings and errors reported so far (empty when validation is off).

@@ -10,6 +10,8 @@ pub struct Buffer {
     pub raw: vk::Buffer,
     pub size: u64,
     alloc: Option<Allocation>,
+    /// Its share of [`super::Core::memory_in_use`].
+    held: u64,
 }
 
 impl Buffer {
@@ -29,6 +31,13 @@ impl Buffer {
                 None,
             )?;
             let requirements = gpu.device.get_buffer_memory_requirements(raw);
+            let held = match gpu.reserve(name, requirements.size) {
+                Ok(id) => id,
+                Err(e) => {
+                    gpu.device.destroy_buffer(raw, None);
+                    return Err(e);
+                }
+            };
             let alloc = gpu
                 .allocator
                 .lock()
@@ -43,8 +52,9 @@ impl Buffer {
             let alloc = match alloc {
                 Ok(a) => a,
                 Err(e) => {
+                    gpu.release(held);
                     gpu.device.destroy_buffer(raw, None);
-                    return Err(e.into());
+                    return Err(gpu.allocation_failed(name, requirements.size, e));
                 }
             };
             let (memory, offset) = (alloc.memory(), alloc.offset());
@@ -54,6 +64,7 @@ impl Buffer {
                 raw,
                 size,
                 alloc: Some(alloc),
+                held,
             };
             gpu.device.bind_buffer_memory(raw, memory, offset)?;
             Ok(buffer)
@@ -173,6 +184,7 @@ impl Drop for Buffer {
             if let Some(a) = self.alloc.take() {
                 let _ = self.gpu.allocator.lock().unwrap().free(a);
             }
+            self.gpu.release(self.held);
             self.gpu.device.destroy_buffer(self.raw, None);
         }
     }
@@ -197,6 +209,8 @@ pub struct Image {
     pub layer_views: Vec<vk::ImageView>,
     pub desc: ImageDesc,
     alloc: Option<Allocation>,
+    /// Its share of [`super::Core::memory_in_use`].
+    held: u64,
 }
 
 impl Image {
@@ -217,6 +231,13 @@ impl Image {
                 None,
             )?;
             let requirements = gpu.device.get_image_memory_requirements(raw);
+            let held = match gpu.reserve(name, requirements.size) {
+                Ok(id) => id,
+                Err(e) => {
+                    gpu.device.destroy_image(raw, None);
+                    return Err(e);
+                }
+            };
             let alloc = match gpu
                 .allocator
                 .lock()
@@ -230,8 +251,9 @@ impl Image {
                 }) {
                 Ok(a) => a,
                 Err(e) => {
+                    gpu.release(held);
                     gpu.device.destroy_image(raw, None);
-                    return Err(e.into());
+                    return Err(gpu.allocation_failed(name, requirements.size, e));
                 }
             };
             let (memory, offset) = (alloc.memory(), alloc.offset());
@@ -244,6 +266,7 @@ impl Image {
                 layer_views: Vec::new(),
                 desc: desc.clone(),
                 alloc: Some(alloc),
+                held,
             };
             gpu.device.bind_image_memory(raw, memory, offset)?;
             image.view = gpu.device.create_image_view(
@@ -374,6 +397,7 @@ impl Drop for Image {
             if let Some(a) = self.alloc.take() {
                 let _ = self.gpu.allocator.lock().unwrap().free(a);
             }
+            self.gpu.release(self.held);
             self.gpu.device.destroy_image(self.raw, None);
         }
     }

@@ -14,12 +14,15 @@
 
 use super::{checked_size, voxels_from_values, Modality, Volume, VolumeError, Voxels};
 use dicom_dictionary_std::tags;
-use dicom_object::{InMemDicomObject, OpenFileOptions, Tag};
+use dicom_object::file::ReadPreamble;
+use dicom_object::{DefaultDicomObject, InMemDicomObject, OpenFileOptions, Tag};
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+
+mod tolerant;
 
 /// Which series of a directory to load.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -132,7 +135,7 @@ impl Series {
 pub struct Scan {
     pub dir: PathBuf,
     pub series: Vec<Series>,
-    /// Files skipped, with the reason (not DICOM Part 10, DICOMDIR, no image).
+    /// Files skipped, with the reason (not DICOM, DICOMDIR, no image).
     pub skipped: Vec<(PathBuf, String)>,
 }
 
@@ -246,6 +249,11 @@ pub fn scan(dir: &Path) -> Result<Scan, VolumeError> {
     }
     let mut files = Vec::new();
     collect_files(dir, 0, &mut files)?;
+    scan_files(dir, files)
+}
+
+/// Reads the headers of `files` and groups the images by series (see [`scan`]).
+fn scan_files(dir: &Path, mut files: Vec<PathBuf>) -> Result<Scan, VolumeError> {
     files.sort();
     let results: Vec<Result<Result<Planes, String>, VolumeError>> =
         files.par_iter().map(|p| read_header(p)).collect();
@@ -282,7 +290,7 @@ pub fn scan(dir: &Path) -> Result<Scan, VolumeError> {
                     String::new()
                 } else {
                     format!(
-                        ", none a DICOM Part 10 image: e.g. {}: {}",
+                        ", none a DICOM image: e.g. {}: {}",
                         skipped[0].0.display(),
                         skipped[0].1
                     )
@@ -382,160 +390,27 @@ type Planes = Vec<(String, String, String, Option<i64>, Slice)>;
 /// A file's format (its first plane) and where each of its frames goes in the volume.
 type PlaneSlots<'a> = (&'a Slice, Vec<(u32, &'a mut [u16])>);
 
-/// Refuses a file with a data element that declares more bytes than the file still holds
-/// (truncated, or a lying header): dicom-rs allocates (and zeroes) the declared length, up to
-/// 4 GiB, before it finds out. Reads the element headers as dicom-rs does: the file meta group
-/// in explicit VR little endian for as many bytes as (0002,0000) says, then the data set in its
-/// transfer syntax, an unknown VR being UN with a 32-bit length. Values are sought past;
-/// sequences and their items are stepped into; encapsulated pixel-data fragments are checked
-/// and skipped. Deflated data sets, undefined-length UN elements (implicit-VR sequences) and
-/// anything dicom-rs itself refuses end the walk: the parser has them.
-fn check_declared_lengths(path: &Path) -> Result<(), VolumeError> {
-    use std::io::{BufReader, Read, Seek};
-    const SHORT_VRS: [&[u8; 2]; 21] = [
-        b"AE", b"AS", b"AT", b"CS", b"DA", b"DS", b"DT", b"FL", b"FD", b"IS", b"LO", b"LT", b"PN",
-        b"SH", b"SL", b"SS", b"ST", b"TM", b"UI", b"UL", b"US",
-    ];
-    /// An element header: (group, element, VR or zeros, length, header bytes).
-    type Header = (u16, u16, [u8; 2], u32, u64);
-    struct Walk {
-        r: BufReader<std::fs::File>,
-        /// Bytes of the file after the read position.
-        left: u64,
-    }
-    impl Walk {
-        fn read(&mut self, buf: &mut [u8]) -> bool {
-            if self.left < buf.len() as u64 || self.r.read_exact(buf).is_err() {
-                return false;
-            }
-            self.left -= buf.len() as u64;
-            true
-        }
-        fn header(&mut self, little: bool, explicit: bool) -> Option<Header> {
-            let u16_of = |b: [u8; 2]| {
-                if little {
-                    u16::from_le_bytes(b)
-                } else {
-                    u16::from_be_bytes(b)
-                }
-            };
-            let u32_of = |b: [u8; 4]| {
-                if little {
-                    u32::from_le_bytes(b)
-                } else {
-                    u32::from_be_bytes(b)
-                }
-            };
-            let mut h = [0u8; 8];
-            if !self.read(&mut h) {
-                return None;
-            }
-            let (group, element) = (u16_of([h[0], h[1]]), u16_of([h[2], h[3]]));
-            let vr = [h[4], h[5]];
-            if group == 0xFFFE || !explicit {
-                // items and delimiters have no VR, implicit VR elements neither
-                return Some((group, element, [0; 2], u32_of([h[4], h[5], h[6], h[7]]), 8));
-            }
-            if SHORT_VRS.contains(&&vr) {
-                return Some((group, element, vr, u16_of([h[6], h[7]]) as u32, 8));
-            }
-            let mut b = [0u8; 4];
-            self.read(&mut b)
-                .then(|| (group, element, vr, u32_of(b), 12))
-        }
-        fn skip(&mut self, len: u32) -> std::io::Result<()> {
-            self.r.seek_relative(len as i64)?;
-            self.left -= len as u64;
-            Ok(())
-        }
-    }
-    let io = |e: std::io::Error| VolumeError::io(path, e);
-    let file = std::fs::File::open(path).map_err(io)?;
-    let left = file.metadata().map_err(io)?.len().saturating_sub(132);
-    let mut r = BufReader::new(file);
-    r.seek(std::io::SeekFrom::Start(132)).map_err(io)?;
-    let mut w = Walk { r, left };
-    let too_long = |group: u16, element: u16, len: u32, left: u64| {
-        VolumeError::format(
-            path,
-            format!(
-                "element ({group:04X},{element:04X}) declares {len} bytes but the file holds \
-                 only {left} more (truncated, or a header that lies about a length)"
-            ),
-        )
-    };
-
-    // File meta group: (0002,0000) first, then as many bytes as it says.
-    let mut group_length = [0u8; 4];
-    match w.header(true, true) {
-        Some((2, 0, _, 4, _)) if w.read(&mut group_length) => {}
-        _ => return Ok(()),
-    }
-    let mut meta = u32::from_le_bytes(group_length) as u64;
-    let (mut little, mut explicit) = (true, true);
-    while meta > 0 {
-        let Some((group, element, _, len, head)) = w.header(true, true) else {
-            return Ok(());
-        };
-        if len == u32::MAX {
-            return Ok(());
-        }
-        if len as u64 > w.left {
-            return Err(too_long(group, element, len, w.left));
-        }
-        if (group, element) == (0x0002, 0x0010) && len <= 64 {
-            let mut uid = vec![0u8; len as usize];
-            w.read(&mut uid);
-            match String::from_utf8_lossy(&uid).trim_end_matches(['\0', ' ']) {
-                "1.2.840.10008.1.2" => explicit = false,
-                "1.2.840.10008.1.2.2" => little = false,
-                "1.2.840.10008.1.2.1.99" => return Ok(()),
-                _ => {}
-            }
-        } else {
-            w.skip(len).map_err(io)?;
-        }
-        meta = meta.saturating_sub(head + len as u64);
-    }
-
-    // The data set.
-    let mut fragments = false;
-    while let Some((group, element, vr, len, _)) = w.header(little, explicit) {
-        if len == u32::MAX {
-            if (group, element) == (0x7FE0, 0x0010) {
-                fragments = true;
-            } else if &vr == b"UN" {
-                // an implicit-VR sequence inside explicit VR
-                return Ok(());
-            }
-            continue;
-        }
-        if len as u64 > w.left {
-            return Err(too_long(group, element, len, w.left));
-        }
-        if (group, element) == (0xFFFE, 0xE0DD) {
-            fragments = false;
-        }
-        let steps_into = &vr == b"SQ" || (group == 0xFFFE && !fragments);
-        if !steps_into {
-            // a value (or a fragment)
-            w.skip(len).map_err(io)?;
-        }
-    }
-    Ok(())
+/// Reads a file through the tolerant pass ([`tolerant`]), then dicom-object; `what` (header,
+/// file) names the part read in dicom-object's errors.
+fn open(
+    path: &Path,
+    start: tolerant::Start,
+    until: tolerant::Until,
+    what: &str,
+) -> Result<DefaultDicomObject, VolumeError> {
+    let bytes = tolerant::read(path, start, until)?;
+    OpenFileOptions::new()
+        .read_preamble(ReadPreamble::Never)
+        .from_reader(&bytes[..])
+        .map_err(|e| VolumeError::format(path, format!("cannot read the DICOM {what}: {e}")))
 }
 
 /// The image planes of one file with their series keys; `Ok(Err(reason))` for a file that is
 /// not a DICOM image (skipped); `Err` for a DICOM file whose header is broken.
 fn read_header(path: &Path) -> Result<Result<Planes, String>, VolumeError> {
-    use std::io::Read;
-    let mut magic = [0u8; 132];
-    let ok = std::fs::File::open(path)
-        .and_then(|mut f| f.read_exact(&mut magic))
-        .is_ok();
-    if !ok || &magic[128..132] != b"DICM" {
-        return Ok(Err("not DICOM Part 10".into()));
-    }
+    let Some(start) = tolerant::sniff(path) else {
+        return Ok(Err("not DICOM".into()));
+    };
     // media directories (also damaged ones, which real exports carry) hold no image
     let file_name = path
         .file_name()
@@ -543,11 +418,7 @@ fn read_header(path: &Path) -> Result<Result<Planes, String>, VolumeError> {
     if file_name.is_some_and(|n| n.starts_with("DICOMDIR")) {
         return Ok(Err("DICOMDIR".into()));
     }
-    check_declared_lengths(path)?;
-    let obj = OpenFileOptions::new()
-        .read_until(tags::PIXEL_DATA)
-        .open_file(path)
-        .map_err(|e| VolumeError::format(path, format!("cannot read the DICOM header: {e}")))?;
+    let obj = open(path, start, tolerant::Until::PixelData, "header")?;
     if obj
         .meta()
         .media_storage_sop_class_uid()
@@ -763,6 +634,43 @@ fn floats<const N: usize>(obj: &InMemDicomObject, tag: Tag) -> Option<[f64; N]> 
 pub fn load_series(dir: &Path, pick: Option<&Pick>) -> Result<Volume, VolumeError> {
     let scan = scan(dir)?;
     let series = scan.choose(pick)?;
+    load_chosen(dir, series)
+}
+
+/// Is `path` one DICOM file (a VOLUME argument that loads the series it belongs to)?
+pub fn is_dicom_file(path: &Path) -> bool {
+    path.is_file() && tolerant::sniff(path).is_some()
+}
+
+/// Loads the series one file belongs to, as Slicer's DICOM import does: the files directly in
+/// its folder that share its SeriesInstanceUID (for a 4-D series, the volume the file is part
+/// of).
+pub fn load_file_series(file: &Path) -> Result<Volume, VolumeError> {
+    // the file's own problem first, before any other file of the folder is looked at
+    if let Err(reason) = read_header(file)? {
+        return Err(VolumeError::format(
+            file,
+            format!("not a DICOM image to load a series from ({reason})"),
+        ));
+    }
+    let dir = match file.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir).map_err(|e| VolumeError::io(dir, e))? {
+        let p = entry.map_err(|e| VolumeError::io(dir, e))?.path();
+        if p.is_file() {
+            files.push(p);
+        }
+    }
+    let scan = scan_files(dir, files)?;
+    let name = file.file_name();
+    let series = scan
+        .series
+        .iter()
+        .find(|s| s.slices.iter().any(|sl| sl.path.file_name() == name))
+        .ok_or_else(|| VolumeError::format(file, "its series was not found in its folder"))?;
     load_chosen(dir, series)
 }
 
@@ -1078,8 +986,9 @@ fn decode_planes(
     fmt: &Slice,
 ) -> Result<(), VolumeError> {
     use dicom_pixeldata::PixelDecoder;
-    let obj = dicom_object::open_file(path)
-        .map_err(|e| VolumeError::format(path, format!("cannot read the DICOM file: {e}")))?;
+    let start = tolerant::sniff(path)
+        .ok_or_else(|| VolumeError::format(path, "no longer a DICOM file (changed on disk?)"))?;
+    let obj = open(path, start, tolerant::Until::End, "file")?;
     check_transfer_syntax(path, obj.meta().transfer_syntax())?;
     let px_count = fmt.rows as usize * fmt.cols as usize;
     let bytes = (fmt.bits_allocated / 8) as usize;

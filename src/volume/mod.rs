@@ -162,6 +162,22 @@ impl Volume {
         }
     }
 
+    /// The factor [`Volume::downsample`] has reduced this volume by (1 for none), from the
+    /// `-dsN` its name ends with. Downsampling by a then b gives the dims of a x b at once
+    /// (ceil(ceil(d / a) / b) = ceil(d / ab)).
+    pub fn downsampled_by(&self) -> usize {
+        let mut name = self.name.as_str();
+        let mut by = 1usize;
+        while let Some((rest, n)) = name.rsplit_once("-ds") {
+            match n.parse::<usize>() {
+                Ok(n) if n > 1 => by = by.saturating_mul(n),
+                _ => break,
+            }
+            name = rest;
+        }
+        by
+    }
+
     /// The volume averaged over n x n x n blocks (`--downsample N`): dims ceil(dims / n), spacing
     /// x n, the same directions, the origin moved to the centre of the first new voxel. Blocks
     /// cut by the far edges average the voxels they hold. Integer voxels are rounded to the
@@ -846,6 +862,21 @@ pub(crate) mod test_types {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_downsampling_done_is_read_back_from_the_name() {
+        let v = phantom::head(8);
+        assert_eq!(v.downsampled_by(), 1);
+        let twice = v.downsample(2).downsample(3);
+        assert_eq!(twice.downsampled_by(), 6);
+        // by 2 then 3 is by 6 at once
+        assert_eq!(twice.dims, v.downsample(6).dims);
+        let odd = Volume {
+            name: "scan-dsx".into(),
+            ..v.clone()
+        };
+        assert_eq!(odd.downsampled_by(), 1);
+    }
 
     #[test]
     fn values_pick_int16_uint16_or_float32() {

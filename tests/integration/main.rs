@@ -11,6 +11,7 @@ mod desktop;
 mod dicom;
 mod filtered;
 mod foreign;
+mod gpu_memory;
 mod histogram;
 mod lao;
 mod overlay;

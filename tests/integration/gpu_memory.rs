@@ -1,0 +1,112 @@
+//! GPU memory exhaustion (issue 19): a volume that passes the limits check but does not fit
+//! beside everything else the GPU holds, simulated with the allocator budget
+//! `CAO_XR_GPU_BUDGET_MB`, is refused with what did not fit and the `--downsample N` that
+//! does; with that N the same command renders under the same budget. No abort, no panic, no
+//! validation message.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// `cao-xr render phantom:128` (2 Mi voxels: about 56 MiB on the GPU) under `budget`.
+fn render(budget: &str, extra: &[&str], out: &Path) -> Output {
+    let out = Command::new(env!("CARGO_BIN_EXE_cao-xr"))
+        .args(["render", "phantom:128", "--size", "64x48", "--rays", "6"])
+        .args(["--steps", "4", "--out", out.to_str().unwrap()])
+        .args(extra)
+        .env("CAO_XR_VALIDATION", "1")
+        .env("CAO_XR_GPU_BUDGET_MB", budget)
+        .output()
+        .expect("run cao-xr");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "cao-xr panicked:\n{stderr}");
+    assert!(
+        !stderr.contains("vulkan validation"),
+        "validation messages:\n{stderr}"
+    );
+    out
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("cao-gpu-memory-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The N of "try --downsample N" in a refusal.
+fn suggested(stderr: &str) -> usize {
+    let at = stderr
+        .find("try --downsample ")
+        .unwrap_or_else(|| panic!("no --downsample suggested: {stderr}"));
+    stderr[at + 17..]
+        .split(|c: char| !c.is_ascii_digit())
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap()
+}
+
+#[test]
+fn a_volume_beyond_the_gpu_memory_budget_is_refused_with_the_downsample_that_fits() {
+    let dir = tmp("budget");
+    // the budget runs out at different points (the first upload's staging copy, a device
+    // buffer beside others, an image late in the set-up), with LAO, a filter and SH lighting
+    let cases: [(&str, &[&str], usize); 5] = [
+        ("3", &[], 3),
+        ("12", &[], 2),
+        ("40", &[], 2),
+        ("12", &["--ao", "filter-gauss"], 3),
+        ("3", &["--lighting", "sh"], 4),
+    ];
+    for (budget, extra, want) in cases {
+        let what = format!("budget {budget} MiB {extra:?}");
+        let out = render(budget, extra, &dir.join("full"));
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{what}: {stderr}");
+        for s in [
+            "volume phantom-128 (128 x 128 x 128) does not fit beside everything else on the GPU",
+            "out of GPU memory: ",
+            " MiB budget (CAO_XR_GPU_BUDGET_MB) are in use",
+        ] {
+            assert!(stderr.contains(s), "{what}: no {s:?} in {stderr}");
+        }
+        let n = suggested(&stderr);
+        assert_eq!(n, want, "{what}: {stderr}");
+        // the suggestion fits, and no smaller one does
+        let fits = dir.join(format!("ds{n}"));
+        let n_text = n.to_string();
+        let with_n = [extra, &["--downsample", &n_text]].concat();
+        let out = render(budget, &with_n, &fits);
+        assert!(
+            out.status.success(),
+            "{what} with --downsample {n}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(fits.join("stereo.png").exists());
+        if n > 2 {
+            let n_text = (n - 1).to_string();
+            let smaller = [extra, &["--downsample", &n_text]].concat();
+            let out = render(budget, &smaller, &dir.join("smaller"));
+            assert_eq!(
+                out.status.code(),
+                Some(1),
+                "{what}: --downsample {} fits",
+                n - 1
+            );
+        }
+    }
+    // a volume downsampled already: the factor counts from the file (2 then 2 is 4 at once)
+    let out = render("3", &["--downsample", "2"], &dir.join("twice"));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("volume phantom-128-ds2 (64 x 64 x 64)"),
+        "{stderr}"
+    );
+    assert_eq!(suggested(&stderr), 4, "{stderr}");
+    // a budget that is not a number is refused by name
+    let out = render("lots", &[], &dir.join("bad"));
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("CAO_XR_GPU_BUDGET_MB=lots"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
