@@ -132,7 +132,7 @@ pub use crate::shader_constants::BRICK;
 
 /// One word per BRICK^3 brick (x fastest): 1 when any voxel in the brick or one voxel beyond its
 /// upper faces has O > 0. A sample whose trilinear footprint starts in an unoccupied brick reads
-/// only zeros, so the kernel skips its eight loads and multiplies by nothing: values unchanged.
+/// only zeros, so the old kernel (lao_old.comp) skips its eight loads: values unchanged.
 pub fn brick_occupancy(opacity: &[f32], dims: [usize; 3]) -> Vec<u32> {
     let bd = dims.map(|d| d.div_ceil(BRICK));
     (0..bd[0] * bd[1] * bd[2])
@@ -342,7 +342,7 @@ pub struct LaoTiming {
     /// Sum of the GPU timestamps of all slabs.
     pub gpu_ms: f64,
     pub wall_ms: f64,
-    /// Opacity samples taken (upper bound: K*(M-1) per voxel, before early termination).
+    /// Nominal opacity samples: K*(M-1) per voxel (voxels of the clear mask take none).
     pub samples: u64,
 }
 
@@ -365,8 +365,7 @@ impl LaoGpu {
         })
     }
 
-    /// The [`clear_mask`] and [`brick_occupancy`] of a host opacity volume, uploaded for
-    /// [`LaoGpu::compute`].
+    /// The [`SkipData`] of a host opacity volume, uploaded for [`LaoGpu::compute`].
     pub fn skip_buffers(
         &self,
         opacity: &[f32],
