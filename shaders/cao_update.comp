@@ -3,18 +3,23 @@
 // c (unaffected) -> the precomputed V_PAO, b -> LAO recomputed on the clipped opacity O_c.
 // With `naive` set, c voxels are recomputed too (the full-LAO baseline).
 #extension GL_GOOGLE_include_directive : require
-layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
-layout(std430, binding = 0) readonly buffer Opacity { float opacity[]; };   // O_c
-layout(std430, binding = 1) readonly buffer Dirs { vec4 dirs[]; };
+#include "constants.glsl"
+#include "lao_sample.glsl"
+
+layout(local_size_x = LAO_GROUP_X, local_size_y = LAO_GROUP_Y, local_size_z = LAO_GROUP_Z) in;
+
+// O_c with its zero border (src/ao/lao.rs LaoLayout), as clip_mask.comp writes it.
+layout(std430, binding = 0) readonly buffer Opacity { float opacity[]; };
+layout(std430, binding = 1) readonly buffer Samples { LaoSample samples[]; };
 layout(std430, binding = 2) writeonly buffer Ao { float ao[]; };
 layout(std430, binding = 3) readonly buffer Clear { uint clear_bits[]; };
-layout(std430, binding = 4) readonly buffer Bricks { uint brick_occupied[]; };
-layout(std430, binding = 5) readonly buffer Mask { uint mask[]; };
-layout(std430, binding = 6) readonly buffer Pao { float pao[]; };
+layout(std430, binding = 4) readonly buffer Mask { uint mask[]; };
+layout(std430, binding = 5) readonly buffer Pao { float pao[]; };
 
 layout(push_constant) uniform Push {
     ivec4 dims;
+    ivec4 stride;
     uint rays;
     uint steps;
     float exponent;
@@ -36,9 +41,9 @@ void main() {
     } else if (category == 2u && pc.naive == 0u) {
         ao[i] = pao[i];
     } else {
-        // The clear mask and bricks come from the unclipped O; clipping only lowers opacity, so
-        // they stay exact for O_c.
+        // The clear mask comes from the unclipped O; clipping only lowers opacity, so it stays
+        // exact for O_c.
         bool clear = ((clear_bits[i >> 5] >> (i & 31)) & 1u) != 0u;
-        ao[i] = clear ? 1.0 : lao_voxel(v);
+        ao[i] = clear ? 1.0 : lao_voxel(lao_base(v));
     }
 }

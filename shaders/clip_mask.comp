@@ -9,11 +9,14 @@ layout(std430, binding = 0) readonly buffer Opacity { float opacity[]; };
 layout(std430, binding = 1) writeonly buffer Clipped { float clipped[]; };
 layout(std430, binding = 2) writeonly buffer Mask { uint mask[]; };
 layout(std430, binding = 5) buffer Counts { uint counts[]; };
+// O_c again, inside the zero border the LAO kernel reads (src/ao/lao.rs LaoLayout).
+layout(std430, binding = 6) writeonly buffer ClippedPadded { float clipped_padded[]; };
 
 layout(push_constant) uniform Push {
     ivec4 dims;
     ivec4 box_min;   // w: tool count
     ivec4 box_max;   // exclusive
+    ivec4 stride;    // the padded grid's (origin, row, slice)
 } pc;
 
 #define CLIP_SET 0
@@ -62,6 +65,7 @@ void main() {
         oc = o * (float(visible) / 41.0);
     }
     clipped[i] = oc;
+    clipped_padded[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = oc;
     uint category = affected == 0u ? 2u : (visible > 0u ? 1u : 0u);
     mask[i] = category;
     atomicAdd(counts[category], 1u);

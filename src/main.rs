@@ -3,6 +3,7 @@
 use anyhow::{bail, Context, Result};
 use cao_xr::ao::filtered::{FilterInput, FilterParams, VarianceModulation};
 use cao_xr::ao::histogram::HistParams;
+use cao_xr::ao::lao::LaoKernel;
 use cao_xr::ao::sh::ShParams;
 use cao_xr::ao::{AoConfig, AoMethod, LaoParams};
 use cao_xr::app;
@@ -294,6 +295,12 @@ enum BenchCmd {
         /// Compare every naive frame with CAO bit for bit; exit non-zero on a difference.
         #[arg(long)]
         verify: bool,
+        /// Radii in mm of the probe sweeps after the carving table.
+        #[arg(long, value_delimiter = ',', default_value = "20,40,60")]
+        probe_radii: Vec<f32>,
+        /// No probe table.
+        #[arg(long)]
+        no_probes: bool,
     },
     /// SH visibility precompute time with the hierarchy on and off and its error: phantom 64^3
     /// and 128^3 and the CT head (or VOLUME).
@@ -330,6 +337,10 @@ enum BenchCmd {
         /// Ray counts to measure.
         #[arg(long, value_delimiter = ',', default_value = "6,14,26")]
         rays: Vec<u32>,
+        /// The kernel: new, old (the one before issue 18) or both, interleaved run by run, with
+        /// their ratio.
+        #[arg(long, default_value = "both", value_parser = ["new", "old", "both"])]
+        kernel: String,
     },
 }
 
@@ -922,10 +933,20 @@ fn run(cli: Cli) -> Result<()> {
             app::bench_quality::bench_quality(&b.gpu, &b.volumes, &b.tf, lao, size, b.runs)?;
         }
         Cmd::Bench {
-            what: BenchCmd::Lao { common, rays },
+            what:
+                BenchCmd::Lao {
+                    common,
+                    rays,
+                    kernel,
+                },
         } => {
             let b = common.setup(cli.validation)?;
-            app::bench::bench_lao(&b.gpu, &b.volumes, &b.tf, &rays, &b.base, b.runs)?;
+            let kernels: &[LaoKernel] = match kernel.as_str() {
+                "old" => &[LaoKernel::Old],
+                "new" => &[LaoKernel::New],
+                _ => &[LaoKernel::Old, LaoKernel::New],
+            };
+            app::bench::bench_lao(&b.gpu, &b.volumes, &b.tf, &rays, &b.base, b.runs, kernels)?;
         }
         Cmd::Bench {
             what:
@@ -934,12 +955,25 @@ fn run(cli: Cli) -> Result<()> {
                     rays,
                     frames,
                     verify,
+                    probe_radii,
+                    no_probes,
                 },
         } => {
             let b = common.setup(cli.validation)?;
             let frames = frames.max(1);
+            if let Some(r) = probe_radii.iter().find(|r| !(r.is_finite() && **r > 0.0)) {
+                bail!("--probe-radii must be positive, got {r}");
+            }
             app::bench::bench_cao(
-                &b.gpu, &b.volumes, &b.tf, &rays, &b.base, frames, b.runs, verify,
+                &b.gpu,
+                &b.volumes,
+                &b.tf,
+                &rays,
+                &b.base,
+                frames,
+                b.runs,
+                verify,
+                if no_probes { &[] } else { &probe_radii },
             )?;
         }
         Cmd::FetchCt { force } => {

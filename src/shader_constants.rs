@@ -4,6 +4,9 @@
 
 /// Bricks of 2^BRICK_SHIFT voxels per axis for LAO's exact empty-space skipping.
 pub const BRICK_SHIFT: u32 = 2;
+/// Workgroup size of the LAO kernel (lao.comp, cao_update.comp): rows of voxels along x. On
+/// lavapipe this measured 2-3x faster than 4x4x4 for the same kernel (bench lao, phantom-64).
+pub const LAO_GROUP: [u32; 3] = [8, 8, 1];
 /// Edge of the occupancy bricks, in voxels.
 pub const BRICK: usize = 1 << BRICK_SHIFT;
 /// Depth of an empty clip-map interval: `EMPTY_IN > z > EMPTY_OUT` holds for no z.

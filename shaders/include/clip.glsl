@@ -7,7 +7,8 @@ struct ClipTool {
     mat4 local_from_index;   // volume index space -> tool-local units
     mat4 local_from_world;   // world -> tool-local units
     vec4 map;                // x: extent, y: texels per local unit, z: resolution, w: mode
-    uvec4 offsets;           // x: clip map, y: dilation map, z: SH dilation map (vec4 units)
+    uvec4 offsets;           // x: clip map, y: dilation map (xy; zw: the contraction),
+                             // z: SH dilation map (vec4 units)
     vec4 sh_map;             // the SH dilation map's own x, y, z (it has its own extent)
 };
 
@@ -33,17 +34,30 @@ uint tool_test(uint t, vec3 local) {
     return r;
 }
 
+// Whether a tool-local point is inside the tool's shape contracted by the dilation radius (z, w
+// of its dilation map; src/clip/mod.rs `dilate`): a probe's cut is out of its reach there.
+bool tool_contracted(uint t, vec3 local) {
+    ClipTool tool = tools[t];
+    ivec2 px = ivec2(floor((local.xy + tool.map.x) * tool.map.y));
+    int res = int(tool.map.z);
+    if (any(lessThan(px, ivec2(0))) || any(greaterThanEqual(px, ivec2(res)))) return false;
+    vec4 d = clip_maps[tool.offsets.y + uint(px.y * res + px.x)];
+    return local.z >= d.z && local.z <= d.w;
+}
+
 // bit 0: visible after all tools; bit 1: within the reach of any tool's cut.
 uint clip_test_index(vec3 p) {
     bool visible = true;
     bool affected = false;
     for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
-        uint r = tool_test(t, (tools[t].local_from_index * vec4(p, 1.0)).xyz);
+        vec3 local = (tools[t].local_from_index * vec4(p, 1.0)).xyz;
+        uint r = tool_test(t, local);
         bool probe = tools[t].map.w > 0.5;
         bool inside = (r & 1u) != 0u;
         if (probe ? !inside : inside) visible = false;
-        // A probe changes everything outside its shape: every voxel is affected.
-        if (probe || (r & 2u) != 0u) affected = true;
+        // A carve's cut reaches its dilation; a probe cuts everything outside its shape, which
+        // reaches all but its contraction (the paper's Sect. 3.4, conditions inverted).
+        if (probe ? !tool_contracted(t, local) : (r & 2u) != 0u) affected = true;
     }
     return (visible ? 1u : 0u) | (affected ? 2u : 0u);
 }

@@ -9,7 +9,7 @@
 
 use super::filter_gpu::{FilterGpu, FilterMode};
 use super::histogram_gpu::{HistMode, HistogramGpu};
-use super::lao::{index_steps, LaoParams, SkipBuffers};
+use super::lao::{LaoLayout, LaoParams, SkipBuffers, LAO_GROUP};
 use crate::clip::Shape;
 use crate::clip::{shape_mesh, ClipMap, ClipMapGpu, TriMesh};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Result};
@@ -116,9 +116,14 @@ fn merge_boxes(mut boxes: Vec<VoxelBox>) -> Vec<VoxelBox> {
 
 /// Dispatches a 4^3-workgroup compute pass over the voxels of `b`.
 pub(super) fn dispatch_box(pipe: &ComputePipeline, cmd: vk::CommandBuffer, b: &VoxelBox) {
+    dispatch_box_in(pipe, cmd, b, [4; 3]);
+}
+
+/// Dispatches a compute pass of workgroup size `group` over the voxels of `b`.
+fn dispatch_box_in(pipe: &ComputePipeline, cmd: vk::CommandBuffer, b: &VoxelBox, group: [u32; 3]) {
     pipe.dispatch(
         cmd,
-        [0, 1, 2].map(|a| ((b.max[a] - b.min[a]).max(0) as u32).div_ceil(4)),
+        [0, 1, 2].map(|a| ((b.max[a] - b.min[a]).max(0) as u32).div_ceil(group[a])),
     );
 }
 
@@ -132,10 +137,23 @@ pub(super) struct BoxPush {
 }
 crate::gpu::glsl_layout!(BoxPush, 48, dims: 0, box_min: 16, box_max: 32);
 
+/// Push constants of cao_restore.comp and clip_mask.comp: a box, and where its voxels lie in
+/// the padded O_c the LAO kernel reads.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ClipPush {
+    dims: [i32; 4],
+    box_min: [i32; 4],
+    box_max: [i32; 4],
+    stride: [i32; 4],
+}
+crate::gpu::glsl_layout!(ClipPush, 64, dims: 0, box_min: 16, box_max: 32, stride: 48);
+
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct UpdatePush {
     dims: [i32; 4],
+    stride: [i32; 4],
     rays: u32,
     steps: u32,
     exponent: f32,
@@ -143,8 +161,8 @@ struct UpdatePush {
     box_min: [i32; 4],
     box_max: [i32; 4],
 }
-crate::gpu::glsl_layout!(UpdatePush, 64,
-    dims: 0, rays: 16, steps: 20, exponent: 24, naive: 28, box_min: 32, box_max: 48);
+crate::gpu::glsl_layout!(UpdatePush, 80,
+    dims: 0, stride: 16, rays: 32, steps: 36, exponent: 40, naive: 44, box_min: 48, box_max: 64);
 
 /// The AO method CAO drives (docs/design.md, "AO methods"): what recomputes the category-b
 /// voxels, and whose reach the dilation covers. V_PAO holds that method's AO of the unclipped
@@ -172,11 +190,14 @@ pub struct Cao {
     opacity: Buffer,
     /// O_c: the anti-aliased clipped opacity.
     pub clipped: Buffer,
+    /// O_c again inside the zero border the LAO kernel reads ([`LaoLayout`]); the border stays 0.
+    clipped_padded: Buffer,
+    /// [`LaoLayout::stride`] of `clipped_padded`.
+    stride: [i32; 4],
     mask: Buffer,
     pao: Buffer,
     /// V_AO: this frame's ambient occlusion.
     pub ao: Buffer,
-    dirs: Buffer,
     skip: SkipBuffers,
     counts: Buffer,
     tools: Buffer,
@@ -188,6 +209,9 @@ pub struct Cao {
     pub meshes: Vec<TriMesh>,
     pub clip_resolution: usize,
     prev_boxes: Vec<VoxelBox>,
+    /// The state of every voxel outside `prev_boxes`: clipped away (a probe was active: only its
+    /// inside is kept) or unclipped (O_c = O, V_AO = V_PAO).
+    background_clipped: bool,
     /// When set, the tools also get dilation maps of this radius (the SH visibility reach) and
     /// [`Cao::sh_boxes`] holds their voxel boxes after each recorded frame.
     pub sh_radius_mm: Option<f64>,
@@ -219,8 +243,8 @@ impl Cao {
                 env!("OUT_DIR"),
                 "/cao_restore.comp.spv"
             ))),
-            &[b; 5],
-            std::mem::size_of::<BoxPush>() as u32,
+            &[b; 6],
+            std::mem::size_of::<ClipPush>() as u32,
         )?;
         let clip = ComputePipeline::new(
             gpu,
@@ -228,8 +252,8 @@ impl Cao {
                 env!("OUT_DIR"),
                 "/clip_mask.comp.spv"
             ))),
-            &[b; 6],
-            std::mem::size_of::<BoxPush>() as u32,
+            &[b; 7],
+            std::mem::size_of::<ClipPush>() as u32,
         )?;
         let update = ComputePipeline::new(
             gpu,
@@ -237,7 +261,7 @@ impl Cao {
                 env!("OUT_DIR"),
                 "/cao_update.comp.spv"
             ))),
-            &[b; 7],
+            &[b; 6],
             std::mem::size_of::<UpdatePush>() as u32,
         )?;
         let n = (dims[0] * dims[1] * dims[2]) as u64;
@@ -246,12 +270,16 @@ impl Cao {
             | vk::BufferUsageFlags::TRANSFER_DST;
         let dev = |name| Buffer::new(gpu, n * 4, storage, MemoryLocation::GpuOnly, name);
         let (clipped, mask, ao) = (dev("cao-clipped")?, dev("cao-mask")?, dev("cao-ao")?);
-        let dirs: Vec<[f32; 4]> = index_steps(&params, spacing)
-            .iter()
-            .map(|s| [s.x as f32, s.y as f32, s.z as f32, 0.0])
-            .collect();
-        let dirs =
-            Buffer::from_slice(gpu, &dirs, vk::BufferUsageFlags::STORAGE_BUFFER, "cao-dirs")?;
+        let layout = LaoLayout::new(&params, spacing, dims);
+        let stride = layout.stride();
+        check_layout(&vol.name, &skip, stride)?;
+        let clipped_padded = Buffer::new(
+            gpu,
+            layout.padded_len() as u64 * 4,
+            storage,
+            MemoryLocation::GpuOnly,
+            "cao-clipped-padded",
+        )?;
         let counts = Buffer::new(
             gpu,
             16,
@@ -278,10 +306,11 @@ impl Cao {
             max_spacing_mm: spacing.iter().cloned().fold(0.0, f64::max),
             opacity,
             clipped,
+            clipped_padded,
+            stride,
             mask,
             pao,
             ao,
-            dirs,
             skip,
             counts,
             tools,
@@ -291,16 +320,25 @@ impl Cao {
             meshes: Vec::new(),
             clip_resolution: crate::clip::DEFAULT_RESOLUTION,
             prev_boxes: Vec::new(),
+            background_clipped: false,
             sh_radius_mm: None,
             sh_boxes: Vec::new(),
             tool_count: 0,
             timer: GpuTimer::new(gpu, 8)?,
             method: MethodGpu::Lao,
         };
-        // Start unclipped: O_c = O, V_AO = V_PAO everywhere.
+        // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere.
         let all = cao.whole();
-        cao.gpu
-            .submit_and_wait(|cmd| cao.record_restore(cmd, &[all]))?;
+        cao.gpu.submit_and_wait(|cmd| {
+            unsafe {
+                let raw = cao.clipped_padded.raw;
+                cao.gpu
+                    .device
+                    .cmd_fill_buffer(cmd, raw, 0, vk::WHOLE_SIZE, 0);
+            }
+            cao.gpu.barrier(cmd);
+            cao.record_restore(cmd, &[all], false);
+        })?;
         Ok(cao)
     }
 
@@ -323,6 +361,9 @@ impl Cao {
                 "{}: new opacity ({} bytes) or V_PAO ({} bytes) does not match the {:?} volume ({bytes} bytes)",
                 self.geometry.name, opacity.size, pao.size, self.dims
             )));
+        }
+        if let Some(skip) = &skip {
+            check_layout(&self.geometry.name, skip, self.stride)?;
         }
         self.opacity = opacity;
         self.pao = pao;
@@ -513,10 +554,9 @@ impl Cao {
                 offsets: [clip_off, dil_off, sh_off, 0],
                 sh_map,
             });
-            boxes.push(match tool.mode {
-                ToolMode::Probe => self.whole(),
-                ToolMode::Carve => self.box_of(&map, local_from_index.inverse()),
-            });
+            // A probe's box holds its inside and the voxels anti-aliased at its surface; every
+            // voxel beyond is clipped away (the background, see `record_frame`).
+            boxes.push(self.box_of(&map, local_from_index.inverse()));
         }
         if !gpu_tools.is_empty() {
             self.tools.write(0, bytemuck::cast_slice(&gpu_tools))?;
@@ -571,12 +611,14 @@ impl Cao {
         ]
     }
 
-    fn record_restore(&self, cmd: vk::CommandBuffer, boxes: &[VoxelBox]) {
+    /// Puts the voxels of `boxes` in the background state: unclipped, or clipped away.
+    fn record_restore(&self, cmd: vk::CommandBuffer, boxes: &[VoxelBox], clipped: bool) {
         for b in boxes {
-            let push = BoxPush {
+            let push = ClipPush {
                 dims: self.dims4(),
-                box_min: [b.min[0], b.min[1], b.min[2], 0],
+                box_min: [b.min[0], b.min[1], b.min[2], clipped as i32],
                 box_max: [b.max[0], b.max[1], b.max[2], 0],
+                stride: self.stride,
             };
             let bufs = [
                 &self.opacity,
@@ -584,6 +626,7 @@ impl Cao {
                 &self.mask,
                 &self.pao,
                 &self.ao,
+                &self.clipped_padded,
             ];
             self.restore.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.restore, cmd, b);
@@ -605,22 +648,41 @@ impl Cao {
         if mode == Mode::Naive {
             boxes = vec![self.whole()];
         }
+        // With a probe active every voxel outside the tools' boxes is outside the probe: clipped
+        // away. A change of background restores the whole volume once; otherwise last frame's
+        // boxes go back to it.
+        let clipped = tools
+            .iter()
+            .filter(|t| t.active)
+            .take(MAX_TOOLS)
+            .any(|t| t.mode == ToolMode::Probe);
+        let mut restore: Vec<VoxelBox> = std::mem::take(&mut self.prev_boxes);
+        if clipped != self.background_clipped {
+            restore = vec![self.whole()];
+        }
+        self.background_clipped = clipped;
         // The naive pass rewrites every voxel, so it needs no restore.
-        let restore: Vec<VoxelBox> = std::mem::take(&mut self.prev_boxes);
-        let restore = if mode == Mode::Naive {
-            Vec::new()
-        } else {
-            restore
-        };
+        if mode == Mode::Naive {
+            restore.clear();
+        }
         unsafe {
             self.gpu
                 .device
                 .cmd_fill_buffer(cmd, self.counts.raw, 0, 16, 0);
         }
         self.timer.begin(cmd);
-        self.record_restore(cmd, &restore);
+        self.record_restore(cmd, &restore, clipped);
         if let MethodGpu::Histogram(h) = &self.method {
-            // The bleeding colour of last frame's boxes, restored like V_AO.
+            // The bleeding colour of last frame's boxes, restored like V_AO (clipped: the
+            // values of category a, from the mask just written).
+            if clipped {
+                self.gpu.barrier(cmd);
+            }
+            let hmode = if clipped {
+                HistMode::Contextual
+            } else {
+                HistMode::Restore
+            };
             h.record(
                 cmd,
                 &self.clipped,
@@ -628,17 +690,18 @@ impl Cao {
                 &self.pao,
                 &self.ao,
                 &restore,
-                HistMode::Restore,
+                hmode,
             );
         }
         self.gpu.barrier(cmd);
         self.timer.mark(cmd, "restore");
         let maps = self.maps.as_ref().unwrap_or(&self.tools);
         for b in &boxes {
-            let push = BoxPush {
+            let push = ClipPush {
                 dims: self.dims4(),
                 box_min: [b.min[0], b.min[1], b.min[2], count as i32],
                 box_max: [b.max[0], b.max[1], b.max[2], 0],
+                stride: self.stride,
             };
             let bufs = [
                 &self.opacity,
@@ -647,6 +710,7 @@ impl Cao {
                 &self.tools,
                 maps,
                 &self.counts,
+                &self.clipped_padded,
             ];
             self.clip.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.clip, cmd, b);
@@ -690,6 +754,7 @@ impl Cao {
         for b in boxes.iter().filter(|_| lao) {
             let push = UpdatePush {
                 dims: self.dims4(),
+                stride: self.stride,
                 rays: self.params.rays,
                 steps: self.params.steps,
                 exponent: self.params.step_mm,
@@ -698,22 +763,25 @@ impl Cao {
                 box_max: [b.max[0], b.max[1], b.max[2], 0],
             };
             let bufs = [
-                &self.clipped,
-                &self.dirs,
+                &self.clipped_padded,
+                &self.skip.samples,
                 &self.ao,
                 &self.skip.clear,
-                &self.skip.bricks,
                 &self.mask,
                 &self.pao,
             ];
             self.update.bind(cmd, &bufs, bytemuck::bytes_of(&push));
-            dispatch_box(&self.update, cmd, b);
+            dispatch_box_in(&self.update, cmd, b, LAO_GROUP);
         }
         self.gpu.barrier(cmd);
         self.timer.mark(cmd, "update");
         let visited = boxes.iter().map(|b| b.voxels()).sum();
         self.prev_boxes = boxes;
-        Ok(PendingFrame { visited, mode })
+        Ok(PendingFrame {
+            visited,
+            mode,
+            clipped_outside: clipped,
+        })
     }
 
     /// Metrics of the frame recorded last, after its command buffer finished.
@@ -722,7 +790,11 @@ impl Cao {
         let total = (self.dims[0] * self.dims[1] * self.dims[2]) as u64;
         let times = self.timer.read()?;
         let ms = |name: &str| times.iter().find(|t| t.0 == name).map_or(0.0, |t| t.1);
-        let (clipped, affected) = (c[0] as u64, c[1] as u64);
+        let (mut clipped, affected) = (c[0] as u64, c[1] as u64);
+        if pending.clipped_outside {
+            // The voxels outside the boxes, all clipped away (the counts cover the boxes).
+            clipped += total - pending.visited;
+        }
         // The naive baseline recomputes every voxel that is not clipped away.
         let recomputed = match pending.mode {
             Mode::Contextual => affected,
@@ -748,7 +820,11 @@ impl Cao {
     ) -> Result<FrameMetrics> {
         self.prepare_maps(tools, placement)?;
         let gpu = self.gpu.clone();
-        let mut pending = Ok(PendingFrame { visited: 0, mode });
+        let mut pending = Ok(PendingFrame {
+            visited: 0,
+            mode,
+            clipped_outside: false,
+        });
         gpu.submit_and_wait(|cmd| pending = self.record_frame(cmd, tools, placement, mode))?;
         self.read_metrics(pending?)
     }
@@ -760,7 +836,7 @@ impl Cao {
     }
 
     /// The last frame's voxel categories (0: clipped, 1: affected, 2: unaffected; restored
-    /// boxes read 2).
+    /// boxes read 2, or 0 while a probe is active).
     pub fn mask(&self) -> &Buffer {
         &self.mask
     }
@@ -770,9 +846,23 @@ impl Cao {
     }
 }
 
+/// Skipping data made for another grid than the CAO state's (a stand-in has stride 0) would make
+/// the kernel read the wrong voxels: an error naming the volume.
+fn check_layout(name: &str, skip: &SkipBuffers, stride: [i32; 4]) -> Result<()> {
+    if skip.stride != [0; 4] && skip.stride != stride {
+        return Err(GpuError::Other(format!(
+            "{name}: LAO skipping data for a padded grid of strides {:?}, the CAO state uses {stride:?}",
+            skip.stride
+        )));
+    }
+    Ok(())
+}
+
 /// A recorded frame whose metrics are not read yet.
 #[derive(Clone, Copy, Debug)]
 pub struct PendingFrame {
     visited: u64,
     mode: Mode,
+    /// Every voxel outside the boxes is clipped away (a probe is active).
+    clipped_outside: bool,
 }

@@ -2,6 +2,7 @@
 
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Result};
 use ash::vk;
+use bytemuck::Zeroable;
 use glam::DVec3;
 use rayon::prelude::*;
 use serde::Serialize;
@@ -131,7 +132,7 @@ pub use crate::shader_constants::BRICK;
 
 /// One word per BRICK^3 brick (x fastest): 1 when any voxel in the brick or one voxel beyond its
 /// upper faces has O > 0. A sample whose trilinear footprint starts in an unoccupied brick reads
-/// only zeros, so the kernel skips its eight loads and multiplies by nothing: values unchanged.
+/// only zeros, so the old kernel (lao_old.comp) skips its eight loads: values unchanged.
 pub fn brick_occupancy(opacity: &[f32], dims: [usize; 3]) -> Vec<u32> {
     let bd = dims.map(|d| d.div_ceil(BRICK));
     (0..bd[0] * bd[1] * bd[2])
@@ -153,9 +154,130 @@ pub fn brick_occupancy(opacity: &[f32], dims: [usize; 3]) -> Vec<u32> {
         .collect()
 }
 
+/// Which LAO kernel runs: `New` (the default) or the kernel before issue 18, kept so that
+/// `cao-xr bench lao` can measure both in one run. Both compute the same A(v) to within float
+/// rounding.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum LaoKernel {
+    Old,
+    #[default]
+    New,
+}
+
+/// One entry of the kernel's sample table (shaders/include/lao_sample.glsl): sample m of ray k.
+/// Voxel centres sit at integer + 0.5, so the sample's footprint starts at the same integer
+/// offset from every voxel, with the same trilinear weights.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct LaoSample {
+    pub frac: [f32; 3],
+    /// Index of the footprint's lower corner relative to the voxel's, in the padded grid.
+    pub offset: i32,
+}
+crate::gpu::glsl_layout!(LaoSample, 16, frac: 0, offset: 12);
+
+/// The grid the kernel reads: O with a zero border wide enough for every sample's footprint, so
+/// that zero padding needs no test per sample, and the sample table for that grid.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LaoLayout {
+    pub dims: [usize; 3],
+    /// Zero voxels before and after the volume on each axis.
+    pub pad: [usize; 3],
+    /// K * (M - 1) entries, ray-major.
+    pub samples: Vec<LaoSample>,
+}
+
+impl LaoLayout {
+    pub fn new(params: &LaoParams, spacing: [f64; 3], dims: [usize; 3]) -> LaoLayout {
+        let mut cells = Vec::new();
+        let mut pad = [0usize; 3];
+        for s in index_steps(params, spacing) {
+            for m in 1..params.steps {
+                // Sample point - 0.5 = v + m*s: its floor is v + floor(m*s).
+                let c = s * m as f64;
+                let d = c.floor();
+                let f = c - d;
+                let d = [d.x as i64, d.y as i64, d.z as i64];
+                for a in 0..3 {
+                    // The footprint spans d..=d+1 beyond the voxel on this axis.
+                    pad[a] = pad[a].max((-d[a]).max(d[a] + 1).max(0) as usize);
+                }
+                cells.push((d, [f.x as f32, f.y as f32, f.z as f32]));
+            }
+        }
+        let p = [0, 1, 2].map(|a| (dims[a] + 2 * pad[a]) as i64);
+        let samples = cells
+            .into_iter()
+            .map(|(d, frac)| LaoSample {
+                frac,
+                offset: (d[0] + p[0] * (d[1] + p[1] * d[2])) as i32,
+            })
+            .collect();
+        LaoLayout { dims, pad, samples }
+    }
+
+    /// Dimensions of the padded grid.
+    pub fn padded_dims(&self) -> [usize; 3] {
+        [0, 1, 2].map(|a| self.dims[a] + 2 * self.pad[a])
+    }
+
+    pub fn padded_len(&self) -> usize {
+        self.padded_dims().iter().product()
+    }
+
+    /// (index of voxel (0,0,0), row stride, slice stride, 0) in the padded grid, as the shaders
+    /// take them.
+    pub fn stride(&self) -> [i32; 4] {
+        let p = self.padded_dims();
+        let (sy, sz) = (p[0], p[0] * p[1]);
+        [
+            (self.pad[0] + sy * self.pad[1] + sz * self.pad[2]) as i32,
+            sy as i32,
+            sz as i32,
+            0,
+        ]
+    }
+
+    /// `opacity` (x fastest) inside its zero border.
+    pub fn padded(&self, opacity: &[f32]) -> Vec<f32> {
+        let (d, p) = (self.dims, self.padded_dims());
+        let mut out = vec![0f32; self.padded_len()];
+        out.par_chunks_mut(p[0] * p[1])
+            .enumerate()
+            .skip(self.pad[2])
+            .take(d[2])
+            .for_each(|(pk, slice)| {
+                let k = pk - self.pad[2];
+                for j in 0..d[1] {
+                    let dst = (j + self.pad[1]) * p[0] + self.pad[0];
+                    let src = d[0] * (j + d[1] * k);
+                    slice[dst..dst + d[0]].copy_from_slice(&opacity[src..src + d[0]]);
+                }
+            });
+        out
+    }
+}
+
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct Push {
+    dims: [i32; 4],
+    stride: [i32; 4],
+    rays: u32,
+    steps: u32,
+    exponent: f32,
+    z0: u32,
+    z1: u32,
+}
+crate::gpu::glsl_layout!(Push, 52,
+    dims: 0, stride: 16, rays: 32, steps: 36, exponent: 40, z0: 44, z1: 48);
+
+pub use crate::shader_constants::LAO_GROUP;
+
+/// lao_old.comp's push constants.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct OldPush {
     dims: [i32; 4],
     rays: u32,
     steps: u32,
@@ -163,12 +285,18 @@ struct Push {
     z0: u32,
     z1: u32,
 }
-crate::gpu::glsl_layout!(Push, 36, dims: 0, rays: 16, steps: 20, exponent: 24, z0: 28, z1: 32);
+crate::gpu::glsl_layout!(OldPush, 36, dims: 0, rays: 16, steps: 20, exponent: 24, z0: 28, z1: 32);
 
-/// Exact empty-space skipping data for one opacity volume and LAO setting.
+/// What the kernel needs of one opacity volume and LAO setting besides O itself: exact
+/// empty-space skipping data, O inside its zero border and the sample table ([`LaoLayout`]).
 pub struct SkipBuffers {
     pub clear: Buffer,
+    /// Only the old kernel reads the bricks.
     pub bricks: Buffer,
+    pub padded: Buffer,
+    pub samples: Buffer,
+    /// [`LaoLayout::stride`] of `padded`.
+    pub stride: [i32; 4],
 }
 
 /// The host side of [`SkipBuffers`]: pure host work, so it can run on a worker thread.
@@ -176,6 +304,9 @@ pub struct SkipBuffers {
 pub struct SkipData {
     pub clear: Vec<u32>,
     pub bricks: Vec<u32>,
+    pub padded: Vec<f32>,
+    pub samples: Vec<LaoSample>,
+    pub stride: [i32; 4],
 }
 
 impl SkipData {
@@ -185,17 +316,24 @@ impl SkipData {
         spacing: [f64; 3],
         params: &LaoParams,
     ) -> SkipData {
+        let layout = LaoLayout::new(params, spacing, dims);
         SkipData {
             clear: clear_mask(opacity, dims, reach_voxels(params, spacing)),
             bricks: brick_occupancy(opacity, dims),
+            padded: layout.padded(opacity),
+            stride: layout.stride(),
+            samples: layout.samples,
         }
     }
 }
 
-/// The LAO compute pipeline.
+/// The LAO compute pipelines.
 pub struct LaoGpu {
     gpu: Gpu,
     pipeline: ComputePipeline,
+    old: ComputePipeline,
+    /// Which kernel [`LaoGpu::record_slab`] and [`LaoGpu::compute`] run.
+    pub kernel: LaoKernel,
 }
 
 /// What a precompute took.
@@ -204,7 +342,7 @@ pub struct LaoTiming {
     /// Sum of the GPU timestamps of all slabs.
     pub gpu_ms: f64,
     pub wall_ms: f64,
-    /// Opacity samples taken (upper bound: K*(M-1) per voxel, before early termination).
+    /// Nominal opacity samples: K*(M-1) per voxel (voxels of the clear mask take none).
     pub samples: u64,
 }
 
@@ -212,20 +350,22 @@ impl LaoGpu {
     pub fn new(gpu: &Gpu) -> Result<LaoGpu> {
         let spv = include_bytes!(concat!(env!("OUT_DIR"), "/lao.comp.spv"));
         let b = vk::DescriptorType::STORAGE_BUFFER;
-        let pipeline = ComputePipeline::new(
+        let pipeline = ComputePipeline::new(gpu, spv, &[b; 4], std::mem::size_of::<Push>() as u32)?;
+        let old = ComputePipeline::new(
             gpu,
-            spv,
-            &[b, b, b, b, b],
-            std::mem::size_of::<Push>() as u32,
+            include_bytes!(concat!(env!("OUT_DIR"), "/lao_old.comp.spv")),
+            &[b; 5],
+            std::mem::size_of::<OldPush>() as u32,
         )?;
         Ok(LaoGpu {
             gpu: gpu.clone(),
             pipeline,
+            old,
+            kernel: LaoKernel::New,
         })
     }
 
-    /// The [`clear_mask`] and [`brick_occupancy`] of a host opacity volume, uploaded for
-    /// [`LaoGpu::compute`].
+    /// The [`SkipData`] of a host opacity volume, uploaded for [`LaoGpu::compute`].
     pub fn skip_buffers(
         &self,
         opacity: &[f32],
@@ -243,15 +383,27 @@ impl LaoGpu {
         Ok(SkipBuffers {
             clear: Buffer::device_local(&self.gpu, &[0u32], usage, "lao-clear")?,
             bricks: Buffer::device_local(&self.gpu, &[0u32], usage, "lao-bricks")?,
+            padded: Buffer::device_local(&self.gpu, &[0f32], usage, "lao-padded")?,
+            samples: Buffer::device_local(&self.gpu, &[LaoSample::zeroed()], usage, "lao-samples")?,
+            stride: [0; 4],
         })
     }
 
     /// Uploads skipping data computed on the host (possibly on another thread).
     pub fn upload_skip(&self, data: &SkipData) -> Result<SkipBuffers> {
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        // A table needs one entry even when M = 1 leaves no samples.
+        let samples: &[LaoSample] = if data.samples.is_empty() {
+            &[LaoSample::zeroed()]
+        } else {
+            &data.samples
+        };
         Ok(SkipBuffers {
             clear: Buffer::device_local(&self.gpu, &data.clear, usage, "lao-clear")?,
             bricks: Buffer::device_local(&self.gpu, &data.bricks, usage, "lao-bricks")?,
+            padded: Buffer::device_local(&self.gpu, &data.padded, usage, "lao-padded")?,
+            samples: Buffer::device_local(&self.gpu, samples, usage, "lao-samples")?,
+            stride: data.stride,
         })
     }
 
@@ -284,9 +436,10 @@ impl LaoGpu {
     }
 
     /// Records the LAO of slices `z0..z1` of `opacity` into the same slices of `out`
-    /// (`dirs` from [`LaoGpu::directions_buffer`]). Each voxel's value depends only on O, so
-    /// any split into slabs gives the same volume bit for bit. Records no barrier: the caller
-    /// orders `out` against its readers.
+    /// (`dirs` from [`LaoGpu::directions_buffer`]; the new kernel reads O and its table from
+    /// `skip` instead, the old one reads `opacity` and `dirs`). Each voxel's value depends only
+    /// on O, so any split into slabs gives the same volume bit for bit. Records no barrier: the
+    /// caller orders `out` against its readers.
     #[allow(clippy::too_many_arguments)]
     pub fn record_slab(
         &self,
@@ -299,25 +452,46 @@ impl LaoGpu {
         params: &LaoParams,
         z: std::ops::Range<usize>,
     ) {
-        let push = Push {
-            dims: [dims[0] as i32, dims[1] as i32, dims[2] as i32, 0],
-            rays: params.rays,
-            steps: params.steps,
-            exponent: params.step_mm,
-            z0: z.start as u32,
-            z1: z.end as u32,
+        let dims4 = [dims[0] as i32, dims[1] as i32, dims[2] as i32, 0];
+        let pipeline = match self.kernel {
+            LaoKernel::New => {
+                let push = Push {
+                    dims: dims4,
+                    stride: skip.stride,
+                    rays: params.rays,
+                    steps: params.steps,
+                    exponent: params.step_mm,
+                    z0: z.start as u32,
+                    z1: z.end as u32,
+                };
+                let bufs = [&skip.padded, &skip.samples, out, &skip.clear];
+                self.pipeline.bind(cmd, &bufs, bytemuck::bytes_of(&push));
+                &self.pipeline
+            }
+            LaoKernel::Old => {
+                let push = OldPush {
+                    dims: dims4,
+                    rays: params.rays,
+                    steps: params.steps,
+                    exponent: params.step_mm,
+                    z0: z.start as u32,
+                    z1: z.end as u32,
+                };
+                let bufs = [opacity, dirs, out, &skip.clear, &skip.bricks];
+                self.old.bind(cmd, &bufs, bytemuck::bytes_of(&push));
+                &self.old
+            }
         };
-        self.pipeline.bind(
-            cmd,
-            &[opacity, dirs, out, &skip.clear, &skip.bricks],
-            bytemuck::bytes_of(&push),
-        );
-        self.pipeline.dispatch(
+        let group = match self.kernel {
+            LaoKernel::New => LAO_GROUP,
+            LaoKernel::Old => [4; 3],
+        };
+        pipeline.dispatch(
             cmd,
             [
-                dims[0].div_ceil(4) as u32,
-                dims[1].div_ceil(4) as u32,
-                z.len().div_ceil(4) as u32,
+                (dims[0] as u32).div_ceil(group[0]),
+                (dims[1] as u32).div_ceil(group[1]),
+                (z.len() as u32).div_ceil(group[2]),
             ],
         );
     }
@@ -388,6 +562,67 @@ mod tests {
         assert!(directions(14)
             .iter()
             .any(|v| (v.x - 1.0 / 3f64.sqrt()).abs() < 1e-12));
+    }
+
+    #[test]
+    fn the_padded_layout_reads_what_the_definition_reads() {
+        // Anisotropic spacing, D != 1, voxels at every border: each sample the table describes,
+        // read from the padded grid as the shader reads it, is the reference's trilinear O at
+        // that sample (zero padding included), and every read stays inside the padded grid.
+        // Also whole-voxel steps (K = 6, D = 1 mm = the spacing), whose footprints end one
+        // voxel farther out.
+        let dims = [7, 5, 6];
+        for (rays, steps, step_mm, spacing) in
+            [(26, 9, 1.7, [0.8, 1.3, 2.1]), (6, 4, 1.0, [1.0; 3])]
+        {
+            let params = LaoParams {
+                rays,
+                steps,
+                step_mm,
+            };
+            check_layout(dims, &params, spacing);
+        }
+    }
+
+    fn check_layout(dims: [usize; 3], params: &LaoParams, spacing: [f64; 3]) {
+        let n = dims[0] * dims[1] * dims[2];
+        let params = *params;
+        let o: Vec<f32> = (0..n).map(|i| ((i * 37) % 11) as f32 / 10.0).collect();
+        let l = LaoLayout::new(&params, spacing, dims);
+        let padded = l.padded(&o);
+        assert_eq!(padded.len(), l.padded_len());
+        let [origin, sy, sz, _] = l.stride().map(|x| x as i64);
+        let steps = index_steps(&params, spacing);
+        let m1 = params.steps as usize - 1;
+        assert_eq!(l.samples.len(), steps.len() * m1);
+        for k in 0..dims[2] {
+            for j in 0..dims[1] {
+                for i in 0..dims[0] {
+                    let base = origin + i as i64 + sy * j as i64 + sz * k as i64;
+                    assert_eq!(padded[base as usize], o[i + dims[0] * (j + dims[1] * k)]);
+                    for (r, s) in steps.iter().enumerate() {
+                        for m in 1..=m1 {
+                            let e = l.samples[r * m1 + m - 1];
+                            let b = base + e.offset as i64;
+                            let at = |d: i64| padded[(b + d) as usize] as f64;
+                            let f = e.frac.map(|x| x as f64);
+                            let lerp = |a: f64, b: f64, t: f64| a * (1.0 - t) + b * t;
+                            let x0 = lerp(at(0), at(1), f[0]);
+                            let x1 = lerp(at(sy), at(sy + 1), f[0]);
+                            let x2 = lerp(at(sz), at(sz + 1), f[0]);
+                            let x3 = lerp(at(sz + sy), at(sz + sy + 1), f[0]);
+                            let got = lerp(lerp(x0, x1, f[1]), lerp(x2, x3, f[1]), f[2]);
+                            let p = DVec3::new(i as f64, j as f64, k as f64) + 0.5 + *s * m as f64;
+                            let want = super::super::cpu::opacity_at(&o, dims, p.to_array());
+                            assert!(
+                                (got - want).abs() < 1e-6,
+                                "voxel {i},{j},{k} ray {r} step {m}: {got} vs {want}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
     }
 
     #[test]

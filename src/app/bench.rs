@@ -1,6 +1,8 @@
 //! `cao-xr bench lao`: LAO precompute time and throughput, medians of several runs.
 
 use super::{precompute_ao, Result};
+use crate::ao::cao::Cao;
+use crate::ao::lao::LaoKernel;
 use crate::ao::{LaoGpu, LaoParams};
 use crate::gpu::Gpu;
 use crate::volume::transfer::TransferFunction;
@@ -13,9 +15,17 @@ pub struct LaoBenchRow {
     pub rays: u32,
     pub steps: u32,
     pub runs: usize,
+    /// Per kernel measured (in the order asked): median GPU ms, wall ms and opacity samples per
+    /// second of GPU time (nominal: K*(M-1) per voxel).
+    pub kernels: Vec<(LaoKernel, LaoBenchTime)>,
+    /// With two kernels: the largest |A_second - A_first| over the volume.
+    pub max_diff: Option<f32>,
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct LaoBenchTime {
     pub gpu_ms: f64,
     pub wall_ms: f64,
-    /// Opacity samples per second of GPU time (K*(M-1) per voxel).
     pub samples_per_s: f64,
 }
 
@@ -32,7 +42,9 @@ pub fn median(v: &mut [f64]) -> f64 {
     }
 }
 
-/// Runs the full LAO precompute `runs` times per volume and K; prints each row as it finishes.
+/// Runs the full LAO precompute `runs` times per volume, K and kernel, the kernels interleaved
+/// run by run (so that both see the same machine load); prints each row as it finishes. With
+/// two kernels it prints their ratio of samples/s and their largest difference.
 pub fn bench_lao(
     gpu: &Gpu,
     volumes: &[Volume],
@@ -40,49 +52,112 @@ pub fn bench_lao(
     ks: &[u32],
     base: &LaoParams,
     runs: usize,
+    kernels: &[LaoKernel],
 ) -> Result<Vec<LaoBenchRow>> {
-    let lao = LaoGpu::new(gpu)?;
+    use ash::vk;
+    let runs = runs.max(1);
+    let laos = kernels
+        .iter()
+        .map(|&k| {
+            let mut l = LaoGpu::new(gpu)?;
+            l.kernel = k;
+            Ok(l)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let name = |k: LaoKernel| match k {
+        LaoKernel::Old => "old",
+        LaoKernel::New => "new",
+    };
     println!(
-        "LAO precompute on {} ({} run(s) each, medians)",
-        gpu.device_name, runs
+        "LAO precompute on {} ({runs} run(s) each, kernels interleaved, medians; Msamples/s: \
+         K*(M-1) samples per voxel per second of GPU time)",
+        gpu.device_name
     );
-    println!(
-        "{:<14} {:>13} {:>4} {:>4} {:>11} {:>11} {:>14}",
-        "volume", "dims", "K", "M", "gpu ms", "wall ms", "Msamples/s"
-    );
+    let mut head = format!("{:<14} {:>13} {:>4} {:>4}", "volume", "dims", "K", "M");
+    for &k in kernels {
+        head += &format!(
+            " {:>11} {:>14}",
+            format!("{} ms", name(k)),
+            format!("{} Msamples/s", name(k))
+        );
+    }
+    if kernels.len() == 2 {
+        head += &format!(" {:>8} {:>10}", "ratio", "max diff");
+    }
+    println!("{head}");
     let mut rows = Vec::new();
     for vol in volumes {
+        crate::render::check_volume_fits_gpu(gpu, vol)?;
+        let opacity = tf.opacity_volume(vol);
+        let obuf = crate::gpu::Buffer::device_local(
+            gpu,
+            &opacity,
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "opacity",
+        )?;
         for &k in ks {
             let params = LaoParams { rays: k, ..*base };
-            let (mut g, mut w) = (Vec::new(), Vec::new());
+            params.validate().map_err(super::AppError::Usage)?;
+            let skip = laos[0].skip_buffers(&opacity, vol.dims, vol.spacing, &params)?;
+            let mut times = vec![(Vec::new(), Vec::new()); laos.len()];
+            let mut outs = vec![Vec::new(); laos.len()];
             let mut samples = 0;
-            for _ in 0..runs.max(1) {
-                let r = precompute_ao(gpu, &lao, vol, tf, &params, false)?;
-                g.push(r.timing.gpu_ms);
-                w.push(r.timing.wall_ms);
-                samples = r.timing.samples;
+            for _ in 0..runs {
+                for (i, lao) in laos.iter().enumerate() {
+                    let (out, t) =
+                        lao.compute(&obuf, &skip, vol.dims, vol.spacing, &params, &mut |_, _| {})?;
+                    times[i].0.push(t.gpu_ms);
+                    times[i].1.push(t.wall_ms);
+                    samples = t.samples;
+                    outs[i] = out.read_back()?;
+                }
             }
-            let gpu_ms = median(&mut g);
+            let kernel_times: Vec<(LaoKernel, LaoBenchTime)> = kernels
+                .iter()
+                .zip(&mut times)
+                .map(|(&k, (g, w))| {
+                    let gpu_ms = median(g);
+                    let t = LaoBenchTime {
+                        gpu_ms,
+                        wall_ms: median(w),
+                        samples_per_s: samples as f64 / (gpu_ms * 1e-3),
+                    };
+                    (k, t)
+                })
+                .collect();
+            let max_diff = (outs.len() == 2).then(|| {
+                let (a, b): (&[f32], &[f32]) = (
+                    bytemuck::cast_slice(&outs[0]),
+                    bytemuck::cast_slice(&outs[1]),
+                );
+                a.iter()
+                    .zip(b)
+                    .map(|(x, y)| (x - y).abs())
+                    .fold(0.0f32, f32::max)
+            });
             let row = LaoBenchRow {
                 volume: vol.name.clone(),
                 dims: vol.dims,
                 rays: k,
                 steps: params.steps,
-                runs: runs.max(1),
-                gpu_ms,
-                wall_ms: median(&mut w),
-                samples_per_s: samples as f64 / (gpu_ms * 1e-3),
+                runs,
+                kernels: kernel_times,
+                max_diff,
             };
-            println!(
-                "{:<14} {:>13} {:>4} {:>4} {:>11.1} {:>11.1} {:>14.1}",
+            let mut line = format!(
+                "{:<14} {:>13} {:>4} {:>4}",
                 row.volume,
                 format!("{}x{}x{}", row.dims[0], row.dims[1], row.dims[2]),
                 row.rays,
-                row.steps,
-                row.gpu_ms,
-                row.wall_ms,
-                row.samples_per_s * 1e-6
+                row.steps
             );
+            for (_, t) in &row.kernels {
+                line += &format!(" {:>11.1} {:>14.1}", t.gpu_ms, t.samples_per_s * 1e-6);
+            }
+            if let (Some(d), [(_, a), (_, b)]) = (row.max_diff, row.kernels.as_slice()) {
+                line += &format!(" {:>7.2}x {:>10.1e}", b.samples_per_s / a.samples_per_s, d);
+            }
+            println!("{line}");
             rows.push(row);
         }
     }
@@ -139,7 +214,7 @@ pub fn naive_timed_frames(frames: usize, naive: usize) -> Vec<usize> {
 }
 
 /// Mean GPU ms per frame of CAO and of the naive full recompute over a sphere sweep, medians of
-/// `runs` runs, both measured in the same run. With `verify`, every naive frame is compared with
+/// `runs` runs, both measured in the same run; then a probe of each of `probe_radii` (mm). With `verify`, every naive frame is compared with
 /// the CAO frame bit for bit; the first difference is an error naming the frame and voxel.
 #[allow(clippy::too_many_arguments)]
 pub fn bench_cao(
@@ -151,6 +226,7 @@ pub fn bench_cao(
     frames: usize,
     runs: usize,
     verify: bool,
+    probe_radii: &[f32],
 ) -> Result<Vec<CaoBenchRow>> {
     use crate::ao::cao::Mode;
     let lao = LaoGpu::new(gpu)?;
@@ -188,24 +264,7 @@ pub fn bench_cao(
                     if timed.contains(&f) {
                         n_ms += naive.run_frame(tools, &placement, Mode::Naive)?.gpu_ms();
                         if verify {
-                            let (a, b) = (cao.ao.read_back()?, naive.ao.read_back()?);
-                            let (a, b): (&[f32], &[f32]) =
-                                (bytemuck::cast_slice(&a), bytemuck::cast_slice(&b));
-                            if let Some(v) = a
-                                .iter()
-                                .zip(b)
-                                .position(|(x, y)| x.to_bits() != y.to_bits())
-                            {
-                                return Err(super::AppError::Usage(format!(
-                                    "verify: {} K={k} frame {f}: voxel {v} ({}, {}, {}) has CAO {} but naive LAO {}",
-                                    vol.name,
-                                    v % vol.dims[0],
-                                    (v / vol.dims[0]) % vol.dims[1],
-                                    v / (vol.dims[0] * vol.dims[1]),
-                                    a[v],
-                                    b[v]
-                                )));
-                            }
+                            verify_frame(&cao, &naive, vol, &format!("K={k} frame {f}"))?;
                         }
                     }
                 }
@@ -243,10 +302,137 @@ pub fn bench_cao(
     if rows.iter().any(|r| r.naive_frames < r.frames) {
         println!("(frames a/b: CAO timed on a frames, naive LAO on b of them, on this CPU device)");
     }
+    if !probe_radii.is_empty() {
+        bench_probes(
+            gpu,
+            volumes,
+            tf,
+            ks,
+            base,
+            frames,
+            runs,
+            verify,
+            probe_radii,
+        )?;
+    }
     if verify {
         println!("verify: every naive frame equals the CAO frame bit for bit");
     }
     Ok(rows)
+}
+
+/// The first difference between the CAO and the naive V_AO, as an error naming the frame and
+/// voxel.
+fn verify_frame(cao: &Cao, naive: &Cao, vol: &Volume, what: &str) -> Result<()> {
+    let (a, b) = (cao.ao.read_back()?, naive.ao.read_back()?);
+    let (a, b): (&[f32], &[f32]) = (bytemuck::cast_slice(&a), bytemuck::cast_slice(&b));
+    match a
+        .iter()
+        .zip(b)
+        .position(|(x, y)| x.to_bits() != y.to_bits())
+    {
+        None => Ok(()),
+        Some(v) => Err(super::AppError::Usage(format!(
+            "verify: {} {what}: voxel {v} ({}, {}, {}) has CAO {} but naive LAO {}",
+            vol.name,
+            v % vol.dims[0],
+            (v / vol.dims[0]) % vol.dims[1],
+            v / (vol.dims[0] * vol.dims[1]),
+            a[v],
+            b[v]
+        ))),
+    }
+}
+
+/// A probe (only its inside kept) of each radius sweeping like the carve tool: GPU ms per frame
+/// (mean over the frames, median of `runs`), the share of voxels recomputed, and the share
+/// inside the probe, which is what a probe recomputed every frame before it had a contraction.
+#[allow(clippy::too_many_arguments)]
+fn bench_probes(
+    gpu: &Gpu,
+    volumes: &[Volume],
+    tf: &TransferFunction,
+    ks: &[u32],
+    base: &LaoParams,
+    frames: usize,
+    runs: usize,
+    verify: bool,
+    radii: &[f32],
+) -> Result<()> {
+    use crate::ao::cao::Mode;
+    use crate::scene::ToolMode;
+    let lao = LaoGpu::new(gpu)?;
+    let placement = crate::space::Placement::default();
+    println!();
+    println!(
+        "CAO per frame with a probe sphere sweeping (GPU ms, mean over {frames} frames, median of \
+         {runs} run(s); % inside: what a probe recomputed before its contraction)"
+    );
+    println!(
+        "{:<14} {:>13} {:>4} {:>10} {:>10} {:>10} {:>10} {:>12} {:>9}",
+        "volume",
+        "dims",
+        "K",
+        "radius mm",
+        "CAO ms",
+        "clip ms",
+        "update ms",
+        "% recomputed",
+        "% inside"
+    );
+    for vol in volumes {
+        for &k in ks {
+            let params = LaoParams { rays: k, ..*base };
+            let ao = precompute_ao(gpu, &lao, vol, tf, &params, false)?;
+            let mut naive = if verify {
+                Some(ao.duplicate()?.into_cao(gpu, vol, params)?)
+            } else {
+                None
+            };
+            let mut cao = ao.into_cao(gpu, vol, params)?;
+            let total = vol.voxel_count() as f64;
+            for &r in radii {
+                let mut sweep = sweep_tools(vol, r, frames);
+                for t in sweep.iter_mut().flatten() {
+                    t.mode = ToolMode::Probe;
+                }
+                let (mut ms, mut clip, mut update) = (Vec::new(), Vec::new(), Vec::new());
+                let (mut pct, mut inside) = (0.0, 0.0);
+                for _ in 0..runs.max(1) {
+                    let (mut m_ms, mut c_ms, mut u_ms) = (0.0, 0.0, 0.0);
+                    for (f, tools) in sweep.iter().enumerate() {
+                        let m = cao.run_frame(tools, &placement, Mode::Contextual)?;
+                        m_ms += m.gpu_ms();
+                        c_ms += m.clip_ms;
+                        u_ms += m.update_ms;
+                        pct += m.percent_recomputed();
+                        inside += 100.0 * (total - m.clipped as f64) / total;
+                        if let Some(n) = naive.as_mut() {
+                            n.run_frame(tools, &placement, Mode::Naive)?;
+                            verify_frame(&cao, n, vol, &format!("K={k} probe {r} mm frame {f}"))?;
+                        }
+                    }
+                    ms.push(m_ms / frames as f64);
+                    clip.push(c_ms / frames as f64);
+                    update.push(u_ms / frames as f64);
+                }
+                let n = (frames * runs.max(1)) as f64;
+                println!(
+                    "{:<14} {:>13} {:>4} {:>10.0} {:>10.1} {:>10.1} {:>10.1} {:>12.2} {:>9.2}",
+                    vol.name,
+                    format!("{}x{}x{}", vol.dims[0], vol.dims[1], vol.dims[2]),
+                    k,
+                    r,
+                    median(&mut ms),
+                    median(&mut clip),
+                    median(&mut update),
+                    pct / n,
+                    inside / n
+                );
+            }
+        }
+    }
+    Ok(())
 }
 
 #[derive(Clone, Debug)]

@@ -204,6 +204,9 @@ impl AoVolume {
             skip: SkipBuffers {
                 clear: self.skip.clear.duplicate(usage, "lao-clear")?,
                 bricks: self.skip.bricks.duplicate(usage, "lao-bricks")?,
+                padded: self.skip.padded.duplicate(usage, "lao-padded")?,
+                samples: self.skip.samples.duplicate(usage, "lao-samples")?,
+                stride: self.skip.stride,
             },
             timing: self.timing.clone(),
             method: match &self.method {

@@ -68,7 +68,8 @@ pub struct ClipMap {
     pub radius: f32,
     /// Per texel: (in0, out0, in1, out1), the shape's first two intervals along local Z.
     pub clip: Vec<[f32; 4]>,
-    /// Per texel: (in, out, -, -), the dilated shape's interval along local Z.
+    /// Per texel: the dilated shape's interval along local Z, then the contracted shape's (a
+    /// probe's region of unchanged AO; see [`dilate`]).
     pub dilated: Vec<[f32; 4]>,
     /// Local Z range of the dilated shape.
     pub z_range: (f32, f32),
@@ -105,6 +106,15 @@ impl ClipMap {
         let d = self.dilated[t];
         let inside = (p.z >= c[0] && p.z <= c[1]) || (p.z >= c[2] && p.z <= c[3]);
         (inside, p.z >= d[0] && p.z <= d[1])
+    }
+
+    /// Whether a tool-local point is inside the shape contracted by the radius (see [`dilate`]),
+    /// as the shaders test it.
+    pub fn contracted(&self, p: Vec3) -> bool {
+        self.texel_of(p.x, p.y).is_some_and(|t| {
+            let d = self.dilated[t];
+            p.z >= d[2] && p.z <= d[3]
+        })
     }
 
     /// The map's extent for a mesh of half-extent `half` (x, y), a dilation `radius` and `res`
@@ -290,9 +300,18 @@ impl DilationKernel {
     }
 }
 
-/// The dilated shape: for every texel, the hull along Z of the spheres of `radius` centred on
-/// the surface points of all texels within reach (see [`DilationKernel`]). The reference for
-/// shaders/clip_dilate.comp.
+/// The dilated and the contracted shape, per texel (dilated in, dilated out, contracted in,
+/// contracted out). The reference for shaders/clip_dilate.comp.
+///
+/// Dilated: the hull along Z of the spheres of `radius` centred on the surface points of all
+/// texels within reach (see [`DilationKernel`]).
+///
+/// Contracted (the paper's Sect. 3.4 for probes): the points whose sphere of `radius` lies inside
+/// the shape as the clip map tests it. With the same kernel, a point of texel p at depth z is
+/// kept if for every texel q of the sphere's disc z - h(q) and z + h(q) lie in q's first
+/// interval; an empty texel or one off the map in the disc empties p. Taking only the first
+/// interval keeps less than the exact contraction of a two-interval texel: conservative.
+/// An empty result is (EMPTY_IN, EMPTY_OUT).
 pub fn dilate(clip: &[[f32; 4]], res: usize, texel: f32, radius: f32) -> Vec<[f32; 4]> {
     let kernel = DilationKernel::new(texel, radius);
     let reach = kernel.reach as i64;
@@ -301,24 +320,36 @@ pub fn dilate(clip: &[[f32; 4]], res: usize, texel: f32, radius: f32) -> Vec<[f3
         .map(|t| {
             let (pi, pj) = ((t % res) as i64, (t / res) as i64);
             let (mut lo, mut hi) = (EMPTY_IN, EMPTY_OUT);
-            for qj in (pj - reach).max(0)..=(pj + reach).min(res as i64 - 1) {
-                for qi in (pi - reach).max(0)..=(pi + reach).min(res as i64 - 1) {
-                    let c = clip[qj as usize * res + qi as usize];
-                    if c[0] > c[1] {
-                        continue;
-                    }
+            let (mut c_lo, mut c_hi) = (EMPTY_OUT, EMPTY_IN);
+            let mut contracted = true;
+            for qj in pj - reach..=pj + reach {
+                for qi in pi - reach..=pi + reach {
                     let k =
                         (qj - pj).unsigned_abs() * (reach as u64 + 1) + (qi - pi).unsigned_abs();
                     let h = kernel.heights[k as usize];
                     if h < 0.0 {
                         continue;
                     }
+                    if qi < 0 || qj < 0 || qi >= res as i64 || qj >= res as i64 {
+                        contracted = false;
+                        continue;
+                    }
+                    let c = clip[qj as usize * res + qi as usize];
+                    if c[0] > c[1] {
+                        contracted = false;
+                        continue;
+                    }
                     let last_out = if c[2] <= c[3] { c[3] } else { c[1] };
                     lo = lo.min(c[0] - h);
                     hi = hi.max(last_out + h);
+                    c_lo = c_lo.max(c[0] + h);
+                    c_hi = c_hi.min(c[1] - h);
                 }
             }
-            [lo, hi, 0.0, 0.0]
+            if !contracted || c_lo > c_hi {
+                (c_lo, c_hi) = (EMPTY_IN, EMPTY_OUT);
+            }
+            [lo, hi, c_lo, c_hi]
         })
         .collect()
 }
@@ -356,6 +387,43 @@ mod tests {
         assert!(m.test(Vec3::new(0.0, 1.25, 0.0)).1);
         assert!(!m.test(Vec3::new(0.0, 0.0, 1.45)).1);
         assert!(!m.test(Vec3::new(1.2, 1.2, 0.0)).1);
+    }
+
+    #[test]
+    fn the_contraction_keeps_only_points_whose_sphere_is_inside() {
+        // A probe's unaffected region: every point of the contraction has its whole sphere of
+        // the radius inside the shape as the map tests it (what makes a probe exact).
+        let mut rng = crate::rng::SplitMix64(7);
+        let mut v3 = || Vec3::new(rng.unit() as f32, rng.unit() as f32, rng.unit() as f32);
+        for (mesh, r) in [
+            (TriMesh::sphere(), 0.3f32),
+            (TriMesh::cube(), 0.25),
+            (TriMesh::torus(), 0.1),
+        ] {
+            let m = ClipMap::build(&mesh, 64, r);
+            let mut kept = 0;
+            for _ in 0..4000 {
+                let p = v3() * 2.4 - 1.2;
+                if !m.contracted(p) {
+                    continue;
+                }
+                kept += 1;
+                for _ in 0..16 {
+                    let (d, l) = (v3() * 2.0 - 1.0, v3().x);
+                    // Mostly near the sphere's surface, where a miss would show.
+                    let q = p + d.normalize_or_zero() * r * (0.5 + 0.5 * l.sqrt());
+                    assert!(m.test(q).0, "{p} is contracted but {q} is outside");
+                }
+            }
+            assert!(kept > 0, "a contraction by {r} keeps something");
+        }
+        // Not more than the shape shrunk by the radius, and empty once the radius is larger.
+        let m = ClipMap::build(&TriMesh::sphere(), 64, 0.3);
+        assert!(m.contracted(Vec3::ZERO) && m.contracted(Vec3::new(0.0, 0.0, 0.6)));
+        assert!(!m.contracted(Vec3::new(0.0, 0.0, 0.75)));
+        assert!(!m.contracted(Vec3::new(0.75, 0.0, 0.0)));
+        let none = ClipMap::build(&TriMesh::sphere(), 64, 1.1);
+        assert!(none.dilated.iter().all(|d| d[2] > d[3]));
     }
 
     #[test]

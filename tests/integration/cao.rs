@@ -295,3 +295,84 @@ fn the_cut_is_where_the_tools_are() {
     assert_eq!(oc[tube], 0.0, "the tube is");
     common::assert_no_validation_messages(&gpu);
 }
+
+/// Probes (only the inside kept) recompute only the voxels near their surface (the paper's
+/// Sect. 3.4: a contraction instead of a dilation), clip everything beyond their box, and stay
+/// bit-identical to the naive recompute on every frame: moving, growing, mixed with a carve
+/// tool, and switching back to carving and to no tool.
+#[test]
+fn probes_cost_what_they_cover_and_stay_exact() {
+    let gpu = common::gpu();
+    let vol = phantom::head(40);
+    let (mut cao, _, pao) = setup(&gpu, &vol);
+    let (mut naive, _, _) = setup(&gpu, &vol);
+    let placement = Placement::default();
+    let c = placement.center;
+    let total = (40 * 40 * 40) as u64;
+    let probe = |r: f32, at: Vec3| tool(Shape::Sphere, c + at, Quat::IDENTITY, r, ToolMode::Probe);
+    let carve = |r: f32, at: Vec3| tool(Shape::Sphere, c + at, Quat::IDENTITY, r, ToolMode::Carve);
+    let mut seq: Vec<Vec<Tool>> = Vec::new();
+    for r in [0.04, 0.06, 0.08] {
+        seq.push(vec![probe(r, Vec3::ZERO)]);
+        seq.push(vec![probe(r, Vec3::new(0.01, -0.005, 0.008))]);
+    }
+    seq.push(vec![
+        probe(0.07, Vec3::ZERO),
+        carve(0.03, Vec3::new(0.0, 0.02, 0.05)),
+    ]);
+    seq.push(vec![
+        tool(
+            Shape::Torus,
+            c,
+            Quat::from_rotation_x(std::f32::consts::FRAC_PI_2),
+            0.06,
+            ToolMode::Probe,
+        ),
+        carve(0.025, Vec3::new(0.03, 0.0, 0.0)),
+    ]);
+    seq.push(vec![carve(0.03, Vec3::new(0.0, 0.02, 0.05))]);
+    seq.push(vec![probe(0.05, Vec3::new(0.02, 0.0, 0.0))]);
+    seq.push(vec![]);
+    let mut recomputed = Vec::new();
+    for (i, tools) in seq.iter().enumerate() {
+        let m = cao.run_frame(tools, &placement, Mode::Contextual).unwrap();
+        let n = naive.run_frame(tools, &placement, Mode::Naive).unwrap();
+        let (a, b) = (read(&cao.ao), read(&naive.ao));
+        let diff = a
+            .iter()
+            .zip(&b)
+            .position(|(x, y)| x.to_bits() != y.to_bits());
+        assert!(
+            diff.is_none(),
+            "frame {i}: CAO differs from naive LAO at voxel {diff:?}"
+        );
+        assert_eq!(read(&cao.clipped), read(&naive.clipped), "frame {i}: O_c");
+        assert_eq!(m.clipped, n.clipped, "frame {i}: clipped count");
+        if i < 6 {
+            recomputed.push(m.recomputed);
+        }
+        if i < 4 {
+            // A probe of 40 or 60 mm: its box, not the volume (80 mm plus the reach covers the
+            // 220 mm phantom).
+            assert!(m.visited < total, "frame {i}: {m:?}");
+        }
+        if tools.is_empty() {
+            assert_eq!(a, pao, "frame {i}: with no tool the AO is V_PAO again");
+        }
+    }
+    println!("probe radius 40, 60, 80 mm: recomputed {recomputed:?}");
+    // The recomputed voxels follow the probe's size: its surface, not the volume.
+    assert!(
+        recomputed[0] < recomputed[2] && recomputed[2] < recomputed[4],
+        "{recomputed:?}"
+    );
+    // Deeper inside than the reach, a probe's voxels keep V_PAO.
+    let big = cao
+        .run_frame(&[probe(0.08, Vec3::ZERO)], &placement, Mode::Contextual)
+        .unwrap();
+    assert!(
+        big.unaffected > 0,
+        "the inside of a large probe keeps V_PAO: {big:?}"
+    );
+    common::assert_no_validation_messages(&gpu);
+}

@@ -701,6 +701,14 @@ fn bench_lao_prints_a_table() {
         .filter(|l| l.starts_with("phantom-16"))
         .collect();
     assert_eq!(rows.len(), 2, "{text}");
+    // Both kernels by default, side by side: their ratio, and the new one computes the old
+    // one's values (to float rounding).
+    for row in rows {
+        let cols: Vec<&str> = row.split_whitespace().collect();
+        let ratio: f64 = cols[cols.len() - 2].trim_end_matches('x').parse().unwrap();
+        let diff: f64 = cols[cols.len() - 1].parse().unwrap();
+        assert!(ratio > 0.0 && diff < 1e-5, "{row}");
+    }
 }
 
 #[test]
@@ -770,6 +778,22 @@ fn bench_cao_verifies_and_prints_the_speedup() {
         .parse()
         .unwrap();
     assert!(speedup > 0.0, "{row}");
+    // Then a probe of 20, 40 and 60 mm (verified too): the 60 mm one, deeper than the reach,
+    // recomputes less than its inside.
+    let probes: Vec<Vec<f64>> = text
+        .lines()
+        .filter(|l| l.starts_with("phantom-32"))
+        .skip(1)
+        .map(|l| {
+            l.split_whitespace()
+                .skip(2)
+                .map(|c| c.parse().unwrap())
+                .collect()
+        })
+        .collect();
+    assert_eq!(probes.len(), 3, "{text}");
+    let big = &probes[2];
+    assert!(big[1] == 60.0 && big[5] < big[6], "{text}");
 }
 
 #[test]

@@ -146,6 +146,17 @@ fn gpu_dilation_equals_the_cpu_dilation() {
             .fold(0.0f32, f32::max);
         println!("{name}: largest dilation difference {max:e}");
         assert!(max <= 1e-5, "{name}: dilations differ by {max}");
+        // The contraction (z, w) from the same min / max of the same sums: bit for bit.
+        let contracted = |m: &[[f32; 4]]| m.iter().map(|d| [d[2], d[3]]).collect::<Vec<_>>();
+        assert_eq!(
+            contracted(&cpu.dilated),
+            contracted(&g),
+            "{name}: contractions"
+        );
+        assert!(
+            cpu.dilated.iter().any(|d| d[2] <= d[3]),
+            "{name}: something is contracted"
+        );
         // And the GPU build's own dilation is the dilation of its own clip map.
         let built = builder.build(&mesh, 96, radius).unwrap();
         let again = dilate(&built.clip, built.res, built.texel(), radius);

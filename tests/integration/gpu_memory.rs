@@ -51,14 +51,17 @@ fn a_volume_beyond_the_gpu_memory_budget_is_refused_with_the_downsample_that_fit
     let dir = tmp("budget");
     // the budget runs out at different points (the first upload's staging copy, a device
     // buffer beside others, an image late in the set-up), with LAO, a filter and SH lighting
-    let cases: [(&str, &[&str], usize); 5] = [
-        ("3", &[], 3),
-        ("12", &[], 2),
-        ("40", &[], 2),
-        ("12", &["--ao", "filter-gauss"], 3),
-        ("3", &["--lighting", "sh"], 4),
+    // The N suggested is checked by what it promises, the smallest N that fits: N renders under
+    // the same budget and N - 1 does not (N - 1 = 1 is the run refused first). Its value moves
+    // with every buffer the frame loop gains, so it is not written down here.
+    let cases: [(&str, &[&str]); 5] = [
+        ("3", &[]),
+        ("12", &[]),
+        ("40", &[]),
+        ("12", &["--ao", "filter-gauss"]),
+        ("3", &["--lighting", "sh"]),
     ];
-    for (budget, extra, want) in cases {
+    for (budget, extra) in cases {
         let what = format!("budget {budget} MiB {extra:?}");
         let out = render(budget, extra, &dir.join("full"));
         let stderr = String::from_utf8_lossy(&out.stderr);
@@ -71,7 +74,7 @@ fn a_volume_beyond_the_gpu_memory_budget_is_refused_with_the_downsample_that_fit
             assert!(stderr.contains(s), "{what}: no {s:?} in {stderr}");
         }
         let n = suggested(&stderr);
-        assert_eq!(n, want, "{what}: {stderr}");
+        assert!(n >= 2, "{what}: {stderr}");
         // the suggestion fits, and no smaller one does
         let fits = dir.join(format!("ds{n}"));
         let n_text = n.to_string();
