@@ -158,6 +158,10 @@ enum Cmd {
         /// The right hand's tool: sphere, box, cylinder, torus (default: from the stream).
         #[arg(long)]
         shape: Option<String>,
+        /// Frames the GPU may hold at once: 2 lets the next frame's input and interaction (and the
+        /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
+        #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
+        frames_in_flight: Option<u32>,
     },
     /// Open a desktop window: the mouse and keys are the head and the right hand (see README).
     View {
@@ -185,6 +189,10 @@ enum Cmd {
         /// Write every frame shown (both eyes side by side) as DIR/frame-00000.png, ...
         #[arg(long)]
         dump: Option<PathBuf>,
+        /// Frames the GPU may hold at once: 2 lets the next frame's input and interaction (and the
+        /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
+        #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
+        frames_in_flight: Option<u32>,
     },
     /// Run a headset session through OpenXR (XR_KHR_vulkan_enable2): both eyes into the
     /// runtime's swapchain, controllers as hands, optionally recording the pose stream.
@@ -224,6 +232,10 @@ enum Cmd {
         /// Mixed reality: the world shows through where the volume is not.
         #[arg(long)]
         passthrough: bool,
+        /// Frames the GPU may hold at once: 2 lets the next frame's input and interaction (and the
+        /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
+        #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
+        frames_in_flight: Option<u32>,
     },
     /// Generate a scripted pose stream (JSON Lines) for replay and tests.
     Script {
@@ -329,6 +341,22 @@ enum BenchCmd {
         /// Pixels per side of each eye.
         #[arg(long, default_value_t = 256)]
         size: u32,
+    },
+    /// GPU ms of every pass of a frame (a sphere carving), two eyes against one, the CAO update
+    /// against the tool's radius and against the volume padded to 2x per axis, and fps with
+    /// one and two frames in flight: the phantom at 64^3 (or VOLUME).
+    Frame {
+        #[command(flatten)]
+        common: BenchArgs,
+        /// LAO's ray count K.
+        #[arg(long, default_value_t = 14)]
+        rays: u32,
+        /// Pixels per eye, WIDTHxHEIGHT.
+        #[arg(long, default_value = "320x320", value_parser = parse_size)]
+        size: (u32, u32),
+        /// Frames of the sweep.
+        #[arg(long, default_value_t = 16)]
+        frames: usize,
     },
     /// LAO precompute time and throughput: phantom 64^3 and 128^3 and the CT head (or VOLUME).
     Lao {
@@ -934,6 +962,20 @@ fn run(cli: Cli) -> Result<()> {
         }
         Cmd::Bench {
             what:
+                BenchCmd::Frame {
+                    mut common,
+                    rays,
+                    size,
+                    frames,
+                },
+        } => {
+            common.volume.get_or_insert_with(|| "phantom:64".into());
+            let b = common.setup(cli.validation)?;
+            let lao = LaoParams { rays, ..b.base };
+            app::bench_frame::bench_frame(&b.gpu, &b.volumes[0], &b.tf, lao, size, frames, b.runs)?;
+        }
+        Cmd::Bench {
+            what:
                 BenchCmd::Lao {
                     common,
                     rays,
@@ -1008,6 +1050,7 @@ fn run(cli: Cli) -> Result<()> {
             naive,
             realtime,
             shape,
+            frames_in_flight,
         } => {
             let spec = session_spec(&vol, &lao, &light)?;
             let gpu = gpu(cli.validation)?;
@@ -1026,6 +1069,7 @@ fn run(cli: Cli) -> Result<()> {
                 },
                 realtime,
                 shape,
+                frames_in_flight: frames_in_flight.map(|n| n as usize),
             };
             let s = app::replay::replay(&gpu, &script, &spec, &out, &opts)?;
             println!(
@@ -1047,6 +1091,7 @@ fn run(cli: Cli) -> Result<()> {
             demo,
             screenshot,
             dump,
+            frames_in_flight,
         } => {
             let spec = session_spec(&vol, &lao, &light)?;
             let opts = app::desktop::ViewOptions {
@@ -1057,6 +1102,7 @@ fn run(cli: Cli) -> Result<()> {
                 screenshot,
                 dump,
                 validation: cli.validation,
+                frames_in_flight: frames_in_flight.map(|n| n as usize),
             };
             let n = app::desktop::run(&spec, opts)?;
             println!("closed after {n} frames");
@@ -1074,6 +1120,7 @@ fn run(cli: Cli) -> Result<()> {
             mirror,
             blend,
             passthrough,
+            frames_in_flight,
         } => {
             let spec = session_spec(&vol, &lao, &light)?;
             let opts = cao_xr::xr::XrOptions {
@@ -1087,6 +1134,7 @@ fn run(cli: Cli) -> Result<()> {
                 validation: cli.validation,
                 blend,
                 passthrough,
+                frames_in_flight: frames_in_flight.map(|n| n as usize),
             };
             let s = app::headset::run(&spec, opts)?;
             println!(

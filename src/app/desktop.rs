@@ -32,6 +32,8 @@ pub struct ViewOptions {
     pub dump: Option<PathBuf>,
     /// Vulkan validation on (`--validation`; also on in debug builds).
     pub validation: bool,
+    /// `--frames-in-flight`: 1 or 2 (default [`crate::render::MAX_FRAMES_IN_FLIGHT`]).
+    pub frames_in_flight: Option<usize>,
 }
 
 /// Interaction settings of desktop sessions (and of their replays): the emulated grip is the
@@ -110,7 +112,9 @@ impl App {
         if let Some(r) = &mut self.recorder {
             r.write_frame(&fi).map_err(record_error)?;
         }
-        let stats = self.fl.render(&fi)?;
+        // With two frames in flight the stats are the frame before's; the window shows the
+        // frame just submitted (the blit waits for it).
+        let retired = self.fl.submit(&fi, false, |_, _| {})?;
         if let Some(dir) = &self.opts.dump {
             let img = self.fl.target().read_back(&self.fl.gpu)?;
             let path = dir.join(format!("frame-{:05}.png", self.frame));
@@ -130,9 +134,9 @@ impl App {
             }
         }
         self.fps = 0.9 * self.fps + 0.1 / dt.max(1e-3) as f64;
-        let m = &stats.metrics;
-        let carving = self.fl.scene.tools.first().is_some_and(|t| t.active);
-        if let Some(w) = &self.window {
+        if let (Some(w), Some(stats)) = (&self.window, retired.map(|r| r.stats)) {
+            let m = &stats.metrics;
+            let carving = self.fl.scene.tools.first().is_some_and(|t| t.active);
             // The TF shown, or the one being computed and how far ("TF ct-skin 40%").
             let tf = match &stats.tf_progress {
                 Some(p) => p.to_string(),
@@ -263,7 +267,10 @@ pub fn run(spec: &SessionSpec, opts: ViewOptions) -> Result<usize> {
     let gpu = start_gpu(opts.validation, true)?;
     let event_loop = EventLoop::new()
         .map_err(|e| AppError::Usage(format!("cannot open the display: {e} (is DISPLAY set?)")))?;
-    let fl = spec.frame_loop(&gpu, opts.size, desktop_interaction(), true)?;
+    let mut fl = spec.frame_loop(&gpu, opts.size, desktop_interaction(), true)?;
+    if let Some(n) = opts.frames_in_flight {
+        fl.set_frames_in_flight(n)?;
+    }
     let header = StreamHeader::new("desktop", format!("cao-xr view of {}", spec.volume.name));
     let recorder = recorder(opts.record.as_deref(), &header)?;
     if let Some(d) = &opts.dump {

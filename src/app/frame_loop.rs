@@ -12,19 +12,22 @@
 use super::lighting::{LightingOptions, ShLighting};
 use super::tf_switch::{default_tf_samples_per_frame, TfProgress, TfSwitcher};
 use super::{precompute_method, AppError, Result};
-use crate::ao::cao::{Cao, FrameMetrics, Mode};
+use crate::ao::cao::{Cao, FrameMetrics, Mode, PendingFrame};
 use crate::ao::filtered::{variance_volume, FilterInput, VarianceModulation};
+use crate::ao::sh::ShFrameMetrics;
 use crate::ao::{AoConfig, AoMethod, LaoGpu};
-use crate::gpu::{Gpu, GpuError, GpuTimer};
+use crate::gpu::{Buffer, Gpu, GpuError, GpuTimer};
 use crate::input::{FrameInput, Interaction, InteractionSettings};
 use crate::render::{joint_overlay, scene_overlay, OverlayRenderer};
 use crate::render::{
     ClipBinding, FrameViews, RenderSettings, Renderer, StereoImage, StereoTarget, VolumeTextures,
+    MAX_FRAMES_IN_FLIGHT,
 };
 use crate::scene::Scene;
 use crate::space::world_from_tex;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
+use ash::vk;
 use std::sync::Arc;
 
 /// What one frame produced: its pictures and what it cost.
@@ -46,6 +49,26 @@ pub struct FrameStats {
     pub tf_progress: Option<TfProgress>,
     /// The SH visibility update (zero without SH lighting or without a tool).
     pub sh: ShStats,
+    /// GPU ms of the passes after the AO update.
+    pub passes: PassTimes,
+    /// The transfer function and the AO method this frame showed.
+    pub tf_name: String,
+    pub ao_method: String,
+}
+
+/// GPU ms of a frame's passes after CAO's (restore, clip + mask and update are in
+/// [`FrameMetrics`], the SH update in [`ShStats`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PassTimes {
+    /// V_AO (and the bleeding colour) into the ray caster's textures.
+    pub texture_ms: f64,
+    /// Each eye's ray cast (left, right).
+    pub eye_ms: [f64; 2],
+    /// The tools and hands over the volume, both eyes.
+    pub overlay_ms: f64,
+    /// The images to copy sources, the caller's copies (the headset's swapchain) and the
+    /// read-back.
+    pub copy_ms: f64,
 }
 
 /// One frame's clip-aware SH visibility update.
@@ -72,13 +95,16 @@ pub struct FrameLoop {
     pub settings: RenderSettings,
     /// Draw the tools and tracked hands over the volume (off for a still render of the cut).
     pub show_overlay: bool,
-    timer: GpuTimer,
     /// The transfer functions `scene.tf_index` picks from, and the switch between them.
     tfs: TfSwitcher,
     /// Opacity samples (K*M per voxel) of V_PAO' one frame may record during a switch.
     pub tf_samples_per_frame: f64,
     /// Environment lighting through the SH visibility volume ([`FrameLoop::set_lighting`]).
     pub lighting: Option<ShLighting>,
+    /// Persistent command buffers, fences and timers, one set per frame in flight.
+    slots: Slots,
+    /// Frames [`FrameLoop::submit`] leaves in flight (1 or 2).
+    depth: usize,
 }
 
 /// How a frame loop is set up beside its volume and transfer functions ([`FrameLoop::new`]).
@@ -192,7 +218,8 @@ impl FrameLoop {
             mode: Mode::Contextual,
             settings,
             show_overlay: true,
-            timer: GpuTimer::new(gpu, 2)?,
+            slots: Slots::new(gpu)?,
+            depth: MAX_FRAMES_IN_FLIGHT,
             tfs: TfSwitcher::new(gpu, tfs, methods, lao, lao_dirs)?,
             tf_samples_per_frame: default_tf_samples_per_frame(gpu),
             lighting: None,
@@ -276,36 +303,161 @@ impl FrameLoop {
         self.tfs.methods()
     }
 
-    /// Runs one frame and reads both eyes back to the host.
-    pub fn frame(&mut self, input: &FrameInput) -> Result<FrameOutput> {
-        let t0 = std::time::Instant::now();
-        let mut stats = self.render(input)?;
-        let image = self.target.read_back(&self.gpu)?;
-        stats.frame_ms = t0.elapsed().as_secs_f64() * 1e3;
-        Ok(FrameOutput { image, stats })
+    /// Frames the GPU may hold at once (1 or 2, [`crate::render::MAX_FRAMES_IN_FLIGHT`]).
+    pub fn frames_in_flight(&self) -> usize {
+        self.depth
     }
 
-    /// The stereo target the last frame was rendered into (both layers in TRANSFER_SRC layout).
+    /// Sets how many frames [`FrameLoop::submit`] leaves in flight; waits for the frame in
+    /// flight first and returns it.
+    pub fn set_frames_in_flight(&mut self, n: usize) -> Result<Option<Retired>> {
+        if !(1..=MAX_FRAMES_IN_FLIGHT).contains(&n) {
+            return Err(AppError::Usage(format!(
+                "--frames-in-flight {n}: must be 1..={MAX_FRAMES_IN_FLIGHT}"
+            )));
+        }
+        let r = self.flush()?;
+        self.depth = n;
+        Ok(r)
+    }
+
+    /// Runs one frame and reads both eyes back to the host (waits for it, whatever the depth).
+    pub fn frame(&mut self, input: &FrameInput) -> Result<FrameOutput> {
+        let r = self.now(input, true, |_, _| {})?;
+        let image = r.image.expect("asked for the read-back");
+        Ok(FrameOutput {
+            image,
+            stats: r.stats,
+        })
+    }
+
+    /// The stereo target the last frame was rendered into (both layers in TRANSFER_SRC layout
+    /// once it finished).
     pub fn target(&self) -> &StereoTarget {
         &self.target
     }
 
-    /// Runs one frame on the GPU: interaction, then AO update and both eyes in one command
-    /// buffer, leaving the images in [`FrameLoop::target`].
+    /// Runs one frame on the GPU and waits for it: interaction, then AO update and both eyes in
+    /// one command buffer, leaving the images in [`FrameLoop::target`].
     pub fn render(&mut self, input: &FrameInput) -> Result<FrameStats> {
         self.render_with(input, |_, _| {})
     }
 
     /// [`FrameLoop::render`], with `after` recorded at the end of the same command buffer, once
-    /// both images are in TRANSFER_SRC_OPTIMAL ([`StereoTarget::cmd_finish`]): the headset
-    /// copies the eyes into the runtime's swapchain there, so a frame is one submission.
+    /// both images are in TRANSFER_SRC_OPTIMAL ([`StereoTarget::cmd_finish`]).
     pub fn render_with(
         &mut self,
         input: &FrameInput,
-        after: impl FnOnce(ash::vk::CommandBuffer, &StereoTarget),
+        after: impl FnOnce(vk::CommandBuffer, &StereoTarget),
     ) -> Result<FrameStats> {
+        Ok(self.now(input, false, after)?.stats)
+    }
+
+    /// One frame submitted and waited for, with no other frame in flight.
+    fn now(
+        &mut self,
+        input: &FrameInput,
+        read_back: bool,
+        after: impl FnOnce(vk::CommandBuffer, &StereoTarget),
+    ) -> Result<Retired> {
+        if !self.slots.flights.is_empty() {
+            return Err(AppError::Usage(
+                "a frame is still in flight: FrameLoop::flush it before a waited frame".into(),
+            ));
+        }
+        let depth = std::mem::replace(&mut self.depth, 1);
+        let r = self.submit(input, read_back, after);
+        self.depth = depth;
+        Ok(r?.expect("with one frame in flight, submit retires it"))
+    }
+
+    /// Submits the frame of `input` (its interaction, AO update, both eyes, overlay, then
+    /// `after` and, with `read_back`, the copy of both eyes to the host, all in the slot's
+    /// persistent command buffer) and returns the frame that left the GPU: this one with one
+    /// frame in flight, the one before with two (none on the first call; [`FrameLoop::flush`]
+    /// gets the last). With two, the caller's work until the next call (the headset's wait for
+    /// its next frame, the window's events, writing the returned frame's PNG) and the next
+    /// frame's input and interaction run while the GPU renders this one.
+    pub fn submit(
+        &mut self,
+        input: &FrameInput,
+        read_back: bool,
+        after: impl FnOnce(vk::CommandBuffer, &StereoTarget),
+    ) -> Result<Option<Retired>> {
         let t0 = std::time::Instant::now();
         self.interaction.update(input, &mut self.scene);
+        // CAO's tool table, clip maps, counters and timer (src/ao/cao.rs), the TF switch's and
+        // the SH volume's timers are one set each, written or reset while recording: the frame
+        // before must have left the GPU (and been read) before this one is recorded.
+        let mut retired = self.retire()?;
+        self.record_and_submit(input, read_back, after, t0)?;
+        if retired.is_none() && self.slots.flights.len() >= self.depth {
+            retired = self.retire()?;
+        }
+        Ok(retired)
+    }
+
+    /// Waits for the frame still in flight, if any, and returns it.
+    pub fn flush(&mut self) -> Result<Option<Retired>> {
+        self.retire()
+    }
+
+    /// Waits for the oldest frame in flight and reads what it produced.
+    fn retire(&mut self) -> Result<Option<Retired>> {
+        let Some(f) = self.slots.flights.pop_front() else {
+            return Ok(None);
+        };
+        let slot = &self.slots.slots[f.slot];
+        unsafe {
+            self.gpu
+                .device
+                .wait_for_fences(&[slot.fence], true, u64::MAX)
+                .map_err(crate::gpu::GpuError::from)?;
+        }
+        let metrics = self.cao.read_metrics(f.pending)?;
+        let sh = match (f.sh, self.lighting.as_ref()) {
+            (Some(m), Some(l)) => ShStats {
+                voxels: m.visited,
+                gpu_ms: l.volume.read_frame_ms(&m)?,
+            },
+            _ => ShStats::default(),
+        };
+        let times = slot.timer.read()?;
+        let ms = |name: &str| times.iter().find(|t| t.0 == name).map_or(0.0, |t| t.1);
+        let passes = PassTimes {
+            texture_ms: ms(PASS_TEXTURE),
+            eye_ms: PASS_EYES.map(ms),
+            overlay_ms: ms(PASS_OVERLAY),
+            copy_ms: ms(PASS_COPY),
+        };
+        let tf_ms = if f.slab { self.tfs.read_ms()? } else { 0.0 };
+        let image = match (&slot.readback, f.read_back) {
+            (Some(bufs), true) => Some(self.target.image_from(bufs)?),
+            _ => None,
+        };
+        Ok(Some(Retired {
+            stats: FrameStats {
+                metrics,
+                render_ms: passes.eye_ms[0] + passes.eye_ms[1],
+                frame_ms: f.t0.elapsed().as_secs_f64() * 1e3,
+                tf_ms,
+                tf_progress: f.tf_progress,
+                sh,
+                passes,
+                tf_name: f.tf_name,
+                ao_method: f.ao_method,
+            },
+            image,
+        }))
+    }
+
+    fn record_and_submit(
+        &mut self,
+        input: &FrameInput,
+        read_back: bool,
+        after: impl FnOnce(vk::CommandBuffer, &StereoTarget),
+        t0: std::time::Instant,
+    ) -> Result<()> {
         self.tfs.advance(
             (self.scene.tf_index, self.scene.ao_index),
             &self.volume,
@@ -314,6 +466,10 @@ impl FrameLoop {
             &mut self.tex,
             self.lighting.as_mut(),
         )?;
+        let index = self.slots.next % self.depth;
+        if read_back && self.slots.slots[index].readback.is_none() {
+            self.slots.slots[index].readback = Some(self.target.readback_buffers(&self.gpu)?);
+        }
         let FrameLoop {
             gpu,
             volume,
@@ -327,7 +483,7 @@ impl FrameLoop {
             mode,
             settings,
             show_overlay,
-            timer,
+            slots,
             tfs,
             lighting,
             ..
@@ -338,66 +494,218 @@ impl FrameLoop {
         }
         let count = scene.tools.iter().filter(|t| t.active).count() as u32;
         tex.prepare(settings)?;
-        let mut recorded = Ok(None);
-        gpu.submit_and_wait(|cmd| {
-            recorded = (|| {
-                let slab = tfs.record_slab(cmd, volume, cao);
-                let pending = cao.record_frame(cmd, &scene.tools, &scene.volume, *mode)?;
-                tex.cmd_update_ambient(cmd, &cao.ao);
-                if let Some(h) = cao.histogram() {
-                    tex.cmd_update_bleeding(cmd, &h.e);
-                }
-                let sh = lighting.as_mut().map(|l| l.record_frame(gpu, cmd, cao));
-                let (tools, maps) = cao.clip_buffers();
-                let frame = FrameViews {
-                    views: &input.views,
-                    model,
-                    clip: (count > 0).then_some(ClipBinding { tools, maps, count }),
-                    sh: lighting.as_ref().map(|l| l.binding()),
-                };
-                // The bleeding volume is the local histograms' alone.
-                let mut settings = *settings;
-                if cao.histogram().is_none() {
-                    settings.bleeding = 0.0;
-                }
-                timer.begin(cmd);
-                renderer.record(cmd, target, tex, &frame, &settings)?;
-                timer.mark(cmd, "render");
-                if *show_overlay {
-                    // Tools and tracked hands over the volume, depth-tested against it.
-                    let hands = [0, 1].map(|h| {
-                        interaction
-                            .hand_pose(h)
-                            .filter(|_| interaction.is_tracked(h))
-                    });
-                    let mut items =
-                        scene_overlay(scene, &hands, interaction.settings().tool_offset);
-                    joint_overlay(&input.joints, &mut items);
-                    overlay.record(cmd, target, &input.views, &items)?;
-                }
-                target.cmd_finish(cmd);
-                after(cmd, target);
-                Ok::<_, crate::gpu::GpuError>(Some((pending, slab, sh)))
-            })();
-        })?;
-        let (pending, slab, sh) = recorded?.expect("recorded");
-        let metrics = cao.read_metrics(pending)?;
-        let sh = match (sh, lighting.as_ref()) {
-            (Some(m), Some(l)) => ShStats {
-                voxels: m.visited,
-                gpu_ms: l.volume.read_frame_ms(&m)?,
-            },
-            _ => ShStats::default(),
-        };
-        let render_ms = timer.read()?.first().map_or(0.0, |t| t.1);
-        let tf_ms = if slab { tfs.read_ms()? } else { 0.0 };
-        Ok(FrameStats {
-            metrics,
-            render_ms,
-            frame_ms: t0.elapsed().as_secs_f64() * 1e3,
-            tf_ms,
-            tf_progress: tfs.progress(),
+        let slot = &mut slots.slots[index];
+        let (cmd, d) = (slot.cmd, &gpu.device);
+        unsafe {
+            // The pool resets the buffer on begin; its last submission has finished.
+            d.begin_command_buffer(
+                cmd,
+                &vk::CommandBufferBeginInfo::default()
+                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+            )
+            .map_err(crate::gpu::GpuError::from)?;
+        }
+        let timer = &mut slot.timer;
+        let recorded = (|| {
+            let slab = tfs.record_slab(cmd, volume, cao);
+            let pending = cao.record_frame(cmd, &scene.tools, &scene.volume, *mode)?;
+            timer.begin(cmd);
+            tex.cmd_update_ambient(cmd, &cao.ao);
+            if let Some(h) = cao.histogram() {
+                tex.cmd_update_bleeding(cmd, &h.e);
+            }
+            timer.mark(cmd, PASS_TEXTURE);
+            let sh = lighting.as_mut().map(|l| l.record_frame(gpu, cmd, cao));
+            timer.mark(cmd, PASS_SH);
+            let (tools, maps) = cao.clip_buffers();
+            let frame = FrameViews {
+                views: &input.views,
+                model,
+                clip: (count > 0).then_some(ClipBinding { tools, maps, count }),
+                sh: lighting.as_ref().map(|l| l.binding()),
+            };
+            // The bleeding volume is the local histograms' alone.
+            let mut settings = *settings;
+            if cao.histogram().is_none() {
+                settings.bleeding = 0.0;
+            }
+            renderer.record_eyes(
+                cmd,
+                index,
+                target,
+                tex,
+                &frame,
+                &settings,
+                &mut |cmd, eye| timer.mark(cmd, PASS_EYES[eye]),
+            )?;
+            if *show_overlay {
+                // Tools and tracked hands over the volume, depth-tested against it.
+                let hands = [0, 1].map(|h| {
+                    interaction
+                        .hand_pose(h)
+                        .filter(|_| interaction.is_tracked(h))
+                });
+                let mut items = scene_overlay(scene, &hands, interaction.settings().tool_offset);
+                joint_overlay(&input.joints, &mut items);
+                overlay.record(cmd, target, &input.views, &items)?;
+            }
+            timer.mark(cmd, PASS_OVERLAY);
+            target.cmd_finish(cmd);
+            after(cmd, target);
+            if let (true, Some(bufs)) = (read_back, &slot.readback) {
+                target.cmd_read_back(gpu, cmd, bufs);
+            }
+            timer.mark(cmd, PASS_COPY);
+            Ok::<_, crate::gpu::GpuError>((pending, slab, sh))
+        })();
+        let ended = unsafe { d.end_command_buffer(cmd) };
+        let (pending, slab, sh) = recorded?;
+        ended.map_err(crate::gpu::GpuError::from)?;
+        unsafe {
+            let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+            let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
+            d.reset_fences(&[slot.fence])
+                .and_then(|_| d.queue_submit2(gpu.queue, &submit, slot.fence))
+                .map_err(crate::gpu::GpuError::from)?;
+        }
+        slots.next = index + 1;
+        slots.flights.push_back(InFlight {
+            slot: index,
+            pending,
+            slab,
             sh,
-        })
+            tf_progress: tfs.progress(),
+            tf_name: tfs.shown().name.clone(),
+            ao_method: cao.method_name(),
+            read_back,
+            t0,
+        });
+        Ok(())
+    }
+}
+
+impl Drop for FrameLoop {
+    fn drop(&mut self) {
+        // Nothing the frames in flight use may go before they finished.
+        let _ = self.flush();
+    }
+}
+
+/// A frame that left the GPU: what it cost, and its pictures when they were asked for.
+pub struct Retired {
+    pub stats: FrameStats,
+    pub image: Option<StereoImage>,
+}
+
+/// The timer marks of a frame's passes after CAO's own.
+const PASS_TEXTURE: &str = "texture";
+const PASS_SH: &str = "sh";
+const PASS_EYES: [&str; 2] = ["left eye", "right eye"];
+const PASS_OVERLAY: &str = "overlay";
+const PASS_COPY: &str = "copy";
+/// The start mark and the five above.
+const PASS_MARKS: u32 = 7;
+
+/// One frame slot: a persistent command buffer, the fence of its last submission, its timer
+/// and its read-back buffers.
+struct Slot {
+    cmd: vk::CommandBuffer,
+    fence: vk::Fence,
+    timer: GpuTimer,
+    readback: Option<[Buffer; 2]>,
+}
+
+/// What a submitted frame still has to report.
+struct InFlight {
+    slot: usize,
+    pending: PendingFrame,
+    slab: bool,
+    sh: Option<ShFrameMetrics>,
+    tf_progress: Option<TfProgress>,
+    tf_name: String,
+    ao_method: String,
+    read_back: bool,
+    t0: std::time::Instant,
+}
+
+/// The frame slots and the frames in flight, oldest first.
+struct Slots {
+    gpu: Gpu,
+    pool: vk::CommandPool,
+    slots: Vec<Slot>,
+    flights: std::collections::VecDeque<InFlight>,
+    next: usize,
+}
+
+impl Slots {
+    fn new(gpu: &Gpu) -> Result<Slots> {
+        let d = &gpu.device;
+        let err = crate::gpu::GpuError::from;
+        let pool = unsafe {
+            d.create_command_pool(
+                &vk::CommandPoolCreateInfo::default()
+                    .queue_family_index(gpu.queue_family)
+                    .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER),
+                None,
+            )
+            .map_err(err)?
+        };
+        let mut s = Slots {
+            gpu: gpu.clone(),
+            pool,
+            slots: Vec::new(),
+            flights: Default::default(),
+            next: 0,
+        };
+        for _ in 0..MAX_FRAMES_IN_FLIGHT {
+            let cmd = unsafe {
+                d.allocate_command_buffers(
+                    &vk::CommandBufferAllocateInfo::default()
+                        .command_pool(pool)
+                        .level(vk::CommandBufferLevel::PRIMARY)
+                        .command_buffer_count(1),
+                )
+                .map_err(err)?[0]
+            };
+            let fence = unsafe {
+                d.create_fence(&vk::FenceCreateInfo::default(), None)
+                    .map_err(err)?
+            };
+            let timer = GpuTimer::new(gpu, PASS_MARKS);
+            let timer = match timer {
+                Ok(t) => t,
+                Err(e) => {
+                    unsafe { d.destroy_fence(fence, None) };
+                    return Err(e.into());
+                }
+            };
+            s.slots.push(Slot {
+                cmd,
+                fence,
+                timer,
+                readback: None,
+            });
+        }
+        Ok(s)
+    }
+}
+
+impl Drop for Slots {
+    fn drop(&mut self) {
+        let d = &self.gpu.device;
+        unsafe {
+            let fences: Vec<vk::Fence> = self
+                .flights
+                .iter()
+                .map(|f| self.slots[f.slot].fence)
+                .collect();
+            if !fences.is_empty() {
+                let _ = d.wait_for_fences(&fences, true, u64::MAX);
+            }
+            for s in &self.slots {
+                d.destroy_fence(s.fence, None);
+            }
+            d.destroy_command_pool(self.pool, None);
+        }
     }
 }

@@ -22,6 +22,9 @@ pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
         let mut xs = XrSession::new(&runtime, &gpu, &opts)?;
         let extent = xs.extent();
         let mut fl = spec.frame_loop(&gpu, extent, InteractionSettings::default(), false)?;
+        if let Some(n) = opts.frames_in_flight {
+            fl.set_frames_in_flight(n)?;
+        }
         if let Some(c) = opts.volume_at {
             fl.scene.volume.center = c;
         }
@@ -37,6 +40,8 @@ pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
             &StreamHeader::new("xr", description),
         )?;
         let result = frames(&mut xs, &mut fl, &mut mirror, &mut recorder, &opts);
+        // The last frame's stats are not needed; waiting for it is.
+        let result = result.and_then(|()| fl.flush().map(|_| ()));
         unsafe {
             let _ = gpu.device.device_wait_idle();
         }
@@ -93,22 +98,24 @@ fn frames(
         }
         // One command buffer per frame: the swapchain images are acquired and waited first,
         // the eyes are copied into them at the end of the frame's own command buffer, and they
-        // are released once that submission finished, even if it failed.
+        // are released once that submission was made (the runtime waits for it), even if it
+        // failed. With two frames in flight the stats are the frame before's.
         let images = xs.acquire()?;
         let d = fl.gpu.device.clone();
-        let stats = fl.render_with(&frame.input, |cmd, src| unsafe {
+        let retired = fl.submit(&frame.input, false, |cmd, src| unsafe {
             images.record_copy(&d, cmd, src)
         });
         xs.release()?;
-        let stats = stats?;
-        if stats.metrics.clipped > 0 && prev_clipped == 0 {
-            xs.pulse(RIGHT)?;
-            eprintln!(
-                "xr: haptic pulse: the tool touched tissue at frame {}",
-                xs.summary.frames
-            );
+        if let Some(stats) = retired?.map(|r| r.stats) {
+            if stats.metrics.clipped > 0 && prev_clipped == 0 {
+                xs.pulse(RIGHT)?;
+                eprintln!(
+                    "xr: haptic pulse: the tool touched tissue at frame {}",
+                    xs.summary.frames
+                );
+            }
+            prev_clipped = stats.metrics.clipped;
         }
-        prev_clipped = stats.metrics.clipped;
         xs.end_frame(&frame)?;
         // The mirror shows the same finished frame, after the headset has it.
         if let Some(m) = mirror {

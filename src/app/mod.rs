@@ -3,6 +3,7 @@
 
 pub mod bench;
 pub mod bench_ao;
+pub mod bench_frame;
 pub mod bench_quality;
 pub mod desktop;
 pub mod frame_loop;

@@ -1,6 +1,7 @@
 //! `cao-xr replay`: renders every frame of a pose stream headless through the one frame loop,
 //! writing side-by-side PNGs, per-frame metrics (CSV) and an optional animated PNG preview.
 
+use super::frame_loop::FrameLoop;
 use super::session::SessionSpec;
 use super::{AppError, Result};
 use crate::ao::cao::Mode;
@@ -25,6 +26,9 @@ pub struct ReplayOptions {
     pub realtime: bool,
     /// The right hand's tool shape; by default from the stream's description ("box tool: ...").
     pub shape: Option<Shape>,
+    /// Frames in flight, 1 or 2 (default [`crate::render::MAX_FRAMES_IN_FLIGHT`]): the same
+    /// images either way.
+    pub frames_in_flight: Option<usize>,
 }
 
 impl Default for ReplayOptions {
@@ -36,6 +40,7 @@ impl Default for ReplayOptions {
             mode: Mode::Contextual,
             realtime: false,
             shape: None,
+            frames_in_flight: None,
         }
     }
 }
@@ -85,6 +90,9 @@ pub fn replay(
     };
     let mut fl = spec.frame_loop(gpu, opts.size, interaction, true)?;
     fl.mode = opts.mode;
+    if let Some(n) = opts.frames_in_flight {
+        fl.set_frames_in_flight(n)?;
+    }
     fl.scene.tools.push(Tool {
         shape: opts
             .shape
@@ -115,13 +123,11 @@ pub fn replay(
         ..Default::default()
     };
     let start = std::time::Instant::now();
-    for (i, due) in replay_schedule(&frames, opts.realtime) {
-        if let Some(due) = due {
-            if let Some(wait) = due.checked_sub(start.elapsed()) {
-                std::thread::sleep(wait);
-            }
-        }
-        let shown = fl.frame(&frames[i])?;
+    // The frames submitted and not yet back, oldest first: with two in flight a frame's
+    // metrics and PNG are written while the GPU renders the next.
+    let mut submitted = std::collections::VecDeque::new();
+    let mut write = |i: usize, shown: super::frame_loop::Retired, fl: &FrameLoop| -> Result<()> {
+        let image = shown.image.as_ref().expect("replay reads every frame back");
         let f = &shown.stats;
         let m = &f.metrics;
         writeln!(
@@ -138,14 +144,14 @@ pub fn replay(
             m.recomputed,
             m.percent_recomputed(),
             // The TF this frame showed; tf_progress is empty when no switch is in flight.
-            fl.shown_tf().name,
+            f.tf_name,
             f.tf_progress
                 .as_ref()
                 .map_or(String::new(), |p| format!("{:.4}", p.fraction)),
             f.tf_ms,
             f.sh.voxels,
             f.sh.gpu_ms,
-            fl.cao.method_name()
+            f.ao_method
         )
         .map_err(|e| out_err(&csv_path, e))?;
         let tf = f
@@ -162,7 +168,7 @@ pub fn replay(
             frames.len(),
             frames[i].time,
             f.frame_ms,
-            fl.cao.method_name(),
+            f.ao_method,
             m.gpu_ms(),
             f.render_ms,
             m.percent_recomputed()
@@ -170,14 +176,29 @@ pub fn replay(
         summary.mean_ao_ms += m.gpu_ms() / frames.len() as f64;
         summary.mean_percent_recomputed += m.percent_recomputed() / frames.len() as f64;
         if i % every == 0 {
-            let rgb = shown.image.side_by_side_rgb();
+            let rgb = image.side_by_side_rgb();
             let path = out.join(format!("frame-{i:05}.png"));
-            write_rgb(&path, shown.image.width * 2, shown.image.height, &rgb)?;
+            write_rgb(&path, image.width * 2, image.height, &rgb)?;
             summary.pngs += 1;
             if opts.preview.is_some() {
                 kept.push(rgb);
             }
         }
+        Ok(())
+    };
+    for (i, due) in replay_schedule(&frames, opts.realtime) {
+        if let Some(due) = due {
+            if let Some(wait) = due.checked_sub(start.elapsed()) {
+                std::thread::sleep(wait);
+            }
+        }
+        submitted.push_back(i);
+        if let Some(shown) = fl.submit(&frames[i], true, |_, _| {})? {
+            write(submitted.pop_front().expect("submitted"), shown, &fl)?;
+        }
+    }
+    if let Some(shown) = fl.flush()? {
+        write(submitted.pop_front().expect("submitted"), shown, &fl)?;
     }
     csv.flush().map_err(|e| out_err(&csv_path, e))?;
     drop(csv);

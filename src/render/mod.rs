@@ -584,29 +584,54 @@ impl StereoTarget {
     /// Copies both layers back (call after a frame recorded by [`Renderer::record`], any
     /// overlay and [`StereoTarget::cmd_finish`] finished).
     pub fn read_back(&self, gpu: &Gpu) -> Result<StereoImage> {
-        let texels = (self.width * self.height * 2) as u64;
+        let bufs = self.readback_buffers(gpu)?;
+        gpu.submit_and_wait(|cmd| self.cmd_read_back(gpu, cmd, &bufs))?;
+        self.image_from(&bufs)
+    }
+
+    /// Host-visible buffers for the colour and depth of both layers.
+    pub fn readback_buffers(&self, gpu: &Gpu) -> Result<[Buffer; 2]> {
+        let bytes = (self.width * self.height * 2) as u64 * 4;
         let usage = vk::BufferUsageFlags::TRANSFER_DST;
-        let cbuf = Buffer::new(
-            gpu,
-            texels * 4,
-            usage,
-            MemoryLocation::GpuToCpu,
-            "color-readback",
-        )?;
-        let dbuf = Buffer::new(
-            gpu,
-            texels * 4,
-            usage,
-            MemoryLocation::GpuToCpu,
-            "depth-readback",
-        )?;
-        gpu.submit_and_wait(|cmd| {
-            self.color.cmd_copy_to(cmd, &cbuf);
-            self.depth.cmd_copy_to(cmd, &dbuf);
-        })?;
+        Ok([
+            Buffer::new(
+                gpu,
+                bytes,
+                usage,
+                MemoryLocation::GpuToCpu,
+                "color-readback",
+            )?,
+            Buffer::new(
+                gpu,
+                bytes,
+                usage,
+                MemoryLocation::GpuToCpu,
+                "depth-readback",
+            )?,
+        ])
+    }
+
+    /// Records the copy of both layers (in TRANSFER_SRC_OPTIMAL, after
+    /// [`StereoTarget::cmd_finish`]) into `bufs`, made visible to the host.
+    pub fn cmd_read_back(&self, gpu: &Gpu, cmd: vk::CommandBuffer, bufs: &[Buffer; 2]) {
+        self.color.cmd_copy_to(cmd, &bufs[0]);
+        self.depth.cmd_copy_to(cmd, &bufs[1]);
+        let mb = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::ALL_TRANSFER)
+            .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+            .dst_access_mask(vk::AccessFlags2::HOST_READ)];
+        unsafe {
+            gpu.device
+                .cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&mb));
+        }
+    }
+
+    /// Both eyes from buffers filled by [`StereoTarget::cmd_read_back`], once it executed.
+    pub fn image_from(&self, bufs: &[Buffer; 2]) -> Result<StereoImage> {
         let per = (self.width * self.height) as usize;
-        let c = cbuf.mapped()?;
-        let d: &[f32] = bytemuck::cast_slice(dbuf.mapped()?);
+        let c = bufs[0].mapped()?;
+        let d: &[f32] = bytemuck::cast_slice(bufs[1].mapped()?);
         Ok(StereoImage {
             width: self.width,
             height: self.height,
@@ -624,6 +649,10 @@ pub struct StereoImage {
     pub rgba: [Vec<u8>; 2],
     pub depth: [Vec<f32>; 2],
 }
+
+/// The most frames the frame loop keeps on the GPU at once (`--frames-in-flight`): the slots
+/// of the per-frame resources (command buffers, fences, timers, uniform buffers).
+pub const MAX_FRAMES_IN_FLIGHT: usize = 2;
 
 /// std140 mirror of shaders/include/frame.glsl.
 #[repr(C)]
@@ -660,7 +689,9 @@ pub struct Renderer {
     layout: vk::PipelineLayout,
     set_layout: vk::DescriptorSetLayout,
     sampler: vk::Sampler,
-    uniforms: Buffer,
+    /// One uniform buffer per frame slot ([`Renderer::record_eyes`]), so that a frame can be
+    /// recorded while the previous slot's frame still reads its own.
+    uniforms: Vec<Buffer>,
     no_clip: Buffer,
     blue_noise: Image,
 }
@@ -756,13 +787,17 @@ impl Renderer {
                     .max_lod(0.0),
                 None,
             )?;
-            let uniforms = Buffer::new(
-                gpu,
-                std::mem::size_of::<FrameUniforms>() as u64,
-                vk::BufferUsageFlags::UNIFORM_BUFFER,
-                MemoryLocation::CpuToGpu,
-                "frame-uniforms",
-            )?;
+            let uniforms = (0..MAX_FRAMES_IN_FLIGHT)
+                .map(|_| {
+                    Buffer::new(
+                        gpu,
+                        std::mem::size_of::<FrameUniforms>() as u64,
+                        vk::BufferUsageFlags::UNIFORM_BUFFER,
+                        MemoryLocation::CpuToGpu,
+                        "frame-uniforms",
+                    )
+                })
+                .collect::<Result<Vec<_>>>()?;
             // Bound in place of the clip buffers when no tool clips (the shader reads none).
             let no_clip = Buffer::new(
                 gpu,
@@ -809,8 +844,8 @@ impl Renderer {
     /// Records the stereo ray cast of `views` into `target`, leaving both images attachments
     /// (COLOR_ATTACHMENT_OPTIMAL, DEPTH_ATTACHMENT_OPTIMAL) so that later passes (the
     /// [`OverlayRenderer`]) can draw over the volume, depth-tested against it; end the frame with
-    /// [`StereoTarget::cmd_finish`]. The uniform buffer is rewritten: one frame in flight at a
-    /// time.
+    /// [`StereoTarget::cmd_finish`]. The uniform buffer of slot 0 is rewritten: one frame in
+    /// flight at a time.
     pub fn record(
         &mut self,
         cmd: vk::CommandBuffer,
@@ -819,6 +854,28 @@ impl Renderer {
         frame: &FrameViews,
         settings: &RenderSettings,
     ) -> Result<()> {
+        self.record_eyes(cmd, 0, target, tex, frame, settings, &mut |_, _| {})
+    }
+
+    /// [`Renderer::record`] with the uniform buffer of frame slot `slot` (below
+    /// [`MAX_FRAMES_IN_FLIGHT`]; the caller knows no submitted frame still reads
+    /// it), calling `after_eye(cmd, eye)` after each eye's pass (for its timestamp).
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_eyes(
+        &mut self,
+        cmd: vk::CommandBuffer,
+        slot: usize,
+        target: &StereoTarget,
+        tex: &VolumeTextures,
+        frame: &FrameViews,
+        settings: &RenderSettings,
+        after_eye: &mut dyn FnMut(vk::CommandBuffer, usize),
+    ) -> Result<()> {
+        if slot >= self.uniforms.len() {
+            return Err(GpuError::Other(format!(
+                "frame slot {slot}: at most {MAX_FRAMES_IN_FLIGHT} frames in flight"
+            )));
+        }
         let (views, world_from_tex, clip) = (frame.views, frame.model, frame.clip);
         let ext = tex.extent_mm();
         let step = settings.step_for(tex.spacing);
@@ -917,7 +974,8 @@ impl Renderer {
                 [y0 * l[0][k], y0 * l[1][k], y0 * l[2][k], 0.0]
             }),
         };
-        self.uniforms.write(0, bytemuck::bytes_of(&u))?;
+        self.uniforms[slot].write(0, bytemuck::bytes_of(&u))?;
+        let uniforms = &self.uniforms[slot];
 
         let d = &self.gpu.device;
         target.color.transition(
@@ -938,8 +996,7 @@ impl Renderer {
                 height: target.height,
             },
         };
-        let ubo = [self
-            .uniforms
+        let ubo = [uniforms
             .descriptor()
             .range(std::mem::size_of::<FrameUniforms>() as u64)];
         let img = |view| {
@@ -1086,6 +1143,7 @@ impl Renderer {
                 d.cmd_draw(cmd, 3, 1, 0, 0);
                 d.cmd_end_rendering(cmd);
             }
+            after_eye(cmd, eye as usize);
         }
         Ok(())
     }

@@ -71,6 +71,8 @@ pub struct XrOptions {
     pub blend: blend::BlendRequest,
     /// `--passthrough`: the world should show through (a see-through blend mode).
     pub passthrough: bool,
+    /// `--frames-in-flight`: 1 or 2 (default [`crate::render::MAX_FRAMES_IN_FLIGHT`]).
+    pub frames_in_flight: Option<usize>,
 }
 
 /// What a session did.

@@ -1,0 +1,333 @@
+//! `cao-xr bench frame`: what a frame of the frame loop costs on the GPU, pass by pass, as
+//! medians over a carving sweep, and the ratios that say how it scales: two eyes against one,
+//! the CAO update against the tool's radius and against a volume twice as large per axis, and
+//! frames per second with one and with two frames in flight.
+
+use super::bench::{median, sweep_tools};
+use super::frame_loop::{FrameLoop, FrameStats};
+use super::{precompute_ao, AppError, Result};
+use crate::ao::cao::Mode;
+use crate::ao::{LaoGpu, LaoParams};
+use crate::gpu::Gpu;
+use crate::input::{FrameInput, InteractionSettings};
+use crate::scene::Tool;
+use crate::space::{default_stereo_views, Placement, DEFAULT_IPD};
+use crate::volume::transfer::TransferFunction;
+use crate::volume::{Volume, Voxels};
+use std::sync::Arc;
+
+/// Tool radii (mm) the CAO update is measured against; the middle one is the sweep's.
+pub const RADII_MM: [f32; 3] = [10.0, 25.0, 50.0];
+/// The radius of the sweep every other row uses.
+const SWEEP_RADIUS_MM: f32 = RADII_MM[1];
+
+/// Median GPU ms of each pass over a sweep.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PassMedians {
+    pub restore: f64,
+    pub clip: f64,
+    pub update: f64,
+    pub texture: f64,
+    pub eyes: [f64; 2],
+    pub overlay: f64,
+    pub copy: f64,
+}
+
+impl PassMedians {
+    fn of(frames: &[FrameStats]) -> PassMedians {
+        let m =
+            |f: &dyn Fn(&FrameStats) -> f64| median(&mut frames.iter().map(f).collect::<Vec<_>>());
+        PassMedians {
+            restore: m(&|s| s.metrics.restore_ms),
+            clip: m(&|s| s.metrics.clip_ms),
+            update: m(&|s| s.metrics.update_ms),
+            texture: m(&|s| s.passes.texture_ms),
+            eyes: [m(&|s| s.passes.eye_ms[0]), m(&|s| s.passes.eye_ms[1])],
+            overlay: m(&|s| s.passes.overlay_ms),
+            copy: m(&|s| s.passes.copy_ms),
+        }
+    }
+
+    /// Restore + clip + update: the CAO update.
+    pub fn ao(&self) -> f64 {
+        self.restore + self.clip + self.update
+    }
+
+    /// Every pass, both eyes.
+    pub fn two_eyes(&self) -> f64 {
+        self.ao() + self.texture + self.eyes[0] + self.eyes[1] + self.overlay + self.copy
+    }
+
+    /// The frame with the left eye alone: the shared AO work, that eye's ray cast and half of
+    /// the overlay and the copy (both draw or copy each eye alike).
+    pub fn one_eye(&self) -> f64 {
+        self.ao() + self.texture + self.eyes[0] + 0.5 * (self.overlay + self.copy)
+    }
+}
+
+/// What `bench frame` measured.
+#[derive(Clone, Debug)]
+pub struct FrameBench {
+    pub passes: PassMedians,
+    /// (radius mm, median CAO update ms, mean % recomputed) for each of [`RADII_MM`].
+    pub by_radius: Vec<(f32, f64, f64)>,
+    /// Median CAO update ms of the same sweep on the volume and on it padded to twice its
+    /// size per axis (same spacing).
+    pub original_ms: f64,
+    pub padded_ms: f64,
+    pub padded_dims: [usize; 3],
+    /// Frames per second of the sweep with each frame read back and encoded as PNG (as replay
+    /// does), with one and with two frames in flight.
+    pub fps: [f64; 2],
+}
+
+/// `vol` in the middle of a grid twice as large per axis at the same spacing, the rest filled
+/// with its lowest value (air): a bigger head around the same anatomy, at the same place.
+pub fn padded(vol: &Volume) -> Volume {
+    let d = vol.dims;
+    let big = d.map(|n| 2 * n);
+    // An odd size leaves the volume half a voxel off centre.
+    let off = d.map(|n| n / 2);
+    fn pad<T: Copy>(src: &[T], fill: T, d: [usize; 3], big: [usize; 3], off: [usize; 3]) -> Vec<T> {
+        let mut out = vec![fill; big[0] * big[1] * big[2]];
+        for k in 0..d[2] {
+            for j in 0..d[1] {
+                let s = d[0] * (j + d[1] * k);
+                let t = off[0] + big[0] * (off[1] + j + big[1] * (off[2] + k));
+                out[t..t + d[0]].copy_from_slice(&src[s..s + d[0]]);
+            }
+        }
+        out
+    }
+    let lo = vol.value_range().0;
+    let voxels = match &vol.voxels {
+        Voxels::U8(v) => Voxels::U8(pad(v, lo as u8, d, big, off)),
+        Voxels::U16(v) => Voxels::U16(pad(v, lo as u16, d, big, off)),
+        Voxels::I16(v) => Voxels::I16(pad(v, lo as i16, d, big, off)),
+        Voxels::F32(v) => Voxels::F32(pad(v, lo, d, big, off)),
+    };
+    let shift = vol.directions
+        * glam::DVec3::new(
+            off[0] as f64 * vol.spacing[0],
+            off[1] as f64 * vol.spacing[1],
+            off[2] as f64 * vol.spacing[2],
+        );
+    Volume {
+        name: format!("{} padded", vol.name),
+        dims: big,
+        origin: vol.origin - shift,
+        voxels,
+        ..vol.clone_geometry()
+    }
+}
+
+/// Median CAO update ms (restore + clip + update) of the sweep `tools` on `vol`, and the mean
+/// percentage recomputed.
+fn cao_sweep(
+    gpu: &Gpu,
+    lao: &LaoGpu,
+    vol: &Volume,
+    tf: &TransferFunction,
+    params: LaoParams,
+    tools: &[Vec<Tool>],
+) -> Result<(f64, f64)> {
+    let mut cao = precompute_ao(gpu, lao, vol, tf, &params, false)?.into_cao(gpu, vol, params)?;
+    let placement = Placement::default();
+    let (mut ms, mut pct) = (Vec::new(), 0.0);
+    for t in tools {
+        let m = cao.run_frame(t, &placement, Mode::Contextual)?;
+        ms.push(m.gpu_ms());
+        pct += m.percent_recomputed() / tools.len() as f64;
+    }
+    Ok((median(&mut ms), pct))
+}
+
+/// The sweep through the frame loop, one frame per tool set: each frame's stats, and the wall
+/// time of the whole sweep. With `encode`, every frame is read back and encoded as PNG (the
+/// host's work of a replay) when it leaves the GPU.
+fn loop_sweep(
+    fl: &mut FrameLoop,
+    tools: &[Vec<Tool>],
+    encode: bool,
+) -> Result<(Vec<FrameStats>, f64)> {
+    let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
+    let mut stats = Vec::new();
+    let mut keep = |r: super::frame_loop::Retired| -> Result<()> {
+        if let Some(img) = &r.image {
+            png_bytes(img.width * 2, img.height, &img.side_by_side_rgb())?;
+        }
+        stats.push(r.stats);
+        Ok(())
+    };
+    let t0 = std::time::Instant::now();
+    for (f, t) in tools.iter().enumerate() {
+        fl.scene.tools = t.clone();
+        let input = FrameInput::without_hands(f as f64 / 90.0, views);
+        if let Some(r) = fl.submit(&input, encode, |_, _| {})? {
+            keep(r)?;
+        }
+    }
+    if let Some(r) = fl.flush()? {
+        keep(r)?;
+    }
+    Ok((stats, t0.elapsed().as_secs_f64()))
+}
+
+fn png_bytes(width: u32, height: u32, rgb: &[u8]) -> Result<Vec<u8>> {
+    let err = |e: png::EncodingError| AppError::Usage(format!("PNG encoding: {e}"));
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(&mut out, width, height);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().map_err(err)?;
+    w.write_image_data(rgb).map_err(err)?;
+    w.finish().map_err(err)?;
+    Ok(out)
+}
+
+/// Measures `vol` (see the module) with `frames` frames per sweep at `size` pixels per eye;
+/// the fps rows take the median of `runs` interleaved runs. Prints the table as it goes.
+pub fn bench_frame(
+    gpu: &Gpu,
+    vol: &Volume,
+    tf: &TransferFunction,
+    params: LaoParams,
+    size: (u32, u32),
+    frames: usize,
+    runs: usize,
+) -> Result<FrameBench> {
+    let frames = frames.max(2);
+    let sweep = sweep_tools(vol, SWEEP_RADIUS_MM, frames);
+    println!(
+        "Frame on {} ({}: {}x{}x{}, K = {}, {}x{} per eye, a sphere of {SWEEP_RADIUS_MM} mm \
+         radius carving in {frames} frames; GPU ms, medians over the frames)",
+        gpu.device_name,
+        vol.name,
+        vol.dims[0],
+        vol.dims[1],
+        vol.dims[2],
+        params.rays,
+        size.0,
+        size.1
+    );
+    let mut fl = FrameLoop::new(
+        gpu,
+        Arc::new(vol.clone()),
+        vec![tf.clone()],
+        params,
+        size,
+        InteractionSettings::default(),
+        false,
+    )?;
+    let (stats, _) = loop_sweep(&mut fl, &sweep, true)?;
+    let p = PassMedians::of(&stats);
+    println!("{:<28} {:>9}", "pass", "ms");
+    for (name, ms) in [
+        ("restore", p.restore),
+        ("clip + mask", p.clip),
+        ("AO update", p.update),
+        ("AO into the texture", p.texture),
+        ("ray cast, left eye", p.eyes[0]),
+        ("ray cast, right eye", p.eyes[1]),
+        ("overlay", p.overlay),
+        ("copy", p.copy),
+        ("frame", p.two_eyes()),
+    ] {
+        println!("{name:<28} {ms:>9.2}");
+    }
+    println!(
+        "two eyes / one eye          {:>9.2}x  ({:.2} ms / {:.2} ms; one eye: the AO, the left \
+         eye, half the overlay and copy)",
+        p.two_eyes() / p.one_eye(),
+        p.two_eyes(),
+        p.one_eye()
+    );
+
+    let lao = LaoGpu::new(gpu)?;
+    let mut by_radius = Vec::new();
+    for r in RADII_MM {
+        let (ms, pct) = cao_sweep(gpu, &lao, vol, tf, params, &sweep_tools(vol, r, frames))?;
+        by_radius.push((r, ms, pct));
+    }
+    for &(r, ms, pct) in &by_radius {
+        println!(
+            "CAO update, radius {r:>2} mm   {ms:>9.2} ms  {:>6.2}x of {} mm  ({pct:.2} % recomputed)",
+            ms / by_radius[0].1,
+            RADII_MM[0]
+        );
+    }
+
+    let big = padded(vol);
+    let original_ms = by_radius[1].1;
+    let (padded_ms, _) = cao_sweep(gpu, &lao, &big, tf, params, &sweep)?;
+    println!(
+        "CAO update, {}x{}x{} (2x per axis, same spacing, same tool) / original   {:>6.2}x  \
+         ({padded_ms:.2} ms / {original_ms:.2} ms)",
+        big.dims[0],
+        big.dims[1],
+        big.dims[2],
+        padded_ms / original_ms
+    );
+
+    // Interleaved, so that a machine busy for a while slows both alike.
+    let (mut one, mut two) = (Vec::new(), Vec::new());
+    for _ in 0..runs.max(1) {
+        for (depth, out) in [(1, &mut one), (2, &mut two)] {
+            fl.set_frames_in_flight(depth)?;
+            let (s, secs) = loop_sweep(&mut fl, &sweep, true)?;
+            out.push(s.len() as f64 / secs);
+        }
+    }
+    let fps = [median(&mut one), median(&mut two)];
+    println!(
+        "fps, 1 frame in flight       {:>9.1}\nfps, 2 frames in flight      {:>9.1}  ({:.2}x; \
+         each frame read back and encoded as PNG, median of {} run(s))",
+        fps[0],
+        fps[1],
+        fps[1] / fps[0],
+        runs.max(1)
+    );
+    Ok(FrameBench {
+        passes: p,
+        by_radius,
+        original_ms,
+        padded_ms,
+        padded_dims: big.dims,
+        fps,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn padding_centres_the_volume_in_twice_the_grid_at_the_same_spacing() {
+        let v = crate::volume::phantom::head(6);
+        let p = padded(&v);
+        assert_eq!(p.dims, [12, 12, 12]);
+        assert_eq!(p.spacing, v.spacing);
+        let lo = v.value_range().0;
+        for k in 0..12 {
+            for j in 0..12 {
+                for i in 0..12 {
+                    let inside = [i, j, k].iter().all(|&a| (3..9).contains(&a));
+                    let want = if inside {
+                        v.voxels.get(v.index(i - 3, j - 3, k - 3))
+                    } else {
+                        lo
+                    };
+                    assert_eq!(p.voxels.get(p.index(i, j, k)), want, "{i} {j} {k}");
+                }
+            }
+        }
+        // Same world place: the centre of voxel (3,3,3) is where (0,0,0) was.
+        assert!((p.origin + glam::DVec3::splat(3.0 * v.spacing[0]) - v.origin).length() < 1e-9);
+        let at = |vol: &Volume, idx: f32| {
+            let n = vol.dims[0] as f32;
+            crate::space::world_from_tex(vol, &Placement::default())
+                .transform_point3(glam::Vec3::splat((idx + 0.5) / n))
+        };
+        assert!((at(&v, 0.0) - at(&p, 3.0)).length() < 1e-6);
+    }
+}
