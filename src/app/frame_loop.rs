@@ -158,6 +158,9 @@ impl FrameLoop {
             if let Some(l) = lighting {
                 fl.light(l, progress)?;
             }
+            // The pre-integrated table the first frame would build (its staging included), so
+            // that a set-up that fits also draws.
+            fl.tex.prepare(&fl.settings)?;
             Ok(fl)
         };
         let m = match setup(vol.clone(), show_progress) {

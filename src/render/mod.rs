@@ -726,6 +726,49 @@ pub struct ClipBinding<'a> {
 
 impl Renderer {
     pub fn new(gpu: &Gpu) -> Result<Renderer> {
+        // The buffers and images first: they free themselves when a later step fails (a GPU
+        // memory budget can refuse them), where the raw handles below would be left behind.
+        let uniforms = (0..MAX_FRAMES_IN_FLIGHT)
+            .map(|_| {
+                Buffer::new(
+                    gpu,
+                    std::mem::size_of::<FrameUniforms>() as u64,
+                    vk::BufferUsageFlags::UNIFORM_BUFFER,
+                    MemoryLocation::CpuToGpu,
+                    "frame-uniforms",
+                )
+            })
+            .collect::<Result<Vec<_>>>()?;
+        // Bound in place of the clip buffers when no tool clips (the shader reads none).
+        let no_clip = Buffer::new(
+            gpu,
+            16,
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            MemoryLocation::GpuOnly,
+            "no-clip",
+        )?;
+        let side = blue_noise::SIZE as u32;
+        let blue_noise = Image::new(
+            gpu,
+            ImageDesc {
+                image_type: vk::ImageType::TYPE_2D,
+                view_type: vk::ImageViewType::TYPE_2D,
+                format: vk::Format::R32_SFLOAT,
+                extent: vk::Extent3D {
+                    width: side,
+                    height: side,
+                    depth: 1,
+                },
+                layers: 1,
+                usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+                aspect: vk::ImageAspectFlags::COLOR,
+            },
+            "blue-noise",
+        )?;
+        blue_noise.upload(
+            bytemuck::cast_slice(blue_noise::tile()),
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        )?;
         unsafe {
             let d = &gpu.device;
             let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
@@ -786,47 +829,6 @@ impl Renderer {
                     .address_mode_w(vk::SamplerAddressMode::CLAMP_TO_EDGE)
                     .max_lod(0.0),
                 None,
-            )?;
-            let uniforms = (0..MAX_FRAMES_IN_FLIGHT)
-                .map(|_| {
-                    Buffer::new(
-                        gpu,
-                        std::mem::size_of::<FrameUniforms>() as u64,
-                        vk::BufferUsageFlags::UNIFORM_BUFFER,
-                        MemoryLocation::CpuToGpu,
-                        "frame-uniforms",
-                    )
-                })
-                .collect::<Result<Vec<_>>>()?;
-            // Bound in place of the clip buffers when no tool clips (the shader reads none).
-            let no_clip = Buffer::new(
-                gpu,
-                16,
-                vk::BufferUsageFlags::STORAGE_BUFFER,
-                MemoryLocation::GpuOnly,
-                "no-clip",
-            )?;
-            let side = blue_noise::SIZE as u32;
-            let blue_noise = Image::new(
-                gpu,
-                ImageDesc {
-                    image_type: vk::ImageType::TYPE_2D,
-                    view_type: vk::ImageViewType::TYPE_2D,
-                    format: vk::Format::R32_SFLOAT,
-                    extent: vk::Extent3D {
-                        width: side,
-                        height: side,
-                        depth: 1,
-                    },
-                    layers: 1,
-                    usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
-                    aspect: vk::ImageAspectFlags::COLOR,
-                },
-                "blue-noise",
-            )?;
-            blue_noise.upload(
-                bytemuck::cast_slice(blue_noise::tile()),
-                vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
             )?;
             Ok(Renderer {
                 gpu: gpu.clone(),
