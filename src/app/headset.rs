@@ -36,6 +36,7 @@ pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
             opts.record.as_deref(),
             &StreamHeader::new("xr", description),
         )?;
+        super::interrupt::catch();
         let result = frames(&mut xs, &mut fl, &mut mirror, &mut recorder, &opts);
         unsafe {
             let _ = gpu.device.device_wait_idle();
@@ -81,7 +82,9 @@ fn frames(
             std::thread::sleep(std::time::Duration::from_millis(10));
             continue;
         }
-        let done = opts.frames.is_some_and(|n| xs.summary.frames >= n);
+        // SIGINT/SIGTERM end the session as its frame count does.
+        let done = opts.frames.is_some_and(|n| xs.summary.frames >= n)
+            || super::interrupt::caught().is_some();
         if done {
             xs.request_exit()?;
         }

@@ -6,6 +6,7 @@ pub mod bench_ao;
 pub mod desktop;
 pub mod frame_loop;
 pub mod headset;
+pub mod interrupt;
 pub mod lighting;
 pub mod mirror;
 pub mod replay;

@@ -17,5 +17,6 @@ mod overlay;
 mod render;
 mod sh;
 mod sh_lighting;
+mod soak;
 mod tf_switch;
 mod xr;
