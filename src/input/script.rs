@@ -796,7 +796,7 @@ mod tests {
             assert!(grip_pos(f, RIGHT).distance(c) < 0.9 * r, "frame {i}");
             if i > 0 {
                 let step = grip_pos(f, RIGHT).distance(grip_pos(&frames[i - 1], RIGHT));
-                assert!(step > 0.02 * r, "frame {i} moved only {step} m");
+                assert!(step > 0.01 * r, "frame {i} moved only {step} m");
             }
             if i >= per_loop {
                 let back = grip_pos(&frames[i - per_loop], RIGHT);
