@@ -7,9 +7,12 @@ use std::process::Command;
 /// Frames of the soak, and how often `--stats-every` samples: a tenth.
 const FRAMES: usize = 2000;
 const TENTH: usize = FRAMES / 10;
-/// Host RSS may grow by less than this between the end of the first tenth (the warm-up) and
-/// the last frame.
+/// Host RSS may grow by less than this between frame [`RSS_WARM_UP`] and the last frame.
 const MAX_RSS_GROWTH: f64 = 0.02;
+/// RSS settles within the first 1,000 frames, as in the 10,000-frame run: here it rose
+/// once by 1 MiB between frames 500 and 800, then stayed flat over 10,000 frames but for
+/// transient 1 MiB mappings (with validation off too), which alone are 0.85 % of 123 MB.
+const RSS_WARM_UP: usize = 1000;
 /// Frame time, the last tenth against the second (the first is warm-up). The process's own CPU
 /// time per frame is the measure that must stay level: a trend (work or lists growing with the
 /// frame count) shows in it, while the load of other processes hardly does (measured on two
@@ -131,13 +134,16 @@ fn a_2000_frame_carving_replay_holds_its_memory_and_its_pace() {
     // Each check below is reported, failed or not, before the test fails on any of them.
     let mut failed = Vec::new();
 
-    // Host RSS after the warm-up tenth: flat within 2 %.
+    // Host RSS after its warm-up: flat within 2 %.
     let (warm, last) = (&stats[0], stats.last().unwrap());
-    let growth = last.rss as f64 / warm.rss as f64 - 1.0;
+    let settled = &stats[RSS_WARM_UP / TENTH - 1];
+    let growth = last.rss as f64 / settled.rss as f64 - 1.0;
     eprintln!(
-        "soak: RSS {:.1} MB at frame {} -> {:.1} MB at frame {} ({:+.2} %)",
+        "soak: RSS {:.1} MB at frame {}, {:.1} MB at frame {} -> {:.1} MB at frame {} ({:+.2} %)",
         warm.rss as f64 / 1e6,
         warm.frames,
+        settled.rss as f64 / 1e6,
+        settled.frames,
         last.rss as f64 / 1e6,
         last.frames,
         100.0 * growth
@@ -146,7 +152,7 @@ fn a_2000_frame_carving_replay_holds_its_memory_and_its_pace() {
         failed.push(format!("host RSS grew {:.2} %", 100.0 * growth));
     }
 
-    // GPU memory in use never grows after the warm-up: not the allocations, not the blocks.
+    // GPU memory in use never grows after the first tenth: not the allocations, not the blocks.
     if let Some(s) = stats[1..].iter().find(|s| {
         s.gpu_allocated > warm.gpu_allocated
             || s.gpu_capacity > warm.gpu_capacity
