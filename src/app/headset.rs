@@ -79,6 +79,10 @@ fn frames(
     let mut prev_clipped = 0u64;
     while xs.poll_events()? {
         if !xs.running() {
+            if super::interrupt::caught().is_some() {
+                // Nothing is being shown to end gracefully: stop waiting for the runtime.
+                break;
+            }
             std::thread::sleep(std::time::Duration::from_millis(10));
             continue;
         }

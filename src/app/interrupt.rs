@@ -19,16 +19,18 @@ extern "C" fn note(sig: libc::c_int) {
     CAUGHT.store(sig, Ordering::SeqCst);
 }
 
-/// From now on SIGINT and SIGTERM set [`caught`] instead of ending the process. Called once
-/// the session's frames begin, so a signal during the precompute still ends it at once.
+/// From now on the first SIGINT or SIGTERM sets [`caught`] instead of ending the process; a
+/// second one ends it. Called once the session's frames begin, so a signal during the
+/// precompute still ends it at once.
 pub fn catch() {
     for sig in SIGNALS {
         // SA_RESTART: a read or write in flight (the recording's) completes instead of failing.
+        // SA_RESETHAND: a second signal ends the process at once, should the session hang.
         // sigaction only fails for an invalid signal or a bad pointer, neither possible here.
         unsafe {
             let mut act: libc::sigaction = std::mem::zeroed();
             act.sa_sigaction = note as extern "C" fn(libc::c_int) as libc::sighandler_t;
-            act.sa_flags = libc::SA_RESTART;
+            act.sa_flags = libc::SA_RESTART | libc::SA_RESETHAND;
             libc::sigemptyset(&mut act.sa_mask);
             libc::sigaction(sig, &act, std::ptr::null_mut());
         }
@@ -73,6 +75,10 @@ mod tests {
         unsafe { libc::raise(libc::SIGTERM) };
         // The handler runs before raise returns (a signal sent to the calling thread).
         assert_eq!(caught(), Some(libc::SIGTERM));
+        // The handler is gone after the first signal: a second one would end the process.
+        let mut now: libc::sigaction = unsafe { std::mem::zeroed() };
+        unsafe { libc::sigaction(libc::SIGTERM, std::ptr::null(), &mut now) };
+        assert_eq!(now.sa_sigaction, libc::SIG_DFL);
         assert_eq!(name(libc::SIGTERM), "SIGTERM");
         // Back to the default, so this test binary is not left deaf to Ctrl-C.
         for sig in SIGNALS {
