@@ -10,7 +10,8 @@
 # run fails; monado-service is stopped on every exit path. OUTDIR receives monado.log,
 # xr-validation.txt and whatever the session wrote into its working directory (e.g. a
 # recording named with a relative path). Exit status: that of cao-xr. With
-# CAO_XR_KILL_RUNTIME_AFTER=S, monado-service is killed S seconds after it is up.
+# CAO_XR_KILL_RUNTIME_AFTER=S, monado-service is killed S seconds after it is up; with
+# CAO_XR_SIGNAL_AFTER="SIG S" (SIG: TERM or INT), cao-xr gets that signal S seconds after.
 #
 # CAO_XR_MONADO=remote runs Monado's remote driver instead of the simulated devices: an HMD and
 # two Index controllers with simulated hands, driven over TCP port 4242 (struct r_remote_data).
@@ -76,10 +77,16 @@ fi
 if [ -n "${CAO_XR_KILL_RUNTIME_AFTER:-}" ]; then
   ( sleep "$CAO_XR_KILL_RUNTIME_AFTER"; date +%s.%N > "$W/runtime-killed.txt"; kill -9 $MON ) &
 fi
+# A signal, for the tests: CAO_XR_SIGNAL_AFTER="SIG S" sends SIG to cao-xr itself (its pid is
+# noted by the shell that becomes it) S seconds into the session.
+if [ -n "${CAO_XR_SIGNAL_AFTER:-}" ]; then
+  read -r SIG SECS <<< "$CAO_XR_SIGNAL_AFTER"
+  ( sleep "$SECS"; kill -"$SIG" "$(cat "$W/cao-xr.pid")" ) &
+fi
 XR_ENABLE_API_LAYERS=XR_APILAYER_LUNARG_core_validation \
 XR_CORE_VALIDATION_EXPORT_TYPE=text XR_CORE_VALIDATION_FILE_NAME="$W/xr-validation.txt" \
 CAO_XR_VALIDATION="${CAO_XR_VALIDATION:-1}" CAO_XR_BINDINGS="$W/bindings" \
-  timeout "${CAO_XR_SESSION_TIMEOUT:-300}" "$W/cao-xr" xr "$@"
+  timeout "${CAO_XR_SESSION_TIMEOUT:-300}" sh -c 'echo $$ > "$0.pid"; exec "$0" xr "$@"' "$W/cao-xr" "$@"
 rc=$?
 stop
 exit $rc

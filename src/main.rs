@@ -162,6 +162,10 @@ enum Cmd {
         /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
         #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
         frames_in_flight: Option<u32>,
+        /// Every N frames print a line on stdout: host RSS, GPU memory in use (the allocator's
+        /// report), CPU and wall time, validation messages so far.
+        #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+        stats_every: Option<u64>,
     },
     /// Open a desktop window: the mouse and keys are the head and the right hand (see README).
     View {
@@ -239,7 +243,8 @@ enum Cmd {
     },
     /// Generate a scripted pose stream (JSON Lines) for replay and tests.
     Script {
-        /// sphere-sweep, box-push-pull, torus-pass, two-tools, grab-scale, tremor or tf-switch.
+        /// sphere-sweep, box-push-pull, torus-pass, two-tools, grab-scale, tremor, tf-switch,
+        /// hand-pinch or carve-loop (a tool carving without a pause, for soak runs).
         kind: String,
         #[arg(long)]
         out: PathBuf,
@@ -734,6 +739,16 @@ fn parse_rgb(s: &str) -> std::result::Result<[f32; 3], String> {
     }
 }
 
+/// Says on stderr that a session ended on a signal, before main ends the process by it.
+fn interrupted_note() {
+    if let Some(sig) = app::interrupt::caught() {
+        eprintln!(
+            "{}: the session ended cleanly (its recording, if any, is complete)",
+            app::interrupt::name(sig)
+        );
+    }
+}
+
 fn main() -> std::process::ExitCode {
     // Output piped into `head` and closed early ends the process quietly, as Unix tools do,
     // instead of panicking in println!.
@@ -742,7 +757,7 @@ fn main() -> std::process::ExitCode {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
-    match run(Cli::parse()) {
+    let code = match run(Cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             // The cause chain on one line, without a backtrace, skipping causes that the message
@@ -757,7 +772,10 @@ fn main() -> std::process::ExitCode {
             eprintln!("error: {line}");
             std::process::ExitCode::FAILURE
         }
-    }
+    };
+    // A session ended by SIGINT or SIGTERM (its recording finished) ends by that signal.
+    app::interrupt::reraise();
+    code
 }
 
 fn run(cli: Cli) -> Result<()> {
@@ -1051,6 +1069,7 @@ fn run(cli: Cli) -> Result<()> {
             realtime,
             shape,
             frames_in_flight,
+            stats_every,
         } => {
             let spec = session_spec(&vol, &lao, &light)?;
             let gpu = gpu(cli.validation)?;
@@ -1070,6 +1089,7 @@ fn run(cli: Cli) -> Result<()> {
                 realtime,
                 shape,
                 frames_in_flight: frames_in_flight.map(|n| n as usize),
+                stats_every: stats_every.map(|n| n as usize),
             };
             let s = app::replay::replay(&gpu, &script, &spec, &out, &opts)?;
             println!(
@@ -1106,6 +1126,7 @@ fn run(cli: Cli) -> Result<()> {
             };
             let n = app::desktop::run(&spec, opts)?;
             println!("closed after {n} frames");
+            interrupted_note();
         }
         Cmd::Xr {
             vol,
@@ -1137,6 +1158,7 @@ fn run(cli: Cli) -> Result<()> {
                 frames_in_flight: frames_in_flight.map(|n| n as usize),
             };
             let s = app::headset::run(&spec, opts)?;
+            interrupted_note();
             println!(
                 "xr session ended cleanly: {} frames submitted, {} with tracked hands, states {}, focused {}, haptic pulses {}, space {}, blend {} (offered {})",
                 s.frames,

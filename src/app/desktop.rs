@@ -161,7 +161,8 @@ impl App {
             ));
         }
         self.frame += 1;
-        if self.opts.frames.is_some_and(|n| self.frame >= n) {
+        if self.opts.frames.is_some_and(|n| self.frame >= n) || super::interrupt::caught().is_some()
+        {
             el.exit();
         }
         Ok(())
@@ -298,6 +299,7 @@ pub fn run(spec: &SessionSpec, opts: ViewOptions) -> Result<usize> {
         error: None,
         fps: 0.0,
     };
+    super::interrupt::catch();
     event_loop
         .run_app(&mut app)
         .map_err(|e| AppError::Usage(format!("window event loop: {e}")))?;

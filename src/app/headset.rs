@@ -39,6 +39,7 @@ pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
             opts.record.as_deref(),
             &StreamHeader::new("xr", description),
         )?;
+        super::interrupt::catch();
         let result = frames(&mut xs, &mut fl, &mut mirror, &mut recorder, &opts);
         // The last frame's stats are not needed; waiting for it is.
         let result = result.and_then(|()| fl.flush().map(|_| ()));
@@ -83,10 +84,16 @@ fn frames(
     let mut prev_clipped = 0u64;
     while xs.poll_events()? {
         if !xs.running() {
+            if super::interrupt::caught().is_some() {
+                // Nothing is being shown to end gracefully: stop waiting for the runtime.
+                break;
+            }
             std::thread::sleep(std::time::Duration::from_millis(10));
             continue;
         }
-        let done = opts.frames.is_some_and(|n| xs.summary.frames >= n);
+        // SIGINT/SIGTERM end the session as its frame count does.
+        let done = opts.frames.is_some_and(|n| xs.summary.frames >= n)
+            || super::interrupt::caught().is_some();
         if done {
             xs.request_exit()?;
         }

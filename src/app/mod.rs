@@ -8,6 +8,7 @@ pub mod bench_quality;
 pub mod desktop;
 pub mod frame_loop;
 pub mod headset;
+pub mod interrupt;
 pub mod lighting;
 pub mod mirror;
 pub mod replay;

@@ -6,7 +6,7 @@ use super::session::SessionSpec;
 use super::{AppError, Result};
 use crate::ao::cao::Mode;
 use crate::clip::Shape;
-use crate::gpu::Gpu;
+use crate::gpu::{Gpu, GpuMemory};
 use crate::input::{read_stream, replay_schedule, InteractionSettings, StreamHeader};
 use crate::render::png_out::write_rgb;
 use crate::scene::{Tool, ToolMode};
@@ -29,6 +29,9 @@ pub struct ReplayOptions {
     /// Frames in flight, 1 or 2 (default [`crate::render::MAX_FRAMES_IN_FLIGHT`]): the same
     /// images either way.
     pub frames_in_flight: Option<usize>,
+    /// Every this many frames, sample host and GPU memory ([`ReplayStats`]) and print the
+    /// sample on stdout.
+    pub stats_every: Option<usize>,
 }
 
 impl Default for ReplayOptions {
@@ -41,6 +44,7 @@ impl Default for ReplayOptions {
             realtime: false,
             shape: None,
             frames_in_flight: None,
+            stats_every: None,
         }
     }
 }
@@ -52,6 +56,66 @@ pub struct ReplaySummary {
     pub pngs: usize,
     pub mean_ao_ms: f64,
     pub mean_percent_recomputed: f64,
+    /// The samples of `--stats-every`, in order.
+    pub stats: Vec<ReplayStats>,
+}
+
+/// A sample of what the process holds after `frames` frames: for soak runs, where memory must
+/// stay flat and frame time must not creep up.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReplayStats {
+    /// Frames rendered so far.
+    pub frames: usize,
+    /// Host resident set size (None without /proc).
+    pub rss_bytes: Option<u64>,
+    pub gpu: GpuMemory,
+    /// CPU time of the whole process (user + system, all threads, lavapipe's included), s.
+    pub cpu_s: f64,
+    /// Wall time since the first frame began, s.
+    pub wall_s: f64,
+    /// Validation warnings and errors so far.
+    pub validation_messages: usize,
+}
+
+impl std::fmt::Display for ReplayStats {
+    /// One line of `key=value` pairs after the word `stats`, for scripts and tests to parse.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let rss = self
+            .rss_bytes
+            .map_or("unknown".to_string(), |b| b.to_string());
+        write!(
+            f,
+            "stats frames={} rss_bytes={rss} gpu_allocated_bytes={} gpu_capacity_bytes={} \
+             gpu_allocations={} cpu_s={:.3} wall_s={:.3} validation_messages={}",
+            self.frames,
+            self.gpu.allocated_bytes,
+            self.gpu.capacity_bytes,
+            self.gpu.allocations,
+            self.cpu_s,
+            self.wall_s,
+            self.validation_messages
+        )
+    }
+}
+
+/// The process's resident set size in bytes (the second field of /proc/self/statm, in pages:
+/// VmRSS); None where there is no procfs.
+pub fn host_rss_bytes() -> Option<u64> {
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: u64 = statm.split_whitespace().nth(1)?.parse().ok()?;
+    let page = unsafe { libc::sysconf(libc::_SC_PAGESIZE) };
+    u64::try_from(page).ok().map(|p| pages * p)
+}
+
+/// CPU time this process has used so far (user + system, all threads), in seconds.
+fn cpu_seconds() -> f64 {
+    let mut u = std::mem::MaybeUninit::<libc::rusage>::zeroed();
+    if unsafe { libc::getrusage(libc::RUSAGE_SELF, u.as_mut_ptr()) } != 0 {
+        return f64::NAN;
+    }
+    let u = unsafe { u.assume_init() };
+    let secs = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    secs(u.ru_utime) + secs(u.ru_stime)
 }
 
 /// The shape a scripted stream names at the start of its description, e.g. "torus tool: ...".
@@ -122,6 +186,9 @@ pub fn replay(
         frames: frames.len(),
         ..Default::default()
     };
+    let stats_every = opts.stats_every.filter(|&n| n > 0);
+    // Frames written so far, in order, for the stats samples.
+    let mut written = 0usize;
     let start = std::time::Instant::now();
     // The frames submitted and not yet back, oldest first: with two in flight a frame's
     // metrics and PNG are written while the GPU renders the next.
@@ -184,6 +251,19 @@ pub fn replay(
                 kept.push(rgb);
             }
         }
+        written += 1;
+        if stats_every.is_some_and(|n| written % n == 0) {
+            let sample = ReplayStats {
+                frames: written,
+                rss_bytes: host_rss_bytes(),
+                gpu: fl.gpu.allocator_memory(),
+                cpu_s: cpu_seconds(),
+                wall_s: start.elapsed().as_secs_f64(),
+                validation_messages: fl.gpu.validation_messages().len(),
+            };
+            println!("{sample}");
+            summary.stats.push(sample);
+        }
         Ok(())
     };
     for (i, due) in replay_schedule(&frames, opts.realtime) {
@@ -241,4 +321,57 @@ pub fn write_apng(
     }
     w.finish().map_err(err)?;
     std::fs::rename(&tmp, path).map_err(|e| out_err(path, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// VmRSS as /proc/self/status states it, in bytes.
+    fn status_vm_rss() -> u64 {
+        let status = std::fs::read_to_string("/proc/self/status").unwrap();
+        let line = status.lines().find(|l| l.starts_with("VmRSS:")).unwrap();
+        let kb: u64 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
+        kb * 1024
+    }
+
+    #[test]
+    fn host_rss_is_the_resident_set_and_follows_touched_memory() {
+        let before = host_rss_bytes().unwrap();
+        let status = status_vm_rss();
+        // Other tests run in parallel threads, so only roughly the same moment.
+        assert!(
+            before.abs_diff(status) < 16 << 20,
+            "statm {before} vs status {status}"
+        );
+        // 64 MB written page by page are resident.
+        let mut block = vec![0u8; 64 << 20];
+        for b in block.iter_mut().step_by(4096) {
+            *b = 1;
+        }
+        let after = host_rss_bytes().unwrap();
+        assert!(after >= before + (48 << 20), "{before} -> {after}");
+        assert_eq!(std::hint::black_box(&block)[4096], 1);
+    }
+
+    #[test]
+    fn a_stats_line_is_key_value_pairs() {
+        let s = ReplayStats {
+            frames: 1000,
+            rss_bytes: Some(123),
+            gpu: GpuMemory {
+                allocated_bytes: 4,
+                capacity_bytes: 5,
+                allocations: 6,
+            },
+            cpu_s: 1.5,
+            wall_s: 2.25,
+            validation_messages: 0,
+        };
+        assert_eq!(
+            s.to_string(),
+            "stats frames=1000 rss_bytes=123 gpu_allocated_bytes=4 gpu_capacity_bytes=5 \
+             gpu_allocations=6 cpu_s=1.500 wall_s=2.250 validation_messages=0"
+        );
+    }
 }

@@ -159,6 +159,17 @@ pub struct Core {
     pub limits: vk::PhysicalDeviceLimits,
 }
 
+/// What [`Core::memory_in_use`] reports.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct GpuMemory {
+    /// Bytes held by live allocations.
+    pub allocated_bytes: u64,
+    /// Bytes of the memory blocks the allocator holds (allocated or not).
+    pub capacity_bytes: u64,
+    /// Live allocations.
+    pub allocations: usize,
+}
+
 /// Every validation warning and error seen by the messenger, in order.
 #[derive(Default)]
 pub struct ValidationLog {
@@ -557,6 +568,17 @@ impl Core {
             available: self.device_local_heap_bytes(),
             budget: false,
         }))
+    }
+
+    /// Device memory in use through the allocator (gpu-allocator's report): what its live
+    /// allocations hold, the blocks it has taken from the driver, and how many allocations.
+    pub fn allocator_memory(&self) -> GpuMemory {
+        let report = self.allocator.lock().unwrap().generate_report();
+        GpuMemory {
+            allocated_bytes: report.total_allocated_bytes,
+            capacity_bytes: report.total_capacity_bytes,
+            allocations: report.allocations.len(),
+        }
     }
 
     /// Validation warnings and errors reported so far (empty when validation is off).

@@ -46,10 +46,16 @@ pub enum ScriptKind {
     /// The sphere sweep by a tracked hand instead of a controller: its joints are recorded, a
     /// pinch from 10 % on is the trigger, and tracking is lost from 55 % to 70 %.
     HandPinch,
+    /// Right hand carves without a pause along a closed figure-eight through the volume, one
+    /// loop every [`CARVE_LOOP_S`] seconds, for as long as the stream lasts: soak runs.
+    CarveLoop,
 }
 
+/// One loop of [`ScriptKind::CarveLoop`], in seconds (180 frames at 90 fps).
+pub const CARVE_LOOP_S: f64 = 2.0;
+
 impl ScriptKind {
-    pub const ALL: [ScriptKind; 8] = [
+    pub const ALL: [ScriptKind; 9] = [
         ScriptKind::SphereSweep,
         ScriptKind::BoxPushPull,
         ScriptKind::TorusPass,
@@ -58,6 +64,7 @@ impl ScriptKind {
         ScriptKind::Tremor,
         ScriptKind::TfSwitch,
         ScriptKind::HandPinch,
+        ScriptKind::CarveLoop,
     ];
 
     /// The kebab-case name, as parsed by `FromStr` and used for `controllers/scripts/<name>.jsonl`.
@@ -71,7 +78,13 @@ impl ScriptKind {
             ScriptKind::Tremor => "tremor",
             ScriptKind::TfSwitch => "tf-switch",
             ScriptKind::HandPinch => "hand-pinch",
+            ScriptKind::CarveLoop => "carve-loop",
         }
+    }
+
+    /// Every name, comma-separated, for messages.
+    pub fn names() -> String {
+        ScriptKind::ALL.map(ScriptKind::name).join(", ")
     }
 
     /// What the script does, for the stream header and for people.
@@ -110,6 +123,10 @@ impl ScriptKind {
                  left to right through the volume centre, pinching (the trigger) from 10 %; \
                  tracking is lost from 55 % to 70 %"
             }
+            ScriptKind::CarveLoop => {
+                "sphere tool: right hand carves without a pause along a figure-eight through \
+                 the volume, one loop every 2 s, trigger pressed (for soak runs of any length)"
+            }
         }
     }
 }
@@ -134,10 +151,7 @@ impl FromStr for ScriptKind {
 /// Scripts failed: unknown name, bad parameters, or the stream could not be written.
 #[derive(Debug, thiserror::Error)]
 pub enum ScriptError {
-    #[error(
-        "unknown script {0:?}; expected one of sphere-sweep, box-push-pull, torus-pass, \
-         two-tools, grab-scale, tremor"
-    )]
+    #[error("unknown script {0:?}; expected one of {names}", names = ScriptKind::names())]
     UnknownKind(String),
     #[error("script parameters: {0}")]
     Params(String),
@@ -241,6 +255,7 @@ pub fn generate(kind: ScriptKind, params: &ScriptParams) -> Vec<FrameInput> {
                 ScriptKind::GrabScale => stage.grab_scale(s),
                 ScriptKind::Tremor => stage.tremor(&tremor, time),
                 ScriptKind::TfSwitch => stage.tf_switch(s),
+                ScriptKind::CarveLoop => stage.carve_loop(time),
             };
             FrameInput {
                 time,
@@ -479,6 +494,20 @@ impl Stage {
         // Held for a few frames (a real press), counted once.
         hands[LEFT].buttons.menu = (0.25..0.28).contains(&s);
         hands
+    }
+
+    /// A figure-eight in x-y with a slower swing in depth, at most about 0.85 r from the
+    /// centre, so the tool is always inside and always moving; it yaws with the swing, so the
+    /// clip maps of a non-round tool turn too.
+    fn carve_loop(&self, t: f64) -> [HandInput; 2] {
+        let a = TAU * t / CARVE_LOOP_S;
+        let p = self.at(DVec3::new(
+            0.6 * a.sin(),
+            0.4 * (2.0 * a).sin(),
+            0.4 * a.cos(),
+        ));
+        let q = Quat::from_rotation_y((0.5 * a.sin()) as f32);
+        self.with_right(self.hand(p, q, 0.0, 1.0))
     }
 
     fn tremor(&self, tremor: &Tremor, t: f64) -> [HandInput; 2] {
@@ -753,6 +782,35 @@ mod tests {
             grip(last, LEFT) == 0.0 && grip(last, RIGHT) == 0.0,
             "released"
         );
+    }
+
+    #[test]
+    fn carve_loop_moves_every_frame_inside_the_volume_and_repeats() {
+        let p = params(1000);
+        let frames = generate(ScriptKind::CarveLoop, &p);
+        let (c, r) = (p.center, p.radius_m);
+        let per_loop = (CARVE_LOOP_S * p.fps).round() as usize;
+        for (i, f) in frames.iter().enumerate() {
+            let h = &f.hands[RIGHT];
+            assert_eq!(h.buttons.trigger, 1.0, "frame {i}");
+            assert!(grip_pos(f, RIGHT).distance(c) < 0.9 * r, "frame {i}");
+            if i > 0 {
+                let step = grip_pos(f, RIGHT).distance(grip_pos(&frames[i - 1], RIGHT));
+                assert!(step > 0.01 * r, "frame {i} moved only {step} m");
+            }
+            if i >= per_loop {
+                let back = grip_pos(&frames[i - per_loop], RIGHT);
+                assert!(grip_pos(f, RIGHT).abs_diff_eq(back, 1e-5), "frame {i}");
+            }
+        }
+        // It covers the volume: left and right, up and down, front and back.
+        for axis in 0..3 {
+            let span = frames
+                .iter()
+                .map(|f| grip_pos(f, RIGHT)[axis])
+                .fold((f32::MAX, f32::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)));
+            assert!(span.1 - span.0 > 0.7 * r, "axis {axis}: {span:?}");
+        }
     }
 
     #[test]

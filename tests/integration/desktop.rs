@@ -110,3 +110,90 @@ fn window_session_replays_into_the_images_it_showed() {
         .unwrap()
         .contains("\"trigger\":1.0"));
 }
+
+/// A real SIGTERM or SIGINT mid-session: the window closes as after its last frame, the
+/// recording holds every frame shown and its last line is whole, and the process still ends by
+/// the signal (issue 19, item 3).
+#[test]
+fn a_signal_ends_a_recording_session_cleanly() {
+    use std::os::unix::process::ExitStatusExt;
+    if !have_xvfb() {
+        return;
+    }
+    let bin = env!("CARGO_BIN_EXE_cao-xr");
+    for sig in [libc::SIGTERM, libc::SIGINT] {
+        let dir = std::env::temp_dir().join(format!("cao-desktop-sig{sig}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let (rec, shown, pid_file) = (dir.join("rec.jsonl"), dir.join("shown"), dir.join("pid"));
+        // xvfb-run starts the viewer as its child: the shell notes its pid, then becomes it.
+        let child = Command::new("xvfb-run")
+            .args(["-a", "-s", "-screen 0 640x480x24", "sh", "-c"])
+            .arg("echo $$ > \"$0\"; exec \"$@\"")
+            .arg(&pid_file)
+            .args([bin, "view", "phantom:32", "--rays", "6", "--steps", "4"])
+            .args(["--size", "80x64", "--demo", "--record"])
+            .arg(&rec)
+            .arg("--dump")
+            .arg(&shown)
+            .env("CAO_XR_VALIDATION", "1")
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        // Some frames in, send the signal to the viewer itself.
+        let t0 = std::time::Instant::now();
+        while !shown.join("frame-00005.png").exists() {
+            assert!(t0.elapsed().as_secs() < 120, "no frames after two minutes");
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        let pid: i32 = std::fs::read_to_string(&pid_file)
+            .unwrap()
+            .trim()
+            .parse()
+            .unwrap();
+        unsafe { libc::kill(pid, sig) };
+        let out = child.wait_with_output().unwrap();
+        let (stdout, stderr) = (
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr),
+        );
+        // xvfb-run passes on the shell's status of a child ended by a signal: 128 + signal.
+        assert!(
+            out.status.code() == Some(128 + sig) || out.status.signal() == Some(sig),
+            "{:?}\n{stderr}",
+            out.status
+        );
+        let name = if sig == libc::SIGTERM {
+            "SIGTERM"
+        } else {
+            "SIGINT"
+        };
+        assert!(
+            stderr.contains(&format!("{name}: the session ended cleanly")),
+            "{stderr}"
+        );
+        assert!(
+            !stderr.contains("vulkan validation") && !stderr.contains("panicked"),
+            "{stderr}"
+        );
+        let shown_frames: usize = stdout
+            .lines()
+            .find_map(|l| l.strip_prefix("closed after ")?.strip_suffix(" frames"))
+            .unwrap_or_else(|| panic!("no 'closed after' line:\n{stdout}\n{stderr}"))
+            .parse()
+            .unwrap();
+        assert!(shown_frames >= 6, "{shown_frames}");
+        // The recording: whole lines, one frame per frame shown, read back without complaint.
+        let text = std::fs::read_to_string(&rec).unwrap();
+        assert!(text.ends_with('\n'), "the last line is cut");
+        let (_, frames) = cao_xr::input::read_stream(&rec).unwrap();
+        assert_eq!(frames.len(), shown_frames, "{name}");
+        assert_eq!(
+            std::fs::read_dir(&shown).unwrap().count(),
+            shown_frames,
+            "{name}: frames dumped"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

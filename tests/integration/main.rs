@@ -19,5 +19,6 @@ mod render;
 mod sh;
 mod sh_lighting;
 mod shading;
+mod soak;
 mod tf_switch;
 mod xr;

@@ -642,3 +642,51 @@ fn monado_remote_hand_pinches_and_carves_and_the_recording_holds_the_joints() {
 }
 
 const RIGHT_HAND: usize = cao_xr::input::RIGHT;
+
+/// A real SIGTERM mid-session: the session is ended as at its frame count (the runtime told,
+/// the recording finished whole), and the process still ends by the signal (issue 19, item 3).
+#[test]
+fn sigterm_mid_session_ends_it_cleanly_with_a_whole_recording() {
+    let Some(root) = xr_root() else { return };
+    let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("xr-sig-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let run = Command::new(repo().join("scripts/xr-session.sh"))
+        .arg(&root)
+        .arg(env!("CARGO_BIN_EXE_cao-xr"))
+        .arg(&out)
+        .args(["phantom:16", "--rays", "6", "--size", "32x32"])
+        .args(["--frames", "1000000", "--record", "rec.jsonl"])
+        .env("CAO_XR_SIGNAL_AFTER", "TERM 8")
+        .output()
+        .expect("run scripts/xr-session.sh");
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&run.stdout),
+        String::from_utf8_lossy(&run.stderr),
+    );
+    // The shell's view of a child ended by SIGTERM: 128 + 15.
+    assert_eq!(run.status.code(), Some(128 + 15), "{stdout}\n{stderr}");
+    assert!(
+        stderr.contains("SIGTERM: the session ended cleanly"),
+        "{stderr}"
+    );
+    let submitted: usize = stdout
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("xr session ended cleanly: ")?
+                .split_once(" frames submitted")
+                .map(|(n, _)| n.to_string())
+        })
+        .unwrap_or_else(|| panic!("no summary:\n{stdout}\n{stderr}"))
+        .parse()
+        .unwrap();
+    assert!(submitted > 0, "{stdout}");
+    let rec = out.join("rec.jsonl");
+    let text = std::fs::read_to_string(&rec).unwrap();
+    assert!(text.ends_with('\n'), "the last line is cut");
+    let (_, frames) = cao_xr::input::read_stream(&rec).unwrap();
+    assert!(
+        frames.len().abs_diff(submitted) <= 1,
+        "{} frames recorded, {submitted} submitted",
+        frames.len()
+    );
+}

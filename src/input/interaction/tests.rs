@@ -953,6 +953,15 @@ fn scripts_replay_to_plausible_scenes() {
                     assert_eq!((tf[0], *tf.last().unwrap(), switches), (0, 1, 1), "{kind}");
                     assert!(unmoved, "{kind}");
                 }
+                ScriptKind::CarveLoop => {
+                    // Carving from the first frame, and the tool never stands still.
+                    assert!(active(RIGHT_TOOL) == 1.0, "{kind}");
+                    for w in scenes.windows(2) {
+                        let (a, b) = (w[0].tools[RIGHT_TOOL].pose, w[1].tools[RIGHT_TOOL].pose);
+                        assert!(a.position.distance(b.position) > 1e-4, "{kind}");
+                    }
+                    assert!(unmoved, "{kind}");
+                }
                 ScriptKind::Tremor => {
                     assert!(active(RIGHT_TOOL) > 0.9, "{kind}");
                     let expect = c + settings.tool_offset;
