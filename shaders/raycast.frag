@@ -119,15 +119,6 @@ float pixel_jitter(vec2 p, uint eye_index) {
     return texelFetch(blue_noise, q, 0).r;
 }
 
-// The first tool that hides world point w, or -1.
-int hiding_tool(vec3 w) {
-    for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
-        bool inside = (tool_test(t, (tools[t].local_from_world * vec4(w, 1.0)).xyz) & 1u) != 0u;
-        if (tools[t].map.w > 0.5 ? !inside : inside) return int(t);
-    }
-    return -1;
-}
-
 // The surface depth of texel q of tool t's clip map nearest to z, or EMPTY_IN where the texel
 // is empty or outside the map; `which` picks the same peel boundary at the neighbours.
 float map_depth(ClipTool tool, ivec2 q, int which) {

@@ -78,10 +78,11 @@ bool sh_affected_index(vec3 p) {
     return false;
 }
 
-bool clipped_world(vec3 w) {
+// The first tool that hides world point w (the ray caster's shadow test), or -1.
+int hiding_tool(vec3 w) {
     for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
         bool inside = (tool_test(t, (tools[t].local_from_world * vec4(w, 1.0)).xyz) & 1u) != 0u;
-        if (tools[t].map.w > 0.5 ? !inside : inside) return true;
+        if (tools[t].map.w > 0.5 ? !inside : inside) return int(t);
     }
-    return false;
+    return -1;
 }
