@@ -577,9 +577,10 @@ pub fn render_to_dir(
         bleeding: spec.ao.bleeding,
         ..*settings
     };
-    if settings.transparent {
-        fl.settings.background = [0.0; 3];
-    }
+    // Premultiplied over black on the GPU; an opaque background is composited on the host from
+    // the same 8-bit colour and alpha, so the transparent PNG of a frame composited over a
+    // background equals the opaque one within 1/255.
+    fl.settings.background = [0.0; 3];
     // the lighting's shading on these settings (new_lit applied it to the defaults)
     spec.lighting.apply(&mut fl.settings);
     fl.set_variance(spec.variance)?;
@@ -590,7 +591,7 @@ pub fn render_to_dir(
     if settings.transparent {
         frame.image.write_pngs_rgba(out)?;
     } else {
-        frame.image.write_pngs(out)?;
+        frame.image.over(settings.background).write_pngs(out)?;
     }
     Ok((!tools.is_empty()).then_some(frame.stats.metrics))
 }

@@ -69,6 +69,28 @@ impl StereoImage {
             .collect()
     }
 
+    /// Both eyes over an opaque background `bg` (0..1), from the renderer's premultiplied
+    /// colour over black: c + (1 - a) bg per channel, rounded once. Compositing the
+    /// [`StereoImage::straight_rgba`] PNG of the same frame over `bg` gives this within 1/255
+    /// (the straight colour rounds once more, by at most a/2 of a step).
+    pub fn over(&self, bg: [f32; 3]) -> StereoImage {
+        let eye = |rgba: &Vec<u8>| -> Vec<u8> {
+            rgba.chunks_exact(4)
+                .flat_map(|p| {
+                    let c = |k: usize| {
+                        let v = p[k] as f32 + (255 - p[3]) as f32 * bg[k];
+                        v.round().clamp(0.0, 255.0) as u8
+                    };
+                    [c(0), c(1), c(2), 255]
+                })
+                .collect()
+        };
+        StereoImage {
+            rgba: [eye(&self.rgba[0]), eye(&self.rgba[1])],
+            ..self.clone()
+        }
+    }
+
     /// DIR/left.png, DIR/right.png and DIR/stereo.png as RGBA with straight alpha
     /// ([`StereoImage::straight_rgba`]), for a render on a transparent background.
     pub fn write_pngs_rgba(&self, dir: &Path) -> Result<(), PngError> {
