@@ -2,21 +2,10 @@
 //! from docs/design.md, `render` writes pictures, `bench lao` prints its table, bad input is refused.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 fn cao(args: &[&str]) -> Output {
-    let out = Command::new(env!("CARGO_BIN_EXE_cao-xr"))
-        .args(args)
-        .env("CAO_XR_VALIDATION", "1")
-        .output()
-        .expect("run cao-xr");
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!stderr.contains("panicked"), "cao-xr panicked:\n{stderr}");
-    assert!(
-        !stderr.contains("vulkan validation"),
-        "validation messages:\n{stderr}"
-    );
-    out
+    crate::common::run_cao(args, &[])
 }
 
 fn tmp(name: &str) -> PathBuf {

@@ -101,3 +101,21 @@ pub fn assert_agrees<T: Copy + Into<f64>>(got: &[f32], want: &[T], what: &str) {
         100.0 * close
     );
 }
+
+/// Runs the cao-xr binary with validation on and the environment `env` added; it must neither
+/// panic nor report a validation message, whatever its exit status.
+pub fn run_cao(args: &[&str], env: &[(&str, &str)]) -> std::process::Output {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_cao-xr"))
+        .args(args)
+        .env("CAO_XR_VALIDATION", "1")
+        .envs(env.iter().copied())
+        .output()
+        .expect("run cao-xr");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "cao-xr panicked:\n{stderr}");
+    assert!(
+        !stderr.contains("vulkan validation"),
+        "validation messages:\n{stderr}"
+    );
+    out
+}

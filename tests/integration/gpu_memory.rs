@@ -5,25 +5,17 @@
 //! validation message.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 /// `cao-xr render phantom:128` (2 Mi voxels: about 56 MiB on the GPU) under `budget`.
 fn render(budget: &str, extra: &[&str], out: &Path) -> Output {
-    let out = Command::new(env!("CARGO_BIN_EXE_cao-xr"))
-        .args(["render", "phantom:128", "--size", "64x48", "--rays", "6"])
-        .args(["--steps", "4", "--out", out.to_str().unwrap()])
-        .args(extra)
-        .env("CAO_XR_VALIDATION", "1")
-        .env("CAO_XR_GPU_BUDGET_MB", budget)
-        .output()
-        .expect("run cao-xr");
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!stderr.contains("panicked"), "cao-xr panicked:\n{stderr}");
-    assert!(
-        !stderr.contains("vulkan validation"),
-        "validation messages:\n{stderr}"
-    );
-    out
+    let args = [
+        &["render", "phantom:128", "--size", "64x48", "--rays", "6"][..],
+        &["--steps", "4", "--out", out.to_str().unwrap()],
+        extra,
+    ]
+    .concat();
+    crate::common::run_cao(&args, &[("CAO_XR_GPU_BUDGET_MB", budget)])
 }
 
 fn tmp(name: &str) -> PathBuf {
