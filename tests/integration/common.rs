@@ -44,25 +44,37 @@ pub fn assert_no_validation_messages(gpu: &Gpu) {
 
 /// A 24^3 volume (2 mm voxels) holding a solid bone ball of radius 16 mm at its centre.
 pub fn ball() -> cao_xr::volume::Volume {
+    use glam::DVec3;
+    ct_volume("ball", 24, 2.0, |[i, j, k]| {
+        let d = DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) - DVec3::splat(12.0);
+        d.length() < 8.0
+    })
+}
+
+/// An n^3 CT volume of isotropic `spacing` mm: bone (1500 HU) at the voxels (i, j, k) where
+/// `bone` holds, air (-1000 HU) elsewhere.
+pub fn ct_volume(
+    name: &str,
+    n: usize,
+    spacing: f64,
+    bone: impl Fn([usize; 3]) -> bool,
+) -> cao_xr::volume::Volume {
     use cao_xr::volume::{Modality, Volume, Voxels};
     use glam::{DMat3, DVec3};
-    let n = 24;
     let mut v = vec![-1000i16; n * n * n];
     for k in 0..n {
         for j in 0..n {
             for i in 0..n {
-                let d =
-                    DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) - DVec3::splat(12.0);
-                if d.length() < 8.0 {
+                if bone([i, j, k]) {
                     v[i + n * (j + n * k)] = 1500;
                 }
             }
         }
     }
     Volume {
-        name: "ball".into(),
+        name: name.into(),
         dims: [n; 3],
-        spacing: [2.0; 3],
+        spacing: [spacing; 3],
         directions: DMat3::IDENTITY,
         origin: DVec3::ZERO,
         modality: Modality::Ct,

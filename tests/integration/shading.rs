@@ -12,8 +12,8 @@ use cao_xr::render::{RenderSettings, StereoImage};
 use cao_xr::scene::{Tool, ToolMode};
 use cao_xr::space::{default_stereo_views, Placement, Pose, DEFAULT_IPD};
 use cao_xr::volume::transfer::TransferFunction;
-use cao_xr::volume::{phantom, Modality, Volume, Voxels};
-use glam::{DMat3, DVec3, Quat, Vec3};
+use cao_xr::volume::{phantom, Volume};
+use glam::{DVec3, Quat, Vec3};
 use std::sync::Arc;
 
 const W: u32 = 128;
@@ -32,6 +32,14 @@ fn frame_loop(gpu: &Gpu, vol: &Arc<Volume>, lao: LaoParams) -> FrameLoop {
     .unwrap();
     fl.show_overlay = false;
     fl
+}
+
+/// LAO with 6 rays: enough AO for these pictures, quick on lavapipe.
+fn few_rays() -> LaoParams {
+    LaoParams {
+        rays: 6,
+        ..Default::default()
+    }
 }
 
 /// One frame of `fl` with `settings`, the volume at `placement`, eyes `ipd` apart.
@@ -62,14 +70,7 @@ fn quality(a: &StereoImage, b: &StereoImage) -> (f64, f64) {
 fn the_default_render_is_within_35_db_of_the_reference_on_two_views() {
     let gpu = common::gpu();
     let vol = Arc::new(phantom::head(40));
-    let mut fl = frame_loop(
-        &gpu,
-        &vol,
-        LaoParams {
-            rays: 6,
-            ..Default::default()
-        },
-    );
+    let mut fl = frame_loop(&gpu, &vol, few_rays());
     let default = RenderSettings::default();
     let step = default.step_for(vol.spacing);
     for (name, placement) in cao_xr::app::bench_quality::views() {
@@ -108,28 +109,12 @@ fn the_default_render_is_within_35_db_of_the_reference_on_two_views() {
 
 /// A solid cube (1 mm voxels) with a closed spherical cavity at its centre.
 fn cube_with_cavity(n: usize, cavity_mm: f64) -> Volume {
-    let c = n as f64 / 2.0;
-    let mut v = vec![-1000i16; n * n * n];
-    for k in 0..n {
-        for j in 0..n {
-            for i in 0..n {
-                let p = DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5);
-                let inside = [i, j, k].iter().all(|&x| (4..n - 4).contains(&x));
-                if inside && (p - DVec3::splat(c)).length() > cavity_mm {
-                    v[i + n * (j + n * k)] = 1500;
-                }
-            }
-        }
-    }
-    Volume {
-        name: "cube-with-cavity".into(),
-        dims: [n; 3],
-        spacing: [1.0; 3],
-        directions: DMat3::IDENTITY,
-        origin: DVec3::ZERO,
-        modality: Modality::Ct,
-        voxels: Voxels::I16(v),
-    }
+    let c = DVec3::splat(n as f64 / 2.0);
+    common::ct_volume("cube-with-cavity", n, 1.0, |[i, j, k]| {
+        let p = DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5);
+        let solid = [i, j, k].iter().all(|&x| (4..n - 4).contains(&x));
+        solid && (p - c).length() > cavity_mm
+    })
 }
 
 /// Mean luma of the left eye's pixels whose distance from the image centre, in pixels, lies in
@@ -225,14 +210,7 @@ fn the_cut_face_is_lit_by_the_tools_normal_and_the_cavity_behind_it_darkens() {
 fn the_jitter_pattern_is_fixed_per_eye() {
     let gpu = common::gpu();
     let vol = Arc::new(phantom::head(32));
-    let mut fl = frame_loop(
-        &gpu,
-        &vol,
-        LaoParams {
-            rays: 6,
-            ..Default::default()
-        },
-    );
+    let mut fl = frame_loop(&gpu, &vol, few_rays());
     let coarse = RenderSettings {
         step_mm: 4.0,
         ..RenderSettings::default()
