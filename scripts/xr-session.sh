@@ -18,7 +18,8 @@
 # The session then gets its own network namespace with only loopback, so the port is reachable
 # from nowhere else; the pid of a process inside it is written to OUTDIR/netns.pid for the
 # client to join (setns), and cao-xr starts once Monado has logged the client's connection
-# (waiting at most CAO_XR_REMOTE_WAIT seconds, default 60).
+# (waiting at most CAO_XR_REMOTE_WAIT seconds, default 60). monado-service itself gets
+# CAO_XR_MONADO_WAIT seconds (default 90) to open its socket.
 set -euo pipefail
 ROOT=$(realpath "$1"); BIN=$2; OUT=$3; shift 3
 [ -f "$ROOT/.cao-xr-ready" ] || { echo "xr-session: $ROOT is not a built root (run scripts/xr-root.sh)" >&2; exit 2; }
@@ -58,9 +59,10 @@ monado-service < "$W/service-stdin" > "$W/monado.log" 2>&1 &
 MON=$!
 exec 3> "$W/service-stdin"
 stop() { exec 3>&-; for _ in $(seq 50); do kill -0 $MON 2>/dev/null || return; sleep 0.1; done; kill $MON 2>/dev/null; wait $MON 2>/dev/null; }
-for _ in $(seq 100); do [ -S "$XDG_RUNTIME_DIR/monado_comp_ipc" ] && break; kill -0 $MON 2>/dev/null || break; sleep 0.1; done
+# Its null compositor starts lavapipe: seconds when idle, more on a loaded machine.
+for _ in $(seq $((${CAO_XR_MONADO_WAIT:-90} * 10))); do [ -S "$XDG_RUNTIME_DIR/monado_comp_ipc" ] && break; kill -0 $MON 2>/dev/null || break; sleep 0.1; done
 if [ ! -S "$XDG_RUNTIME_DIR/monado_comp_ipc" ]; then
-  echo "xr-session: monado-service did not come up; its log:" >&2; cat "$W/monado.log" >&2; stop; exit 3
+  echo "xr-session: monado-service did not come up within ${CAO_XR_MONADO_WAIT:-90} s; its log:" >&2; cat "$W/monado.log" >&2; stop; exit 3
 fi
 echo "xr-session: monado-service is up" >&2
 if [ "$CAO_XR_MONADO" = remote ]; then

@@ -15,6 +15,7 @@
 use crate::common;
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::{Mutex, MutexGuard};
 
 const FRAMES: usize = 300;
 
@@ -22,13 +23,20 @@ fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// The built root, building it if needed; None (skip) when it cannot be had and is not required.
-fn xr_root() -> Option<PathBuf> {
+/// One Monado at a time: each session brings up a runtime with a lavapipe compositor, and
+/// several at once on a loaded 2-core machine pushed start-up past the script's wait in CI.
+static ONE_RUNTIME: Mutex<()> = Mutex::new(());
+
+/// The built root, building it if needed, and the right to run a session in it; None (skip)
+/// when it cannot be had and is not required.
+fn xr_root() -> Option<(PathBuf, MutexGuard<'static, ()>)> {
+    // A failed session poisons the lock; the next one may still run.
+    let turn = ONE_RUNTIME.lock().unwrap_or_else(|e| e.into_inner());
     let out = Command::new(repo().join("scripts/xr-root.sh")).output();
     let why = match out {
         Ok(o) if o.status.success() => {
             let path = String::from_utf8_lossy(&o.stdout).trim().to_string();
-            return Some(PathBuf::from(path));
+            return Some((PathBuf::from(path), turn));
         }
         Ok(o) => format!(
             "scripts/xr-root.sh failed ({}):\n{}",
@@ -71,7 +79,9 @@ fn assert_validation_silent(out: &Path, stderr: &str, context: &str) {
 
 #[test]
 fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
-    let Some(root) = xr_root() else { return };
+    let Some((root, _turn)) = xr_root() else {
+        return;
+    };
     let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("xr-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     let frames = FRAMES.to_string();
@@ -180,7 +190,9 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
 
 #[test]
 fn monado_refuses_a_blend_mode_it_does_not_offer_and_lists_what_it_offers() {
-    let Some(root) = xr_root() else { return };
+    let Some((root, _turn)) = xr_root() else {
+        return;
+    };
     for (n, args) in [["--blend", "alpha-blend"], ["--passthrough", "--frames"]]
         .iter()
         .enumerate()
@@ -210,7 +222,9 @@ fn monado_refuses_a_blend_mode_it_does_not_offer_and_lists_what_it_offers() {
 
 #[test]
 fn killing_the_runtime_mid_session_ends_it_at_once_with_a_clear_error_and_a_valid_recording() {
-    let Some(root) = xr_root() else { return };
+    let Some((root, _turn)) = xr_root() else {
+        return;
+    };
     let out =
         Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("xr-kill-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
@@ -442,7 +456,9 @@ fn monado_remote_hand_pinches_and_carves_and_the_recording_holds_the_joints() {
     use cao_xr::input::hands::{PALM, PINCH_OFF, PINCH_ON};
     use glam::Vec3;
     use std::time::{Duration, Instant};
-    let Some(root) = xr_root() else { return };
+    let Some((root, _turn)) = xr_root() else {
+        return;
+    };
     let out =
         Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("xr-remote-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
@@ -647,7 +663,9 @@ const RIGHT_HAND: usize = cao_xr::input::RIGHT;
 /// the recording finished whole), and the process still ends by the signal (issue 19, item 3).
 #[test]
 fn sigterm_mid_session_ends_it_cleanly_with_a_whole_recording() {
-    let Some(root) = xr_root() else { return };
+    let Some((root, _turn)) = xr_root() else {
+        return;
+    };
     let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("xr-sig-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     let run = Command::new(repo().join("scripts/xr-session.sh"))
