@@ -1093,12 +1093,13 @@ fn run(cli: Cli) -> Result<()> {
             };
             let s = app::replay::replay(&gpu, &script, &spec, &out, &opts)?;
             println!(
-                "replayed {} frames into {} ({} PNGs, metrics.csv): mean AO update {:.1} ms, {:.2} % recomputed",
+                "replayed {} frames into {} ({} PNGs, metrics.csv): mean AO update {:.1} ms, {:.2} % recomputed; {} frames recorded while the one before was in flight",
                 s.frames,
                 out.display(),
                 s.pngs,
                 s.mean_ao_ms,
-                s.mean_percent_recomputed
+                s.mean_percent_recomputed,
+                s.overlapped
             );
         }
         Cmd::View {

@@ -12,7 +12,7 @@ use super::histogram_gpu::{HistMode, HistogramGpu};
 use super::lao::{LaoLayout, LaoParams, SkipBuffers, LAO_GROUP};
 use crate::clip::Shape;
 use crate::clip::{shape_mesh, ClipMap, ClipMapGpu, TriMesh};
-use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Result};
+use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Result, MAX_FRAMES_IN_FLIGHT};
 use crate::scene::{Tool, ToolMode};
 use crate::space::{world_from_tex, Placement};
 use crate::volume::Volume;
@@ -199,9 +199,11 @@ pub struct Cao {
     /// V_AO: this frame's ambient occlusion.
     pub ao: Buffer,
     skip: SkipBuffers,
-    counts: Buffer,
-    tools: Buffer,
-    maps: Option<Buffer>,
+    /// What the host writes or reads back per frame, one set per frame in flight, so the next
+    /// frame is recorded while the GPU still runs this one; [`Cao::record_frame`] takes the
+    /// next slot.
+    slots: Vec<FrameSlot>,
+    slot: usize,
     /// Builds the tools' clip and dilation maps (rasterised peels, compute dilation).
     map_builder: ClipMapGpu,
     map_cache: HashMap<(Shape, u32, usize), ClipMap>,
@@ -218,7 +220,6 @@ pub struct Cao {
     pub sh_boxes: Vec<VoxelBox>,
     /// Tools uploaded for the last recorded frame.
     pub tool_count: u32,
-    timer: GpuTimer,
     /// The AO method.
     method: MethodGpu,
 }
@@ -280,20 +281,9 @@ impl Cao {
             MemoryLocation::GpuOnly,
             "cao-clipped-padded",
         )?;
-        let counts = Buffer::new(
-            gpu,
-            16,
-            vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST,
-            MemoryLocation::GpuToCpu,
-            "cao-counts",
-        )?;
-        let tools = Buffer::new(
-            gpu,
-            (MAX_TOOLS.max(1) * std::mem::size_of::<ClipToolGpu>()) as u64,
-            vk::BufferUsageFlags::STORAGE_BUFFER,
-            MemoryLocation::CpuToGpu,
-            "cao-tools",
-        )?;
+        let slots = (0..MAX_FRAMES_IN_FLIGHT)
+            .map(|_| FrameSlot::new(gpu))
+            .collect::<Result<Vec<_>>>()?;
         let cao = Cao {
             gpu: gpu.clone(),
             restore,
@@ -312,9 +302,8 @@ impl Cao {
             pao,
             ao,
             skip,
-            counts,
-            tools,
-            maps: None,
+            slots,
+            slot: 0,
             map_builder: ClipMapGpu::new(gpu)?,
             map_cache: HashMap::new(),
             meshes: Vec::new(),
@@ -324,7 +313,6 @@ impl Cao {
             sh_radius_mm: None,
             sh_boxes: Vec::new(),
             tool_count: 0,
-            timer: GpuTimer::new(gpu, 8)?,
             method: MethodGpu::Lao,
         };
         // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere.
@@ -559,14 +547,17 @@ impl Cao {
             boxes.push(self.box_of(&map, local_from_index.inverse()));
         }
         if !gpu_tools.is_empty() {
-            self.tools.write(0, bytemuck::cast_slice(&gpu_tools))?;
+            let slot = &mut self.slots[self.slot];
+            slot.tools.write(0, bytemuck::cast_slice(&gpu_tools))?;
             let bytes: &[u8] = bytemuck::cast_slice(&texels);
-            if self
+            if slot
                 .maps
                 .as_ref()
                 .is_none_or(|m| m.size < bytes.len() as u64)
             {
-                self.maps = Some(Buffer::new(
+                // The slot's last frame has left the GPU (the caller waited for it), so its
+                // smaller map buffer may go.
+                slot.maps = Some(Buffer::new(
                     &self.gpu,
                     bytes.len() as u64,
                     vk::BufferUsageFlags::STORAGE_BUFFER,
@@ -574,7 +565,7 @@ impl Cao {
                     "cao-maps",
                 )?);
             }
-            self.maps.as_mut().unwrap().write(0, bytes)?;
+            slot.maps.as_mut().unwrap().write(0, bytes)?;
         }
         let boxes = boxes.into_iter().filter(|b| b.voxels() > 0).collect();
         self.sh_boxes = merge_boxes(sh_boxes.into_iter().filter(|b| b.voxels() > 0).collect());
@@ -636,6 +627,10 @@ impl Cao {
     /// Records one frame's AO update (restore, clip + mask, update) into `cmd`; read the
     /// metrics with [`Cao::read_metrics`] once it has executed. V_AO is then in [`Cao::ao`].
     /// Call [`Cao::prepare_maps`] first for GPU-built clip maps of new tool shapes or sizes.
+    /// The frame's tool table, maps, counters and timer are the next of
+    /// [`MAX_FRAMES_IN_FLIGHT`] slots: the frame recorded that many frames ago must have
+    /// finished. The device-side state (O_c, the mask, V_AO) is one copy, so `cmd` must order
+    /// this frame after the one before (a barrier first: [`Gpu::barrier`]).
     pub fn record_frame(
         &mut self,
         cmd: vk::CommandBuffer,
@@ -643,6 +638,7 @@ impl Cao {
         placement: &Placement,
         mode: Mode,
     ) -> Result<PendingFrame> {
+        self.slot = (self.slot + 1) % self.slots.len();
         let (count, mut boxes) = self.prepare_tools(tools, placement)?;
         self.tool_count = count;
         if mode == Mode::Naive {
@@ -665,12 +661,13 @@ impl Cao {
         if mode == Mode::Naive {
             restore.clear();
         }
+        let slot = &mut self.slots[self.slot];
         unsafe {
             self.gpu
                 .device
-                .cmd_fill_buffer(cmd, self.counts.raw, 0, 16, 0);
+                .cmd_fill_buffer(cmd, slot.counts.raw, 0, 16, 0);
         }
-        self.timer.begin(cmd);
+        slot.timer.begin(cmd);
         self.record_restore(cmd, &restore, clipped);
         if let MethodGpu::Histogram(h) = &self.method {
             // The bleeding colour of last frame's boxes, restored like V_AO (clipped: the
@@ -694,8 +691,9 @@ impl Cao {
             );
         }
         self.gpu.barrier(cmd);
-        self.timer.mark(cmd, "restore");
-        let maps = self.maps.as_ref().unwrap_or(&self.tools);
+        self.slots[self.slot].timer.mark(cmd, "restore");
+        let slot = &self.slots[self.slot];
+        let (tools, maps) = slot.clip_buffers();
         for b in &boxes {
             let push = ClipPush {
                 dims: self.dims4(),
@@ -707,16 +705,16 @@ impl Cao {
                 &self.opacity,
                 &self.clipped,
                 &self.mask,
-                &self.tools,
+                tools,
                 maps,
-                &self.counts,
+                &slot.counts,
                 &self.clipped_padded,
             ];
             self.clip.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.clip, cmd, b);
         }
         self.gpu.barrier(cmd);
-        self.timer.mark(cmd, "clip");
+        self.slots[self.slot].timer.mark(cmd, "clip");
         match &self.method {
             MethodGpu::Filter(f) => {
                 let fmode = match mode {
@@ -774,21 +772,24 @@ impl Cao {
             dispatch_box_in(&self.update, cmd, b, LAO_GROUP);
         }
         self.gpu.barrier(cmd);
-        self.timer.mark(cmd, "update");
+        self.slots[self.slot].timer.mark(cmd, "update");
         let visited = boxes.iter().map(|b| b.voxels()).sum();
         self.prev_boxes = boxes;
         Ok(PendingFrame {
             visited,
             mode,
             clipped_outside: clipped,
+            slot: self.slot,
         })
     }
 
-    /// Metrics of the frame recorded last, after its command buffer finished.
+    /// Metrics of a recorded frame, after its command buffer finished (and before its slot
+    /// is recorded again).
     pub fn read_metrics(&self, pending: PendingFrame) -> Result<FrameMetrics> {
-        let c: &[u32] = bytemuck::cast_slice(&self.counts.mapped()?[..12]);
+        let slot = &self.slots[pending.slot];
+        let c: &[u32] = bytemuck::cast_slice(&slot.counts.mapped()?[..12]);
         let total = (self.dims[0] * self.dims[1] * self.dims[2]) as u64;
-        let times = self.timer.read()?;
+        let times = slot.timer.read()?;
         let ms = |name: &str| times.iter().find(|t| t.0 == name).map_or(0.0, |t| t.1);
         let (mut clipped, affected) = (c[0] as u64, c[1] as u64);
         if pending.clipped_outside {
@@ -824,6 +825,7 @@ impl Cao {
             visited: 0,
             mode,
             clipped_outside: false,
+            slot: 0,
         });
         gpu.submit_and_wait(|cmd| pending = self.record_frame(cmd, tools, placement, mode))?;
         self.read_metrics(pending?)
@@ -841,7 +843,46 @@ impl Cao {
         &self.mask
     }
 
+    /// The tool table and clip maps of the frame recorded last, for the passes after CAO's in
+    /// the same command buffer (the ray caster's clipping, the SH update).
     pub fn clip_buffers(&self) -> (&Buffer, &Buffer) {
+        self.slots[self.slot].clip_buffers()
+    }
+}
+
+/// What one frame in flight writes from the host or reads back: the tools' table and maps, the
+/// category counters and the pass timer.
+struct FrameSlot {
+    tools: Buffer,
+    maps: Option<Buffer>,
+    counts: Buffer,
+    timer: GpuTimer,
+}
+
+impl FrameSlot {
+    fn new(gpu: &Gpu) -> Result<FrameSlot> {
+        Ok(FrameSlot {
+            tools: Buffer::new(
+                gpu,
+                (MAX_TOOLS.max(1) * std::mem::size_of::<ClipToolGpu>()) as u64,
+                vk::BufferUsageFlags::STORAGE_BUFFER,
+                MemoryLocation::CpuToGpu,
+                "cao-tools",
+            )?,
+            maps: None,
+            counts: Buffer::new(
+                gpu,
+                16,
+                vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST,
+                MemoryLocation::GpuToCpu,
+                "cao-counts",
+            )?,
+            timer: GpuTimer::new(gpu, 8)?,
+        })
+    }
+
+    /// The tools and their maps (the tool table stands in while no map was uploaded).
+    fn clip_buffers(&self) -> (&Buffer, &Buffer) {
         (&self.tools, self.maps.as_ref().unwrap_or(&self.tools))
     }
 }
@@ -865,4 +906,6 @@ pub struct PendingFrame {
     mode: Mode,
     /// Every voxel outside the boxes is clipped away (a probe is active).
     clipped_outside: bool,
+    /// The [`FrameSlot`] holding its counters and timer.
+    slot: usize,
 }

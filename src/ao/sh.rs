@@ -23,7 +23,10 @@
 //!   the environment into that frame ([`crate::light`]).
 
 use super::cao::{Cao, VoxelBox};
-use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Image, ImageDesc, Result};
+use crate::gpu::{
+    Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Image, ImageDesc, Result,
+    MAX_FRAMES_IN_FLIGHT,
+};
 use crate::light::sh::eval;
 use crate::volume::Volume;
 use ash::vk;
@@ -421,6 +424,8 @@ pub struct ShFrameMetrics {
     pub visited: u64,
     /// Whether the frame had any SH work (a tool now or in the frame before).
     pub updated: bool,
+    /// The timer that measured it (one per frame in flight).
+    timer: usize,
 }
 
 /// The SH visibility volume on the GPU: the precomputed V_PSH, this frame's V_SH (packed snorm8)
@@ -440,7 +445,9 @@ pub struct ShVolume {
     /// RGBA8_SNORM 3D textures, coefficients 4g..4g+3 in texture g.
     pub images: Vec<Image>,
     prev_boxes: Vec<VoxelBox>,
-    timer: GpuTimer,
+    /// One per frame in flight; [`ShVolume::record_frame`] takes the next.
+    timers: Vec<GpuTimer>,
+    timer: usize,
 }
 
 impl ShVolume {
@@ -535,7 +542,10 @@ impl ShVolume {
             cur,
             images,
             prev_boxes: Vec::new(),
-            timer: GpuTimer::new(gpu, 8)?,
+            timers: (0..MAX_FRAMES_IN_FLIGHT)
+                .map(|_| GpuTimer::new(gpu, 8))
+                .collect::<Result<_>>()?,
+            timer: 0,
         };
         sh.gpu.submit_and_wait(|cmd| {
             for img in &sh.images {
@@ -745,7 +755,8 @@ impl ShVolume {
             return ShFrameMetrics::default();
         }
         let (tools, maps) = cao.clip_buffers();
-        self.timer.begin(cmd);
+        self.timer = (self.timer + 1) % self.timers.len();
+        self.timers[self.timer].begin(cmd);
         if !boxes.is_empty() {
             self.record_pyramid(cmd, &cao.clipped);
         }
@@ -763,12 +774,13 @@ impl ShVolume {
         }
         self.gpu.barrier(cmd);
         self.record_upload(cmd);
-        self.timer.mark(cmd, "sh");
+        self.timers[self.timer].mark(cmd, "sh");
         let visited = boxes.iter().map(|b| b.voxels()).sum();
         self.prev_boxes = boxes;
         ShFrameMetrics {
             visited,
             updated: true,
+            timer: self.timer,
         }
     }
 
@@ -777,7 +789,7 @@ impl ShVolume {
         if !m.updated {
             return Ok(0.0);
         }
-        Ok(self.timer.read()?.iter().map(|t| t.1).sum())
+        Ok(self.timers[m.timer].read()?.iter().map(|t| t.1).sum())
     }
 
     /// This frame's V_SH, packed: word g * count + i holds coefficients 4g..4g+3 of voxel i.

@@ -4,7 +4,7 @@
 use super::frame_loop::FrameLoop;
 use super::session::{record_error, recorder, start_gpu, Recorder, SessionSpec};
 use super::{AppError, Result};
-use crate::gpu::present::{Presenter, Screenshot};
+use crate::gpu::present::Presenter;
 use crate::input::desktop::{DesktopInput, Key};
 use crate::input::{InteractionSettings, StreamHeader};
 use glam::Vec2;
@@ -58,7 +58,6 @@ struct App {
     last: std::time::Instant,
     cursor: Option<Vec2>,
     drag: (bool, bool),
-    last_shot: Option<Screenshot>,
     error: Option<AppError>,
     fps: f64,
 }
@@ -112,9 +111,29 @@ impl App {
         if let Some(r) = &mut self.recorder {
             r.write_frame(&fi).map_err(record_error)?;
         }
-        // With two frames in flight the stats are the frame before's; the window shows the
-        // frame just submitted (the blit waits for it).
-        let retired = self.fl.submit(&fi, false, |_, _| {})?;
+        // With two frames in flight the stats are the frame before's. The window's image is
+        // acquired first; the frame's own command buffer blits into it and signals its
+        // present, so nothing here waits for the GPU but the frame loop's retire.
+        let acquired = match &mut self.presenter {
+            Some(p) => unsafe { p.acquire()? },
+            None => None,
+        };
+        let (presenter, both) = (&self.presenter, self.both_eyes);
+        let retired = self.fl.submit_signalling(
+            &fi,
+            false,
+            |cmd, t| {
+                if let (Some(p), Some(a)) = (presenter, &acquired) {
+                    unsafe { p.record_blit(cmd, a, t.color.raw, (t.width, t.height), both, None) };
+                }
+            },
+            acquired.as_ref().map(|a| a.rendered),
+        );
+        // A failure ends the session; its acquired image goes with the swapchain.
+        let retired = retired?;
+        if let (Some(p), Some(a)) = (&mut self.presenter, acquired) {
+            unsafe { p.queue_present(a, true)? };
+        }
         if let Some(dir) = &self.opts.dump {
             let img = self.fl.target().read_back(&self.fl.gpu)?;
             let path = dir.join(format!("frame-{:05}.png", self.frame));
@@ -124,14 +143,6 @@ impl App {
                 img.height,
                 &img.side_by_side_rgb(),
             )?;
-        }
-        let capture = self.opts.screenshot.is_some();
-        if let Some(p) = &mut self.presenter {
-            let t = self.fl.target();
-            let src = (t.color.raw, (t.width, t.height));
-            if let Some(shot) = unsafe { p.present(src.0, src.1, self.both_eyes, capture)? } {
-                self.last_shot = Some(shot);
-            }
         }
         self.fps = 0.9 * self.fps + 0.1 / dt.max(1e-3) as f64;
         if let (Some(w), Some(stats)) = (&self.window, retired.map(|r| r.stats)) {
@@ -295,7 +306,6 @@ pub fn run(spec: &SessionSpec, opts: ViewOptions) -> Result<usize> {
         last: now,
         cursor: None,
         drag: (false, false),
-        last_shot: None,
         error: None,
         fps: 0.0,
     };
@@ -303,6 +313,19 @@ pub fn run(spec: &SessionSpec, opts: ViewOptions) -> Result<usize> {
     event_loop
         .run_app(&mut app)
         .map_err(|e| AppError::Usage(format!("window event loop: {e}")))?;
+    // The screenshot: the last frame, blitted and presented once more and read back.
+    let shot = match (
+        &app.opts.screenshot,
+        &mut app.presenter,
+        app.error.is_none(),
+    ) {
+        (Some(_), Some(p), true) => {
+            app.fl.flush()?;
+            let t = app.fl.target();
+            unsafe { p.present(t.color.raw, (t.width, t.height), app.both_eyes, true)? }
+        }
+        _ => None,
+    };
     app.presenter = None;
     app.window = None;
     if let Some(e) = app.error.take() {
@@ -311,7 +334,7 @@ pub fn run(spec: &SessionSpec, opts: ViewOptions) -> Result<usize> {
     if let Some(r) = app.recorder.take() {
         r.finish().map_err(record_error)?;
     }
-    if let (Some(path), Some(shot)) = (&app.opts.screenshot, &app.last_shot) {
+    if let (Some(path), Some(shot)) = (&app.opts.screenshot, &shot) {
         crate::render::png_out::write_rgb(path, shot.width, shot.height, &shot.rgb)?;
     }
     Ok(app.frame)

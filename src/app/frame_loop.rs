@@ -54,6 +54,8 @@ pub struct FrameStats {
     /// The transfer function and the AO method this frame showed.
     pub tf_name: String,
     pub ao_method: String,
+    /// Recorded while the frame before was still in flight (two frames in flight).
+    pub overlapped: bool,
 }
 
 /// GPU ms of a frame's passes after CAO's (restore, clip + mask and update are in
@@ -378,22 +380,39 @@ impl FrameLoop {
     /// `after` and, with `read_back`, the copy of both eyes to the host, all in the slot's
     /// persistent command buffer) and returns the frame that left the GPU: this one with one
     /// frame in flight, the one before with two (none on the first call; [`FrameLoop::flush`]
-    /// gets the last). With two, the caller's work until the next call (the headset's wait for
-    /// its next frame, the window's events, writing the returned frame's PNG) and the next
-    /// frame's input and interaction run while the GPU renders this one.
+    /// gets the last). With two, this frame's input, interaction, uniforms and command
+    /// recording run while the GPU renders the frame before, and the caller's work until the
+    /// next call (the headset's wait for its next frame, the window's events, writing the
+    /// returned frame's PNG) while it renders this one.
     pub fn submit(
         &mut self,
         input: &FrameInput,
         read_back: bool,
         after: impl FnOnce(vk::CommandBuffer, &StereoTarget),
     ) -> Result<Option<Retired>> {
+        self.submit_signalling(input, read_back, after, None)
+    }
+
+    /// [`FrameLoop::submit`], whose submission also signals `signal` (a window's present
+    /// waits on it).
+    pub fn submit_signalling(
+        &mut self,
+        input: &FrameInput,
+        read_back: bool,
+        after: impl FnOnce(vk::CommandBuffer, &StereoTarget),
+        signal: Option<vk::Semaphore>,
+    ) -> Result<Option<Retired>> {
         let t0 = std::time::Instant::now();
         self.interaction.update(input, &mut self.scene);
-        // CAO's tool table, clip maps, counters and timer (src/ao/cao.rs), the TF switch's and
-        // the SH volume's timers are one set each, written or reset while recording: the frame
-        // before must have left the GPU (and been read) before this one is recorded.
-        let mut retired = self.retire()?;
-        self.record_and_submit(input, read_back, after, t0)?;
+        // Everything a frame writes from the host or reads back has one copy per slot (CAO's
+        // tool table, maps, counters and timer, the SH timers, the uniforms, the read-back).
+        // A transfer-function switch is the exception: it replaces buffers the frame in flight
+        // reads and has one timer, so while one runs the frame before is waited for first.
+        let mut retired = None;
+        if !self.tfs.settled((self.scene.tf_index, self.scene.ao_index)) {
+            retired = self.retire()?;
+        }
+        self.record_and_submit(input, read_back, after, signal, t0)?;
         if retired.is_none() && self.slots.flights.len() >= self.depth {
             retired = self.retire()?;
         }
@@ -449,6 +468,7 @@ impl FrameLoop {
                 passes,
                 tf_name: f.tf_name,
                 ao_method: f.ao_method,
+                overlapped: f.overlapped,
             },
             image,
         }))
@@ -459,6 +479,7 @@ impl FrameLoop {
         input: &FrameInput,
         read_back: bool,
         after: impl FnOnce(vk::CommandBuffer, &StereoTarget),
+        signal: Option<vk::Semaphore>,
         t0: std::time::Instant,
     ) -> Result<()> {
         self.tfs.advance(
@@ -497,6 +518,10 @@ impl FrameLoop {
         }
         let count = scene.tools.iter().filter(|t| t.active).count() as u32;
         tex.prepare(settings)?;
+        // Whether the frame before is still in flight (submitted, not waited for) while this
+        // one is recorded. (Whether the GPU is still busy with it is the driver's business:
+        // lavapipe runs submitted work as late as the next wait.)
+        let overlapped = !slots.flights.is_empty();
         let slot = &mut slots.slots[index];
         let (cmd, d) = (slot.cmd, &gpu.device);
         unsafe {
@@ -508,6 +533,9 @@ impl FrameLoop {
             )
             .map_err(crate::gpu::GpuError::from)?;
         }
+        // The volume's CAO state, its textures and the stereo target are one copy: this
+        // frame's passes come after the frame before's, which may still be running.
+        gpu.barrier(cmd);
         let timer = &mut slot.timer;
         let recorded = (|| {
             let slab = tfs.record_slab(cmd, volume, cao);
@@ -566,7 +594,17 @@ impl FrameLoop {
         ended.map_err(crate::gpu::GpuError::from)?;
         unsafe {
             let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
-            let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
+            let signals: Vec<_> = signal
+                .iter()
+                .map(|s| {
+                    vk::SemaphoreSubmitInfo::default()
+                        .semaphore(*s)
+                        .stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
+                })
+                .collect();
+            let submit = [vk::SubmitInfo2::default()
+                .command_buffer_infos(&cmds)
+                .signal_semaphore_infos(&signals)];
             d.reset_fences(&[slot.fence])
                 .and_then(|_| d.queue_submit2(gpu.queue, &submit, slot.fence))
                 .map_err(crate::gpu::GpuError::from)?;
@@ -581,6 +619,7 @@ impl FrameLoop {
             tf_name: tfs.shown().name.clone(),
             ao_method: cao.method_name(),
             read_back,
+            overlapped,
             t0,
         });
         Ok(())
@@ -628,6 +667,7 @@ struct InFlight {
     tf_name: String,
     ao_method: String,
     read_back: bool,
+    overlapped: bool,
     t0: std::time::Instant,
 }
 

@@ -106,14 +106,30 @@ fn frames(
         // One command buffer per frame: the swapchain images are acquired and waited first,
         // the eyes are copied into them at the end of the frame's own command buffer, and they
         // are released once that submission was made (the runtime waits for it), even if it
-        // failed. With two frames in flight the stats are the frame before's.
+        // failed. The mirror's image is blitted in the same command buffer, after the
+        // headset's copies, and presented once the submission signals it. With two frames in
+        // flight the stats are the frame before's.
+        let shown = match mirror {
+            Some(m) => m.acquire()?,
+            None => None,
+        };
         let images = xs.acquire()?;
         let d = fl.gpu.device.clone();
-        let retired = fl.submit(&frame.input, false, |cmd, src| unsafe {
-            images.record_copy(&d, cmd, src)
-        });
+        let view = mirror.as_ref().zip(shown.as_ref());
+        let retired = fl.submit_signalling(
+            &frame.input,
+            false,
+            |cmd, src| unsafe {
+                images.record_copy(&d, cmd, src);
+                if let Some((m, image)) = view {
+                    m.record_blit(cmd, image, src);
+                }
+            },
+            shown.as_ref().map(|a| a.rendered),
+        );
         xs.release()?;
-        if let Some(stats) = retired?.map(|r| r.stats) {
+        let retired = retired?;
+        if let Some(stats) = retired.map(|r| r.stats) {
             if stats.metrics.clipped > 0 && prev_clipped == 0 {
                 xs.pulse(RIGHT)?;
                 eprintln!(
@@ -124,9 +140,10 @@ fn frames(
             prev_clipped = stats.metrics.clipped;
         }
         xs.end_frame(&frame)?;
-        // The mirror shows the same finished frame, after the headset has it.
         if let Some(m) = mirror {
-            m.show(fl.target())?;
+            if let Some(image) = shown {
+                m.present(image)?;
+            }
             if !m.open() {
                 eprintln!("xr: mirror window closed; the session goes on");
                 *mirror = None;

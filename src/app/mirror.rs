@@ -2,7 +2,7 @@
 //! rendered, through the desktop window's presenter.
 
 use super::{AppError, Result};
-use crate::gpu::present::Presenter;
+use crate::gpu::present::{Acquired, Presenter};
 use crate::gpu::Gpu;
 use crate::render::StereoTarget;
 use winit::application::ApplicationHandler;
@@ -57,12 +57,12 @@ impl Mirror {
         !self.state.closed
     }
 
-    /// Handles the window's pending events, then shows the left eye of `target` (a finished
-    /// frame: colour in TRANSFER_SRC_OPTIMAL).
-    pub fn show(&mut self, target: &StereoTarget) -> Result<()> {
+    /// Handles the window's pending events, then acquires its next image: None once it was
+    /// closed, or while its swapchain is recreated.
+    pub fn acquire(&mut self) -> Result<Option<Acquired>> {
         use winit::platform::pump_events::{EventLoopExtPumpEvents, PumpStatus};
         if self.state.closed {
-            return Ok(());
+            return Ok(None);
         }
         let status = self
             .event_loop
@@ -73,15 +73,31 @@ impl Mirror {
         if matches!(status, PumpStatus::Exit(_)) {
             self.state.close();
         }
+        match &mut self.state.presenter {
+            Some(p) => Ok(unsafe { p.acquire()? }),
+            None => Ok(None),
+        }
+    }
+
+    /// Records the blit of the left eye of `target` (colour in TRANSFER_SRC_OPTIMAL when `cmd`
+    /// gets there) into `image`, at the end of the frame's own command buffer.
+    pub fn record_blit(
+        &self,
+        cmd: ash::vk::CommandBuffer,
+        image: &Acquired,
+        target: &StereoTarget,
+    ) {
+        if let Some(p) = &self.state.presenter {
+            let size = (target.width, target.height);
+            unsafe { p.record_blit(cmd, image, target.color.raw, size, false, None) };
+        }
+    }
+
+    /// Shows `image` once the frame that blitted into it (and signalled `image.rendered`) has
+    /// finished.
+    pub fn present(&mut self, image: Acquired) -> Result<()> {
         if let Some(p) = &mut self.state.presenter {
-            unsafe {
-                p.present(
-                    target.color.raw,
-                    (target.width, target.height),
-                    false,
-                    false,
-                )?
-            };
+            unsafe { p.queue_present(image, true)? };
         }
         Ok(())
     }

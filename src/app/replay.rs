@@ -56,6 +56,8 @@ pub struct ReplaySummary {
     pub pngs: usize,
     pub mean_ao_ms: f64,
     pub mean_percent_recomputed: f64,
+    /// Frames recorded while the frame before was still in flight (two frames in flight).
+    pub overlapped: usize,
     /// The samples of `--stats-every`, in order.
     pub stats: Vec<ReplayStats>,
 }
@@ -242,6 +244,7 @@ pub fn replay(
         );
         summary.mean_ao_ms += m.gpu_ms() / frames.len() as f64;
         summary.mean_percent_recomputed += m.percent_recomputed() / frames.len() as f64;
+        summary.overlapped += f.overlapped as usize;
         if i % every == 0 {
             let rgb = image.side_by_side_rgb();
             let path = out.join(format!("frame-{i:05}.png"));

@@ -168,6 +168,14 @@ impl TfSwitcher {
         &self.methods
     }
 
+    /// Whether `want` (transfer function, AO method) is shown with no switch in flight: then
+    /// [`TfSwitcher::advance`] replaces nothing and records no slab.
+    pub fn settled(&self, want: (usize, usize)) -> bool {
+        self.switch.is_none()
+            && (want.0 % self.tfs.len(), want.1 % self.methods.len())
+                == (self.shown, self.shown_method)
+    }
+
     /// The switch in flight, if any.
     pub fn progress(&self) -> Option<TfProgress> {
         self.switch.as_ref().map(|sw| {
@@ -206,9 +214,10 @@ impl TfSwitcher {
             return self.switch_to_histogram(want, vol, cao, tex);
         }
         if want != target {
-            // Dropping the switch in flight frees O', V_PAO' and skip': safe, because every
-            // frame waits for its command buffer, so none of them is in use any more; an
-            // unfinished classification thread is detached and its result discarded.
+            // Dropping the switch in flight frees O', V_PAO' and skip': safe, because the frame
+            // loop waits for the frame in flight before a frame that is not
+            // [`TfSwitcher::settled`], so none of them is in use any more; an unfinished
+            // classification thread is detached and its result discarded.
             self.switch = None;
             if want != shown {
                 self.switch = Some(self.start(want, vol, cao)?);

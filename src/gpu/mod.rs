@@ -12,6 +12,11 @@ pub use resources::{
 };
 pub use timer::GpuTimer;
 
+/// The most frames the frame loop keeps on the GPU at once (`--frames-in-flight`): the slots
+/// of every resource a frame writes from the host or reads back (command buffers, fences,
+/// timers, uniform buffers, CAO's tool table, clip maps and counters).
+pub const MAX_FRAMES_IN_FLIGHT: usize = 2;
+
 use ash::vk;
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 use std::ffi::{c_void, CStr, CString};

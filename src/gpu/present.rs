@@ -28,6 +28,17 @@ pub struct Presenter {
     format: vk::Format,
     extent: vk::Extent2D,
     fence: vk::Fence,
+    /// Per swapchain image: signalled by the submission that blits into it, waited by its
+    /// present. Reusable once the image is acquired again (its present has waited by then).
+    rendered: Vec<vk::Semaphore>,
+}
+
+/// A swapchain image acquired for the next frame ([`Presenter::acquire`]).
+pub struct Acquired {
+    index: u32,
+    /// The submission that blits into the image signals it; [`Presenter::queue_present`]
+    /// waits on it.
+    pub rendered: vk::Semaphore,
 }
 
 impl Presenter {
@@ -80,6 +91,7 @@ impl Presenter {
             format: vk::Format::UNDEFINED,
             extent: vk::Extent2D::default(),
             fence,
+            rendered: Vec::new(),
         };
         let size = window.inner_size();
         p.recreate(size.width, size.height)?;
@@ -150,33 +162,36 @@ impl Presenter {
             .swapchain_fn
             .get_swapchain_images(self.swapchain)
             .map_err(GpuError::from)?;
+        for s in self.rendered.drain(..) {
+            self.gpu.device.destroy_semaphore(s, None);
+        }
+        for _ in &self.images {
+            let s = self
+                .gpu
+                .device
+                .create_semaphore(&vk::SemaphoreCreateInfo::default(), None)
+                .map_err(GpuError::from)?;
+            self.rendered.push(s);
+        }
         self.format = format.format;
         self.extent = extent;
         Ok(())
     }
 
-    /// Blits one eye (or both side by side) of `src`, a two-layer colour image in
-    /// TRANSFER_SRC_OPTIMAL (the stereo target), to the window and presents it;
-    /// with `capture`, also returns the presented pixels as RGB.
+    /// Waits for the next swapchain image. None when the swapchain was out of date and has
+    /// been recreated (nothing to present this time).
     ///
     /// # Safety
-    /// `src` is a live image of this device, `src_w` x `src_h` with two layers, in
-    /// TRANSFER_SRC_OPTIMAL, and no other work writes it meanwhile.
-    pub unsafe fn present(
-        &mut self,
-        src: vk::Image,
-        (src_w, src_h): (u32, u32),
-        both: bool,
-        capture: bool,
-    ) -> Result<Option<Screenshot>> {
+    /// As for [`Presenter::recreate`], which it may call.
+    pub unsafe fn acquire(&mut self) -> Result<Option<Acquired>> {
         let d = &self.gpu.device;
-        let (index, _) = match self.swapchain_fn.acquire_next_image(
+        let index = match self.swapchain_fn.acquire_next_image(
             self.swapchain,
             u64::MAX,
             vk::Semaphore::null(),
             self.fence,
         ) {
-            Ok(r) => r,
+            Ok((index, _)) => index,
             Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => {
                 self.recreate(self.extent.width, self.extent.height)?;
                 return Ok(None);
@@ -186,17 +201,129 @@ impl Presenter {
         d.wait_for_fences(&[self.fence], true, u64::MAX)
             .map_err(GpuError::from)?;
         d.reset_fences(&[self.fence]).map_err(GpuError::from)?;
-        let image = self.images[index as usize];
+        Ok(Some(Acquired {
+            index,
+            rendered: self.rendered[index as usize],
+        }))
+    }
+
+    /// Records the blit of one eye (or both side by side) of `src`, a two-layer colour image
+    /// in TRANSFER_SRC_OPTIMAL (the stereo target), into the acquired image, leaving it ready
+    /// to present (or, with `capture`, copied into `capture` first).
+    ///
+    /// # Safety
+    /// `cmd` is recording; `src` is a live image of this device, `src_w` x `src_h` with two
+    /// layers, in TRANSFER_SRC_OPTIMAL when `cmd` reaches the blit.
+    pub unsafe fn record_blit(
+        &self,
+        cmd: vk::CommandBuffer,
+        target: &Acquired,
+        src: vk::Image,
+        (src_w, src_h): (u32, u32),
+        both: bool,
+        capture: Option<&Buffer>,
+    ) {
+        let d = &self.gpu.device;
+        let image = self.images[target.index as usize];
         let range = vk::ImageSubresourceRange::default()
             .aspect_mask(vk::ImageAspectFlags::COLOR)
             .level_count(1)
             .layer_count(1);
         let (w, h) = (self.extent.width as i32, self.extent.height as i32);
-        let bytes = (w * h * 4) as u64;
+        cmd_image_barrier(
+            d,
+            cmd,
+            image,
+            range,
+            vk::ImageLayout::UNDEFINED,
+            vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+        );
+        let eyes = if both { 2 } else { 1 };
+        for eye in 0..eyes {
+            let x0 = w * eye / eyes;
+            let x1 = w * (eye + 1) / eyes;
+            let rect = [(x0, 0), (x1, h)];
+            cmd_blit_color(d, cmd, src, (eye as u32, 1), (src_w, src_h), image, rect);
+        }
+        let mut last = vk::ImageLayout::TRANSFER_DST_OPTIMAL;
+        if let Some(buf) = capture {
+            cmd_image_barrier(
+                d,
+                cmd,
+                image,
+                range,
+                last,
+                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+            );
+            let region = [vk::BufferImageCopy::default()
+                .image_subresource(
+                    vk::ImageSubresourceLayers::default()
+                        .aspect_mask(vk::ImageAspectFlags::COLOR)
+                        .layer_count(1),
+                )
+                .image_extent(vk::Extent3D {
+                    width: w as u32,
+                    height: h as u32,
+                    depth: 1,
+                })];
+            d.cmd_copy_image_to_buffer(
+                cmd,
+                image,
+                vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                buf.raw,
+                &region,
+            );
+            last = vk::ImageLayout::TRANSFER_SRC_OPTIMAL;
+        }
+        cmd_image_barrier(d, cmd, image, range, last, vk::ImageLayout::PRESENT_SRC_KHR);
+    }
+
+    /// Presents the acquired image once the submission that blitted into it has signalled
+    /// `target.rendered` (`wait`), or at once when the host already waited for it.
+    ///
+    /// # Safety
+    /// With `wait`, a submitted (or about to be submitted, in queue order) command buffer
+    /// signals `target.rendered`.
+    pub unsafe fn queue_present(&mut self, target: Acquired, wait: bool) -> Result<()> {
+        let swapchains = [self.swapchain];
+        let indices = [target.index];
+        let waits = [target.rendered];
+        let mut info = vk::PresentInfoKHR::default()
+            .swapchains(&swapchains)
+            .image_indices(&indices);
+        if wait {
+            info = info.wait_semaphores(&waits);
+        }
+        match self.swapchain_fn.queue_present(self.gpu.queue, &info) {
+            Ok(_) | Err(vk::Result::ERROR_OUT_OF_DATE_KHR) | Err(vk::Result::SUBOPTIMAL_KHR) => {
+                Ok(())
+            }
+            Err(e) => Err(GpuError::from(e)),
+        }
+    }
+
+    /// Blits one eye (or both side by side) of `src` (as [`Presenter::record_blit`]) to the
+    /// window in a submission of its own, waits for it and presents; with `capture`, also
+    /// returns the presented pixels as RGB.
+    ///
+    /// # Safety
+    /// `src` is a live image of this device, `src_w` x `src_h` with two layers, in
+    /// TRANSFER_SRC_OPTIMAL, and no other work writes it meanwhile.
+    pub unsafe fn present(
+        &mut self,
+        src: vk::Image,
+        src_size: (u32, u32),
+        both: bool,
+        capture: bool,
+    ) -> Result<Option<Screenshot>> {
+        let Some(target) = self.acquire()? else {
+            return Ok(None);
+        };
+        let (w, h) = (self.extent.width, self.extent.height);
         let readback = if capture {
             Some(Buffer::new(
                 &self.gpu,
-                bytes,
+                w as u64 * h as u64 * 4,
                 vk::BufferUsageFlags::TRANSFER_DST,
                 gpu_allocator::MemoryLocation::GpuToCpu,
                 "screenshot",
@@ -204,65 +331,11 @@ impl Presenter {
         } else {
             None
         };
-        self.gpu.submit_and_wait(|cmd| {
-            cmd_image_barrier(
-                d,
-                cmd,
-                image,
-                range,
-                vk::ImageLayout::UNDEFINED,
-                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-            );
-            let eyes = if both { 2 } else { 1 };
-            for eye in 0..eyes {
-                let x0 = w * eye / eyes;
-                let x1 = w * (eye + 1) / eyes;
-                let rect = [(x0, 0), (x1, h)];
-                cmd_blit_color(d, cmd, src, (eye as u32, 1), (src_w, src_h), image, rect);
-            }
-            let mut last = vk::ImageLayout::TRANSFER_DST_OPTIMAL;
-            if let Some(buf) = &readback {
-                cmd_image_barrier(
-                    d,
-                    cmd,
-                    image,
-                    range,
-                    last,
-                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                );
-                let region = [vk::BufferImageCopy::default()
-                    .image_subresource(
-                        vk::ImageSubresourceLayers::default()
-                            .aspect_mask(vk::ImageAspectFlags::COLOR)
-                            .layer_count(1),
-                    )
-                    .image_extent(vk::Extent3D {
-                        width: w as u32,
-                        height: h as u32,
-                        depth: 1,
-                    })];
-                d.cmd_copy_image_to_buffer(
-                    cmd,
-                    image,
-                    vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                    buf.raw,
-                    &region,
-                );
-                last = vk::ImageLayout::TRANSFER_SRC_OPTIMAL;
-            }
-            cmd_image_barrier(d, cmd, image, range, last, vk::ImageLayout::PRESENT_SRC_KHR);
+        let gpu = self.gpu.clone();
+        gpu.submit_and_wait(|cmd| {
+            self.record_blit(cmd, &target, src, src_size, both, readback.as_ref())
         })?;
-        let swapchains = [self.swapchain];
-        let indices = [index];
-        match self.swapchain_fn.queue_present(
-            self.gpu.queue,
-            &vk::PresentInfoKHR::default()
-                .swapchains(&swapchains)
-                .image_indices(&indices),
-        ) {
-            Ok(_) | Err(vk::Result::ERROR_OUT_OF_DATE_KHR) | Err(vk::Result::SUBOPTIMAL_KHR) => {}
-            Err(e) => return Err(GpuError::from(e)),
-        }
+        self.queue_present(target, false)?;
         let Some(buf) = readback else { return Ok(None) };
         let bgra =
             self.format == vk::Format::B8G8R8A8_UNORM || self.format == vk::Format::B8G8R8A8_SRGB;
@@ -278,8 +351,8 @@ impl Presenter {
             })
             .collect();
         Ok(Some(Screenshot {
-            width: w as u32,
-            height: h as u32,
+            width: w,
+            height: h,
             rgb,
         }))
     }
@@ -290,6 +363,9 @@ impl Drop for Presenter {
         unsafe {
             let _ = self.gpu.device.device_wait_idle();
             self.gpu.device.destroy_fence(self.fence, None);
+            for s in &self.rendered {
+                self.gpu.device.destroy_semaphore(*s, None);
+            }
             self.swapchain_fn.destroy_swapchain(self.swapchain, None);
             self.surface_fn.destroy_surface(self.surface, None);
         }

@@ -650,9 +650,7 @@ pub struct StereoImage {
     pub depth: [Vec<f32>; 2],
 }
 
-/// The most frames the frame loop keeps on the GPU at once (`--frames-in-flight`): the slots
-/// of the per-frame resources (command buffers, fences, timers, uniform buffers).
-pub const MAX_FRAMES_IN_FLIGHT: usize = 2;
+pub use crate::gpu::MAX_FRAMES_IN_FLIGHT;
 
 /// std140 mirror of shaders/include/frame.glsl.
 #[repr(C)]

@@ -1645,14 +1645,26 @@ fn replays_with_one_and_two_frames_in_flight_give_the_same_pngs() {
             "{}",
             String::from_utf8_lossy(&out.stderr)
         );
-        (0..8)
+        let said = String::from_utf8_lossy(&out.stdout).to_string();
+        let overlapped: usize = said
+            .split("; ")
+            .nth(1)
+            .and_then(|t| t.split(' ').next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no overlap count in: {said}"));
+        let pngs = (0..8)
             .map(|i| std::fs::read(frames.join(format!("frame-{i:05}.png"))).unwrap())
-            .collect::<Vec<_>>()
+            .collect::<Vec<_>>();
+        (pngs, overlapped)
     };
-    let (one, two) = (run("1"), run("2"));
+    let ((one, alone), (two, overlapped)) = (run("1"), run("2"));
     for (i, (a, b)) in one.iter().zip(&two).enumerate() {
         assert!(a == b, "frame {i} differs between 1 and 2 frames in flight");
     }
+    // With two in flight every frame after the first is recorded before the one before was
+    // waited for; with one, none is.
+    assert_eq!(alone, 0);
+    assert_eq!(overlapped, 7);
     // The carving moves: frames that differ from each other, so a frame shown twice or one
     // frame late would not pass.
     assert!(one.windows(2).any(|w| w[0] != w[1]));
