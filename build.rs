@@ -29,6 +29,14 @@ fn constants_glsl() -> String {
         format!("const float Y0 = {Y0:?};"),
         format!("const uint HIST_MAX_BINS = {HIST_MAX_BINS}u;"),
         format!("const uint HIST_MAX_PACKED = {HIST_MAX_PACKED}u;"),
+        format!("const int RAY_BRICK_SHIFT = {RAY_BRICK_SHIFT};"),
+        format!("const int MAX_TOOLS = {MAX_TOOLS};"),
+        format!("const float TORUS_MINOR = {TORUS_MINOR:?};"),
+        format!("const uint SHAPE_MESH = {SHAPE_MESH}u;"),
+        format!("const uint SHAPE_SPHERE = {SHAPE_SPHERE}u;"),
+        format!("const uint SHAPE_BOX = {SHAPE_BOX}u;"),
+        format!("const uint SHAPE_CYLINDER = {SHAPE_CYLINDER}u;"),
+        format!("const uint SHAPE_TORUS = {SHAPE_TORUS}u;"),
         "#endif".into(),
     ]
     .join("\n")

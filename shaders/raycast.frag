@@ -11,7 +11,6 @@
 // later geometry (tools, hands) is depth-correct.
 #extension GL_GOOGLE_include_directive : require
 #include "frame.glsl"
-#include "constants.glsl"
 layout(set = 0, binding = 1) uniform sampler3D scalars;
 layout(set = 0, binding = 2) uniform sampler3D ambient;
 layout(set = 0, binding = 3) uniform sampler1D tf_lut;
@@ -28,6 +27,9 @@ layout(set = 0, binding = 11) uniform sampler3D bleeding;
 layout(set = 0, binding = 12) uniform sampler2D preint;
 // Blue-noise thresholds in (0, 1), tiled over the screen (src/render/blue_noise.rs).
 layout(set = 0, binding = 13) uniform sampler2D blue_noise;
+// Per brick of 2^RAY_BRICK_SHIFT voxels: 1 where every value a sample can read classifies as
+// transparent (src/render/empty_space.rs).
+layout(set = 0, binding = 14) uniform sampler3D empty_bricks;
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 4
@@ -48,6 +50,7 @@ const float DEPTH_ALPHA = 0.05;
 const uint PREINTEGRATED = 1u;
 const uint JITTER = 2u;
 const uint TRICUBIC = 4u;
+const uint SKIP_EMPTY = 8u;
 
 bool flag(uint f) { return (uint(frame.viewport.w) & f) != 0u; }
 
@@ -79,6 +82,15 @@ float scalar_tricubic(vec3 t) {
 
 float scalar_at(vec3 t) {
     return flag(TRICUBIC) ? scalar_tricubic(t) : texture(scalars, t).r;
+}
+
+// Whether some tool reaches index-space point v (it may hide it: no skipping there).
+bool in_tool_reach(vec3 v) {
+    for (int k = 0; k < min(int(CLIP_TOOL_COUNT), MAX_TOOLS); k++) {
+        if (all(greaterThanEqual(v, vec3(frame.tool_reach[2 * k].xyz)))
+            && all(lessThan(v, vec3(frame.tool_reach[2 * k + 1].xyz)))) return true;
+    }
+    return false;
 }
 
 vec4 classify_value(float s) {
@@ -130,17 +142,15 @@ float map_depth(ClipTool tool, ivec2 q, int which) {
     return (which & 1) == 0 ? iv.x : iv.y;
 }
 
-// The normal of tool t's surface near world point w (just outside what it hides), in the
-// volume's mm frame, from the clip map's depth differences (any shape, meshes included).
-vec3 cut_normal_mm(uint t, vec3 w) {
-    ClipTool tool = tools[t];
-    vec3 local = (tool.local_from_world * vec4(w, 1.0)).xyz;
-    ivec2 px = ivec2(floor((local.xy + tool.map.x) * tool.map.y));
+// The normal of tool t's surface at tool-local point q, from the clip map's depth differences
+// (any shape, meshes included).
+vec3 map_normal(ClipTool tool, vec3 q) {
+    ivec2 px = ivec2(floor((q.xy + tool.map.x) * tool.map.y));
     int which = 0;
     float best = 1e38;
     for (int k = 0; k < 4; k++) {
         float z = map_depth(tool, px, k);
-        if (z != EMPTY_IN && abs(z - local.z) < best) { best = abs(z - local.z); which = k; }
+        if (z != EMPTY_IN && abs(z - q.z) < best) { best = abs(z - q.z); which = k; }
     }
     float texel = 1.0 / tool.map.y;
     vec2 dh = vec2(0.0);
@@ -153,7 +163,36 @@ vec3 cut_normal_mm(uint t, vec3 w) {
         else if (hp != EMPTY_IN && h0 != EMPTY_IN) dh[a] = (hp - h0) / texel;
         else if (hm != EMPTY_IN && h0 != EMPTY_IN) dh[a] = (h0 - hm) / texel;
     }
-    vec3 n_local = vec3(-dh, 1.0);
+    return vec3(-dh, 1.0);
+}
+
+// The exact normal of a built-in shape (src/clip/mesh.rs: unit sphere, box [-1,1]^3, cylinder
+// of radius 1 and height 2 along z, torus of radii 1 and TORUS_MINOR around z) at local point q
+// near its surface: the face nearest to q. (A clip map's depth differences break up where the
+// surface turns away from its camera, the silhouette, which speckled sphere cuts' rims.)
+vec3 shape_normal(uint shape, vec3 q) {
+    if (shape == SHAPE_SPHERE) return q;
+    if (shape == SHAPE_BOX) {
+        vec3 a = abs(q);
+        if (a.x >= a.y && a.x >= a.z) return vec3(sign(q.x), 0.0, 0.0);
+        if (a.y >= a.z) return vec3(0.0, sign(q.y), 0.0);
+        return vec3(0.0, 0.0, sign(q.z));
+    }
+    float r = length(q.xy);
+    if (shape == SHAPE_CYLINDER) {
+        return abs(r - 1.0) < abs(abs(q.z) - 1.0) ? vec3(q.xy, 0.0) : vec3(0.0, 0.0, sign(q.z));
+    }
+    // The torus: away from the nearest point of its core circle.
+    return r > 0.0 ? q - vec3(q.xy / r, 0.0) : vec3(0.0, 0.0, sign(q.z));
+}
+
+// The normal of tool t's surface near world point w (just outside what it hides), in the
+// volume's mm frame: exact for the built-in shapes, from the clip map for meshes.
+vec3 cut_normal_mm(uint t, vec3 w) {
+    ClipTool tool = tools[t];
+    vec3 local = (tool.local_from_world * vec4(w, 1.0)).xyz;
+    vec3 n_local = tool.offsets.w == SHAPE_MESH ? vec3(0.0) : shape_normal(tool.offsets.w, local);
+    if (dot(n_local, n_local) < 1e-12) n_local = map_normal(tool, local);
     // Normals go back through the transpose; index space to mm divides by the spacing.
     vec3 n_index = transpose(mat3(tool.local_from_index)) * n_local;
     vec3 spacing = frame.extent_mm.xyz / vec3(textureSize(scalars, 0));
@@ -196,8 +235,43 @@ void main() {
         int prev_tool = -1;
         float cut_t = -1.0;
         vec3 cut_n = vec3(0.0);
+        // Empty-space skipping: the brick the last sample was in, whether it is empty, and
+        // whether that sample could have been skipped (empty brick, out of the tools' reach).
+        bool skipping = flag(SKIP_EMPTY);
+        vec3 dims = vec3(textureSize(scalars, 0));
+        ivec3 last_brick = textureSize(empty_bricks, 0) - 1;
+        ivec3 brick = ivec3(-1);
+        bool brick_empty = false;
+        bool prev_skippable = false;
         for (int i = 0; i < 8192 && t < tf; i++, t += dt) {
             vec3 p = o + t * d;
+            if (skipping) {
+                vec3 v = p * dims;
+                ivec3 b = clamp(ivec3(floor(v)) >> RAY_BRICK_SHIFT, ivec3(0), last_brick);
+                if (b != brick) {
+                    brick_empty = texelFetch(empty_bricks, b, 0).r > 0.5;
+                    prev_skippable = false;
+                    brick = b;
+                }
+                bool here = brick_empty && !in_tool_reach(v);
+                if (here && prev_skippable) {
+                    // This sample and the ones after it in the same brick read only values
+                    // (and, pre-integrated, segments between two of them) that classify as
+                    // transparent, and no tool hides them: they add nothing. Step over them as
+                    // the loop would; only the last one's value matters, to the next segment.
+                    while (i + 1 < 8192 && t + dt < tf) {
+                        vec3 vn = (o + (t + dt) * d) * dims;
+                        ivec3 bn = clamp(ivec3(floor(vn)) >> RAY_BRICK_SHIFT, ivec3(0), last_brick);
+                        if (bn != brick || in_tool_reach(vn)) break;
+                        t += dt;
+                        i++;
+                    }
+                    s_prev = scalar_at(o + t * d);
+                    have_prev = true;
+                    continue;
+                }
+                prev_skippable = here;
+            }
             // Shadow-test clipping: the same maps the AO update used.
             if (clipping) {
                 vec3 w = a_w + t * (b_w - a_w);
@@ -205,6 +279,7 @@ void main() {
                 if (hider >= 0) {
                     prev_tool = hider;
                     have_prev = false;
+                    prev_skippable = false;
                     continue;
                 }
                 if (prev_tool >= 0) {
@@ -218,6 +293,8 @@ void main() {
                     }
                     p = o + t * d;
                     w = a_w + t * (b_w - a_w);
+                    // The sample moved back, maybe out of its brick.
+                    brick = ivec3(-1);
                     if (frame.surface.y > 0.0) {
                         cut_t = t;
                         cut_n = cut_normal_mm(uint(prev_tool), w);

@@ -21,3 +21,17 @@ pub const Y0: f64 = 0.282_094_791_773_878_14;
 pub const HIST_MAX_BINS: u32 = 256;
 /// Most dimensions the clustering packs a local histogram into (histogram_assign.comp).
 pub const HIST_MAX_PACKED: u32 = 32;
+/// Bricks of 2^RAY_BRICK_SHIFT voxels per axis for the ray caster's exact empty-space skipping
+/// (src/render/empty_space.rs).
+pub const RAY_BRICK_SHIFT: u32 = 3;
+/// At most this many tools clip at once.
+pub const MAX_TOOLS: usize = 8;
+/// Minor (tube) radius of the unit torus (major radius 1, around local Z).
+pub const TORUS_MINOR: f32 = 0.35;
+/// `ClipTool.offsets.w`: which built-in shape a tool is, for its exact surface normal on cut
+/// faces (raycast.frag); a mesh takes its normal from its clip map.
+pub const SHAPE_MESH: u32 = 0;
+pub const SHAPE_SPHERE: u32 = 1;
+pub const SHAPE_BOX: u32 = 2;
+pub const SHAPE_CYLINDER: u32 = 3;
+pub const SHAPE_TORUS: u32 = 4;

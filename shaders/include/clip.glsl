@@ -8,7 +8,7 @@ struct ClipTool {
     mat4 local_from_world;   // world -> tool-local units
     vec4 map;                // x: extent, y: texels per local unit, z: resolution, w: mode
     uvec4 offsets;           // x: clip map, y: dilation map (xy; zw: the contraction),
-                             // z: SH dilation map (vec4 units)
+                             // z: SH dilation map (vec4 units), w: SHAPE_* (constants.glsl)
     vec4 sh_map;             // the SH dilation map's own x, y, z (it has its own extent)
 };
 

@@ -1,4 +1,5 @@
 // Per-frame uniforms of the stereo ray caster (std140; mirrors render::FrameUniforms).
+#include "constants.glsl"
 layout(std140, set = 0, binding = 0) uniform Frame {
     mat4 inv_view_proj[2];   // clip -> world, per view
     mat4 view_proj[2];       // world -> clip, per view
@@ -7,7 +8,8 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     vec4 value_map;          // lut coordinate = value * y + x; pre-integration table's: * w + z
     vec4 background;         // rgb background, a: 1 = modulate by AO
     vec4 viewport;           // xy: width, height in pixels; z: number of clipping tools;
-                             // w: flags (1 pre-integrated, 2 jitter, 4 tricubic)
+                             // w: flags (1 pre-integrated, 2 jitter, 4 tricubic,
+                             // 8 empty-space skipping)
     vec4 phong;              // Blinn-Phong ka, kd, ks, shininess (headlight per eye)
     vec4 surface;            // x: least gradient (data units / mm) that lights a sample,
                              // y: cut layer in mm (0: cut faces lit by the data's gradient),
@@ -18,4 +20,5 @@ layout(std140, set = 0, binding = 0) uniform Frame {
                              // w: 1 / V_max of variance opacity modulation (0: off)
     vec4 bleeding;           // x: bleeding weight W of the local-histogram method (0: off)
     vec4 sh_light[16];       // rgb: Y_0 * L_k per colour channel (the environment in data space)
+    ivec4 tool_reach[2 * MAX_TOOLS]; // per tool, index-space [min, max) holding all it hides
 } frame;

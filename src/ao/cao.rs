@@ -21,8 +21,7 @@ use glam::{Mat4, Vec3};
 use gpu_allocator::MemoryLocation;
 use std::collections::HashMap;
 
-/// At most this many tools clip at once.
-pub const MAX_TOOLS: usize = 8;
+pub use crate::shader_constants::MAX_TOOLS;
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Mode {
@@ -220,6 +219,9 @@ pub struct Cao {
     pub sh_boxes: Vec<VoxelBox>,
     /// Tools uploaded for the last recorded frame.
     pub tool_count: u32,
+    /// Per tool of the last recorded frame, an index-space box holding every point it hides
+    /// (the whole volume for a probe): the ray caster skips no sample inside one.
+    pub reach_boxes: Vec<VoxelBox>,
     /// The AO method.
     method: MethodGpu,
 }
@@ -313,6 +315,7 @@ impl Cao {
             sh_radius_mm: None,
             sh_boxes: Vec::new(),
             tool_count: 0,
+            reach_boxes: Vec::new(),
             method: MethodGpu::Lao,
         };
         // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere.
@@ -500,6 +503,7 @@ impl Cao {
         let mut texels: Vec<[f32; 4]> = Vec::new();
         let mut boxes = Vec::new();
         let mut sh_boxes = Vec::new();
+        let mut reach = Vec::new();
         let lao_radius = self.dilation_radius_mm();
         for tool in active {
             let map = self.map_for(tool, placement, false, lao_radius)?;
@@ -539,12 +543,17 @@ impl Cao {
                         0.0
                     },
                 ],
-                offsets: [clip_off, dil_off, sh_off, 0],
+                offsets: [clip_off, dil_off, sh_off, tool.shape.code()],
                 sh_map,
             });
             // A probe's box holds its inside and the voxels anti-aliased at its surface; every
             // voxel beyond is clipped away (the background, see `record_frame`).
-            boxes.push(self.box_of(&map, local_from_index.inverse()));
+            let b = self.box_of(&map, local_from_index.inverse());
+            reach.push(match tool.mode {
+                ToolMode::Probe => self.whole(),
+                ToolMode::Carve => b,
+            });
+            boxes.push(b);
         }
         if !gpu_tools.is_empty() {
             let slot = &mut self.slots[self.slot];
@@ -567,6 +576,7 @@ impl Cao {
             }
             slot.maps.as_mut().unwrap().write(0, bytes)?;
         }
+        self.reach_boxes = reach;
         let boxes = boxes.into_iter().filter(|b| b.voxels() > 0).collect();
         self.sh_boxes = merge_boxes(sh_boxes.into_iter().filter(|b| b.voxels() > 0).collect());
         Ok((gpu_tools.len() as u32, merge_boxes(boxes)))

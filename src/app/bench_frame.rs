@@ -6,7 +6,7 @@
 use super::bench::{median, sweep_tools};
 use super::frame_loop::{FrameLoop, FrameStats};
 use super::{precompute_ao, AppError, Result};
-use crate::ao::cao::Mode;
+use crate::ao::cao::{Cao, Mode};
 use crate::ao::{LaoGpu, LaoParams};
 use crate::gpu::Gpu;
 use crate::input::{FrameInput, InteractionSettings};
@@ -79,6 +79,8 @@ pub struct FrameBench {
     /// Frames per second of the sweep with each frame read back and encoded as PNG (as replay
     /// does), with one and with two frames in flight.
     pub fps: [f64; 2],
+    /// Median ms of both eyes' ray cast with and without empty-space skipping.
+    pub skip_ms: [f64; 2],
 }
 
 /// `vol` in the middle of a grid twice as large per axis at the same spacing, the rest filled
@@ -132,6 +134,12 @@ fn cao_sweep(
     tools: &[Vec<Tool>],
 ) -> Result<(f64, f64)> {
     let mut cao = precompute_ao(gpu, lao, vol, tf, &params, false)?.into_cao(gpu, vol, params)?;
+    let (mut ms, pct) = cao_frames(&mut cao, tools)?;
+    Ok((median(&mut ms), pct))
+}
+
+/// The CAO update ms of each frame of the sweep `tools`, and the mean percentage recomputed.
+fn cao_frames(cao: &mut Cao, tools: &[Vec<Tool>]) -> Result<(Vec<f64>, f64)> {
     let placement = Placement::default();
     let (mut ms, mut pct) = (Vec::new(), 0.0);
     for t in tools {
@@ -139,7 +147,7 @@ fn cao_sweep(
         ms.push(m.gpu_ms());
         pct += m.percent_recomputed() / tools.len() as f64;
     }
-    Ok((median(&mut ms), pct))
+    Ok((ms, pct))
 }
 
 /// The sweep through the frame loop, one frame per tool set: each frame's stats, and the wall
@@ -242,6 +250,19 @@ pub fn bench_frame(
         p.two_eyes(),
         p.one_eye()
     );
+    // The same sweep visiting every sample: what empty-space skipping saves (same images).
+    fl.settings.skip_empty = false;
+    let (plain, _) = loop_sweep(&mut fl, &sweep, false)?;
+    fl.settings.skip_empty = true;
+    let plain = PassMedians::of(&plain);
+    let skip_ms = [p.eyes[0] + p.eyes[1], plain.eyes[0] + plain.eyes[1]];
+    let (empty, bricks) = fl.tex.empty_bricks();
+    println!(
+        "ray cast, both eyes, every sample {:>9.2} ms  {:>5.2}x with empty-space skipping  \
+         ({empty} of {bricks} bricks empty)",
+        skip_ms[1],
+        skip_ms[1] / skip_ms[0]
+    );
 
     let lao = LaoGpu::new(gpu)?;
     let mut by_radius = Vec::new();
@@ -257,16 +278,28 @@ pub fn bench_frame(
         );
     }
 
+    // The original and the padded volume's sweeps interleaved, `runs` times, so that a
+    // machine busy for a while slows both alike; medians over all their frames.
     let big = padded(vol);
-    let original_ms = by_radius[1].1;
-    let (padded_ms, _) = cao_sweep(gpu, &lao, &big, tf, params, &sweep)?;
+    let (mut cao_small, mut cao_big) = (
+        precompute_ao(gpu, &lao, vol, tf, &params, false)?.into_cao(gpu, vol, params)?,
+        precompute_ao(gpu, &lao, &big, tf, &params, false)?.into_cao(gpu, &big, params)?,
+    );
+    let (mut small_ms, mut big_ms) = (Vec::new(), Vec::new());
+    for _ in 0..runs.max(1) {
+        small_ms.extend(cao_frames(&mut cao_small, &sweep)?.0);
+        big_ms.extend(cao_frames(&mut cao_big, &sweep)?.0);
+    }
+    drop((cao_small, cao_big));
+    let (original_ms, padded_ms) = (median(&mut small_ms), median(&mut big_ms));
     println!(
         "CAO update, {}x{}x{} (2x per axis, same spacing, same tool) / original   {:>6.2}x  \
-         ({padded_ms:.2} ms / {original_ms:.2} ms)",
+         ({padded_ms:.2} ms / {original_ms:.2} ms, medians of {} interleaved run(s))",
         big.dims[0],
         big.dims[1],
         big.dims[2],
-        padded_ms / original_ms
+        padded_ms / original_ms,
+        runs.max(1)
     );
 
     // Interleaved, so that a machine busy for a while slows both alike.
@@ -294,6 +327,7 @@ pub fn bench_frame(
         padded_ms,
         padded_dims: big.dims,
         fps,
+        skip_ms,
     })
 }
 

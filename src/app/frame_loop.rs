@@ -552,7 +552,12 @@ impl FrameLoop {
             let frame = FrameViews {
                 views: &input.views,
                 model,
-                clip: (count > 0).then_some(ClipBinding { tools, maps, count }),
+                clip: (count > 0).then_some(ClipBinding {
+                    tools,
+                    maps,
+                    count,
+                    reach: &cao.reach_boxes,
+                }),
                 sh: lighting.as_ref().map(|l| l.binding()),
             };
             // The bleeding volume is the local histograms' alone.

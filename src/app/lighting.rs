@@ -65,6 +65,7 @@ pub struct ShadingOptions {
     pub preintegrated: bool,
     pub jitter: bool,
     pub tricubic: bool,
+    pub skip_empty: bool,
     /// Ray step in mm; 0 = a fraction of the smallest spacing.
     pub step_mm: f32,
 }
@@ -81,6 +82,7 @@ impl Default for ShadingOptions {
             preintegrated: s.preintegrated,
             jitter: s.jitter,
             tricubic: s.tricubic,
+            skip_empty: s.skip_empty,
             step_mm: s.step_mm,
         }
     }
@@ -113,6 +115,7 @@ impl ShadingOptions {
         s.preintegrated = self.preintegrated;
         s.jitter = self.jitter;
         s.tricubic = self.tricubic;
+        s.skip_empty = self.skip_empty;
         s.step_mm = self.step_mm;
     }
 }

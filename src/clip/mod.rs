@@ -34,13 +34,24 @@ pub enum Shape {
     Mesh(usize),
 }
 
-/// Minor (tube) radius of the unit torus.
-pub const TORUS_MINOR: f32 = 0.35;
+pub use crate::shader_constants::TORUS_MINOR;
 
 /// The built-in shapes in the order a "cycle shape" button visits them.
 pub const BUILTIN_SHAPES: [Shape; 4] = [Shape::Sphere, Shape::Box, Shape::Cylinder, Shape::Torus];
 
 impl Shape {
+    /// The shape's code in `ClipTool.offsets.w` (shaders/include/clip.glsl).
+    pub fn code(self) -> u32 {
+        use crate::shader_constants::*;
+        match self {
+            Shape::Sphere => SHAPE_SPHERE,
+            Shape::Box => SHAPE_BOX,
+            Shape::Cylinder => SHAPE_CYLINDER,
+            Shape::Torus => SHAPE_TORUS,
+            Shape::Mesh(_) => SHAPE_MESH,
+        }
+    }
+
     /// The built-in shape of this name (`sphere`, `box`, `cylinder`, `torus`), as the CLI and
     /// scripted streams spell it.
     pub fn builtin(name: &str) -> Option<Shape> {

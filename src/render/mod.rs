@@ -3,11 +3,13 @@
 
 pub mod blue_noise;
 pub mod compare;
+pub mod empty_space;
 pub mod overlay;
 pub mod png_out;
 pub mod preintegration;
 
 use crate::gpu::{pipeline, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
+use crate::shader_constants::MAX_TOOLS;
 use crate::space::View;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
@@ -99,6 +101,8 @@ pub struct RenderSettings {
     pub jitter: bool,
     /// Cubic B-spline reconstruction of the scalars (else trilinear).
     pub tricubic: bool,
+    /// Skip samples in empty bricks ([`empty_space`]): the same image, sooner.
+    pub skip_empty: bool,
     pub background: [f32; 3],
     /// Weight of the SH environment light (used when the frame has an SH volume bound).
     pub sh_weight: f32,
@@ -129,6 +133,7 @@ impl Default for RenderSettings {
             preintegrated: true,
             jitter: true,
             tricubic: false,
+            skip_empty: true,
             background: [0.06, 0.07, 0.09],
             sh_weight: 1.0,
             sh_times_ao: false,
@@ -178,6 +183,17 @@ pub struct VolumeTextures {
     /// pre-integrated table was built for (0: not yet).
     tf_lut: std::cell::RefCell<Vec<[f32; 4]>>,
     preint_step: std::cell::Cell<f32>,
+    /// The pre-integrated table's opacities (for the empty bricks).
+    preint_alpha: std::cell::RefCell<Vec<f32>>,
+    /// The value range of every ray-casting brick, and which bricks are empty
+    /// ([`empty_space`], R8: 1 = empty) for the TF, pre-integration and step in `skip_for`.
+    ranges: empty_space::BrickRanges,
+    pub skip: Image,
+    skip_for: std::cell::Cell<Option<(u64, bool, f32)>>,
+    /// Empty bricks (for `skip_for`) and all bricks.
+    empty: std::cell::Cell<(usize, usize)>,
+    /// Bumped by every new transfer function.
+    tf_version: std::cell::Cell<u64>,
     /// var_s of variance opacity modulation (R32F, data units squared), when it is on.
     pub variance: Option<Image>,
     /// The local-histogram method's bleeding colour E (RGBA8 per voxel), when it is the method.
@@ -344,6 +360,25 @@ impl VolumeTextures {
             bytemuck::cast_slice(&values),
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         )?;
+        let ranges = empty_space::BrickRanges::of(&values, vol.dims);
+        let [bx, by, bz] = ranges.bricks.map(|b| b as u32);
+        let skip = Image::new(
+            gpu,
+            ImageDesc {
+                image_type: vk::ImageType::TYPE_3D,
+                view_type: vk::ImageViewType::TYPE_3D,
+                format: vk::Format::R8_UNORM,
+                extent: vk::Extent3D {
+                    width: bx,
+                    height: by,
+                    depth: bz,
+                },
+                layers: 1,
+                usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+                aspect: vk::ImageAspectFlags::COLOR,
+            },
+            "empty-bricks",
+        )?;
         let ambient = volume_image(gpu, vol.dims, "ao")?;
         ambient.upload(
             bytemuck::cast_slice(&vec![1.0f32; n]),
@@ -396,6 +431,12 @@ impl VolumeTextures {
             preint,
             tf_lut: Default::default(),
             preint_step: Default::default(),
+            preint_alpha: Default::default(),
+            ranges,
+            skip,
+            skip_for: Default::default(),
+            empty: Default::default(),
+            tf_version: Default::default(),
             variance: None,
             bleeding: None,
             dims: vol.dims,
@@ -469,6 +510,7 @@ impl VolumeTextures {
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         )?;
         *self.tf_lut.borrow_mut() = lut;
+        self.tf_version.set(self.tf_version.get() + 1);
         match self.preint_step.get() {
             0.0 => Ok(()),
             step => self.upload_preintegrated(step),
@@ -482,7 +524,35 @@ impl VolumeTextures {
         if settings.preintegrated && self.preint_step.get() != step {
             self.upload_preintegrated(step)?;
         }
+        // The empty bricks of what the shader will look up.
+        let key = (
+            self.tf_version.get(),
+            settings.preintegrated,
+            if settings.preintegrated { step } else { 0.0 },
+        );
+        if self.skip_for.get() != Some(key) {
+            let table = if settings.preintegrated {
+                let n = preintegration::SIZE;
+                let alpha = self.preint_alpha.borrow();
+                empty_space::Transparency::preintegrated(&alpha, n, self.lut_map(n))
+            } else {
+                let alpha: Vec<f32> = self.tf_lut.borrow().iter().map(|c| c[3]).collect();
+                empty_space::Transparency::lut(&alpha, self.lut_map(LUT_SIZE as usize))
+            };
+            let flags = self.ranges.empty_flags(&table);
+            self.skip
+                .upload(&flags, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
+            self.skip_for.set(Some(key));
+            let empty = flags.iter().filter(|&&f| f != 0).count();
+            self.empty.set((empty, flags.len()));
+        }
         Ok(())
+    }
+
+    /// Bricks the ray caster skips for the settings last [`VolumeTextures::prepare`]d, and
+    /// all bricks.
+    pub fn empty_bricks(&self) -> (usize, usize) {
+        self.empty.get()
     }
 
     fn upload_preintegrated(&self, step: f32) -> Result<()> {
@@ -491,6 +561,7 @@ impl VolumeTextures {
             bytemuck::cast_slice(&table),
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         )?;
+        *self.preint_alpha.borrow_mut() = table.iter().map(|c| c[3]).collect();
         self.preint_step.set(step);
         Ok(())
     }
@@ -670,16 +741,18 @@ struct FrameUniforms {
     lighting: [f32; 4],
     bleeding: [f32; 4],
     sh_light: [[f32; 4]; 16],
+    tool_reach: [[i32; 4]; 2 * MAX_TOOLS],
 }
-crate::gpu::glsl_layout!(FrameUniforms, 736,
+crate::gpu::glsl_layout!(FrameUniforms, 992,
     inv_view_proj: 0, view_proj: 128, tex_from_world: 256, extent_mm: 320, value_map: 336,
     background: 352, viewport: 368, phong: 384, surface: 400, cut_tint: 416, jitter: 432,
-    lighting: 448, bleeding: 464, sh_light: 480);
+    lighting: 448, bleeding: 464, sh_light: 480, tool_reach: 736);
 
 /// Flags of `viewport.w` (shaders/raycast.frag).
 const FLAG_PREINTEGRATED: u32 = 1;
 const FLAG_JITTER: u32 = 2;
 const FLAG_TRICUBIC: u32 = 4;
+const FLAG_SKIP_EMPTY: u32 = 8;
 
 pub struct Renderer {
     gpu: Gpu,
@@ -720,6 +793,9 @@ pub struct ClipBinding<'a> {
     pub tools: &'a Buffer,
     pub maps: &'a Buffer,
     pub count: u32,
+    /// Per tool, an index-space box holding every point it hides (the whole volume for a
+    /// probe): no empty-space skipping inside ([`crate::ao::cao::Cao::reach_boxes`]).
+    pub reach: &'a [crate::ao::cao::VoxelBox],
 }
 
 impl Renderer {
@@ -779,6 +855,7 @@ impl Renderer {
                     sampled,
                     vk::DescriptorType::STORAGE_BUFFER,
                     vk::DescriptorType::STORAGE_BUFFER,
+                    sampled,
                     sampled,
                     sampled,
                     sampled,
@@ -895,6 +972,7 @@ impl Renderer {
             (preintegrated, FLAG_PREINTEGRATED),
             (settings.jitter, FLAG_JITTER),
             (settings.tricubic, FLAG_TRICUBIC),
+            (settings.skip_empty, FLAG_SKIP_EMPTY),
         ]
         .iter()
         .filter(|f| f.0)
@@ -973,6 +1051,14 @@ impl Renderer {
                 let y0 = crate::light::sh::Y0 as f32;
                 [y0 * l[0][k], y0 * l[1][k], y0 * l[2][k], 0.0]
             }),
+            tool_reach: std::array::from_fn(|k| {
+                let b = clip.and_then(|c| c.reach.get(k / 2));
+                match (b, k % 2) {
+                    (Some(b), 0) => [b.min[0], b.min[1], b.min[2], 0],
+                    (Some(b), _) => [b.max[0], b.max[1], b.max[2], 0],
+                    (None, _) => [0; 4],
+                }
+            }),
         };
         self.uniforms[slot].write(0, bytemuck::bytes_of(&u))?;
         let uniforms = &self.uniforms[slot];
@@ -1022,6 +1108,7 @@ impl Renderer {
         // E, or a bound image standing in, unread (bleeding.x = 0).
         let i11 = img(tex.bleeding.as_ref().unwrap_or(&tex.ambient).view);
         let (i12, i13) = (img(tex.preint.view), img(self.blue_noise.view));
+        let i14 = img(tex.skip.view);
         let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
         let clip_maps = [clip.map_or(&self.no_clip, |c| c.maps).descriptor()];
@@ -1082,6 +1169,10 @@ impl Renderer {
                 .dst_binding(13)
                 .descriptor_type(sampled)
                 .image_info(&i13),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(14)
+                .descriptor_type(sampled)
+                .image_info(&i14),
         ];
         for eye in 0..2u32 {
             let color_att = [vk::RenderingAttachmentInfo::default()

@@ -58,6 +58,7 @@ fn render(
         tools: t,
         maps: m,
         count: tools.iter().filter(|t| t.active).count() as u32,
+        reach: &cao.reach_boxes,
     };
     let views = default_stereo_views(vol, placement, 0.064);
     let model = world_from_tex(vol, placement);
