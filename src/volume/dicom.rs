@@ -137,6 +137,9 @@ pub struct Scan {
     pub series: Vec<Series>,
     /// Files skipped, with the reason (not DICOM, DICOMDIR, no image).
     pub skipped: Vec<(PathBuf, String)>,
+    /// DICOM files whose header cannot be read, with the error: skipped too, as Slicer's
+    /// import does, and told (a slice of the loaded series among them leaves a gap, refused).
+    pub unreadable: Vec<String>,
 }
 
 impl Scan {
@@ -174,7 +177,35 @@ impl Scan {
                 parts.join(", ")
             );
         }
+        if let Some(note) = self.unreadable_note() {
+            let _ = writeln!(s, "  {note}");
+        }
         s
+    }
+
+    /// A line on the DICOM files whose header cannot be read, if any.
+    pub fn unreadable_note(&self) -> Option<String> {
+        let first = self.unreadable.first()?;
+        Some(format!(
+            "{} DICOM file(s) could not be read and were skipped (first: {first})",
+            self.unreadable.len()
+        ))
+    }
+
+    /// Loads `series` (one of this scan's): the note on unreadable files goes to stderr, and
+    /// into the error should the load fail.
+    fn load(&self, series: &Series) -> Result<Volume, VolumeError> {
+        let note = self.unreadable_note();
+        if let Some(n) = &note {
+            eprintln!("warning: {}: {n}", self.dir.display());
+        }
+        load_chosen(&self.dir, series).map_err(|e| match (note, e) {
+            (Some(n), VolumeError::Format { path, msg }) => VolumeError::Format {
+                path,
+                msg: format!("{msg}; {n}"),
+            },
+            (_, e) => e,
+        })
     }
 
     /// The series `pick` names, or the only one.
@@ -241,8 +272,9 @@ const DICOMDIR_SOP_CLASS: &str = "1.2.840.10008.1.3.10";
 const MAX_DEPTH: usize = 16;
 
 /// Reads the headers of every file under `dir` (recursively) and groups the images by series.
-/// Errors when the directory has no DICOM image at all, or a file that claims to be DICOM
-/// (the "DICM" magic) has a header that cannot be read.
+/// Errors when the directory has no DICOM image at all (with a broken DICOM file's own error
+/// when there is one); DICOM files whose header cannot be read beside readable images are kept
+/// in [`Scan::unreadable`].
 pub fn scan(dir: &Path) -> Result<Scan, VolumeError> {
     if !dir.is_dir() {
         return Err(VolumeError::format(dir, "not a directory"));
@@ -258,11 +290,12 @@ fn scan_files(dir: &Path, mut files: Vec<PathBuf>) -> Result<Scan, VolumeError> 
     let results: Vec<Result<Result<Planes, String>, VolumeError>> =
         files.par_iter().map(|p| read_header(p)).collect();
     let mut by_uid: BTreeMap<String, Series> = BTreeMap::new();
-    let mut skipped = Vec::new();
+    let (mut skipped, mut unreadable): (_, Vec<VolumeError>) = (Vec::new(), Vec::new());
     for (path, r) in files.iter().zip(results) {
-        match r? {
-            Err(reason) => skipped.push((path.clone(), reason)),
-            Ok(planes) => {
+        match r {
+            Err(e) => unreadable.push(e),
+            Ok(Err(reason)) => skipped.push((path.clone(), reason)),
+            Ok(Ok(planes)) => {
                 for (uid, modality, description, number, slice) in planes {
                     by_uid
                         .entry(uid.clone())
@@ -281,6 +314,10 @@ fn scan_files(dir: &Path, mut files: Vec<PathBuf>) -> Result<Scan, VolumeError> 
         }
     }
     if by_uid.is_empty() {
+        // A broken DICOM file and no image beside it: its own error.
+        if let Some(e) = unreadable.into_iter().next() {
+            return Err(e);
+        }
         return Err(VolumeError::format(
             dir,
             format!(
@@ -311,6 +348,7 @@ fn scan_files(dir: &Path, mut files: Vec<PathBuf>) -> Result<Scan, VolumeError> 
         dir: dir.to_path_buf(),
         series,
         skipped,
+        unreadable: unreadable.iter().map(|e| e.to_string()).collect(),
     })
 }
 
@@ -634,7 +672,7 @@ fn floats<const N: usize>(obj: &InMemDicomObject, tag: Tag) -> Option<[f64; N]> 
 pub fn load_series(dir: &Path, pick: Option<&Pick>) -> Result<Volume, VolumeError> {
     let scan = scan(dir)?;
     let series = scan.choose(pick)?;
-    load_chosen(dir, series)
+    scan.load(series)
 }
 
 /// Is `path` one DICOM file (a VOLUME argument that loads the series it belongs to)?
@@ -671,7 +709,7 @@ pub fn load_file_series(file: &Path) -> Result<Volume, VolumeError> {
         .iter()
         .find(|s| s.slices.iter().any(|sl| sl.path.file_name() == name))
         .ok_or_else(|| VolumeError::format(file, "its series was not found in its folder"))?;
-    load_chosen(dir, series)
+    scan.load(series)
 }
 
 /// Loads the DICOM series that `spec` (`DIR`, `DIR#N`, `DIR#UID`) names.

@@ -542,6 +542,57 @@ fn several_series_are_listed_and_picked() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// A DICOM file whose header cannot be read (here garbage from inside its header on) beside a series is
+/// skipped and told, as Slicer's import does; the series loads. Cut off from the series itself,
+/// it leaves a gap that is refused, and the refusal names the unreadable file.
+#[test]
+fn unreadable_dicom_files_are_skipped_and_told() {
+    if !have_dcmtk() {
+        return;
+    }
+    let root = tmp("unreadable");
+    let spec = Spec::oblique();
+    let cut = |from: &std::path::Path, to: &std::path::Path| {
+        let mut bytes = std::fs::read(from).unwrap();
+        bytes.truncate(400);
+        bytes.extend([0xFF; 800]);
+        std::fs::write(to, &bytes).unwrap();
+    };
+
+    let d = root.join("beside");
+    let files = spec.write(&d);
+    let stray = d.join("stray.dcm");
+    cut(&files[0], &stray);
+    let whole = dicom::load_series(&d, None).unwrap();
+    assert_eq!(whole.dims[2], files.len());
+    let scan = dicom::scan(&d).unwrap();
+    assert_eq!(scan.unreadable.len(), 1);
+    let listing = scan.listing();
+    assert!(
+        listing.contains("1 DICOM file(s) could not be read") && listing.contains("stray.dcm"),
+        "{listing}"
+    );
+
+    let d = root.join("in-the-series");
+    let files = spec.write(&d);
+    cut(&files[5].clone(), &files[5]);
+    let e = err_of(dicom::load_series(&d, None));
+    assert!(e.contains("not evenly spaced"), "{e}");
+    let name = files[5].file_name().unwrap().to_str().unwrap();
+    assert!(e.contains("could not be read") && e.contains(name), "{e}");
+
+    // Alone in its folder: its own error.
+    let d = root.join("alone");
+    std::fs::create_dir_all(&d).unwrap();
+    cut(&stray, &d.join("only.dcm"));
+    let e = err_of(dicom::load_series(&d, None));
+    assert!(
+        e.contains("only.dcm") && !e.contains("no DICOM image files"),
+        "{e}"
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}
+
 #[test]
 fn bad_series_are_refused_with_the_file_and_problem_named() {
     if !have_dcmtk() {
