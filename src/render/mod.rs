@@ -379,6 +379,11 @@ impl VolumeTextures {
             },
             "empty-bricks",
         )?;
+        // Nothing empty until [`VolumeTextures::prepare`] says otherwise.
+        skip.upload(
+            &vec![0u8; ranges.ranges.len()],
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        )?;
         let ambient = volume_image(gpu, vol.dims, "ao")?;
         ambient.upload(
             bytemuck::cast_slice(&vec![1.0f32; n]),
@@ -525,11 +530,7 @@ impl VolumeTextures {
             self.upload_preintegrated(step)?;
         }
         // The empty bricks of what the shader will look up.
-        let key = (
-            self.tf_version.get(),
-            settings.preintegrated,
-            if settings.preintegrated { step } else { 0.0 },
-        );
+        let key = self.skip_key(settings);
         if self.skip_for.get() != Some(key) {
             let table = if settings.preintegrated {
                 let n = preintegration::SIZE;
@@ -547,6 +548,22 @@ impl VolumeTextures {
             self.empty.set((empty, flags.len()));
         }
         Ok(())
+    }
+
+    /// What the empty bricks depend on: the TF, and the pre-integration step if any.
+    fn skip_key(&self, settings: &RenderSettings) -> (u64, bool, f32) {
+        let step = settings.step_for(self.spacing);
+        (
+            self.tf_version.get(),
+            settings.preintegrated,
+            if settings.preintegrated { step } else { 0.0 },
+        )
+    }
+
+    /// Whether the empty bricks were made for `settings` ([`VolumeTextures::prepare`]); the
+    /// ray caster skips nothing otherwise.
+    fn skip_ready(&self, settings: &RenderSettings) -> bool {
+        self.skip_for.get() == Some(self.skip_key(settings))
     }
 
     /// Bricks the ray caster skips for the settings last [`VolumeTextures::prepare`]d, and
@@ -972,7 +989,10 @@ impl Renderer {
             (preintegrated, FLAG_PREINTEGRATED),
             (settings.jitter, FLAG_JITTER),
             (settings.tricubic, FLAG_TRICUBIC),
-            (settings.skip_empty, FLAG_SKIP_EMPTY),
+            (
+                settings.skip_empty && tex.skip_ready(settings),
+                FLAG_SKIP_EMPTY,
+            ),
         ]
         .iter()
         .filter(|f| f.0)
