@@ -158,10 +158,14 @@ enum Cmd {
         /// The right hand's tool: sphere, box, cylinder, torus (default: from the stream).
         #[arg(long)]
         shape: Option<String>,
-        /// Frames the GPU may hold at once: 2 lets the next frame's input and interaction (and the
-        /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
+        /// Frames the GPU may hold at once: 2 records the next frame (and writes the last one's
+        /// PNG) while the GPU renders; 1 waits for every frame. The images are the same.
         #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
         frames_in_flight: Option<u32>,
+        /// Place the volume's centre at X,Y,Z metres in the stage (default: where the recorded
+        /// session put it, else 0,1.4,-0.6).
+        #[arg(long, value_parser = cao_xr::xr::parse_point, allow_hyphen_values = true)]
+        volume_at: Option<glam::Vec3>,
         /// Every N frames print a line on stdout: host RSS, GPU memory in use (the allocator's
         /// report), CPU and wall time, validation messages so far.
         #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
@@ -1073,6 +1077,7 @@ fn run(cli: Cli) -> Result<()> {
             realtime,
             shape,
             frames_in_flight,
+            volume_at,
             stats_every,
         } => {
             let spec = session_spec(&vol, &lao, &light)?;
@@ -1093,6 +1098,7 @@ fn run(cli: Cli) -> Result<()> {
                 realtime,
                 shape,
                 frames_in_flight: frames_in_flight.map(|n| n as usize),
+                volume_at,
                 stats_every: stats_every.map(|n| n as usize),
             };
             let s = app::replay::replay(&gpu, &script, &spec, &out, &opts)?;

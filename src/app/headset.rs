@@ -35,10 +35,11 @@ pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
         }
         let mut mirror = opts.mirror.then(|| Mirror::new(&gpu, extent)).transpose()?;
         let description = format!("cao-xr xr of {} on {}", spec.volume.name, runtime.name);
-        let mut recorder = recorder(
-            opts.record.as_deref(),
-            &StreamHeader::new("xr", description),
-        )?;
+        let header = StreamHeader {
+            volume_at: opts.volume_at.map(|c| c.to_array()),
+            ..StreamHeader::new("xr", description)
+        };
+        let mut recorder = recorder(opts.record.as_deref(), &header)?;
         super::interrupt::catch();
         let result = frames(&mut xs, &mut fl, &mut mirror, &mut recorder, &opts);
         // The last frame's stats are not needed; waiting for it is.

@@ -29,6 +29,8 @@ pub struct ReplayOptions {
     /// Frames in flight, 1 or 2 (default [`crate::render::MAX_FRAMES_IN_FLIGHT`]): the same
     /// images either way.
     pub frames_in_flight: Option<usize>,
+    /// The volume's centre (stage metres), instead of the stream's or the default.
+    pub volume_at: Option<glam::Vec3>,
     /// Every this many frames, sample host and GPU memory ([`ReplayStats`]) and print the
     /// sample on stdout.
     pub stats_every: Option<usize>,
@@ -44,6 +46,7 @@ impl Default for ReplayOptions {
             realtime: false,
             shape: None,
             frames_in_flight: None,
+            volume_at: None,
             stats_every: None,
         }
     }
@@ -156,6 +159,13 @@ pub fn replay(
     };
     let mut fl = spec.frame_loop(gpu, opts.size, interaction, true)?;
     fl.mode = opts.mode;
+    // Where the session put the volume (`--volume-at` overrides the stream's header).
+    if let Some(c) = opts
+        .volume_at
+        .or(header.volume_at.map(glam::Vec3::from_array))
+    {
+        fl.scene.volume.center = c;
+    }
     if let Some(n) = opts.frames_in_flight {
         fl.set_frames_in_flight(n)?;
     }

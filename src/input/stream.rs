@@ -56,9 +56,9 @@ pub const UNIT_TOLERANCE: f32 = 1e-3;
 /// that a round trip is exact.
 const UNIT_EXACT: f32 = 1e-6;
 
-/// The first line of a pose stream. Only `source` and `description` are free;
+/// The first line of a pose stream. Only `source`, `description` and `volume_at` are free;
 /// [`StreamHeader::new`] fills in the rest.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StreamHeader {
     /// Always [`FORMAT`].
     pub format: String,
@@ -74,6 +74,10 @@ pub struct StreamHeader {
     pub source: String,
     /// Free text for people.
     pub description: String,
+    /// Where the session put the volume's centre (stage metres, `xr --volume-at`), so that a
+    /// replay carves the same voxels; None: the default placement.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub volume_at: Option<[f32; 3]>,
 }
 
 impl StreamHeader {
@@ -88,6 +92,7 @@ impl StreamHeader {
             view_configuration: VIEW_CONFIGURATION.into(),
             source: source.into(),
             description: description.into(),
+            volume_at: None,
         }
     }
 }
@@ -238,6 +243,8 @@ struct WireHeader {
     source: String,
     #[serde(default)]
     description: String,
+    #[serde(default)]
+    volume_at: Option<[F32; 3]>,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -492,6 +499,13 @@ fn check_header(h: WireHeader) -> Result<StreamHeader, LineError> {
         )?,
         source: h.source,
         description: h.description,
+        volume_at: match h.volume_at.map(|v| v.map(|x| x.0)) {
+            Some(v) => {
+                finite(|| "volume_at".into(), &v)?;
+                Some(v)
+            }
+            None => None,
+        },
     })
 }
 
@@ -650,6 +664,7 @@ impl<W: Write> PoseStreamWriter<W> {
             view_configuration: Some(header.view_configuration.clone()),
             source: header.source.clone(),
             description: header.description.clone(),
+            volume_at: header.volume_at.map(|v| v.map(F32)),
         };
         let invalid = |e: LineError| invalid_input(path.as_deref(), &format!("header: {e}"));
         let header = check_header(wire).map_err(invalid)?;
@@ -1097,6 +1112,28 @@ mod tests {
         let _ = std::fs::remove_file(&path);
         assert_eq!(h, header);
         assert_eq!(back, frames);
+    }
+
+    #[test]
+    fn the_volume_placement_round_trips_and_a_non_finite_one_is_refused() {
+        let header = StreamHeader {
+            volume_at: Some([0.125, 1.3, -0.55]),
+            ..StreamHeader::new("xr", "placed")
+        };
+        let frames = random_frames(3, 5);
+        let mut w = PoseStreamWriter::new(Vec::new(), &header).unwrap();
+        for f in &frames {
+            w.write_frame(f).unwrap();
+        }
+        let bytes = w.finish().unwrap();
+        let (h, back) = read_str(std::str::from_utf8(&bytes).unwrap()).unwrap();
+        assert_eq!(h, header);
+        assert_eq!(back, frames);
+        // Streams without it (every older one) read None.
+        assert_eq!(read_str(&header_line()).unwrap().0.volume_at, None);
+        let bad = header_line().replacen('{', "{\"volume_at\":[1e39,0,0],", 1);
+        let e = err_str(&bad).to_string();
+        assert!(e.contains("volume_at"), "{e}");
     }
 
     #[test]

@@ -1687,3 +1687,63 @@ fn replays_with_one_and_two_frames_in_flight_give_the_same_pngs() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("--frames-in-flight"), "{err}");
 }
+
+/// A stream recorded with the volume placed elsewhere (`xr --volume-at`) replays there: the same
+/// PNGs as `replay --volume-at` at that place, not those of the default placement.
+#[test]
+fn a_replay_puts_the_volume_where_the_session_had_it() {
+    let dir = tmp("volume-at");
+    let script = dir.join("sweep.jsonl");
+    let out = cao(&[
+        "script",
+        "sphere-sweep",
+        "--frames",
+        "4",
+        "--out",
+        script.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    // The same stream, its header saying where the volume was (3 cm to the right).
+    let text = std::fs::read_to_string(&script).unwrap();
+    let placed = dir.join("placed.jsonl");
+    std::fs::write(
+        &placed,
+        text.replacen('{', "{\"volume_at\":[0.03,1.4,-0.6],", 1),
+    )
+    .unwrap();
+    let replay = |stream: &Path, name: &str, extra: &[&str]| {
+        let frames = dir.join(name);
+        let mut args = vec![
+            "replay",
+            stream.to_str().unwrap(),
+            "phantom:24",
+            "--rays",
+            "6",
+            "--steps",
+            "3",
+            "--size",
+            "32x32",
+            "--out",
+            frames.to_str().unwrap(),
+        ];
+        args.extend(extra);
+        let out = cao(&args);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        (0..4)
+            .map(|i| std::fs::read(frames.join(format!("frame-{i:05}.png"))).unwrap())
+            .collect::<Vec<_>>()
+    };
+    let default = replay(&script, "default", &[]);
+    let from_header = replay(&placed, "header", &[]);
+    let from_flag = replay(&script, "flag", &["--volume-at", "0.03,1.4,-0.6"]);
+    assert!(
+        from_header == from_flag,
+        "the header's placement was not used"
+    );
+    assert!(from_header != default, "the placement changed nothing");
+    let _ = std::fs::remove_dir_all(&dir);
+}
