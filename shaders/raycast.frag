@@ -30,6 +30,8 @@ layout(set = 0, binding = 13) uniform sampler2D blue_noise;
 // Per brick of 2^RAY_BRICK_SHIFT voxels: 1 where every value a sample can read classifies as
 // transparent (src/render/empty_space.rs).
 layout(set = 0, binding = 14) uniform sampler3D empty_bricks;
+// Where in a pre-integrated step its light comes from: 0 at the front sample, 1 at the back.
+layout(set = 0, binding = 15) uniform sampler2D preint_at;
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 4
@@ -307,9 +309,11 @@ void main() {
             float a;
             vec3 premult;
             bool pre_mid = flag(PREINTEGRATED) && have_prev;
+            vec2 pre_uv = vec2(0.0);
             if (flag(PREINTEGRATED)) {
                 float sf = have_prev ? s_prev : s;
-                vec4 pre = texture(preint, vec2(sf, s) * frame.value_map.w + frame.value_map.z);
+                pre_uv = vec2(sf, s) * frame.value_map.w + frame.value_map.z;
+                vec4 pre = texture(preint, pre_uv);
                 a = pre.a;
                 premult = pre.rgb;
             } else {
@@ -325,9 +329,9 @@ void main() {
                 premult *= m;
             }
             if (a > 0.0) {
-                // A pre-integrated step is shaded at its middle: its opacity lies anywhere
-                // between the two samples, not at the back one.
-                vec3 q = pre_mid ? o + (t - 0.5 * dt) * d : p;
+                // A pre-integrated step is shaded where its light comes from (its extinction's
+                // mean position), not at the back sample.
+                vec3 q = pre_mid ? o + (t - (1.0 - texture(preint_at, pre_uv).r) * dt) * d : p;
                 float occl = frame.background.a > 0.5 ? texture(ambient, q).r : 1.0;
                 // Colour bleeding (Ropinski et al.): towards the neighbourhood's colour E, the
                 // more the neighbourhood occludes (O_env = 1 - A).

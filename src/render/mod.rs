@@ -177,8 +177,10 @@ pub struct VolumeTextures {
     pub scalars: Image,
     pub ambient: Image,
     pub lut: Image,
-    /// The pre-integrated TF ([`preintegration`]) for the step in `preint_step`.
+    /// The pre-integrated TF ([`preintegration`]) for the step in `preint_step`, and where in
+    /// each step its light comes from (R32F, 0 front .. 1 back).
     preint: Image,
+    preint_at: Image,
     /// The shown TF's lookup table (the pre-integration's input) and the step (mm) the
     /// pre-integrated table was built for (0: not yet).
     tf_lut: std::cell::RefCell<Vec<[f32; 4]>>,
@@ -424,9 +426,30 @@ impl VolumeTextures {
             },
             "tf-preintegrated",
         )?;
+        let preint_at = Image::new(
+            gpu,
+            ImageDesc {
+                image_type: vk::ImageType::TYPE_2D,
+                view_type: vk::ImageViewType::TYPE_2D,
+                format: vk::Format::R32_SFLOAT,
+                extent: vk::Extent3D {
+                    width: n,
+                    height: n,
+                    depth: 1,
+                },
+                layers: 1,
+                usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+                aspect: vk::ImageAspectFlags::COLOR,
+            },
+            "tf-preintegrated-at",
+        )?;
         // Bound (unread) while point sampling; filled by [`VolumeTextures::prepare`].
         preint.upload(
             &vec![0u8; (n * n * 16) as usize],
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        )?;
+        preint_at.upload(
+            &vec![0u8; (n * n * 4) as usize],
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         )?;
         let t = VolumeTextures {
@@ -434,6 +457,7 @@ impl VolumeTextures {
             ambient,
             lut,
             preint,
+            preint_at,
             tf_lut: Default::default(),
             preint_step: Default::default(),
             preint_alpha: Default::default(),
@@ -573,9 +597,13 @@ impl VolumeTextures {
     }
 
     fn upload_preintegrated(&self, step: f32) -> Result<()> {
-        let table = preintegration::table(&self.tf_lut.borrow(), step, preintegration::SIZE);
+        let (table, at) = preintegration::tables(&self.tf_lut.borrow(), step, preintegration::SIZE);
         self.preint.upload(
             bytemuck::cast_slice(&table),
+            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+        )?;
+        self.preint_at.upload(
+            bytemuck::cast_slice(&at),
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         )?;
         *self.preint_alpha.borrow_mut() = table.iter().map(|c| c[3]).collect();
@@ -881,6 +909,7 @@ impl Renderer {
                     sampled,
                     sampled,
                     sampled,
+                    sampled,
                 ],
                 vk::ShaderStageFlags::FRAGMENT,
             )?;
@@ -1129,6 +1158,7 @@ impl Renderer {
         let i11 = img(tex.bleeding.as_ref().unwrap_or(&tex.ambient).view);
         let (i12, i13) = (img(tex.preint.view), img(self.blue_noise.view));
         let i14 = img(tex.skip.view);
+        let i15 = img(tex.preint_at.view);
         let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
         let clip_maps = [clip.map_or(&self.no_clip, |c| c.maps).descriptor()];
@@ -1193,6 +1223,10 @@ impl Renderer {
                 .dst_binding(14)
                 .descriptor_type(sampled)
                 .image_info(&i14),
+            vk::WriteDescriptorSet::default()
+                .dst_binding(15)
+                .descriptor_type(sampled)
+                .image_info(&i15),
         ];
         for eye in 0..2u32 {
             let color_att = [vk::RenderingAttachmentInfo::default()

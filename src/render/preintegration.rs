@@ -17,14 +17,30 @@ pub const SIZE: usize = 256;
 /// The ray caster's clamp of a sample's opacity per mm (an opacity of 1 has no extinction).
 const MAX_ALPHA: f64 = 0.9999;
 
+/// Trapezoids of the integral of a step's transmittance ([`tables`]): a position within 1/128
+/// of a step.
+const POSITION_STEPS: usize = 64;
+
 /// The table for a TF lookup table `lut` (RGBA, A = opacity per mm, spread evenly over the value
 /// range) and a step of `step_mm`: `size * size` entries (premultiplied RGB, opacity), entry
 /// (f, b) at index b * size + f for front value f / (size - 1) and back value b / (size - 1) of
 /// the range.
 pub fn table(lut: &[[f32; 4]], step_mm: f32, size: usize) -> Vec<[f32; 4]> {
+    tables(lut, step_mm, size).0
+}
+
+/// [`table`], and beside it, per entry, where in the step its light comes from: the mean
+/// position of what the step adds to the ray, its extinction attenuated by the step's own
+/// opacity in front of it, from 0 at the front sample to 1 at the back (0.5 where the step adds
+/// nothing). With T(x) the transmittance from the front to x, that density is -T'(x) / alpha,
+/// so the mean is (integral_0^1 T dx - T(1)) / (1 - T(1)); T comes from the prefix integral of
+/// the extinction, exact at every point, and the integral takes [`POSITION_STEPS`] trapezoids.
+/// The ray caster shades the step there (gradient, AO, SH): at the surface a sharp TF puts
+/// inside the step, rather than at its middle.
+pub fn tables(lut: &[[f32; 4]], step_mm: f32, size: usize) -> (Vec<[f32; 4]>, Vec<f32>) {
     let n = lut.len();
     if n == 0 || size < 2 {
-        return vec![[0.0; 4]; size * size];
+        return (vec![[0.0; 4]; size * size], vec![0.5; size * size]);
     }
     let tau = |c: &[f32; 4]| -(1.0 - (c[3] as f64).clamp(0.0, MAX_ALPHA)).ln();
     // Integrands at the LUT's entries: tau and tau * rgb.
@@ -57,10 +73,13 @@ pub fn table(lut: &[[f32; 4]], step_mm: f32, size: usize) -> Vec<[f32; 4]> {
     let step = step_mm as f64;
     let scale = (n - 1) as f64 / (size - 1) as f64;
     let mut out = Vec::with_capacity(size * size);
+    let mut where_ = Vec::with_capacity(size * size);
     for b in 0..size {
-        let (_, ib) = at(b as f64 * scale);
+        let xb = b as f64 * scale;
+        let (_, ib) = at(xb);
         for fr in 0..size {
-            let (vf, i_f) = at(fr as f64 * scale);
+            let xf = fr as f64 * scale;
+            let (vf, i_f) = at(xf);
             // Mean integrands over the step: the point value where front = back.
             let mean: [f64; 4] = if fr == b {
                 vf
@@ -77,9 +96,24 @@ pub fn table(lut: &[[f32; 4]], step_mm: f32, size: usize) -> Vec<[f32; 4]> {
                 }
             };
             out.push([rgb(1), rgb(2), rgb(3), alpha as f32]);
+            let x = if fr != b && alpha > 1e-6 {
+                // T at a fraction u of the step, from the extinction integral up to there.
+                let width = xb - xf;
+                let trans = |u: f64| {
+                    let (_, iu) = at(xf + u * width);
+                    (-step * (iu[0] - i_f[0]) / width).exp()
+                };
+                let m = POSITION_STEPS;
+                let t: Vec<f64> = (0..=m).map(|k| trans(k as f64 / m as f64)).collect();
+                let area = (0..m).map(|k| 0.5 * (t[k] + t[k + 1])).sum::<f64>() / m as f64;
+                ((area - t[m]) / (1.0 - t[m])).clamp(0.0, 1.0)
+            } else {
+                0.5
+            };
+            where_.push(x as f32);
         }
     }
-    out
+    (out, where_)
 }
 
 #[cfg(test)]
@@ -175,6 +209,64 @@ mod tests {
                 1.0 - trans
             );
         }
+    }
+
+    /// The light of a step comes from where its extinction is: a thin band a fifth of the way
+    /// from the front value to the back one is shaded a fifth of the way into the step, from
+    /// either side; a uniform or empty step at its middle.
+    #[test]
+    fn the_shading_position_follows_the_extinction() {
+        let n = 4096;
+        let band = |lo: f64| -> Vec<[f32; 4]> {
+            (0..n)
+                .map(|i| {
+                    let u = i as f64 / (n - 1) as f64;
+                    let a = if (lo..lo + 0.004).contains(&u) {
+                        0.9
+                    } else {
+                        0.0
+                    };
+                    [1.0, 1.0, 1.0, a as f32]
+                })
+                .collect()
+        };
+        let (_, at) = tables(&band(0.6), 1.0, SIZE);
+        let (lo, hi) = (128, 255); // values ~0.5 and 1.0
+        let u = |k: usize| k as f64 / (SIZE - 1) as f64;
+        let want = (0.602 - u(lo)) / (u(hi) - u(lo));
+        let got = at[hi * SIZE + lo] as f64;
+        assert!((got - want).abs() < 0.01, "{got} vs {want}");
+        let back = at[lo * SIZE + hi] as f64;
+        assert!(
+            (back - (1.0 - want)).abs() < 0.01,
+            "{back} vs {}",
+            1.0 - want
+        );
+        // Empty, and uniform (front = back): the middle.
+        assert_eq!(at[10 * SIZE + 20], 0.5);
+        assert_eq!(at[lo * SIZE + lo], 0.5);
+        // The tables agree with `table`.
+        assert_eq!(
+            tables(&band(0.6), 1.0, SIZE).0,
+            table(&band(0.6), 1.0, SIZE)
+        );
+        // A long step into opaque tissue (entered 30 % of the way in) gets its light from just
+        // behind the entry, as the tissue hides the rest: 0.3 + 1 / (D tau) = 0.38, not the
+        // middle of the opaque part (0.65).
+        let solid: Vec<[f32; 4]> = (0..n)
+            .map(|i| {
+                let a = if i as f64 / (n - 1) as f64 >= 0.65 {
+                    0.95
+                } else {
+                    0.0
+                };
+                [1.0, 1.0, 1.0, a]
+            })
+            .collect();
+        let (_, at) = tables(&solid, 4.0, SIZE);
+        let x = at[hi * SIZE + lo] as f64;
+        let want = (0.65 - u(lo)) / (u(hi) - u(lo)) + 1.0 / (4.0 * -(0.05f64).ln());
+        assert!((x - want).abs() < 0.02, "{x} vs {want}");
     }
 
     /// Colour is the extinction-weighted mean: where only one colour is opaque, the step takes
