@@ -554,9 +554,9 @@ impl VolumeTextures {
         if settings.preintegrated && self.preint_step.get() != step {
             self.upload_preintegrated(step)?;
         }
-        // The empty bricks of what the shader will look up.
+        // The empty bricks of what the shader will look up, when it skips (opt-in).
         let key = self.skip_key(settings);
-        if self.skip_for.get() != Some(key) {
+        if settings.skip_empty && self.skip_for.get() != Some(key) {
             let table = if settings.preintegrated {
                 let n = preintegration::SIZE;
                 let alpha = self.preint_alpha.borrow();
@@ -591,8 +591,8 @@ impl VolumeTextures {
         self.skip_for.get() == Some(self.skip_key(settings))
     }
 
-    /// Bricks the ray caster skips for the settings last [`VolumeTextures::prepare`]d, and
-    /// all bricks.
+    /// Bricks the ray caster skips for the settings last [`VolumeTextures::prepare`]d with
+    /// skipping on, and all bricks.
     pub fn empty_bricks(&self) -> (usize, usize) {
         self.empty.get()
     }
@@ -1141,94 +1141,54 @@ impl Renderer {
                 .image_view(view)
                 .image_layout(vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)]
         };
-        let (i1, i2, i3) = (
-            img(tex.scalars.view),
-            img(tex.ambient.view),
-            img(tex.lut.view),
-        );
         // Four SH slots; unused ones (4 coefficients, or no SH) repeat a bound image unread.
         let sh_views: [vk::ImageView; 4] = std::array::from_fn(|g| {
             frame.sh.map_or(tex.ambient.view, |sh| {
                 sh.images.get(g).unwrap_or(&sh.images[0]).view
             })
         });
-        let sh_infos = sh_views.map(img);
-        // var_s, or a bound image standing in, unread (lighting.w = 0).
-        let i10 = img(tex.variance.as_ref().unwrap_or(&tex.ambient).view);
-        // E, or a bound image standing in, unread (bleeding.x = 0).
-        let i11 = img(tex.bleeding.as_ref().unwrap_or(&tex.ambient).view);
-        let (i12, i13) = (img(tex.preint.view), img(self.blue_noise.view));
-        let i14 = img(tex.skip.view);
-        let i15 = img(tex.preint_at.view);
-        let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
+        // The sampled images by binding (raycast.frag): var_s and E, where absent, are a bound
+        // image standing in, unread (lighting.w = 0, bleeding.x = 0).
+        let sampled_views = [
+            (1, tex.scalars.view),
+            (2, tex.ambient.view),
+            (3, tex.lut.view),
+            (6, sh_views[0]),
+            (7, sh_views[1]),
+            (8, sh_views[2]),
+            (9, sh_views[3]),
+            (10, tex.variance.as_ref().unwrap_or(&tex.ambient).view),
+            (11, tex.bleeding.as_ref().unwrap_or(&tex.ambient).view),
+            (12, tex.preint.view),
+            (13, self.blue_noise.view),
+            (14, tex.skip.view),
+            (15, tex.preint_at.view),
+        ];
+        let infos = sampled_views.map(|(_, view)| img(view));
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
         let clip_maps = [clip.map_or(&self.no_clip, |c| c.maps).descriptor()];
-        let writes = [
+        let buffer = |binding: u32, kind, info| {
             vk::WriteDescriptorSet::default()
-                .dst_binding(0)
-                .descriptor_type(vk::DescriptorType::UNIFORM_BUFFER)
-                .buffer_info(&ubo),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(1)
-                .descriptor_type(sampled)
-                .image_info(&i1),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(2)
-                .descriptor_type(sampled)
-                .image_info(&i2),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(3)
-                .descriptor_type(sampled)
-                .image_info(&i3),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(4)
-                .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
-                .buffer_info(&clip_tools),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(5)
-                .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
-                .buffer_info(&clip_maps),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(6)
-                .descriptor_type(sampled)
-                .image_info(&sh_infos[0]),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(7)
-                .descriptor_type(sampled)
-                .image_info(&sh_infos[1]),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(8)
-                .descriptor_type(sampled)
-                .image_info(&sh_infos[2]),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(9)
-                .descriptor_type(sampled)
-                .image_info(&sh_infos[3]),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(10)
-                .descriptor_type(sampled)
-                .image_info(&i10),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(11)
-                .descriptor_type(sampled)
-                .image_info(&i11),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(12)
-                .descriptor_type(sampled)
-                .image_info(&i12),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(13)
-                .descriptor_type(sampled)
-                .image_info(&i13),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(14)
-                .descriptor_type(sampled)
-                .image_info(&i14),
-            vk::WriteDescriptorSet::default()
-                .dst_binding(15)
-                .descriptor_type(sampled)
-                .image_info(&i15),
+                .dst_binding(binding)
+                .descriptor_type(kind)
+                .buffer_info(info)
+        };
+        let mut writes = vec![
+            buffer(0, vk::DescriptorType::UNIFORM_BUFFER, &ubo[..]),
+            buffer(4, vk::DescriptorType::STORAGE_BUFFER, &clip_tools[..]),
+            buffer(5, vk::DescriptorType::STORAGE_BUFFER, &clip_maps[..]),
         ];
+        writes.extend(
+            sampled_views
+                .iter()
+                .zip(&infos)
+                .map(|((binding, _), info)| {
+                    vk::WriteDescriptorSet::default()
+                        .dst_binding(*binding)
+                        .descriptor_type(vk::DescriptorType::COMBINED_IMAGE_SAMPLER)
+                        .image_info(info)
+                }),
+        );
         for eye in 0..2u32 {
             let color_att = [vk::RenderingAttachmentInfo::default()
                 .image_view(target.color.layer_views[eye as usize])

@@ -177,10 +177,7 @@ fn cao_equals_naive_lao_bit_for_bit_every_frame() {
         let m: FrameMetrics = cao.run_frame(tools, &placement, Mode::Contextual).unwrap();
         let n = naive.run_frame(tools, &placement, Mode::Naive).unwrap();
         let (a, b) = (read(&cao.ao), read(&naive.ao));
-        let diff = a
-            .iter()
-            .zip(&b)
-            .position(|(x, y)| x.to_bits() != y.to_bits());
+        let diff = common::first_bit_difference(&a, &b);
         assert!(
             diff.is_none(),
             "frame {i}: CAO differs from naive LAO at voxel {diff:?}"
@@ -339,10 +336,7 @@ fn probes_cost_what_they_cover_and_stay_exact() {
         let m = cao.run_frame(tools, &placement, Mode::Contextual).unwrap();
         let n = naive.run_frame(tools, &placement, Mode::Naive).unwrap();
         let (a, b) = (read(&cao.ao), read(&naive.ao));
-        let diff = a
-            .iter()
-            .zip(&b)
-            .position(|(x, y)| x.to_bits() != y.to_bits());
+        let diff = common::first_bit_difference(&a, &b);
         assert!(
             diff.is_none(),
             "frame {i}: CAO differs from naive LAO at voxel {diff:?}"

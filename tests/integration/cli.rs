@@ -14,6 +14,61 @@ fn tmp(name: &str) -> PathBuf {
     d
 }
 
+/// Writes the scripted pose stream KIND of `frames` frames to DIR/NAME (`cao-xr script`).
+fn script(dir: &Path, name: &str, kind: &str, frames: usize) -> PathBuf {
+    let path = dir.join(name);
+    let out = cao(&[
+        "script",
+        kind,
+        "--frames",
+        &frames.to_string(),
+        "--out",
+        path.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    path
+}
+
+/// Replays `stream` on a 24^3 phantom (few rays, 32x32 per eye, `extra` arguments added) into
+/// DIR/NAME, and reads back its first `frames` PNGs and what it printed on stdout.
+fn replay_pngs(
+    stream: &Path,
+    dir: &Path,
+    name: &str,
+    extra: &[&str],
+    frames: usize,
+) -> (Vec<Vec<u8>>, String) {
+    let out_dir = dir.join(name);
+    let mut args = vec![
+        "replay",
+        stream.to_str().unwrap(),
+        "phantom:24",
+        "--rays",
+        "6",
+        "--steps",
+        "3",
+        "--size",
+        "32x32",
+        "--out",
+        out_dir.to_str().unwrap(),
+    ];
+    args.extend(extra);
+    let out = cao(&args);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let pngs = (0..frames)
+        .map(|i| std::fs::read(out_dir.join(format!("frame-{i:05}.png"))).unwrap())
+        .collect();
+    (pngs, String::from_utf8_lossy(&out.stdout).to_string())
+}
+
 /// A float32 / int16 little-endian raw NRRD read with nothing but the header text.
 fn read_nrrd_f32(path: &Path) -> (Vec<usize>, Vec<f64>, Vec<f32>) {
     let bytes = std::fs::read(path).unwrap();
@@ -899,16 +954,7 @@ fn render_lit_by_an_environment_through_the_sh_volume() {
 #[test]
 fn replay_with_sh_lighting_updates_the_sh_volume_where_the_tool_carves() {
     let dir = tmp("replay-sh");
-    let script = dir.join("sweep.jsonl");
-    let out = cao(&[
-        "script",
-        "sphere-sweep",
-        "--frames",
-        "8",
-        "--out",
-        script.to_str().unwrap(),
-    ]);
-    assert!(out.status.success());
+    let script = script(&dir, "sweep.jsonl", "sphere-sweep", 8);
     let frames = dir.join("frames");
     let out = cao(&[
         "replay",
@@ -964,20 +1010,7 @@ fn replay_with_sh_lighting_updates_the_sh_volume_where_the_tool_carves() {
 #[test]
 fn replay_writes_frames_metrics_and_preview() {
     let dir = tmp("replay");
-    let script = dir.join("sweep.jsonl");
-    let out = cao(&[
-        "script",
-        "sphere-sweep",
-        "--frames",
-        "6",
-        "--out",
-        script.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let script = script(&dir, "sweep.jsonl", "sphere-sweep", 6);
     let frames = dir.join("frames");
     let preview = dir.join("preview.png");
     let out = cao(&[
@@ -1033,16 +1066,7 @@ fn replay_writes_frames_metrics_and_preview() {
 #[test]
 fn replay_switches_the_transfer_function_on_menu() {
     let dir = tmp("tf-switch");
-    let script = dir.join("tf.jsonl");
-    let out = cao(&[
-        "script",
-        "tf-switch",
-        "--frames",
-        "24",
-        "--out",
-        script.to_str().unwrap(),
-    ]);
-    assert!(out.status.success());
+    let script = script(&dir, "tf.jsonl", "tf-switch", 24);
     let frames = dir.join("frames");
     let out = cao(&[
         "replay",
@@ -1376,16 +1400,7 @@ fn a_signal_during_the_ao_precompute_leaves_no_output_under_the_final_name() {
 fn a_signal_during_a_replay_leaves_no_partial_metrics_under_the_final_name() {
     use std::os::unix::process::ExitStatusExt;
     let dir = tmp("signal-replay");
-    let script = dir.join("long.jsonl");
-    let made = cao(&[
-        "script",
-        "sphere-sweep",
-        "--frames",
-        "5000",
-        "--out",
-        script.to_str().unwrap(),
-    ]);
-    assert!(made.status.success());
+    let script = script(&dir, "long.jsonl", "sphere-sweep", 5000);
     let out = dir.join("frames");
     let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_cao-xr"))
         .args([
@@ -1621,52 +1636,16 @@ fn bench_frame_prints_every_pass_and_every_ratio() {
 #[test]
 fn replays_with_one_and_two_frames_in_flight_give_the_same_pngs() {
     let dir = tmp("in-flight");
-    let script = dir.join("two-tools.jsonl");
-    let out = cao(&[
-        "script",
-        "two-tools",
-        "--frames",
-        "8",
-        "--out",
-        script.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let script = script(&dir, "two-tools.jsonl", "two-tools", 8);
     let run = |n: &str| {
-        let frames = dir.join(format!("depth-{n}"));
-        let out = cao(&[
-            "replay",
-            script.to_str().unwrap(),
-            "phantom:24",
-            "--rays",
-            "6",
-            "--steps",
-            "3",
-            "--size",
-            "32x32",
-            "--frames-in-flight",
-            n,
-            "--out",
-            frames.to_str().unwrap(),
-        ]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let said = String::from_utf8_lossy(&out.stdout).to_string();
+        let name = format!("depth-{n}");
+        let (pngs, said) = replay_pngs(&script, &dir, &name, &["--frames-in-flight", n], 8);
         let overlapped: usize = said
             .split("; ")
             .nth(1)
             .and_then(|t| t.split(' ').next())
             .and_then(|n| n.parse().ok())
             .unwrap_or_else(|| panic!("no overlap count in: {said}"));
-        let pngs = (0..8)
-            .map(|i| std::fs::read(frames.join(format!("frame-{i:05}.png"))).unwrap())
-            .collect::<Vec<_>>();
         (pngs, overlapped)
     };
     let ((one, alone), (two, overlapped)) = (run("1"), run("2"));
@@ -1696,16 +1675,7 @@ fn replays_with_one_and_two_frames_in_flight_give_the_same_pngs() {
 #[test]
 fn a_replay_puts_the_volume_where_the_session_had_it() {
     let dir = tmp("volume-at");
-    let script = dir.join("sweep.jsonl");
-    let out = cao(&[
-        "script",
-        "sphere-sweep",
-        "--frames",
-        "4",
-        "--out",
-        script.to_str().unwrap(),
-    ]);
-    assert!(out.status.success());
+    let script = script(&dir, "sweep.jsonl", "sphere-sweep", 4);
     // The same stream, its header saying where the volume was (3 cm to the right).
     let text = std::fs::read_to_string(&script).unwrap();
     let placed = dir.join("placed.jsonl");
@@ -1714,32 +1684,8 @@ fn a_replay_puts_the_volume_where_the_session_had_it() {
         text.replacen('{', "{\"volume_at\":[0.03,1.4,-0.6],", 1),
     )
     .unwrap();
-    let replay = |stream: &Path, name: &str, extra: &[&str]| {
-        let frames = dir.join(name);
-        let mut args = vec![
-            "replay",
-            stream.to_str().unwrap(),
-            "phantom:24",
-            "--rays",
-            "6",
-            "--steps",
-            "3",
-            "--size",
-            "32x32",
-            "--out",
-            frames.to_str().unwrap(),
-        ];
-        args.extend(extra);
-        let out = cao(&args);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        (0..4)
-            .map(|i| std::fs::read(frames.join(format!("frame-{i:05}.png"))).unwrap())
-            .collect::<Vec<_>>()
-    };
+    let replay =
+        |stream: &Path, name: &str, extra: &[&str]| replay_pngs(stream, &dir, name, extra, 4).0;
     let default = replay(&script, "default", &[]);
     let from_header = replay(&placed, "header", &[]);
     let from_flag = replay(&script, "flag", &["--volume-at", "0.03,1.4,-0.6"]);

@@ -131,3 +131,11 @@ pub fn run_cao(args: &[&str], env: &[(&str, &str)]) -> std::process::Output {
     );
     out
 }
+
+/// The first index where `a` and `b` differ bit for bit (exactness checks), or None.
+pub fn first_bit_difference(a: &[f32], b: &[f32]) -> Option<usize> {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .position(|(x, y)| x.to_bits() != y.to_bits())
+}

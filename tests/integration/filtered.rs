@@ -75,10 +75,7 @@ fn the_filters_clip_update_equals_a_full_refilter_bit_for_bit_every_frame() {
             let m = cao.run_frame(tools, &placement, Mode::Contextual).unwrap();
             naive.run_frame(tools, &placement, Mode::Naive).unwrap();
             let (a, b) = (read(&cao.ao), read(&naive.ao));
-            let diff = a
-                .iter()
-                .zip(&b)
-                .position(|(x, y)| x.to_bits() != y.to_bits());
+            let diff = common::first_bit_difference(&a, &b);
             assert!(
                 diff.is_none(),
                 "{estimator:?} frame {i}: the clip update differs from a full refilter at voxel {diff:?}"

@@ -177,7 +177,7 @@ fn the_stick_click_switches_the_ao_method_to_exactly_a_fresh_start_of_it() {
         assert_eq!(fresh.cao.method_name(), want);
         let f = click_frame(&mut fresh, &vol, t, false, i, false);
         let got = read(&fl.cao.ao);
-        let d = first_diff(&got, &read(&fresh.cao.ao));
+        let d = common::first_bit_difference(&got, &read(&fresh.cao.ao));
         assert!(
             d.is_none(),
             "{want}: V_AO differs from a fresh start at {d:?}"
@@ -230,13 +230,6 @@ fn both_eyes_sample_the_one_ambient_volume_under_every_method() {
     common::assert_no_validation_messages(&gpu);
 }
 
-fn first_diff(a: &[f32], b: &[f32]) -> Option<usize> {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .position(|(x, y)| x.to_bits() != y.to_bits())
-}
-
 #[test]
 fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
     let gpu = common::gpu();
@@ -274,7 +267,7 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
         let b = frame(&mut still, &vol, t, false, i);
         assert!(b.stats.tf_progress.is_none());
         assert_eq!(fl.shown_tf().name, "ct-bone", "frame {i}");
-        let d = first_diff(&read(&fl.cao.ao), &read(&still.cao.ao));
+        let d = common::first_bit_difference(&read(&fl.cao.ao), &read(&still.cao.ao));
         assert!(
             d.is_none(),
             "frame {i}: V_AO changed during the recompute at {d:?}"
@@ -352,12 +345,12 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
         let f = frame(&mut fresh, &vol, t, false, i);
         let n = frame(&mut naive, &vol, t, false, i);
         let ao = read(&fl.cao.ao);
-        let d = first_diff(&ao, &read(&fresh.cao.ao));
+        let d = common::first_bit_difference(&ao, &read(&fresh.cao.ao));
         assert!(
             d.is_none(),
             "frame {i}: V_AO differs from a fresh loop at {d:?}"
         );
-        let d = first_diff(&ao, &read(&naive.cao.ao));
+        let d = common::first_bit_difference(&ao, &read(&naive.cao.ao));
         assert!(
             d.is_none(),
             "frame {i}: V_AO differs from the naive recompute at {d:?}"
@@ -391,7 +384,7 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
     // V_PAO' differs from the old V_PAO (the switch did something).
     let old = frame(&mut still, &vol, tool(c, 0, false), false, 0);
     assert!(old.stats.tf_progress.is_none());
-    assert!(first_diff(&pao.unwrap(), &read(&still.cao.ao)).is_some());
+    assert!(common::first_bit_difference(&pao.unwrap(), &read(&still.cao.ao)).is_some());
     common::assert_no_validation_messages(&gpu);
 }
 
@@ -429,7 +422,7 @@ fn cycling_back_to_the_shown_tf_cancels_the_switch() {
         assert!(a.stats.tf_progress.is_none(), "frame {i}: dropped");
         assert_eq!(fl.scene.tf_index, 0);
         assert_eq!(fl.shown_tf().name, "ct-bone");
-        let d = first_diff(&read(&fl.cao.ao), &read(&still.cao.ao));
+        let d = common::first_bit_difference(&read(&fl.cao.ao), &read(&still.cao.ao));
         assert!(d.is_none(), "frame {i}: V_AO changed at {d:?}");
         assert!(a.image == b.image, "frame {i}");
         i += 1;

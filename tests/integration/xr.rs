@@ -50,6 +50,17 @@ fn xr_root() -> Option<(PathBuf, MutexGuard<'static, ()>)> {
     None
 }
 
+/// scripts/xr-session.sh in `root` with the cao-xr under test, and its fresh output folder
+/// (CARGO_TARGET_TMPDIR/xr-NAME-PID); the caller adds cao-xr's arguments.
+fn session(root: &Path, name: &str) -> (Command, PathBuf) {
+    let out =
+        Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("xr-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let mut cmd = Command::new(repo().join("scripts/xr-session.sh"));
+    cmd.arg(root).arg(env!("CARGO_BIN_EXE_cao-xr")).arg(&out);
+    (cmd, out)
+}
+
 /// Neither validation layer reported anything: Vulkan's (on, and silent) and OpenXR's (the
 /// debug messenger and the core validation layer's log in `out`).
 fn assert_validation_silent(out: &Path, stderr: &str, context: &str) {
@@ -82,13 +93,9 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
     let Some((root, _turn)) = xr_root() else {
         return;
     };
-    let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("xr-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
     let frames = FRAMES.to_string();
-    let run = Command::new(repo().join("scripts/xr-session.sh"))
-        .arg(&root)
-        .arg(env!("CARGO_BIN_EXE_cao-xr"))
-        .arg(&out)
+    let (mut session, out) = session(&root, "focused");
+    let run = session
         .args(["phantom:32", "--rays", "6", "--size", "96x96", "--carve"])
         // Monado's simulated right controller rests at (0.2, 1.3, -0.5); its tool sits 8 cm
         // ahead. Put the volume there so the tool carves and the touch pulse fires.
@@ -197,14 +204,8 @@ fn monado_refuses_a_blend_mode_it_does_not_offer_and_lists_what_it_offers() {
         .iter()
         .enumerate()
     {
-        let out = Path::new(env!("CARGO_TARGET_TMPDIR"))
-            .join(format!("xr-blend-{n}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&out);
-        let mut cmd = Command::new(repo().join("scripts/xr-session.sh"));
-        cmd.arg(&root)
-            .arg(env!("CARGO_BIN_EXE_cao-xr"))
-            .arg(&out)
-            .args(["phantom:16", "--rays", "6", "--size", "32x32"]);
+        let (mut cmd, _out) = session(&root, &format!("blend-{n}"));
+        cmd.args(["phantom:16", "--rays", "6", "--size", "32x32"]);
         match args {
             ["--blend", mode] => cmd.args(["--blend", mode, "--frames", "5"]),
             _ => cmd.args(["--passthrough", "--frames", "5"]),
@@ -225,13 +226,8 @@ fn killing_the_runtime_mid_session_ends_it_at_once_with_a_clear_error_and_a_vali
     let Some((root, _turn)) = xr_root() else {
         return;
     };
-    let out =
-        Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("xr-kill-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
-    let run = Command::new(repo().join("scripts/xr-session.sh"))
-        .arg(&root)
-        .arg(env!("CARGO_BIN_EXE_cao-xr"))
-        .arg(&out)
+    let (mut session, out) = session(&root, "kill");
+    let run = session
         .args(["phantom:16", "--rays", "6", "--size", "32x32"])
         .args(["--frames", "1000000", "--record", "rec.jsonl"])
         // monado-service is killed (SIGKILL) 6 s after it is up.
@@ -459,16 +455,11 @@ fn monado_remote_hand_pinches_and_carves_and_the_recording_holds_the_joints() {
     let Some((root, _turn)) = xr_root() else {
         return;
     };
-    let out =
-        Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("xr-remote-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let (mut session, out) = session(&root, "remote");
     std::fs::create_dir_all(&out).unwrap();
     let log = |name| std::fs::File::create(out.join(name)).unwrap();
     let frames = REMOTE_FRAMES.to_string();
-    let mut session = Command::new(repo().join("scripts/xr-session.sh"))
-        .arg(&root)
-        .arg(env!("CARGO_BIN_EXE_cao-xr"))
-        .arg(&out)
+    let mut session = session
         // No --carve: the pinch is the trigger. The volume sits where it does by default, so
         // that the recording replays the same carve.
         .args(["phantom:32", "--rays", "6", "--size", "64x64"])
@@ -666,12 +657,8 @@ fn sigterm_mid_session_ends_it_cleanly_with_a_whole_recording() {
     let Some((root, _turn)) = xr_root() else {
         return;
     };
-    let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("xr-sig-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
-    let run = Command::new(repo().join("scripts/xr-session.sh"))
-        .arg(&root)
-        .arg(env!("CARGO_BIN_EXE_cao-xr"))
-        .arg(&out)
+    let (mut session, out) = session(&root, "sig");
+    let run = session
         .args(["phantom:16", "--rays", "6", "--size", "32x32"])
         .args(["--frames", "1000000", "--record", "rec.jsonl"])
         .env("CAO_XR_SIGNAL_AFTER", "TERM 8")
