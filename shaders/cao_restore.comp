@@ -1,23 +1,38 @@
 #version 460
+#extension GL_EXT_buffer_reference : require
 // CAO per frame, step 0: voxels the previous frame's tools touched go back to the background state
 // before this frame's tools are applied: unclipped (O_c = O, AO = V_PAO, category c), or with a
 // probe active, clipped away (O_c = 0, AO = 1, category a).
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
-layout(std430, binding = 0) readonly buffer Opacity { float opacity[]; };
-layout(std430, binding = 1) writeonly buffer Clipped { float clipped[]; };
-layout(std430, binding = 2) writeonly buffer Mask { uint mask[]; };
-layout(std430, binding = 3) readonly buffer Pao { float pao[]; };
-layout(std430, binding = 4) writeonly buffer Ao { float ao[]; };
+// The volume-sized buffers by address, in binding order (src/gpu/resources.rs
+// ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Clipped { float clipped[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Mask { uint mask[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pao { float pao[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Ao { float ao[]; };
 // O_c again, inside the zero border the LAO kernel reads (src/ao/lao.rs LaoLayout).
-layout(std430, binding = 5) writeonly buffer ClippedPadded { float clipped_padded[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer ClippedPadded { float clipped_padded[]; };
 
 layout(push_constant) uniform Push {
+    Opacity opacity_buf;
+    Clipped clipped_buf;
+    Mask mask_buf;
+    Pao pao_buf;
+    Ao ao_buf;
+    ClippedPadded clipped_padded_buf;
     ivec4 dims;
     ivec4 box_min;   // w: 1 = clipped away
     ivec4 box_max;   // exclusive
     ivec4 stride;    // the padded grid's (origin, row, slice)
 } pc;
+#define opacity pc.opacity_buf.opacity
+#define clipped pc.clipped_buf.clipped
+#define mask pc.mask_buf.mask
+#define pao pc.pao_buf.pao
+#define ao pc.ao_buf.ao
+#define clipped_padded pc.clipped_padded_buf.clipped_padded
 
 void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;

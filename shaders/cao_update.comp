@@ -1,4 +1,5 @@
 #version 460
+#extension GL_EXT_buffer_reference : require
 // CAO per frame, step 2: the AO of every voxel of a box from its category: a (clipped) -> 1,
 // c (unaffected) -> the precomputed V_PAO, b -> LAO recomputed on the clipped opacity O_c.
 // With `naive` set, c voxels are recomputed too (the full-LAO baseline).
@@ -9,15 +10,23 @@
 
 layout(local_size_x = LAO_GROUP_X, local_size_y = LAO_GROUP_Y, local_size_z = LAO_GROUP_Z) in;
 
+// The volume-sized buffers by address, in binding order (src/gpu/resources.rs
+// ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
 // O_c with its zero border (src/ao/lao.rs LaoLayout), as clip_mask.comp writes it.
-layout(std430, binding = 0) readonly buffer Opacity { float opacity[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Ao { float ao[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Clear { uint clear_bits[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Mask { uint mask[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pao { float pao[]; };
 layout(std430, binding = 1) readonly buffer Samples { LaoSample samples[]; };
-layout(std430, binding = 2) writeonly buffer Ao { float ao[]; };
-layout(std430, binding = 3) readonly buffer Clear { uint clear_bits[]; };
-layout(std430, binding = 4) readonly buffer Mask { uint mask[]; };
-layout(std430, binding = 5) readonly buffer Pao { float pao[]; };
 
 layout(push_constant) uniform Push {
+    Opacity opacity_buf;
+    Ao ao_buf;
+    Clear clear_bits_buf;
+    Mask mask_buf;
+    Pao pao_buf;
+    uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;
     ivec4 stride;
     uint rays;
@@ -27,6 +36,11 @@ layout(push_constant) uniform Push {
     ivec4 box_min;
     ivec4 box_max;   // exclusive
 } pc;
+#define opacity pc.opacity_buf.opacity
+#define ao pc.ao_buf.ao
+#define clear_bits pc.clear_bits_buf.clear_bits
+#define mask pc.mask_buf.mask
+#define pao pc.pao_buf.pao
 
 #include "opacity.glsl"
 #include "lao.glsl"

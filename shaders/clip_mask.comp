@@ -1,23 +1,34 @@
 #version 460
+#extension GL_EXT_buffer_reference : require
 // CAO per frame, step 1: shadow-test clipping of every voxel of a box with 9 samples (centre and
 // corners), 32 more where they disagree. Writes the anti-aliased opacity O_c, the category mask
 // (0 = a: clipped away, 1 = b: AO affected by the cut, 2 = c: unaffected) and category counts.
 #extension GL_GOOGLE_include_directive : require
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
-layout(std430, binding = 0) readonly buffer Opacity { float opacity[]; };
-layout(std430, binding = 1) writeonly buffer Clipped { float clipped[]; };
-layout(std430, binding = 2) writeonly buffer Mask { uint mask[]; };
+// The volume-sized buffers by address, in binding order (src/gpu/resources.rs
+// ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Clipped { float clipped[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Mask { uint mask[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer ClippedPadded { float clipped_padded[]; };
 layout(std430, binding = 5) buffer Counts { uint counts[]; };
 // O_c again, inside the zero border the LAO kernel reads (src/ao/lao.rs LaoLayout).
-layout(std430, binding = 6) writeonly buffer ClippedPadded { float clipped_padded[]; };
 
 layout(push_constant) uniform Push {
+    Opacity opacity_buf;
+    Clipped clipped_buf;
+    Mask mask_buf;
+    ClippedPadded clipped_padded_buf;
     ivec4 dims;
     ivec4 box_min;   // w: tool count
     ivec4 box_max;   // exclusive
     ivec4 stride;    // the padded grid's (origin, row, slice)
 } pc;
+#define opacity pc.opacity_buf.opacity
+#define clipped pc.clipped_buf.clipped
+#define mask pc.mask_buf.mask
+#define clipped_padded pc.clipped_padded_buf.clipped_padded
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 3

@@ -1,4 +1,5 @@
 #version 460
+#extension GL_EXT_buffer_reference : require
 // Filtered AO (Ruiz et al.), the openness of every voxel of a box, exactly as docs/design.md
 // defines it: the tangent box's centre from the density gradient, then the cdf (t^beta), gauss
 // (Winitzki's erf) or penner estimator from that box's statistics (filter_box.comp), or the
@@ -6,19 +7,32 @@
 // category, a (clipped) -> 1, c (unaffected) -> the precomputed openness, b -> recomputed.
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
-layout(std430, binding = 0) readonly buffer Density { float density[]; };
-layout(std430, binding = 1) readonly buffer Stats { vec4 stats[]; };
-layout(std430, binding = 2) writeonly buffer Ao { float ao[]; };
-layout(std430, binding = 3) readonly buffer Mask { uint mask[]; };
-layout(std430, binding = 4) readonly buffer Pre { float pre[]; };
+// The volume-sized buffers by address, in binding order (src/gpu/resources.rs
+// ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Density { float density[]; };
+layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer Stats { vec4 stats[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Ao { float ao[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Mask { uint mask[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pre { float pre[]; };
 
 layout(push_constant) uniform Push {
+    Density density_buf;
+    Stats stats_buf;
+    Ao ao_buf;
+    Mask mask_buf;
+    Pre pre_buf;
+    uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;      // w: estimator (0 cdf, 1 gauss, 2 penner, 3 exact)
     ivec4 box_min;   // w: mode (0: every voxel, no mask; 1: CAO by category; 2: naive, a -> 1)
     ivec4 box_max;   // exclusive
     ivec4 hw;        // xyz: half-widths h_a; w: N = prod(2 h_a + 1)
     vec4 spacing;    // xyz: mm per voxel; w: R in mm
 } pc;
+#define density pc.density_buf.density
+#define stats pc.stats_buf.stats
+#define ao pc.ao_buf.ao
+#define mask pc.mask_buf.mask
+#define pre pc.pre_buf.pre
 
 float d_at(ivec3 p) {
     if (any(lessThan(p, ivec3(0))) || any(greaterThanEqual(p, pc.dims.xyz))) return 0.0;

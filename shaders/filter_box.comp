@@ -1,4 +1,5 @@
 #version 460
+#extension GL_EXT_buffer_reference : require
 // Filtered AO (Ruiz et al.), the separable box statistics: one pass along one axis. Over the
 // window [-h, h] along that axis it combines (mean, M2 = sum of squared deviations, min, max) of
 // the members, each itself such an aggregate of `count` voxels (1 in pass x, which reads the
@@ -8,15 +9,24 @@
 // region is dispatched, so a region's values equal the whole volume's bit for bit.
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
-layout(std430, binding = 0) readonly buffer Density { float density[]; };
-layout(std430, binding = 1) readonly buffer Src { vec4 src[]; };
-layout(std430, binding = 2) writeonly buffer Dst { vec4 dst[]; };
+// The volume-sized buffers by address, in binding order (src/gpu/resources.rs
+// ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Density { float density[]; };
+layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer Src { vec4 src[]; };
+layout(buffer_reference, std430, buffer_reference_align = 16) writeonly buffer Dst { vec4 dst[]; };
 
 layout(push_constant) uniform Push {
+    Density density_buf;
+    Src src_buf;
+    Dst dst_buf;
+    uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;      // w: axis (0 = x, reading the density; 1 = y, 2 = z)
     ivec4 box_min;   // w: half-width h along the axis
     ivec4 box_max;   // exclusive; w: voxels per member (count)
 } pc;
+#define density pc.density_buf.density
+#define src pc.src_buf.src
+#define dst pc.dst_buf.dst
 
 vec4 member(ivec3 p) {
     if (any(lessThan(p, ivec3(0))) || any(greaterThanEqual(p, pc.dims.xyz))) return vec4(0.0);

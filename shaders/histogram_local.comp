@@ -1,4 +1,5 @@
 #version 460
+#extension GL_EXT_buffer_reference : require
 // Local histograms of the unclipped volume (Ropinski et al., eq. 2), one row per voxel:
 // LH_k(v) = sum of w / W over the in-grid members of S_r whose bin is k. The voxels are a range
 // (base + row) or a list (the clustering's training sample).
@@ -6,16 +7,21 @@
 #include "constants.glsl"
 layout(local_size_x = 64) in;
 
-layout(std430, binding = 0) readonly buffer Bins { uint bins[]; };
+// The volume-sized buffers by address, in binding order (src/gpu/resources.rs
+// ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Bins { uint bins[]; };
 layout(std430, binding = 1) readonly buffer Neighbours { vec4 neighbours[]; };
 layout(std430, binding = 2) readonly buffer List { uint list[]; };
 layout(std430, binding = 3) writeonly buffer Rows { float rows[]; };
 
 layout(push_constant) uniform Push {
+    Bins bins_buf;
+    uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;   // w: number of neighbours
     uvec4 job;    // x: rows, y: bins B, z: first voxel of a range, w: 1 = voxels from the list
     ivec4 reach;  // xyz: S_r's largest offset per axis
 } pc;
+#define bins pc.bins_buf.bins
 
 void main() {
     uint r = gl_GlobalInvocationID.x;

@@ -1,4 +1,5 @@
 #version 460
+#extension GL_EXT_buffer_reference : require
 // Local-histogram AO (Ropinski et al.) for every voxel of a box, as docs/design.md defines it:
 // the direct sums over S_r of w q (openness A = 1 - sum w q / W) and of w q rgb (the bleeding
 // colour E = sum w q rgb / sum w q), q = the clip coverage times the bin's opacity; or the
@@ -7,28 +8,46 @@
 #extension GL_GOOGLE_include_directive : require
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
-layout(std430, binding = 0) readonly buffer Q { float q[]; };
-layout(std430, binding = 1) readonly buffer Bins { uint bins[]; };
+// The volume-sized buffers by address, in binding order (src/gpu/resources.rs
+// ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Q { float q[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Bins { uint bins[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Mask { uint mask[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer PreA { float pre_a[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer PreE { uint pre_e[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer OutA { float out_a[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer OutE { uint out_e[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Ids { uint ids[]; };
 // Per bin: rgb, and the opacity a (unused here: q already holds it).
 layout(std430, binding = 2) readonly buffer BinTable { vec4 bin_table[]; };
 // S_r: offset xyz, and the weight w / W.
 layout(std430, binding = 3) readonly buffer Neighbours { vec4 neighbours[]; };
-layout(std430, binding = 4) readonly buffer Mask { uint mask[]; };
-layout(std430, binding = 5) readonly buffer PreA { float pre_a[]; };
-layout(std430, binding = 6) readonly buffer PreE { uint pre_e[]; };
-layout(std430, binding = 7) writeonly buffer OutA { float out_a[]; };
-layout(std430, binding = 8) writeonly buffer OutE { uint out_e[]; };
-layout(std430, binding = 9) readonly buffer Ids { uint ids[]; };
 // Per cluster, for the current TF: rgb = E, a = A.
 layout(std430, binding = 10) readonly buffer Clusters { vec4 clusters[]; };
 
 layout(push_constant) uniform Push {
+    Q q_buf;
+    Bins bins_buf;
+    Mask mask_buf;
+    PreA pre_a_buf;
+    PreE pre_e_buf;
+    OutA out_a_buf;
+    OutE out_e_buf;
+    Ids ids_buf;
     ivec4 dims;     // w: number of neighbours
     ivec4 box_min;  // w: mode (0: direct sums, no mask; 1: CAO by category; 2: naive, a -> 1;
                     //          3: restore the precomputed values; 4: the clustered values)
     ivec4 box_max;  // exclusive
     ivec4 reach;    // xyz: S_r's largest offset per axis
 } pc;
+#define q pc.q_buf.q
+#define bins pc.bins_buf.bins
+#define mask pc.mask_buf.mask
+#define pre_a pc.pre_a_buf.pre_a
+#define pre_e pc.pre_e_buf.pre_e
+#define out_a pc.out_a_buf.out_a
+#define out_e pc.out_e_buf.out_e
+#define ids pc.ids_buf.ids
 
 void direct(ivec3 v, out float a, out vec3 e) {
     float occ = 0.0;

@@ -1,19 +1,26 @@
 #version 460
+#extension GL_EXT_buffer_reference : require
 // The LAO kernel before issue 18 (per-sample brick and border tests, pow per sample), kept only
 // so that `cao-xr bench lao --kernel both` measures the current one against it in one run.
 #extension GL_GOOGLE_include_directive : require
 
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
-layout(std430, binding = 0) readonly buffer Opacity { float opacity[]; };
-layout(std430, binding = 1) readonly buffer Dirs { vec4 dirs[]; };
-layout(std430, binding = 2) writeonly buffer Ao { float ao[]; };
+// The volume-sized buffers by address, in binding order (src/gpu/resources.rs
+// ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Ao { float ao[]; };
 // Bit v set: no voxel within reach of v's rays (plus the trilinear footprint) has O > 0, so every
 // transmittance is 1 and A(v) = KM / KM = 1 exactly.
-layout(std430, binding = 3) readonly buffer Clear { uint clear_bits[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Clear { uint clear_bits[]; };
+layout(std430, binding = 1) readonly buffer Dirs { vec4 dirs[]; };
 layout(std430, binding = 4) readonly buffer Bricks { uint brick_occupied[]; };
 
 layout(push_constant) uniform Push {
+    Opacity opacity_buf;
+    Ao ao_buf;
+    Clear clear_bits_buf;
+    uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;
     uint rays;
     uint steps;
@@ -21,6 +28,9 @@ layout(push_constant) uniform Push {
     uint z0;
     uint z1;
 } pc;
+#define opacity pc.opacity_buf.opacity
+#define ao pc.ao_buf.ao
+#define clear_bits pc.clear_bits_buf.clear_bits
 
 #include "opacity.glsl"
 #include "lao_old.glsl"

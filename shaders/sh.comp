@@ -1,4 +1,5 @@
 #version 460
+#extension GL_EXT_buffer_reference : require
 // SH visibility, step 2: per SH voxel, visibility in N jittered directions (absorption-only marches
 // through the pyramid with growing steps, or through level 0 only), projected on SH bands 0-1 or
 // 0-3 and packed as snorm8 (coefficient / Y_0). Modes: 0 computes every voxel of the box; 1 (the
@@ -7,14 +8,20 @@
 #extension GL_GOOGLE_include_directive : require
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
-layout(std430, binding = 0) readonly buffer Pyramid { float pyr[]; };
+// The volume-sized buffers by address, in binding order (src/gpu/resources.rs
+// ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pyramid { float pyr[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pre { uint pre[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Out { uint sh_out[]; };
 layout(std430, binding = 1) readonly buffer Levels { ivec4 levels[]; };   // xyz dims, w offset
 layout(std430, binding = 2) readonly buffer Dirs { vec4 dirs[]; };        // index units per mm
 layout(std430, binding = 3) readonly buffer Basis { float basis[]; };     // Y_k of each direction
-layout(std430, binding = 4) readonly buffer Pre { uint pre[]; };
-layout(std430, binding = 5) writeonly buffer Out { uint sh_out[]; };
 
 layout(push_constant) uniform Push {
+    Pyramid pyr_buf;
+    Pre pre_buf;
+    Out sh_out_buf;
+    uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;       // xyz: SH volume dims, w: coefficient groups (1 or 4)
     ivec4 box_min;    // w: number of tools
     ivec4 box_max;    // exclusive; w: mode
@@ -22,6 +29,9 @@ layout(push_constant) uniform Push {
     uvec4 march;      // x: N directions, y: patterns, z: top level, w: steps per level (0: flat)
     vec4 extent;      // xyz: full-resolution dims, w: ray length (mm)
 } pc;
+#define pyr pc.pyr_buf.pyr
+#define pre pc.pre_buf.pre
+#define sh_out pc.sh_out_buf.sh_out
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 6

@@ -1,4 +1,5 @@
 #version 460
+#extension GL_EXT_buffer_reference : require
 // SH visibility, step 1: the expected-opacity pyramid O_0..O_L (Ritschel 2007, src/ao/sh.rs).
 // Level 0: the opacity of crossing one voxel, 1 - (1 - O)^(h0 / 1 mm). Level l+1: for each 2^3
 // block of level l, the mean over its 12 pairs of face-adjacent (successive) voxels of the product
@@ -6,15 +7,21 @@
 // Children outside the grid are empty (transparency 1), as O is zero outside.
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
-layout(std430, binding = 0) readonly buffer Opacity { float opacity[]; };
-layout(std430, binding = 1) buffer Pyramid { float pyr[]; };
+// The volume-sized buffers by address, in binding order (src/gpu/resources.rs
+// ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) buffer Pyramid { float pyr[]; };
 
 layout(push_constant) uniform Push {
+    Opacity opacity_buf;
+    Pyramid pyr_buf;
     ivec4 src_dims;   // xyz: dims of level l (or of O), w: offset of level l in pyr
     ivec4 dst_dims;   // xyz: dims of the level written, w: its offset in pyr
     float exponent;   // level 0: h0 / 1 mm
     uint level0;      // 1: write level 0 from O
 } pc;
+#define opacity pc.opacity_buf.opacity
+#define pyr pc.pyr_buf.pyr
 
 float child_t(ivec3 q) {
     if (any(greaterThanEqual(q, pc.src_dims.xyz))) return 1.0;

@@ -442,14 +442,14 @@ struct VolumeArgs {
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     downsample: u32,
     /// Raw volume dimensions X,Y,Z (x fastest).
-    #[arg(long, value_delimiter = ',', num_args = 3)]
-    raw_dims: Option<Vec<usize>>,
+    #[arg(long, value_parser = parse_triple::<usize>)]
+    raw_dims: Option<[usize; 3]>,
     /// Raw voxel type: u8, u16, i16.
     #[arg(long, default_value = "i16")]
     raw_type: String,
     /// Raw voxel spacing X,Y,Z in mm.
-    #[arg(long, value_delimiter = ',', num_args = 3, default_value = "1,1,1")]
-    raw_spacing: Vec<f64>,
+    #[arg(long, value_parser = parse_triple::<f64>, default_value = "1,1,1")]
+    raw_spacing: [f64; 3],
     /// Raw data is big-endian.
     #[arg(long)]
     raw_big_endian: bool,
@@ -636,21 +636,27 @@ impl LaoArgs {
     }
 }
 
+/// Three comma-separated values, X,Y,Z (clap's `num_args = 3` wants them as three words).
+fn parse_triple<T: std::str::FromStr>(s: &str) -> std::result::Result<[T; 3], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [x, y, z] = parts[..] else {
+        return Err(format!("expected X,Y,Z (three comma-separated values), got {s:?}"));
+    };
+    let one = |v: &str| v.parse::<T>().map_err(|_| format!("{v:?} in {s:?} is not a number"));
+    Ok([one(x)?, one(y)?, one(z)?])
+}
+
 impl VolumeArgs {
     fn load(&self) -> Result<(cao_xr::volume::Volume, TransferFunction)> {
         let raw = match &self.raw_dims {
             None => None,
-            Some(d) => Some(RawSpec {
-                dims: [d[0], d[1], d[2]],
+            Some(dims) => Some(RawSpec {
+                dims: *dims,
                 ty: self
                     .raw_type
                     .parse::<RawType>()
                     .map_err(anyhow::Error::msg)?,
-                spacing: [
-                    self.raw_spacing[0],
-                    self.raw_spacing[1],
-                    self.raw_spacing[2],
-                ],
+                spacing: self.raw_spacing,
                 big_endian: self.raw_big_endian,
                 header_bytes: self.raw_header,
             }),

@@ -12,7 +12,9 @@ use super::histogram_gpu::{HistMode, HistogramGpu};
 use super::lao::{LaoLayout, LaoParams, SkipBuffers, LAO_GROUP};
 use crate::clip::Shape;
 use crate::clip::{shape_mesh, ClipMap, ClipMapGpu, TriMesh};
-use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Result, MAX_FRAMES_IN_FLIGHT};
+use crate::gpu::{
+    Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Reach, Result, MAX_FRAMES_IN_FLIGHT,
+};
 use crate::scene::{Tool, ToolMode};
 use crate::space::{world_from_tex, Placement};
 use crate::volume::Volume;
@@ -238,33 +240,32 @@ impl Cao {
     ) -> Result<Cao> {
         let (dims, spacing) = (vol.dims, vol.spacing);
         let geometry = vol.clone_geometry();
-        let b = vk::DescriptorType::STORAGE_BUFFER;
         let spv = |bytes: &[u8]| bytes.to_vec();
-        let restore = ComputePipeline::new(
+        let restore = ComputePipeline::with_addresses(
             gpu,
             &spv(include_bytes!(concat!(
                 env!("OUT_DIR"),
                 "/cao_restore.comp.spv"
             ))),
-            &[b; 6],
+            &[Reach::Address; 6],
             std::mem::size_of::<ClipPush>() as u32,
         )?;
-        let clip = ComputePipeline::new(
+        let clip = ComputePipeline::with_addresses(
             gpu,
             &spv(include_bytes!(concat!(
                 env!("OUT_DIR"),
                 "/clip_mask.comp.spv"
             ))),
-            &[b; 7],
+            &[Reach::Address, Reach::Address, Reach::Address, Reach::Descriptor, Reach::Descriptor, Reach::Descriptor, Reach::Address],
             std::mem::size_of::<ClipPush>() as u32,
         )?;
-        let update = ComputePipeline::new(
+        let update = ComputePipeline::with_addresses(
             gpu,
             &spv(include_bytes!(concat!(
                 env!("OUT_DIR"),
                 "/cao_update.comp.spv"
             ))),
-            &[b; 6],
+            &[Reach::Address, Reach::Descriptor, Reach::Address, Reach::Address, Reach::Address, Reach::Address],
             std::mem::size_of::<UpdatePush>() as u32,
         )?;
         let n = (dims[0] * dims[1] * dims[2]) as u64;

@@ -6,7 +6,7 @@
 
 use super::cao::{dispatch_box, BoxPush, VoxelBox};
 use super::filtered::FilterParams;
-use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Result};
+use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Reach, Result};
 use ash::vk;
 use gpu_allocator::MemoryLocation;
 
@@ -51,7 +51,6 @@ impl FilterGpu {
         spacing: [f64; 3],
         params: FilterParams,
     ) -> Result<FilterGpu> {
-        let b = vk::DescriptorType::STORAGE_BUFFER;
         let spv_box = include_bytes!(concat!(env!("OUT_DIR"), "/filter_box.comp.spv"));
         let spv_ao = include_bytes!(concat!(env!("OUT_DIR"), "/filter_ao.comp.spv"));
         let n = (dims[0] * dims[1] * dims[2]).max(1) as u64;
@@ -66,8 +65,8 @@ impl FilterGpu {
         };
         Ok(FilterGpu {
             gpu: gpu.clone(),
-            boxes: ComputePipeline::new(gpu, spv_box, &[b; 3], 48)?,
-            estimate: ComputePipeline::new(gpu, spv_ao, &[b; 5], 80)?,
+            boxes: ComputePipeline::with_addresses(gpu, spv_box, &[Reach::Address; 3], 48)?,
+            estimate: ComputePipeline::with_addresses(gpu, spv_ao, &[Reach::Address; 5], 80)?,
             pass_a: scratch("filter-stats-a")?,
             pass_b: scratch("filter-stats-b")?,
             dims,

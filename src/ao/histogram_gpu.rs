@@ -7,7 +7,7 @@
 
 use super::cao::{dispatch_box, VoxelBox};
 use super::histogram::{self as hist, Clusters, HistParams, Neighbourhood, Packing};
-use crate::gpu::{Buffer, ComputePipeline, Gpu, Result};
+use crate::gpu::{Buffer, ComputePipeline, Gpu, Reach, Result};
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use ash::vk;
@@ -155,7 +155,6 @@ impl HistogramGpu {
         nb: Neighbourhood,
         clusters: Option<Clusters>,
     ) -> Result<HistogramGpu> {
-        let b = vk::DescriptorType::STORAGE_BUFFER;
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
         let n = bin_ids.len();
         let rgba8 = |name| {
@@ -169,7 +168,7 @@ impl HistogramGpu {
         };
         let mut h = HistogramGpu {
             gpu: gpu.clone(),
-            sums: ComputePipeline::new(gpu, spv("sums"), &[b; 11], 64)?,
+            sums: ComputePipeline::with_addresses(gpu, spv("sums"), &[Reach::Address, Reach::Address, Reach::Descriptor, Reach::Descriptor, Reach::Address, Reach::Address, Reach::Address, Reach::Address, Reach::Address, Reach::Address, Reach::Descriptor], 64)?,
             params,
             dims,
             spacing,
@@ -330,10 +329,10 @@ impl HistogramGpu {
             )
         };
 
-        let local = ComputePipeline::new(
+        let local = ComputePipeline::with_addresses(
             &self.gpu,
             spv("local"),
-            &[vk::DescriptorType::STORAGE_BUFFER; 4],
+            &[Reach::Address, Reach::Descriptor, Reach::Descriptor, Reach::Descriptor],
             48,
         )?;
         // Training: the sample's histograms, packed.

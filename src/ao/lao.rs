@@ -1,6 +1,6 @@
 //! Local Ambient Occlusion (Hernell et al.) as docs/design.md defines it, precomputed on the GPU.
 
-use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Result};
+use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Reach, Result};
 use ash::vk;
 use bytemuck::Zeroable;
 use glam::DVec3;
@@ -349,12 +349,11 @@ pub struct LaoTiming {
 impl LaoGpu {
     pub fn new(gpu: &Gpu) -> Result<LaoGpu> {
         let spv = include_bytes!(concat!(env!("OUT_DIR"), "/lao.comp.spv"));
-        let b = vk::DescriptorType::STORAGE_BUFFER;
-        let pipeline = ComputePipeline::new(gpu, spv, &[b; 4], std::mem::size_of::<Push>() as u32)?;
-        let old = ComputePipeline::new(
+        let pipeline = ComputePipeline::with_addresses(gpu, spv, &[Reach::Address, Reach::Descriptor, Reach::Address, Reach::Address], std::mem::size_of::<Push>() as u32)?;
+        let old = ComputePipeline::with_addresses(
             gpu,
             include_bytes!(concat!(env!("OUT_DIR"), "/lao_old.comp.spv")),
-            &[b; 5],
+            &[Reach::Address, Reach::Descriptor, Reach::Address, Reach::Address, Reach::Descriptor],
             std::mem::size_of::<OldPush>() as u32,
         )?;
         Ok(LaoGpu {

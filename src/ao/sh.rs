@@ -24,7 +24,7 @@
 
 use super::cao::{Cao, VoxelBox};
 use crate::gpu::{
-    Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Image, ImageDesc, Result,
+    Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Image, ImageDesc, Reach, Result,
     MAX_FRAMES_IN_FLIGHT,
 };
 use crate::light::sh::eval;
@@ -455,17 +455,16 @@ impl ShVolume {
     pub fn new(gpu: &Gpu, vol: &Volume, params: ShParams) -> Result<ShVolume> {
         params.validate().map_err(GpuError::Other)?;
         let grid = ShGrid::new(vol.dims, vol.spacing, &params);
-        let b = vk::DescriptorType::STORAGE_BUFFER;
-        let pyramid_pass = ComputePipeline::new(
+        let pyramid_pass = ComputePipeline::with_addresses(
             gpu,
             include_bytes!(concat!(env!("OUT_DIR"), "/sh_pyramid.comp.spv")),
-            &[b; 2],
+            &[Reach::Address; 2],
             std::mem::size_of::<PyramidPush>() as u32,
         )?;
-        let sh_pass = ComputePipeline::new(
+        let sh_pass = ComputePipeline::with_addresses(
             gpu,
             include_bytes!(concat!(env!("OUT_DIR"), "/sh.comp.spv")),
-            &[b; 8],
+            &[Reach::Address, Reach::Descriptor, Reach::Descriptor, Reach::Descriptor, Reach::Address, Reach::Address, Reach::Descriptor, Reach::Descriptor],
             std::mem::size_of::<ShPush>() as u32,
         )?;
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER

@@ -7,8 +7,8 @@ mod resources;
 mod timer;
 
 pub use resources::{
-    cmd_blit_color, cmd_image_barrier, push_set_layout, shader_module, Buffer, ComputePipeline,
-    Image, ImageDesc,
+    address_bytes, cmd_blit_color, cmd_image_barrier, push_set_layout, shader_module, Buffer,
+    ComputePipeline, Image, ImageDesc, Reach,
 };
 pub use timer::GpuTimer;
 
@@ -379,7 +379,11 @@ impl Gpu {
         let mut f13 = vk::PhysicalDeviceVulkan13Features::default()
             .dynamic_rendering(true)
             .synchronization2(true);
-        let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f13);
+        // Buffer device addresses: the volume passes reach buffers past maxStorageBufferRange.
+        let mut f12 = vk::PhysicalDeviceVulkan12Features::default().buffer_device_address(true);
+        let mut f2 = vk::PhysicalDeviceFeatures2::default()
+            .push_next(&mut f13)
+            .push_next(&mut f12);
         let dinfo = vk::DeviceCreateInfo::default()
             .queue_create_infos(&queue_info)
             .enabled_extension_names(&dev_exts)
@@ -393,7 +397,7 @@ impl Gpu {
             device: device.clone(),
             physical_device: physical,
             debug_settings: Default::default(),
-            buffer_device_address: false,
+            buffer_device_address: true,
             allocation_sizes: Default::default(),
         })?;
         let cmd_pool = device.create_command_pool(
@@ -466,10 +470,16 @@ unsafe fn pick_device(
             continue;
         }
         let mut f13 = vk::PhysicalDeviceVulkan13Features::default();
-        let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut f13);
+        let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
+        let mut f2 = vk::PhysicalDeviceFeatures2::default()
+            .push_next(&mut f13)
+            .push_next(&mut f12);
         instance.get_physical_device_features2(pd, &mut f2);
-        if f13.dynamic_rendering == 0 || f13.synchronization2 == 0 {
-            rejected.push(format!("{name}: lacks dynamicRendering/synchronization2"));
+        if f13.dynamic_rendering == 0 || f13.synchronization2 == 0 || f12.buffer_device_address == 0
+        {
+            rejected.push(format!(
+                "{name}: lacks dynamicRendering/synchronization2/bufferDeviceAddress"
+            ));
             continue;
         }
         let want = vk::QueueFlags::GRAPHICS | vk::QueueFlags::COMPUTE;
@@ -503,6 +513,21 @@ unsafe fn pick_device(
 
 impl Core {
     /// Size in bytes of the largest device-local memory heap (where volumes and their AO live).
+    /// The largest buffer the device makes: the smaller of `maxMemoryAllocationSize` and
+    /// `maxBufferSize`.
+    pub fn max_buffer_bytes(&self) -> u64 {
+        let mut p11 = vk::PhysicalDeviceVulkan11Properties::default();
+        let mut p13 = vk::PhysicalDeviceVulkan13Properties::default();
+        let mut p2 = vk::PhysicalDeviceProperties2::default()
+            .push_next(&mut p11)
+            .push_next(&mut p13);
+        unsafe {
+            self.instance
+                .get_physical_device_properties2(self.physical, &mut p2)
+        };
+        p11.max_memory_allocation_size.min(p13.max_buffer_size)
+    }
+
     pub fn device_local_heap_bytes(&self) -> u64 {
         let mem = unsafe {
             self.instance

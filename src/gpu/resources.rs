@@ -9,6 +9,9 @@ pub struct Buffer {
     gpu: Gpu,
     pub raw: vk::Buffer,
     pub size: u64,
+    /// Its device address, for the compute passes that reach storage buffers by address
+    /// ([`ComputePipeline::by_address`]); 0 for a buffer that is not a storage buffer.
+    pub address: vk::DeviceAddress,
     alloc: Option<Allocation>,
     /// Its share of [`super::Core::memory_in_use`].
     held: u64,
@@ -22,6 +25,14 @@ impl Buffer {
         location: MemoryLocation,
         name: &str,
     ) -> Result<Buffer> {
+        // Every storage buffer can be reached by address: that is how the volume passes read
+        // buffers past `maxStorageBufferRange`, which limits a descriptor, not a buffer.
+        let by_address = usage.contains(vk::BufferUsageFlags::STORAGE_BUFFER);
+        let usage = if by_address {
+            usage | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS
+        } else {
+            usage
+        };
         unsafe {
             let raw = gpu.device.create_buffer(
                 &vk::BufferCreateInfo::default()
@@ -59,14 +70,20 @@ impl Buffer {
             };
             let (memory, offset) = (alloc.memory(), alloc.offset());
             // Owned from here on: if binding fails, Drop frees the memory and the handle.
-            let buffer = Buffer {
+            let mut buffer = Buffer {
                 gpu: gpu.clone(),
                 raw,
                 size,
+                address: 0,
                 alloc: Some(alloc),
                 held,
             };
             gpu.device.bind_buffer_memory(raw, memory, offset)?;
+            if by_address {
+                buffer.address = gpu
+                    .device
+                    .get_buffer_device_address(&vk::BufferDeviceAddressInfo::default().buffer(raw));
+            }
             Ok(buffer)
         }
     }
@@ -473,12 +490,33 @@ pub fn cmd_image_barrier(
 }
 
 /// A compute pipeline whose descriptors are pushed (VK_KHR_push_descriptor), one set, with an
-/// optional push-constant block.
+/// optional push-constant block. A pass over whole volumes reaches its volume-sized buffers by
+/// device address instead, at the start of the push constants
+/// ([`ComputePipeline::with_addresses`]): `maxStorageBufferRange` limits a descriptor (128 MiB
+/// on lavapipe, less than one f32 copy of a routine chest CT), not an address.
 pub struct ComputePipeline {
     gpu: Gpu,
     pub pipeline: vk::Pipeline,
     pub layout: vk::PipelineLayout,
     pub set_layout: vk::DescriptorSetLayout,
+    /// Per buffer, in binding order: whether it is reached by address (else by descriptor).
+    reach: Vec<Reach>,
+}
+
+/// How a compute pass reaches one of its storage buffers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Reach {
+    /// A pushed descriptor at its binding: small tables.
+    Descriptor,
+    /// Its device address in the push constants: the volume-sized buffers.
+    Address,
+}
+
+/// Bytes that `n` buffer addresses take at the start of a pass's push constants: 8 each, rounded
+/// up to 16 so that the pass's own block starts aligned (a shader with an odd count declares a
+/// `uvec2` pad after its references).
+pub fn address_bytes(n: usize) -> u32 {
+    (8 * n as u32).next_multiple_of(16)
 }
 
 /// Creates a shader module from SPIR-V bytes (as built by build.rs).
@@ -497,15 +535,27 @@ pub fn push_set_layout(
     bindings: &[vk::DescriptorType],
     stages: vk::ShaderStageFlags,
 ) -> Result<vk::DescriptorSetLayout> {
+    let bindings: Vec<_> = bindings.iter().map(|&t| Some(t)).collect();
+    sparse_set_layout(gpu, &bindings, stages)
+}
+
+/// [`push_set_layout`] with no descriptor at the bindings that are None.
+fn sparse_set_layout(
+    gpu: &Gpu,
+    bindings: &[Option<vk::DescriptorType>],
+    stages: vk::ShaderStageFlags,
+) -> Result<vk::DescriptorSetLayout> {
     let b: Vec<_> = bindings
         .iter()
         .enumerate()
-        .map(|(i, t)| {
-            vk::DescriptorSetLayoutBinding::default()
-                .binding(i as u32)
-                .descriptor_type(*t)
-                .descriptor_count(1)
-                .stage_flags(stages)
+        .filter_map(|(i, t)| {
+            t.map(|t| {
+                vk::DescriptorSetLayoutBinding::default()
+                    .binding(i as u32)
+                    .descriptor_type(t)
+                    .descriptor_count(1)
+                    .stage_flags(stages)
+            })
         })
         .collect();
     Ok(unsafe {
@@ -519,14 +569,54 @@ pub fn push_set_layout(
 }
 
 impl ComputePipeline {
+    /// A pass over volumes: its storage buffers (bindings 0..n) reached as `reach` says, the
+    /// addresses first in the push constants (see [`address_bytes`]), then its own
+    /// `push_constant_bytes`.
+    pub fn with_addresses(
+        gpu: &Gpu,
+        spv: &[u8],
+        reach: &[Reach],
+        push_constant_bytes: u32,
+    ) -> Result<ComputePipeline> {
+        let addresses = reach.iter().filter(|&&r| r == Reach::Address).count();
+        let bytes = address_bytes(addresses) + push_constant_bytes;
+        let limit = gpu.limits.max_push_constants_size;
+        if bytes > limit {
+            return Err(GpuError::Other(format!(
+                "a compute pass needs {bytes} bytes of push constants ({addresses} buffer \
+                 addresses and its own {push_constant_bytes}); the device allows {limit}"
+            )));
+        }
+        let descriptors: Vec<Option<vk::DescriptorType>> = reach
+            .iter()
+            .map(|r| (*r == Reach::Descriptor).then_some(vk::DescriptorType::STORAGE_BUFFER))
+            .collect();
+        let mut p = ComputePipeline::build(gpu, spv, &descriptors, bytes)?;
+        p.reach = reach.to_vec();
+        Ok(p)
+    }
+
     pub fn new(
         gpu: &Gpu,
         spv: &[u8],
         bindings: &[vk::DescriptorType],
         push_constant_bytes: u32,
     ) -> Result<ComputePipeline> {
+        let bindings: Vec<_> = bindings.iter().map(|&t| Some(t)).collect();
+        let mut p = ComputePipeline::build(gpu, spv, &bindings, push_constant_bytes)?;
+        p.reach = vec![Reach::Descriptor; bindings.len()];
+        Ok(p)
+    }
+
+    /// The pipeline with a descriptor at each binding that has a type (the others are absent).
+    fn build(
+        gpu: &Gpu,
+        spv: &[u8],
+        bindings: &[Option<vk::DescriptorType>],
+        push_constant_bytes: u32,
+    ) -> Result<ComputePipeline> {
         unsafe {
-            let set_layout = push_set_layout(gpu, bindings, vk::ShaderStageFlags::COMPUTE)?;
+            let set_layout = sparse_set_layout(gpu, bindings, vk::ShaderStageFlags::COMPUTE)?;
             let ranges = [vk::PushConstantRange::default()
                 .stage_flags(vk::ShaderStageFlags::COMPUTE)
                 .size(push_constant_bytes)];
@@ -554,20 +644,29 @@ impl ComputePipeline {
                 pipeline,
                 layout,
                 set_layout,
+                reach: Vec::new(),
             })
         }
     }
 
-    /// Binds the pipeline, pushes the storage buffers (bindings 0..n) and push constants.
+    /// Binds the pipeline, pushes the storage buffers (bindings 0..n: descriptors, and the
+    /// addresses before `push`) and the push constants.
     pub fn bind(&self, cmd: vk::CommandBuffer, buffers: &[&Buffer], push: &[u8]) {
-        let infos: Vec<[vk::DescriptorBufferInfo; 1]> =
-            buffers.iter().map(|b| [b.descriptor()]).collect();
+        assert_eq!(buffers.len(), self.reach.len(), "a compute pass bound with the wrong buffer count");
+        let by = |r: Reach| buffers.iter().zip(&self.reach).enumerate().filter(move |(_, (_, &x))| x == r);
+        let mut bytes: Vec<u8> = by(Reach::Address)
+            .flat_map(|(_, (b, _))| b.address.to_le_bytes())
+            .collect();
+        bytes.resize(address_bytes(bytes.len() / 8) as usize, 0);
+        bytes.extend_from_slice(push);
+        let infos: Vec<(u32, [vk::DescriptorBufferInfo; 1])> = by(Reach::Descriptor)
+            .map(|(i, (b, _))| (i as u32, [b.descriptor()]))
+            .collect();
         let writes: Vec<_> = infos
             .iter()
-            .enumerate()
             .map(|(i, info)| {
                 vk::WriteDescriptorSet::default()
-                    .dst_binding(i as u32)
+                    .dst_binding(*i)
                     .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
                     .buffer_info(info)
             })
@@ -575,15 +674,17 @@ impl ComputePipeline {
         unsafe {
             let d = &self.gpu.device;
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, self.pipeline);
-            self.gpu.push_descriptor.cmd_push_descriptor_set(
-                cmd,
-                vk::PipelineBindPoint::COMPUTE,
-                self.layout,
-                0,
-                &writes,
-            );
-            if !push.is_empty() {
-                d.cmd_push_constants(cmd, self.layout, vk::ShaderStageFlags::COMPUTE, 0, push);
+            if !writes.is_empty() {
+                self.gpu.push_descriptor.cmd_push_descriptor_set(
+                    cmd,
+                    vk::PipelineBindPoint::COMPUTE,
+                    self.layout,
+                    0,
+                    &writes,
+                );
+            }
+            if !bytes.is_empty() {
+                d.cmd_push_constants(cmd, self.layout, vk::ShaderStageFlags::COMPUTE, 0, &bytes);
             }
         }
     }

@@ -211,8 +211,10 @@ pub struct VolumeTextures {
 pub struct VolumeLimits {
     /// Largest side of a 3D image (`maxImageDimension3D`).
     pub max_image_dimension_3d: u64,
-    /// Largest storage-buffer binding (`maxStorageBufferRange`): O and the AO are f32 buffers.
-    pub max_storage_buffer_range: u64,
+    /// Largest single buffer: the smaller of `maxMemoryAllocationSize` and `maxBufferSize`.
+    /// (`maxStorageBufferRange` does not limit a volume: the volume passes reach their buffers
+    /// by device address.)
+    pub max_buffer_bytes: u64,
     /// Size of the largest device-local heap.
     pub device_local_bytes: u64,
 }
@@ -221,7 +223,7 @@ impl VolumeLimits {
     pub fn of(gpu: &Gpu) -> VolumeLimits {
         VolumeLimits {
             max_image_dimension_3d: gpu.limits.max_image_dimension3_d as u64,
-            max_storage_buffer_range: gpu.limits.max_storage_buffer_range as u64,
+            max_buffer_bytes: gpu.max_buffer_bytes(),
             device_local_bytes: gpu.device_local_heap_bytes(),
         }
     }
@@ -230,9 +232,13 @@ impl VolumeLimits {
 /// GPU bytes per voxel: the scalar and AO images (R32F), O, O_c, V_PAO and V_AO (f32 buffers).
 pub const GPU_BYTES_PER_VOXEL: u64 = 6 * 4;
 
-/// Whether a volume of `dims` voxels fits `limits` (3D image side, f32 storage-buffer range,
-/// [`GPU_BYTES_PER_VOXEL`] per voxel within the device-local heap). The refusal names the volume,
-/// its dims, the limit, and the smallest `--downsample N` that fits.
+/// The shaders index a volume's voxels with 32-bit signed integers.
+pub const MAX_VOXELS: u64 = (1 << 31) - 1;
+
+/// Whether a volume of `dims` voxels fits `limits` (3D image side, one f32 buffer per voxel
+/// within the largest buffer, 32-bit voxel indices, [`GPU_BYTES_PER_VOXEL`] per voxel within the
+/// device-local heap). The refusal names the volume, its dims, the limit, and the smallest
+/// `--downsample N` that fits.
 pub fn check_volume_fits(
     name: &str,
     dims: [usize; 3],
@@ -247,11 +253,13 @@ pub fn check_volume_fits(
                 "a side of {side} voxels exceeds the 3D image limit of {} per axis",
                 limits.max_image_dimension_3d
             ))
-        } else if voxels * 4 > limits.max_storage_buffer_range {
+        } else if voxels > MAX_VOXELS {
+            Some(format!("{voxels} voxels exceed the {MAX_VOXELS} a shader can index"))
+        } else if voxels * 4 > limits.max_buffer_bytes {
             Some(format!(
-                "{} bytes per f32 volume exceed the storage-buffer limit of {} bytes",
+                "{} bytes per f32 volume exceed the largest buffer the device allocates ({} bytes)",
                 voxels * 4,
-                limits.max_storage_buffer_range
+                limits.max_buffer_bytes
             ))
         } else if voxels * GPU_BYTES_PER_VOXEL > limits.device_local_bytes {
             Some(format!(
@@ -1274,7 +1282,7 @@ mod tests {
 
     const LIMITS: VolumeLimits = VolumeLimits {
         max_image_dimension_3d: 2048,
-        max_storage_buffer_range: 1 << 32,
+        max_buffer_bytes: 1 << 32,
         device_local_bytes: 8 << 30,
     };
 
@@ -1288,6 +1296,10 @@ mod tests {
             check_volume_fits("edge", [2048, 1, 1], &LIMITS, "gpu"),
             Ok(())
         );
+        // Past lavapipe's 128 MiB storage-buffer range: a routine chest CT and a long one.
+        for dims in [[512, 512, 133], [512, 512, 600], [1024, 1024, 300]] {
+            assert_eq!(check_volume_fits("ct", dims, &LIMITS, "gpu"), Ok(()));
+        }
     }
 
     #[test]
@@ -1306,7 +1318,7 @@ mod tests {
     fn too_many_bytes_are_refused_with_a_downsample_hint() {
         // 1024^3 voxels x 24 bytes = 24 GiB > 8 GiB; / 2 per axis = 3 GiB fits.
         let limits = VolumeLimits {
-            max_storage_buffer_range: u64::MAX,
+            max_buffer_bytes: u64::MAX,
             ..LIMITS
         };
         let e = check_volume_fits("big", [1024, 1024, 1024], &limits, "gpu").unwrap_err();
@@ -1317,12 +1329,21 @@ mod tests {
                 && e.contains("--downsample 2"),
             "{e}"
         );
-        // Just over 4 GiB of f32 exceeds the storage-buffer range; the message says so.
+        // Just over 4 GiB of f32 exceeds the largest buffer; the message says so.
         let e = check_volume_fits("buf", [1024, 1024, 1025], &LIMITS, "gpu").unwrap_err();
         assert!(
-            e.contains("storage-buffer limit of 4294967296 bytes") && e.contains("--downsample 2"),
+            e.contains("largest buffer the device allocates (4294967296 bytes)")
+                && e.contains("--downsample 2"),
             "{e}"
         );
+        // Past 2^31 voxels the shaders' indices would overflow.
+        let huge = VolumeLimits {
+            max_image_dimension_3d: 1 << 16,
+            max_buffer_bytes: u64::MAX,
+            device_local_bytes: u64::MAX,
+        };
+        let e = check_volume_fits("huge", [2048, 2048, 600], &huge, "gpu").unwrap_err();
+        assert!(e.contains("a shader can index") && e.contains("--downsample 2"), "{e}");
         // Nothing fits a heap of zero bytes.
         let none = VolumeLimits {
             device_local_bytes: 0,

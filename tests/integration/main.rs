@@ -14,6 +14,7 @@ mod foreign;
 mod gpu_memory;
 mod histogram;
 mod lao;
+mod large;
 mod overlay;
 mod render;
 mod sh;
