@@ -93,7 +93,8 @@ struct MemoryUse {
 /// Fails the build unless a `#[repr(C)]` struct that a shader reads has the size and field
 /// offsets of its GLSL block (std140 for uniform blocks, std430 for push constants and storage
 /// buffers), written next to the struct from the GLSL declaration:
-/// `glsl_layout!(Push, 36, dims: 0, rays: 16, steps: 20);`
+/// `glsl_layout!(Push, 36, dims: 0, rays: 16, steps: 20);` (in a pass that reaches buffers by
+/// address, offsets count from the end of the addresses: [`address_bytes`]).
 macro_rules! glsl_layout {
     ($t:ty, $size:expr, $($field:ident: $offset:expr),+ $(,)?) => {
         const _: () = {
