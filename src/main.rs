@@ -456,6 +456,27 @@ struct VolumeArgs {
     /// Bytes to skip at the start of a raw file.
     #[arg(long, default_value_t = 0)]
     raw_header: u64,
+    /// A segmentation shown over the volume: a multi-label NIfTI (TotalSegmentator --ml), a
+    /// folder of binary NIfTI masks (one per structure, named by the file), or a 3D Slicer
+    /// .seg.nrrd. Resampled into the volume's grid by physical position.
+    #[arg(long)]
+    labels: Option<PathBuf>,
+    /// Names and colours of the label values: an ITK-SNAP label description file or a 3D Slicer
+    /// colour table.
+    #[arg(long, requires = "labels")]
+    label_names: Option<PathBuf>,
+    /// Show only these structures (names or label values, comma-separated).
+    #[arg(long, value_delimiter = ',', requires = "labels")]
+    show: Vec<String>,
+    /// Hide these structures.
+    #[arg(long, value_delimiter = ',', requires = "labels")]
+    hide: Vec<String>,
+    /// A structure's opacity, NAME=A (A in 0..1; repeatable or comma-separated).
+    #[arg(long, value_delimiter = ',', requires = "labels")]
+    opacity: Vec<String>,
+    /// Structures the tools leave standing inside a cut (comma-separated).
+    #[arg(long, value_delimiter = ',', requires = "labels")]
+    protect: Vec<String>,
 }
 
 #[derive(Args)]
@@ -640,9 +661,14 @@ impl LaoArgs {
 fn parse_triple<T: std::str::FromStr>(s: &str) -> std::result::Result<[T; 3], String> {
     let parts: Vec<&str> = s.split(',').map(str::trim).collect();
     let [x, y, z] = parts[..] else {
-        return Err(format!("expected X,Y,Z (three comma-separated values), got {s:?}"));
+        return Err(format!(
+            "expected X,Y,Z (three comma-separated values), got {s:?}"
+        ));
     };
-    let one = |v: &str| v.parse::<T>().map_err(|_| format!("{v:?} in {s:?} is not a number"));
+    let one = |v: &str| {
+        v.parse::<T>()
+            .map_err(|_| format!("{v:?} in {s:?} is not a number"))
+    };
     Ok([one(x)?, one(y)?, one(z)?])
 }
 
@@ -668,6 +694,17 @@ impl VolumeArgs {
                 "downsampled {0}x{0}x{0}: {1} x {2} x {3} voxels",
                 self.downsample, vol.dims[0], vol.dims[1], vol.dims[2]
             );
+        }
+        if let Some(path) = &self.labels {
+            let mut map = cao_xr::volume::labels::load(path, self.label_names.as_deref(), &vol)?;
+            map.apply(&cao_xr::volume::labels::LabelDisplay {
+                show: self.show.clone(),
+                hide: self.hide.clone(),
+                opacity: self.opacity.clone(),
+                protect: self.protect.clone(),
+            })
+            .map_err(anyhow::Error::msg)?;
+            vol.labels = Some(std::sync::Arc::new(map));
         }
         let tf = match &self.tf {
             Some(t) => TransferFunction::resolve(t)?,

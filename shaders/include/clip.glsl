@@ -45,8 +45,10 @@ bool tool_contracted(uint t, vec3 local) {
     return local.z >= d.z && local.z <= d.w;
 }
 
-// bit 0: visible after all tools; bit 1: within the reach of any tool's cut.
-uint clip_test_index(vec3 p) {
+// bit 0: visible after all tools; bit 1: within the reach of any tool's cut. A `spared` point
+// (its voxel's structure is protected) stays visible inside a carving tool; a probe still hides
+// all outside it (docs/design.md, selective clipping).
+uint clip_test_index(vec3 p, bool spared) {
     bool visible = true;
     bool affected = false;
     for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
@@ -54,7 +56,7 @@ uint clip_test_index(vec3 p) {
         uint r = tool_test(t, local);
         bool probe = tools[t].map.w > 0.5;
         bool inside = (r & 1u) != 0u;
-        if (probe ? !inside : inside) visible = false;
+        if (probe ? !inside : inside && !spared) visible = false;
         // A carve's cut reaches its dilation; a probe cuts everything outside its shape, which
         // reaches all but its contraction (the paper's Sect. 3.4, conditions inverted).
         if (probe ? !tool_contracted(t, local) : (r & 2u) != 0u) affected = true;
@@ -78,11 +80,12 @@ bool sh_affected_index(vec3 p) {
     return false;
 }
 
-// The first tool that hides world point w (the ray caster's shadow test), or -1.
-int hiding_tool(vec3 w) {
+// The first tool that hides world point w (the ray caster's shadow test), or -1; the same rule
+// as clip_test_index for a `spared` point.
+int hiding_tool(vec3 w, bool spared) {
     for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
         bool inside = (tool_test(t, (tools[t].local_from_world * vec4(w, 1.0)).xyz) & 1u) != 0u;
-        if (tools[t].map.w > 0.5 ? !inside : inside) return int(t);
+        if (tools[t].map.w > 0.5 ? !inside : inside && !spared) return int(t);
     }
     return -1;
 }

@@ -21,4 +21,6 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     vec4 bleeding;           // x: bleeding weight W of the local-histogram method (0: off)
     vec4 sh_light[16];       // rgb: Y_0 * L_k per colour channel (the environment in data space)
     ivec4 tool_reach[2 * MAX_TOOLS]; // per tool, index-space [min, max) holding all it hides
+    vec4 structures[256];    // per structure id (0: unlabelled): rgb colour, a: opacity a_l
+    uvec4 protect[2];        // bit id: the structure is protected from the carving tools
 } frame;

@@ -226,6 +226,33 @@ pub struct Cao {
     pub reach_boxes: Vec<VoxelBox>,
     /// The AO method.
     method: MethodGpu,
+    /// The structure of every voxel, a byte each (a 4-byte stand-in without labels), and the
+    /// protected structures' 256-bit set: the carving tools leave those voxels standing.
+    labels: Buffer,
+    protect: Buffer,
+    any_protected: bool,
+}
+
+/// The label map's structure ids packed four to a word, as clip_mask.comp reads them (one
+/// zero word without labels), and the protected set.
+fn label_buffers(gpu: &Gpu, vol: &Volume) -> Result<(Buffer, Buffer, bool)> {
+    let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
+    let (words, bits, any) = match vol.labels.as_deref() {
+        Some(l) => {
+            let words: Vec<u32> = l
+                .ids
+                .chunks(4)
+                .map(|c| c.iter().rev().fold(0u32, |w, &id| (w << 8) | id as u32))
+                .collect();
+            (words, l.protected_bits(), l.any_protected())
+        }
+        None => (vec![0u32], [0u32; 8], false),
+    };
+    Ok((
+        Buffer::device_local(gpu, &words, storage, "cao-labels")?,
+        Buffer::from_slice(gpu, &bits, storage, "cao-protect")?,
+        any,
+    ))
 }
 
 impl Cao {
@@ -240,6 +267,7 @@ impl Cao {
     ) -> Result<Cao> {
         let (dims, spacing) = (vol.dims, vol.spacing);
         let geometry = vol.clone_geometry();
+        let (labels, protect, any_protected) = label_buffers(gpu, vol)?;
         let spv = |bytes: &[u8]| bytes.to_vec();
         let restore = ComputePipeline::with_addresses(
             gpu,
@@ -256,7 +284,17 @@ impl Cao {
                 env!("OUT_DIR"),
                 "/clip_mask.comp.spv"
             ))),
-            &[Reach::Address, Reach::Address, Reach::Address, Reach::Descriptor, Reach::Descriptor, Reach::Descriptor, Reach::Address],
+            &[
+                Reach::Address,
+                Reach::Address,
+                Reach::Address,
+                Reach::Descriptor,
+                Reach::Descriptor,
+                Reach::Descriptor,
+                Reach::Address,
+                Reach::Address,
+                Reach::Descriptor,
+            ],
             std::mem::size_of::<ClipPush>() as u32,
         )?;
         let update = ComputePipeline::with_addresses(
@@ -265,7 +303,14 @@ impl Cao {
                 env!("OUT_DIR"),
                 "/cao_update.comp.spv"
             ))),
-            &[Reach::Address, Reach::Descriptor, Reach::Address, Reach::Address, Reach::Address, Reach::Address],
+            &[
+                Reach::Address,
+                Reach::Descriptor,
+                Reach::Address,
+                Reach::Address,
+                Reach::Address,
+                Reach::Address,
+            ],
             std::mem::size_of::<UpdatePush>() as u32,
         )?;
         let n = (dims[0] * dims[1] * dims[2]) as u64;
@@ -318,6 +363,9 @@ impl Cao {
             tool_count: 0,
             reach_boxes: Vec::new(),
             method: MethodGpu::Lao,
+            labels,
+            protect,
+            any_protected,
         };
         // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere.
         let all = cao.whole();
@@ -706,8 +754,9 @@ impl Cao {
         let slot = &self.slots[self.slot];
         let (tools, maps) = slot.clip_buffers();
         for b in &boxes {
+            let [x, y, z, _] = self.dims4();
             let push = ClipPush {
-                dims: self.dims4(),
+                dims: [x, y, z, self.any_protected as i32],
                 box_min: [b.min[0], b.min[1], b.min[2], count as i32],
                 box_max: [b.max[0], b.max[1], b.max[2], 0],
                 stride: self.stride,
@@ -720,6 +769,8 @@ impl Cao {
                 maps,
                 &slot.counts,
                 &self.clipped_padded,
+                &self.labels,
+                &self.protect,
             ];
             self.clip.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.clip, cmd, b);

@@ -520,6 +520,7 @@ mod tests {
             origin: glam::DVec3::ZERO,
             modality: Modality::Unknown,
             voxels: Voxels::F32(v.clone()),
+            labels: None,
         };
         let var = variance_volume(&vol, 1.0);
         // Brute force over the centred box, out-of-grid members at v_min = 100.

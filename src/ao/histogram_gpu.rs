@@ -168,7 +168,24 @@ impl HistogramGpu {
         };
         let mut h = HistogramGpu {
             gpu: gpu.clone(),
-            sums: ComputePipeline::with_addresses(gpu, spv("sums"), &[Reach::Address, Reach::Address, Reach::Descriptor, Reach::Descriptor, Reach::Address, Reach::Address, Reach::Address, Reach::Address, Reach::Address, Reach::Address, Reach::Descriptor], 64)?,
+            sums: ComputePipeline::with_addresses(
+                gpu,
+                spv("sums"),
+                &[
+                    Reach::Address,
+                    Reach::Address,
+                    Reach::Descriptor,
+                    Reach::Descriptor,
+                    Reach::Address,
+                    Reach::Address,
+                    Reach::Address,
+                    Reach::Address,
+                    Reach::Address,
+                    Reach::Address,
+                    Reach::Descriptor,
+                ],
+                64,
+            )?,
             params,
             dims,
             spacing,
@@ -332,7 +349,12 @@ impl HistogramGpu {
         let local = ComputePipeline::with_addresses(
             &self.gpu,
             spv("local"),
-            &[Reach::Address, Reach::Descriptor, Reach::Descriptor, Reach::Descriptor],
+            &[
+                Reach::Address,
+                Reach::Descriptor,
+                Reach::Descriptor,
+                Reach::Descriptor,
+            ],
             48,
         )?;
         // Training: the sample's histograms, packed.

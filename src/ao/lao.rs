@@ -349,11 +349,27 @@ pub struct LaoTiming {
 impl LaoGpu {
     pub fn new(gpu: &Gpu) -> Result<LaoGpu> {
         let spv = include_bytes!(concat!(env!("OUT_DIR"), "/lao.comp.spv"));
-        let pipeline = ComputePipeline::with_addresses(gpu, spv, &[Reach::Address, Reach::Descriptor, Reach::Address, Reach::Address], std::mem::size_of::<Push>() as u32)?;
+        let pipeline = ComputePipeline::with_addresses(
+            gpu,
+            spv,
+            &[
+                Reach::Address,
+                Reach::Descriptor,
+                Reach::Address,
+                Reach::Address,
+            ],
+            std::mem::size_of::<Push>() as u32,
+        )?;
         let old = ComputePipeline::with_addresses(
             gpu,
             include_bytes!(concat!(env!("OUT_DIR"), "/lao_old.comp.spv")),
-            &[Reach::Address, Reach::Descriptor, Reach::Address, Reach::Address, Reach::Descriptor],
+            &[
+                Reach::Address,
+                Reach::Descriptor,
+                Reach::Address,
+                Reach::Address,
+                Reach::Descriptor,
+            ],
             std::mem::size_of::<OldPush>() as u32,
         )?;
         Ok(LaoGpu {

@@ -464,7 +464,16 @@ impl ShVolume {
         let sh_pass = ComputePipeline::with_addresses(
             gpu,
             include_bytes!(concat!(env!("OUT_DIR"), "/sh.comp.spv")),
-            &[Reach::Address, Reach::Descriptor, Reach::Descriptor, Reach::Descriptor, Reach::Address, Reach::Address, Reach::Descriptor, Reach::Descriptor],
+            &[
+                Reach::Address,
+                Reach::Descriptor,
+                Reach::Descriptor,
+                Reach::Descriptor,
+                Reach::Address,
+                Reach::Address,
+                Reach::Descriptor,
+                Reach::Descriptor,
+            ],
             std::mem::size_of::<ShPush>() as u32,
         )?;
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER

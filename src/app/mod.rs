@@ -670,6 +670,9 @@ pub fn info_report(v: &Volume, tf: &TransferFunction) -> String {
     ]
     .map(|l| l + "\n")
     .concat()
+        + &v.labels
+            .as_ref()
+            .map_or(String::new(), |l| l.report(v.spacing))
 }
 
 /// Parses `SHAPE[:SIZE_MM[:X,Y,Z]]` (offset in mm from the volume centre: x right, y up, z

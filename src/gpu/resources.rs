@@ -652,8 +652,18 @@ impl ComputePipeline {
     /// Binds the pipeline, pushes the storage buffers (bindings 0..n: descriptors, and the
     /// addresses before `push`) and the push constants.
     pub fn bind(&self, cmd: vk::CommandBuffer, buffers: &[&Buffer], push: &[u8]) {
-        assert_eq!(buffers.len(), self.reach.len(), "a compute pass bound with the wrong buffer count");
-        let by = |r: Reach| buffers.iter().zip(&self.reach).enumerate().filter(move |(_, (_, &x))| x == r);
+        assert_eq!(
+            buffers.len(),
+            self.reach.len(),
+            "a compute pass bound with the wrong buffer count"
+        );
+        let by = |r: Reach| {
+            buffers
+                .iter()
+                .zip(&self.reach)
+                .enumerate()
+                .filter(move |(_, (_, &x))| x == r)
+        };
         let mut bytes: Vec<u8> = by(Reach::Address)
             .flat_map(|(_, (b, _))| b.address.to_le_bytes())
             .collect();

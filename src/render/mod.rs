@@ -201,9 +201,60 @@ pub struct VolumeTextures {
     pub variance: Option<Image>,
     /// The local-histogram method's bleeding colour E (RGBA8 per voxel), when it is the method.
     pub bleeding: Option<Image>,
+    /// The label map's structure id per voxel (R8 unorm, id / 255; 1 voxel of 0 without labels),
+    /// and per id its colour and opacity a_l and whether it is protected (frame.glsl).
+    pub structures: Image,
+    structure_table: Box<[[f32; 4]; 256]>,
+    protect: [[u32; 4]; 2],
+    labelled: bool,
     pub dims: [usize; 3],
     pub spacing: [f64; 3],
     pub value_range: (f32, f32),
+}
+
+/// The label map's ids as an R8 unorm volume (a single 0 voxel without labels), its structures'
+/// colour and opacity per id, and the protected ids' bits, as the ray caster reads them.
+#[allow(clippy::type_complexity)]
+fn structure_image(
+    gpu: &Gpu,
+    vol: &Volume,
+) -> Result<(Image, Box<[[f32; 4]; 256]>, [[u32; 4]; 2])> {
+    let mut table = Box::new([[0.0f32; 4]; 256]);
+    let mut protect = [[0u32; 4]; 2];
+    let (dims, ids): ([usize; 3], &[u8]) = match vol.labels.as_deref() {
+        Some(l) => {
+            for (k, st) in l.structures.iter().enumerate() {
+                let [r, g, b] = st.colour;
+                table[k + 1] = [r, g, b, st.opacity];
+            }
+            let bits = l.protected_bits();
+            protect = [
+                [bits[0], bits[1], bits[2], bits[3]],
+                [bits[4], bits[5], bits[6], bits[7]],
+            ];
+            (vol.dims, &l.ids)
+        }
+        None => ([1, 1, 1], &[0]),
+    };
+    let img = Image::new(
+        gpu,
+        ImageDesc {
+            image_type: vk::ImageType::TYPE_3D,
+            view_type: vk::ImageViewType::TYPE_3D,
+            format: vk::Format::R8_UNORM,
+            extent: vk::Extent3D {
+                width: dims[0] as u32,
+                height: dims[1] as u32,
+                depth: dims[2] as u32,
+            },
+            layers: 1,
+            usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+            aspect: vk::ImageAspectFlags::COLOR,
+        },
+        "structures",
+    )?;
+    img.upload(ids, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
+    Ok((img, table, protect))
 }
 
 /// What a GPU can hold of a volume (see [`check_volume_fits`]).
@@ -254,7 +305,9 @@ pub fn check_volume_fits(
                 limits.max_image_dimension_3d
             ))
         } else if voxels > MAX_VOXELS {
-            Some(format!("{voxels} voxels exceed the {MAX_VOXELS} a shader can index"))
+            Some(format!(
+                "{voxels} voxels exceed the {MAX_VOXELS} a shader can index"
+            ))
         } else if voxels * 4 > limits.max_buffer_bytes {
             Some(format!(
                 "{} bytes per f32 volume exceed the largest buffer the device allocates ({} bytes)",
@@ -461,7 +514,12 @@ impl VolumeTextures {
             &vec![0u8; (n * n * 4) as usize],
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         )?;
+        let (structures, structure_table, protect) = structure_image(gpu, vol)?;
         let t = VolumeTextures {
+            labelled: vol.labels.is_some(),
+            structures,
+            structure_table,
+            protect,
             scalars,
             ambient,
             lut,
@@ -796,17 +854,21 @@ struct FrameUniforms {
     bleeding: [f32; 4],
     sh_light: [[f32; 4]; 16],
     tool_reach: [[i32; 4]; 2 * MAX_TOOLS],
+    structures: [[f32; 4]; 256],
+    protect: [[u32; 4]; 2],
 }
-crate::gpu::glsl_layout!(FrameUniforms, 992,
+crate::gpu::glsl_layout!(FrameUniforms, 5120,
     inv_view_proj: 0, view_proj: 128, tex_from_world: 256, extent_mm: 320, value_map: 336,
     background: 352, viewport: 368, phong: 384, surface: 400, cut_tint: 416, jitter: 432,
-    lighting: 448, bleeding: 464, sh_light: 480, tool_reach: 736);
+    lighting: 448, bleeding: 464, sh_light: 480, tool_reach: 736, structures: 992,
+    protect: 5088);
 
 /// Flags of `viewport.w` (shaders/raycast.frag).
 const FLAG_PREINTEGRATED: u32 = 1;
 const FLAG_JITTER: u32 = 2;
 const FLAG_TRICUBIC: u32 = 4;
 const FLAG_SKIP_EMPTY: u32 = 8;
+const FLAG_LABELS: u32 = 16;
 
 pub struct Renderer {
     gpu: Gpu,
@@ -909,6 +971,7 @@ impl Renderer {
                     sampled,
                     vk::DescriptorType::STORAGE_BUFFER,
                     vk::DescriptorType::STORAGE_BUFFER,
+                    sampled,
                     sampled,
                     sampled,
                     sampled,
@@ -1031,6 +1094,7 @@ impl Renderer {
                 settings.skip_empty && tex.skip_ready(settings),
                 FLAG_SKIP_EMPTY,
             ),
+            (tex.labelled, FLAG_LABELS),
         ]
         .iter()
         .filter(|f| f.0)
@@ -1117,6 +1181,8 @@ impl Renderer {
                     (None, _) => [0; 4],
                 }
             }),
+            structures: *tex.structure_table,
+            protect: tex.protect,
         };
         self.uniforms[slot].write(0, bytemuck::bytes_of(&u))?;
         let uniforms = &self.uniforms[slot];
@@ -1171,6 +1237,7 @@ impl Renderer {
             (13, self.blue_noise.view),
             (14, tex.skip.view),
             (15, tex.preint_at.view),
+            (16, tex.structures.view),
         ];
         let infos = sampled_views.map(|(_, view)| img(view));
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
@@ -1343,7 +1410,10 @@ mod tests {
             device_local_bytes: u64::MAX,
         };
         let e = check_volume_fits("huge", [2048, 2048, 600], &huge, "gpu").unwrap_err();
-        assert!(e.contains("a shader can index") && e.contains("--downsample 2"), "{e}");
+        assert!(
+            e.contains("a shader can index") && e.contains("--downsample 2"),
+            "{e}"
+        );
         // Nothing fits a heap of zero bytes.
         let none = VolumeLimits {
             device_local_bytes: 0,

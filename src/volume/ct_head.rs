@@ -282,6 +282,7 @@ pub fn convert_inv3_dir(dir: &Path) -> Result<Volume, VolumeError> {
         origin: DVec3::ZERO,
         modality,
         voxels,
+        labels: None,
     })
 }
 

@@ -1283,6 +1283,7 @@ fn load_chosen(dir: &Path, series: &Series) -> Result<Volume, VolumeError> {
         origin: g.origin,
         modality,
         voxels,
+        labels: None,
     })
 }
 

@@ -333,6 +333,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         origin,
         modality,
         voxels,
+        labels: None,
     })
 }
 
@@ -452,6 +453,7 @@ mod tests {
             origin: DVec3::new(-12.5, 30.25, 7.0),
             modality: Modality::Ct,
             voxels,
+            labels: None,
         }
     }
 

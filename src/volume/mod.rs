@@ -3,6 +3,7 @@
 
 pub mod ct_head;
 pub mod dicom;
+pub mod labels;
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;
@@ -115,6 +116,9 @@ pub struct Volume {
     pub origin: DVec3,
     pub modality: Modality,
     pub voxels: Voxels,
+    /// The segmentation resampled into this grid (`--labels`), and how its structures are
+    /// shown: part of the classification O of docs/design.md.
+    pub labels: Option<std::sync::Arc<labels::LabelMap>>,
 }
 
 impl Volume {
@@ -159,6 +163,7 @@ impl Volume {
             origin: self.origin,
             modality: self.modality,
             voxels: Voxels::U8(Vec::new()),
+            labels: None,
         }
     }
 
@@ -232,6 +237,7 @@ impl Volume {
             origin: self.origin + shift,
             modality: self.modality,
             voxels,
+            labels: None,
         }
     }
 
@@ -927,6 +933,7 @@ mod tests {
             origin: DVec3::new(10.0, -5.0, 3.0),
             modality: Modality::Ct,
             voxels: Voxels::I16((0..60).map(|i| i as i16 * 10 - 300).collect()),
+            labels: None,
         };
         let ds = vol.downsample(2);
         assert_eq!(ds.dims, [3, 2, 2]);

@@ -444,6 +444,7 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
         origin,
         modality: Modality::Unknown,
         voxels,
+        labels: None,
     })
 }
 
@@ -597,6 +598,7 @@ mod tests {
             origin: DVec3::new(-12.5, 30.25, 7.0),
             modality: Modality::Unknown,
             voxels,
+            labels: None,
         }
     }
 

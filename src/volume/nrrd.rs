@@ -602,6 +602,7 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
         origin,
         modality,
         voxels,
+        labels: None,
     })
 }
 

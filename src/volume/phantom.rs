@@ -254,6 +254,7 @@ pub fn head(n: usize) -> Volume {
         origin: DVec3::splat(-110.0 + 110.0 / n as f64),
         modality: Modality::Ct,
         voxels: Voxels::I16(data),
+        labels: None,
     }
 }
 

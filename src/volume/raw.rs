@@ -132,6 +132,7 @@ pub fn load(path: &Path, spec: &RawSpec) -> Result<Volume, VolumeError> {
         origin: DVec3::ZERO,
         modality: Modality::Unknown,
         voxels,
+        labels: None,
     })
 }
 

@@ -334,12 +334,17 @@ impl TransferFunction {
         rgba(pts.last().unwrap())
     }
 
-    /// The opacity volume O of docs/design.md (before clipping): tf alpha of every voxel's value.
+    /// The opacity volume O of docs/design.md (before clipping): tf alpha of every voxel's value,
+    /// times its structure's opacity a_l where the volume has labels (0 hidden, 1 unlabelled).
     pub fn opacity_volume(&self, vol: &Volume) -> Vec<f32> {
         let range = vol.value_range();
+        let labels = vol.labels.as_deref();
         (0..vol.voxel_count())
             .into_par_iter()
-            .map(|i| self.eval(vol.voxels.get(i), range)[3])
+            .map(|i| {
+                let a = self.eval(vol.voxels.get(i), range)[3];
+                labels.map_or(a, |l| a * l.factor(i))
+            })
             .collect()
     }
 

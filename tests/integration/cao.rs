@@ -22,7 +22,7 @@ const PARAMS: LaoParams = LaoParams {
     step_mm: 4.0,
 };
 
-fn setup(gpu: &Gpu, vol: &Volume) -> (Cao, Vec<f32>, Vec<f32>) {
+pub(crate) fn setup(gpu: &Gpu, vol: &Volume) -> (Cao, Vec<f32>, Vec<f32>) {
     let tf = TransferFunction::preset("ct-skin").unwrap();
     let o = tf.opacity_volume(vol);
     let lao = LaoGpu::new(gpu).unwrap();

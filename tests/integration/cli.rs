@@ -1178,6 +1178,7 @@ fn info_reads_nifti_and_metaimage() {
         origin: DVec3::new(10.0, -20.0, 30.0),
         modality: Modality::Unknown,
         voxels: Voxels::I16((0..120).map(|i| i * 10 - 500).collect()),
+        labels: None,
     };
     let files = [
         dir.join("v.nii"),
@@ -1249,6 +1250,7 @@ fn info_picks_the_transfer_function_and_downsamples() {
         origin: DVec3::ZERO,
         modality: Modality::Unknown,
         voxels: Voxels::F32((0..120).map(|i| i as f32 * 0.25).collect()),
+        labels: None,
     };
     let f = dir.join("f.nrrd");
     nrrd::write_volume(&f, &vol, false).unwrap();

@@ -79,6 +79,7 @@ pub fn ct_volume(
         origin: DVec3::ZERO,
         modality: Modality::Ct,
         voxels: Voxels::I16(v),
+        labels: None,
     }
 }
 

@@ -167,6 +167,7 @@ impl Spec {
             origin: self.origin,
             modality: Modality::Ct,
             voxels: Voxels::I16(v),
+            labels: None,
         }
     }
 

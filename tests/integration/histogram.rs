@@ -55,6 +55,7 @@ fn volume(dims: [usize; 3], spacing: f64, v: Vec<f32>) -> Volume {
         origin: DVec3::ZERO,
         modality: Modality::Unknown,
         voxels: Voxels::F32(v),
+        labels: None,
     }
 }
 

@@ -34,7 +34,11 @@ fn content(d: [usize; 3]) -> Vec<i16> {
     for z in 0..d[2] {
         for y in 0..d[1] {
             for x in 0..d[0] {
-                let p = [x as f64 + 0.5 - c[0], y as f64 + 0.5 - c[1], z as f64 + 0.5 - c[2]];
+                let p = [
+                    x as f64 + 0.5 - c[0],
+                    y as f64 + 0.5 - c[1],
+                    z as f64 + 0.5 - c[2],
+                ];
                 let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
                 let rod = (p[0] * p[0] + p[2] * p[2]).sqrt() < 2.5 && p[1].abs() < 10.0;
                 v.push(if rod || (7.0..10.0).contains(&r) {
@@ -94,7 +98,10 @@ fn read_f32_nrrd(path: &Path) -> Vec<f32> {
     let bytes = std::fs::read(path).unwrap();
     let split = bytes.windows(2).position(|w| w == b"\n\n").unwrap();
     let header = String::from_utf8_lossy(&bytes[..split]);
-    assert!(header.contains("type: float") && header.contains("encoding: raw"), "{header}");
+    assert!(
+        header.contains("type: float") && header.contains("encoding: raw"),
+        "{header}"
+    );
     bytes[split + 2..]
         .chunks_exact(4)
         .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
@@ -121,10 +128,22 @@ fn every_method_past_the_storage_buffer_range_equals_the_small_volume_bit_for_bi
     write_raw(&big, bdims, &c, cdims, at);
     let methods: [(&str, &[&str]); 3] = [
         ("lao", &["--ao", "lao", "--rays", "14", "--steps", "6"]),
-        ("filter-gauss", &["--ao", "filter-gauss", "--filter-radius-mm", "4"]),
+        (
+            "filter-gauss",
+            &["--ao", "filter-gauss", "--filter-radius-mm", "4"],
+        ),
         (
             "histogram",
-            &["--ao", "histogram", "--clusters", "0", "--hist-radius-mm", "3", "--hist-bins", "16"],
+            &[
+                "--ao",
+                "histogram",
+                "--clusters",
+                "0",
+                "--hist-radius-mm",
+                "3",
+                "--hist-bins",
+                "16",
+            ],
         ),
     ];
     for (name, args) in methods {
@@ -171,7 +190,11 @@ fn a_routine_chest_ct_renders_at_full_resolution_carved_with_every_method() {
     // The content scaled up 4x in every axis, so the chest's body spans most of the slices.
     c = (0..cdims[0] * cdims[1] * cdims[2])
         .map(|i| {
-            let (x, y, z) = (i % cdims[0], (i / cdims[0]) % cdims[1], i / (cdims[0] * cdims[1]));
+            let (x, y, z) = (
+                i % cdims[0],
+                (i / cdims[0]) % cdims[1],
+                i / (cdims[0] * cdims[1]),
+            );
             c[x / 4 + 50 * (y / 4 + 50 * (z / 4))]
         })
         .collect();
@@ -181,7 +204,16 @@ fn a_routine_chest_ct_renders_at_full_resolution_carved_with_every_method() {
     for method in [
         &["--ao", "lao", "--rays", "6", "--steps", "4"][..],
         &["--ao", "filter-gauss"][..],
-        &["--ao", "histogram", "--clusters", "0", "--hist-radius-mm", "2", "--hist-bins", "16"][..],
+        &[
+            "--ao",
+            "histogram",
+            "--clusters",
+            "0",
+            "--hist-radius-mm",
+            "2",
+            "--hist-bins",
+            "16",
+        ][..],
     ] {
         let out = dir.join(method[1]);
         let mut args = vec![

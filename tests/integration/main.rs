@@ -13,6 +13,7 @@ mod filtered;
 mod foreign;
 mod gpu_memory;
 mod histogram;
+mod labels;
 mod lao;
 mod large;
 mod overlay;

@@ -37,6 +37,7 @@ fn opacity_volume(dims: [usize; 3], o: impl Fn(usize, usize, usize) -> f32) -> (
         origin: DVec3::ZERO,
         modality: Modality::Unknown,
         voxels: Voxels::U16(v.iter().map(|x| (x * 1000.0).round() as u16).collect()),
+        labels: None,
     };
     (vol, v)
 }

@@ -1,0 +1,815 @@
+//! Label maps: segmentations (TotalSegmentator, 3D Slicer, ITK-SNAP) resampled into a volume's
+//! grid by the physical position of each voxel, and how each structure is shown.
+//!
+//! L(v) is the label at the LPS centre of volume voxel v, taken from the label map's voxel whose
+//! centre is nearest in the label map's own index space (its directions and spacing applied,
+//! never by index alone); outside the label map L = 0 (unlabelled). See docs/design.md.
+
+use super::{nifti, nrrd, Volume, VolumeError};
+use glam::{DMat3, DVec3};
+use rayon::prelude::*;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// Structures a label map may hold: ids are one byte per voxel, 0 unlabelled.
+pub const MAX_STRUCTURES: usize = 255;
+
+/// One labelled structure.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Structure {
+    /// Its value in the file (a multi-label map's label value, a Slicer segment's LabelValue, a
+    /// mask file's position in the folder).
+    pub value: u32,
+    pub name: String,
+    /// Linear RGB in [0, 1].
+    pub colour: [f32; 3],
+    /// The opacity a_l its voxels' TF opacity is multiplied by (0: hidden, 1: shown).
+    pub opacity: f32,
+    /// Whether tools leave it standing (`--protect`).
+    pub protected: bool,
+    /// Its voxels in the volume's grid.
+    pub voxels: usize,
+}
+
+/// A label map in a volume's grid.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelMap {
+    /// Where it came from (shown by `info`).
+    pub source: String,
+    /// Per volume voxel (x fastest): 1 + the index of its structure, 0 = unlabelled.
+    pub ids: Vec<u8>,
+    pub structures: Vec<Structure>,
+}
+
+impl LabelMap {
+    /// The opacity factor of voxel `i`: 1 unlabelled, else its structure's a_l.
+    pub fn factor(&self, i: usize) -> f32 {
+        match self.ids[i] {
+            0 => 1.0,
+            id => self.structures[id as usize - 1].opacity,
+        }
+    }
+
+    /// Whether any structure is protected from the tools.
+    pub fn any_protected(&self) -> bool {
+        self.structures.iter().any(|s| s.protected)
+    }
+
+    /// The 256-bit set of protected ids (bit id), as the clip shaders read it.
+    pub fn protected_bits(&self) -> [u32; 8] {
+        let mut bits = [0u32; 8];
+        for (k, s) in self.structures.iter().enumerate() {
+            if s.protected {
+                let id = k + 1;
+                bits[id / 32] |= 1 << (id % 32);
+            }
+        }
+        bits
+    }
+
+    /// The structure called `name` (case and `-`/`_`/space insensitive), or an error listing them.
+    pub fn find(&self, name: &str) -> Result<usize, String> {
+        let norm = |s: &str| s.to_lowercase().replace(['-', ' '], "_");
+        let want = norm(name);
+        self.structures
+            .iter()
+            .position(|s| norm(&s.name) == want || s.value.to_string() == want)
+            .ok_or_else(|| {
+                let names: Vec<&str> = self.structures.iter().map(|s| s.name.as_str()).collect();
+                format!(
+                    "no structure '{name}' in the label map {} (it has: {})",
+                    self.source,
+                    names.join(", ")
+                )
+            })
+    }
+
+    /// Applies `--show`, `--hide`, `--opacity NAME=A` and `--protect` (names as [`find`]). With
+    /// `show` given, every structure it does not name is hidden.
+    ///
+    /// [`find`]: LabelMap::find
+    pub fn apply(&mut self, d: &LabelDisplay) -> Result<(), String> {
+        if !d.show.is_empty() {
+            let shown: Vec<usize> = d
+                .show
+                .iter()
+                .map(|n| self.find(n))
+                .collect::<Result<_, _>>()?;
+            for (k, s) in self.structures.iter_mut().enumerate() {
+                s.opacity = if shown.contains(&k) { 1.0 } else { 0.0 };
+            }
+        }
+        for n in &d.hide {
+            let k = self.find(n)?;
+            self.structures[k].opacity = 0.0;
+        }
+        for spec in &d.opacity {
+            let (n, a) = spec
+                .rsplit_once('=')
+                .ok_or_else(|| format!("--opacity {spec}: expected NAME=A, e.g. liver=0.3"))?;
+            let a: f32 = a
+                .trim()
+                .parse()
+                .ok()
+                .filter(|a: &f32| (0.0..=1.0).contains(a))
+                .ok_or_else(|| format!("--opacity {spec}: the opacity must be a number in 0..1"))?;
+            let k = self.find(n.trim())?;
+            self.structures[k].opacity = a;
+        }
+        for n in &d.protect {
+            let k = self.find(n)?;
+            self.structures[k].protected = true;
+        }
+        Ok(())
+    }
+
+    /// `info`'s table: value, name, colour, voxel count, volume in ml, and how it is shown.
+    pub fn report(&self, spacing: [f64; 3]) -> String {
+        let ml_per_voxel = spacing[0] * spacing[1] * spacing[2] / 1000.0;
+        let mut s = format!(
+            "labels {} ({} structures)\n  value  name                              colour    voxels      ml  shown\n",
+            self.source,
+            self.structures.len()
+        );
+        for st in &self.structures {
+            let c = st.colour.map(|x| (x.clamp(0.0, 1.0) * 255.0).round() as u8);
+            s.push_str(&format!(
+                "  {:>5}  {:<32}  #{:02x}{:02x}{:02x}  {:>8}  {:>8.2}  {}{}\n",
+                st.value,
+                st.name,
+                c[0],
+                c[1],
+                c[2],
+                st.voxels,
+                st.voxels as f64 * ml_per_voxel,
+                match st.opacity {
+                    a if a <= 0.0 => "hidden".to_string(),
+                    a if a >= 1.0 => "yes".to_string(),
+                    a => format!("{a:.2}"),
+                },
+                if st.protected { ", protected" } else { "" }
+            ));
+        }
+        s
+    }
+}
+
+/// How the structures are shown, from the command line.
+#[derive(Clone, Debug, Default)]
+pub struct LabelDisplay {
+    pub show: Vec<String>,
+    pub hide: Vec<String>,
+    pub opacity: Vec<String>,
+    pub protect: Vec<String>,
+}
+
+/// Structure names, and colours where the file gives them, by label value.
+type Names = BTreeMap<u32, (String, Option<[f32; 3]>)>;
+
+/// A label map as read, on its own grid: per voxel a label value, and what the file says of
+/// its structures (name and colour by value).
+struct Source {
+    geometry: Volume,
+    values: Vec<u32>,
+    named: Names,
+}
+
+/// Reads the label map at `path` (a multi-label NIfTI or NRRD, a Slicer `.seg.nrrd`, or a folder
+/// of one binary NIfTI mask per structure), names its structures (`names`: an ITK-SNAP label
+/// description or a colour table; else the file's own; else TotalSegmentator's class table for
+/// 117 or fewer labels; else "label N"), and resamples it into `vol`'s grid.
+pub fn load(path: &Path, names: Option<&Path>, vol: &Volume) -> Result<LabelMap, VolumeError> {
+    let mut src = if path.is_dir() {
+        read_mask_folder(path)?
+    } else {
+        read_label_file(path)?
+    };
+    if let Some(n) = names {
+        for (value, entry) in read_names(n)? {
+            src.named.insert(value, entry);
+        }
+    }
+    let mut values: Vec<u32> = {
+        let mut seen = std::collections::BTreeSet::new();
+        for &v in &src.values {
+            if v != 0 {
+                seen.insert(v);
+            }
+        }
+        seen.into_iter().collect()
+    };
+    values.extend(src.named.keys().filter(|v| **v != 0));
+    values.sort_unstable();
+    values.dedup();
+    if values.len() > MAX_STRUCTURES {
+        return Err(VolumeError::unsupported(
+            path,
+            format!(
+                "{} structures; at most {MAX_STRUCTURES} are shown at once",
+                values.len()
+            ),
+        ));
+    }
+    let total_seg = src.named.is_empty() && values.last().is_some_and(|&m| m <= 117);
+    let structures: Vec<Structure> = values
+        .iter()
+        .enumerate()
+        .map(|(k, &value)| {
+            let (name, colour) = match src.named.get(&value) {
+                Some((n, c)) => (n.clone(), *c),
+                None if total_seg => (TOTALSEGMENTATOR[value as usize - 1].to_string(), None),
+                None => (format!("label {value}"), None),
+            };
+            Structure {
+                value,
+                name,
+                colour: colour.unwrap_or_else(|| palette(k)),
+                opacity: 1.0,
+                protected: false,
+                voxels: 0,
+            }
+        })
+        .collect();
+    let id_of: BTreeMap<u32, u8> = values
+        .iter()
+        .enumerate()
+        .map(|(k, &v)| (v, k as u8 + 1))
+        .collect();
+    let ids = resample(&src.geometry, &src.values, vol, &|v| {
+        if v == 0 {
+            0
+        } else {
+            id_of[&v]
+        }
+    })
+    .map_err(|m| VolumeError::format(path, m))?;
+    let mut map = LabelMap {
+        source: path.display().to_string(),
+        ids,
+        structures,
+    };
+    let mut counts = vec![0usize; map.structures.len() + 1];
+    for &id in &map.ids {
+        counts[id as usize] += 1;
+    }
+    for (k, s) in map.structures.iter_mut().enumerate() {
+        s.voxels = counts[k + 1];
+    }
+    Ok(map)
+}
+
+/// LPS (mm) of the centre of voxel `index` of `g`.
+fn lps(g: &Volume, index: DVec3) -> DVec3 {
+    g.origin + g.directions * (index * DVec3::from_array(g.spacing))
+}
+
+/// Per voxel of `vol`, `id(L)` of the label `values` (on `src`'s grid) nearest its centre; an
+/// error naming both extents when no voxel of `vol` lies inside the label map.
+fn resample(
+    src: &Volume,
+    values: &[u32],
+    vol: &Volume,
+    id: &(dyn Fn(u32) -> u8 + Sync),
+) -> Result<Vec<u8>, String> {
+    let m = src.directions * DMat3::from_diagonal(DVec3::from_array(src.spacing));
+    if m.determinant().abs() < 1e-12 {
+        return Err("the label map's directions or spacing are degenerate".into());
+    }
+    let inv = m.inverse();
+    let sd = src.dims;
+    let row = vol.dims[0];
+    let slice = row * vol.dims[1];
+    let ids: Vec<u8> = (0..vol.voxel_count())
+        .into_par_iter()
+        .map(|i| {
+            let p = DVec3::new(
+                (i % row) as f64,
+                ((i / row) % vol.dims[1]) as f64,
+                (i / slice) as f64,
+            );
+            let q = inv * (lps(vol, p) - src.origin);
+            let n = q.round();
+            let inside = (0..3).all(|a| n[a] >= 0.0 && n[a] < sd[a] as f64);
+            if !inside {
+                return 0;
+            }
+            let (x, y, z) = (n.x as usize, n.y as usize, n.z as usize);
+            id(values[x + sd[0] * (y + sd[1] * z)])
+        })
+        .collect();
+    let overlaps = {
+        // Any volume voxel centre inside the label map's box (labelled or not).
+        let corners = |g: &Volume| -> (DVec3, DVec3) {
+            let mut lo = DVec3::splat(f64::MAX);
+            let mut hi = DVec3::splat(f64::MIN);
+            for c in 0..8 {
+                let idx = DVec3::new(
+                    if c & 1 == 0 {
+                        -0.5
+                    } else {
+                        g.dims[0] as f64 - 0.5
+                    },
+                    if c & 2 == 0 {
+                        -0.5
+                    } else {
+                        g.dims[1] as f64 - 0.5
+                    },
+                    if c & 4 == 0 {
+                        -0.5
+                    } else {
+                        g.dims[2] as f64 - 0.5
+                    },
+                );
+                let p = lps(g, idx);
+                lo = lo.min(p);
+                hi = hi.max(p);
+            }
+            (lo, hi)
+        };
+        let (a, b) = (corners(vol), corners(src));
+        let meets = (0..3).all(|k| a.0[k] < b.1[k] && b.0[k] < a.1[k]);
+        if !meets {
+            let f = |(lo, hi): (DVec3, DVec3)| {
+                format!(
+                    "({:.1}, {:.1}, {:.1}) to ({:.1}, {:.1}, {:.1}) mm LPS",
+                    lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+                )
+            };
+            return Err(format!(
+                "the label map does not overlap the volume: the label map spans {}, the volume {}",
+                f(b),
+                f(a)
+            ));
+        }
+        true
+    };
+    debug_assert!(overlaps);
+    Ok(ids)
+}
+
+/// A label value per voxel from a volume's stored values (rounded; negatives are unlabelled).
+fn label_values(v: &Volume) -> Vec<u32> {
+    (0..v.voxel_count())
+        .into_par_iter()
+        .map(|i| {
+            let x = v.voxels.get(i).round();
+            if x > 0.0 {
+                x as u32
+            } else {
+                0
+            }
+        })
+        .collect()
+}
+
+/// A multi-label NIfTI or NRRD (a `.seg.nrrd` with its segments' names, colours and values).
+fn read_label_file(path: &Path) -> Result<Source, VolumeError> {
+    let lower = path.to_string_lossy().to_lowercase();
+    let geometry = if lower.ends_with(".nii") || lower.ends_with(".nii.gz") {
+        nifti::load(path)?
+    } else if lower.ends_with(".nrrd") || lower.ends_with(".nhdr") {
+        nrrd::load(path)?
+    } else {
+        return Err(VolumeError::unsupported(
+            path,
+            "a label map is a .nii, .nii.gz, .nrrd or .seg.nrrd file, or a folder of NIfTI masks",
+        ));
+    };
+    let values = label_values(&geometry);
+    let named = if lower.ends_with(".nrrd") || lower.ends_with(".nhdr") {
+        slicer_segments(path)?
+    } else {
+        BTreeMap::new()
+    };
+    Ok(Source {
+        geometry,
+        values,
+        named,
+    })
+}
+
+/// The `SegmentN_Name`, `SegmentN_Color`, `SegmentN_LabelValue` and `SegmentN_Layer` fields of
+/// a 3D Slicer segmentation header (nothing for a plain NRRD). Segments on more than one layer
+/// (overlapping segments, a 4-D file) are refused.
+fn slicer_segments(path: &Path) -> Result<Names, VolumeError> {
+    use std::io::BufRead;
+    let file = std::fs::File::open(path).map_err(|e| VolumeError::io(path, e))?;
+    let mut fields: BTreeMap<usize, BTreeMap<String, String>> = BTreeMap::new();
+    for line in std::io::BufReader::new(file).split(b'\n').take(100_000) {
+        let line = line.map_err(|e| VolumeError::io(path, e))?;
+        let text = String::from_utf8_lossy(&line);
+        let text = text.trim_end_matches('\r');
+        if text.trim().is_empty() {
+            break;
+        }
+        let Some((key, value)) = text.split_once(":=") else {
+            continue;
+        };
+        let Some(rest) = key.strip_prefix("Segment") else {
+            continue;
+        };
+        let Some((n, field)) = rest.split_once('_') else {
+            continue;
+        };
+        if let Ok(n) = n.parse::<usize>() {
+            fields
+                .entry(n)
+                .or_default()
+                .insert(field.to_string(), value.trim().to_string());
+        }
+    }
+    let mut named = BTreeMap::new();
+    for (n, f) in &fields {
+        let bad = |m: String| VolumeError::format(path, format!("Segment{n}: {m}"));
+        if let Some(layer) = f.get("Layer") {
+            if layer.trim() != "0" {
+                return Err(VolumeError::unsupported(
+                    path,
+                    format!(
+                        "Segment{n} is on layer {layer}: overlapping segments (several layers) \
+                         are not read yet; export a label map with one layer"
+                    ),
+                ));
+            }
+        }
+        let value = match f.get("LabelValue") {
+            Some(v) => v
+                .parse::<u32>()
+                .map_err(|_| bad(format!("LabelValue {v:?} is not a label value")))?,
+            None => *n as u32 + 1,
+        };
+        let name = f
+            .get("Name")
+            .cloned()
+            .unwrap_or_else(|| format!("Segment{n}"));
+        let colour = match f.get("Color") {
+            None => None,
+            Some(c) => {
+                let v: Vec<f32> = c
+                    .split_whitespace()
+                    .filter_map(|x| x.parse().ok())
+                    .collect();
+                match v[..] {
+                    [r, g, b] => Some([r, g, b]),
+                    _ => return Err(bad(format!("Color {c:?} is not three numbers"))),
+                }
+            }
+        };
+        named.insert(value, (name, colour));
+    }
+    Ok(named)
+}
+
+/// A folder of binary NIfTI masks (TotalSegmentator's default output): each file one
+/// structure, named by the file, numbered in name order; where masks overlap, the first wins.
+fn read_mask_folder(dir: &Path) -> Result<Source, VolumeError> {
+    let mut files: Vec<_> = std::fs::read_dir(dir)
+        .map_err(|e| VolumeError::io(dir, e))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            let l = p.to_string_lossy().to_lowercase();
+            l.ends_with(".nii") || l.ends_with(".nii.gz")
+        })
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        return Err(VolumeError::format(
+            dir,
+            "no .nii or .nii.gz masks in this folder",
+        ));
+    }
+    let mut geometry: Option<Volume> = None;
+    let mut values: Vec<u32> = Vec::new();
+    let mut named = BTreeMap::new();
+    for (k, f) in files.iter().enumerate() {
+        let mask = nifti::load(f)?;
+        let g = geometry.get_or_insert_with(|| mask.clone_geometry());
+        let same = g.dims == mask.dims
+            && (0..3).all(|a| (g.spacing[a] - mask.spacing[a]).abs() < 1e-4)
+            && (g.origin - mask.origin).abs().max_element() < 1e-3
+            && (g.directions - mask.directions)
+                .to_cols_array()
+                .iter()
+                .all(|x| x.abs() < 1e-5);
+        if !same {
+            return Err(VolumeError::format(
+                f,
+                format!(
+                    "its grid ({} x {} x {}) differs from {}'s: the masks of one folder share a grid",
+                    mask.dims[0],
+                    mask.dims[1],
+                    mask.dims[2],
+                    files[0].display()
+                ),
+            ));
+        }
+        if values.is_empty() {
+            values = vec![0; mask.voxel_count()];
+        }
+        let value = k as u32 + 1;
+        for (i, v) in values.iter_mut().enumerate() {
+            if *v == 0 && mask.voxels.get(i) >= 0.5 {
+                *v = value;
+            }
+        }
+        let name = f
+            .file_name()
+            .and_then(|n| n.to_str())
+            .map(|n| {
+                n.trim_end_matches(".gz")
+                    .trim_end_matches(".nii")
+                    .to_string()
+            })
+            .unwrap_or_default();
+        named.insert(value, (name, None));
+    }
+    Ok(Source {
+        geometry: geometry.expect("at least one mask"),
+        values,
+        named,
+    })
+}
+
+/// Names (and colours) by label value from an ITK-SNAP label description file
+/// (`IDX R G B A VIS MSH "LABEL"`, colours 0..255) or a 3D Slicer colour table
+/// (`VALUE NAME R G B A`).
+fn read_names(path: &Path) -> Result<Names, VolumeError> {
+    let text = std::fs::read_to_string(path).map_err(|e| VolumeError::io(path, e))?;
+    let mut out = BTreeMap::new();
+    for (n, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let bad = || {
+            VolumeError::format(
+                path,
+                format!(
+                    "line {}: expected `VALUE R G B A VIS MSH \"NAME\"` (ITK-SNAP) or \
+                     `VALUE NAME R G B A` (Slicer colour table), got {line:?}",
+                    n + 1
+                ),
+            )
+        };
+        let (head, quoted) = match line.split_once('"') {
+            Some((h, q)) => (h, Some(q.trim_end().trim_end_matches('"').to_string())),
+            None => (line, None),
+        };
+        let words: Vec<&str> = head.split_whitespace().collect();
+        let num = |s: &str| s.parse::<f32>().map_err(|_| bad());
+        let value: u32 = words.first().and_then(|w| w.parse().ok()).ok_or_else(bad)?;
+        let (name, rgb) = match quoted {
+            Some(name) if words.len() >= 4 => {
+                (name, [num(words[1])?, num(words[2])?, num(words[3])?])
+            }
+            None if words.len() >= 5 => (
+                words[1].to_string(),
+                [num(words[2])?, num(words[3])?, num(words[4])?],
+            ),
+            _ => return Err(bad()),
+        };
+        if value != 0 {
+            out.insert(value, (name, Some(rgb.map(|c| c / 255.0))));
+        }
+    }
+    Ok(out)
+}
+
+/// Colour `k` of a fixed palette: hues a golden angle apart, saturated and light enough to read
+/// over bone and soft tissue.
+pub fn palette(k: usize) -> [f32; 3] {
+    let h = (k as f64 * 0.618_033_988_75 + 0.08).fract() * 6.0;
+    let (s, v) = (0.65, 0.95);
+    let c = v * s;
+    let x = c * (1.0 - (h % 2.0 - 1.0).abs());
+    let (r, g, b) = match h as usize {
+        0 => (c, x, 0.0),
+        1 => (x, c, 0.0),
+        2 => (0.0, c, x),
+        3 => (0.0, x, c),
+        4 => (x, 0.0, c),
+        _ => (c, 0.0, x),
+    };
+    let m = v - c;
+    [(r + m) as f32, (g + m) as f32, (b + m) as f32]
+}
+
+/// TotalSegmentator's class table (task `total`, v2): label value k + 1 is entry k.
+pub const TOTALSEGMENTATOR: [&str; 117] = [
+    "spleen",
+    "kidney_right",
+    "kidney_left",
+    "gallbladder",
+    "liver",
+    "stomach",
+    "pancreas",
+    "adrenal_gland_right",
+    "adrenal_gland_left",
+    "lung_upper_lobe_left",
+    "lung_lower_lobe_left",
+    "lung_upper_lobe_right",
+    "lung_middle_lobe_right",
+    "lung_lower_lobe_right",
+    "esophagus",
+    "trachea",
+    "thyroid_gland",
+    "small_bowel",
+    "duodenum",
+    "colon",
+    "urinary_bladder",
+    "prostate",
+    "kidney_cyst_left",
+    "kidney_cyst_right",
+    "sacrum",
+    "vertebrae_S1",
+    "vertebrae_L5",
+    "vertebrae_L4",
+    "vertebrae_L3",
+    "vertebrae_L2",
+    "vertebrae_L1",
+    "vertebrae_T12",
+    "vertebrae_T11",
+    "vertebrae_T10",
+    "vertebrae_T9",
+    "vertebrae_T8",
+    "vertebrae_T7",
+    "vertebrae_T6",
+    "vertebrae_T5",
+    "vertebrae_T4",
+    "vertebrae_T3",
+    "vertebrae_T2",
+    "vertebrae_T1",
+    "vertebrae_C7",
+    "vertebrae_C6",
+    "vertebrae_C5",
+    "vertebrae_C4",
+    "vertebrae_C3",
+    "vertebrae_C2",
+    "vertebrae_C1",
+    "heart",
+    "aorta",
+    "pulmonary_vein",
+    "brachiocephalic_trunk",
+    "subclavian_artery_right",
+    "subclavian_artery_left",
+    "common_carotid_artery_right",
+    "common_carotid_artery_left",
+    "brachiocephalic_vein_left",
+    "brachiocephalic_vein_right",
+    "atrial_appendage_left",
+    "superior_vena_cava",
+    "inferior_vena_cava",
+    "portal_vein_and_splenic_vein",
+    "iliac_artery_left",
+    "iliac_artery_right",
+    "iliac_vena_left",
+    "iliac_vena_right",
+    "humerus_left",
+    "humerus_right",
+    "scapula_left",
+    "scapula_right",
+    "clavicula_left",
+    "clavicula_right",
+    "femur_left",
+    "femur_right",
+    "hip_left",
+    "hip_right",
+    "spinal_cord",
+    "gluteus_maximus_left",
+    "gluteus_maximus_right",
+    "gluteus_medius_left",
+    "gluteus_medius_right",
+    "gluteus_minimus_left",
+    "gluteus_minimus_right",
+    "autochthon_left",
+    "autochthon_right",
+    "iliopsoas_left",
+    "iliopsoas_right",
+    "brain",
+    "skull",
+    "rib_left_1",
+    "rib_left_2",
+    "rib_left_3",
+    "rib_left_4",
+    "rib_left_5",
+    "rib_left_6",
+    "rib_left_7",
+    "rib_left_8",
+    "rib_left_9",
+    "rib_left_10",
+    "rib_left_11",
+    "rib_left_12",
+    "rib_right_1",
+    "rib_right_2",
+    "rib_right_3",
+    "rib_right_4",
+    "rib_right_5",
+    "rib_right_6",
+    "rib_right_7",
+    "rib_right_8",
+    "rib_right_9",
+    "rib_right_10",
+    "rib_right_11",
+    "rib_right_12",
+    "sternum",
+    "costal_cartilages",
+];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::{Modality, Voxels};
+
+    fn grid(dims: [usize; 3], spacing: [f64; 3], origin: DVec3, directions: DMat3) -> Volume {
+        Volume {
+            name: "g".into(),
+            dims,
+            spacing,
+            directions,
+            origin,
+            modality: Modality::Ct,
+            voxels: Voxels::U8(vec![0; dims[0] * dims[1] * dims[2]]),
+            labels: None,
+        }
+    }
+
+    #[test]
+    fn resampling_goes_by_physical_position_not_by_index() {
+        // The label map: 2 mm voxels, flipped in x, shifted by 10 mm; voxel (a, b, c) holds
+        // label 1 + a.
+        let flip = DMat3::from_diagonal(DVec3::new(-1.0, 1.0, 1.0));
+        let src = grid([4, 2, 2], [2.0, 2.0, 2.0], DVec3::new(16.0, 0.0, 0.0), flip);
+        let values: Vec<u32> = (0..16).map(|i| 1 + (i % 4) as u32).collect();
+        // The volume: 1 mm voxels from x = 10 mm, identity directions.
+        let vol = grid(
+            [8, 4, 4],
+            [1.0; 3],
+            DVec3::new(10.0, 0.0, 0.0),
+            DMat3::IDENTITY,
+        );
+        let ids = resample(&src, &values, &vol, &|v| v as u8).unwrap();
+        for x in 0..8 {
+            // LPS x = 10 + x; the label map's index a = (16 - (10 + x)) / 2, nearest.
+            let a = (16.0 - (10.0 + x as f64)) / 2.0;
+            let want = if a.round() >= 0.0 && a.round() < 4.0 {
+                1 + a.round() as u8
+            } else {
+                0
+            };
+            assert_eq!(ids[vol.index(x, 0, 0)], want, "x = {x}");
+        }
+        let far = grid(
+            [4, 4, 4],
+            [1.0; 3],
+            DVec3::new(500.0, 0.0, 0.0),
+            DMat3::IDENTITY,
+        );
+        let e = resample(&src, &values, &far, &|v| v as u8).unwrap_err();
+        assert!(e.contains("does not overlap") && e.contains("500.0"), "{e}");
+    }
+
+    #[test]
+    fn display_options_name_structures_and_refuse_unknown_ones() {
+        let s = |name: &str, value| Structure {
+            value,
+            name: name.into(),
+            colour: palette(0),
+            opacity: 1.0,
+            protected: false,
+            voxels: 0,
+        };
+        let mut m = LabelMap {
+            source: "seg".into(),
+            ids: vec![0, 1, 2, 3],
+            structures: vec![s("liver", 5), s("portal_vein", 64), s("aorta", 52)],
+        };
+        m.apply(&LabelDisplay {
+            hide: vec!["Aorta".into()],
+            opacity: vec!["liver=0.25".into()],
+            protect: vec!["portal-vein".into()],
+            ..Default::default()
+        })
+        .unwrap();
+        assert_eq!(
+            [m.factor(0), m.factor(1), m.factor(2), m.factor(3)],
+            [1.0, 0.25, 1.0, 0.0]
+        );
+        assert_eq!(m.protected_bits()[0], 1 << 2);
+        let e = m
+            .apply(&LabelDisplay {
+                hide: vec!["tumour".into()],
+                ..Default::default()
+            })
+            .unwrap_err();
+        assert!(
+            e.contains("no structure 'tumour'") && e.contains("portal_vein"),
+            "{e}"
+        );
+        assert!(m
+            .apply(&LabelDisplay {
+                opacity: vec!["liver=2".into()],
+                ..Default::default()
+            })
+            .is_err());
+    }
+}

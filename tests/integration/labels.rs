@@ -1,0 +1,513 @@
+//! Labelled anatomy: label maps written by nibabel on grids of their own are resampled into the
+//! volume's grid by physical position exactly as nibabel's own reading gives; a Slicer
+//! segmentation's names, colours and values are read; hiding a structure removes it from O; and
+//! a carve with protected structures equals the full recompute of the selectively clipped volume
+//! bit for bit, leaving the protected voxels standing.
+
+use crate::common;
+use cao_xr::ao::cao::Mode;
+use cao_xr::scene::{Tool, ToolMode};
+use cao_xr::space::{Placement, Pose};
+use cao_xr::volume::labels::{LabelMap, Structure};
+use cao_xr::volume::transfer::TransferFunction;
+use glam::{Quat, Vec3};
+use std::path::PathBuf;
+use std::process::Command;
+use std::sync::Arc;
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("cao-labels-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A Python with nibabel and numpy (`python3` on PATH, else the system's).
+fn nibabel_python() -> Option<&'static str> {
+    let py = ["python3", "/usr/bin/python3"].into_iter().find(|py| {
+        Command::new(py)
+            .args(["-c", "import nibabel, numpy"])
+            .output()
+            .is_ok_and(|o| o.status.success())
+    });
+    common::require_or_skip(
+        "CAO_XR_REQUIRE_NIBABEL",
+        py.is_some(),
+        "nibabel with numpy is missing (apt-get install python3-nibabel)",
+    )
+    .then_some(py)
+    .flatten()
+}
+
+/// Writes, with nibabel: a CT (48 x 40 x 32 at 1 x 1 x 1.5 mm, an origin of its own), a
+/// multi-label map on another grid (2 mm voxels, x flipped, shifted 0.3 mm off the CT's
+/// lattice, cropped), the same structures as a folder of binary masks, and one that lies
+/// elsewhere. Prints nibabel's own reading of the label map resampled into the CT's grid (the
+/// nearest label voxel to each CT voxel's centre, through both affines): voxels per value, and
+/// the value at a few CT voxels.
+const WRITE: &str = r#"
+import json, os, sys
+import numpy as np, nibabel as nib
+out = sys.argv[1]
+dims = (48, 40, 32)
+A = np.diag([1.0, 1.0, 1.5, 1.0]); A[:3, 3] = [-20.0, 30.0, 5.0]
+x, y, z = np.meshgrid(*[np.arange(d) for d in dims], indexing='ij')
+ct = np.full(dims, -1000, np.int16)
+r2 = (x - 24) ** 2 + (y - 20) ** 2 + ((z - 16) * 1.5) ** 2
+ct[r2 < 14 ** 2] = 60
+ct[r2 < 6 ** 2] = 1200
+nib.save(nib.Nifti1Image(ct, A), os.path.join(out, "ct.nii.gz"))
+ld = (20, 18, 20)
+B = np.diag([-2.0, 2.0, 2.0, 1.0]); B[:3, 3] = [20.3, 29.7, 4.3]
+lx, ly, lz = np.meshgrid(*[np.arange(d) for d in ld], indexing='ij')
+ras = np.stack([lx, ly, lz, np.ones(ld)], -1) @ B.T
+lab = np.zeros(ld, np.uint8)
+d = np.linalg.norm(ras[..., :3] - np.array([4.0, 50.0, 29.0]), axis=-1)
+lab[d < 14] = 5
+lab[d < 6] = 52
+lab[(np.abs(ras[..., 0] - 4) < 3) & (np.abs(ras[..., 2] - 29) < 3)] = 64
+nib.save(nib.Nifti1Image(lab, B), os.path.join(out, "labels.nii.gz"))
+os.makedirs(os.path.join(out, "masks"), exist_ok=True)
+for v, name in [(5, "liver"), (52, "aorta"), (64, "portal_vein")]:
+    nib.save(nib.Nifti1Image((lab == v).astype(np.uint8), B),
+             os.path.join(out, "masks", name + ".nii.gz"))
+far = B.copy(); far[:3, 3] += 400.0
+nib.save(nib.Nifti1Image(lab, far), os.path.join(out, "far.nii.gz"))
+vi = np.stack([x, y, z, np.ones(dims)], -1) @ A.T
+n = np.rint((vi @ np.linalg.inv(B).T)[..., :3]).astype(int)
+inside = np.all((n >= 0) & (n < np.array(ld)), -1)
+nn = np.where(inside[..., None], n, 0)
+res = np.where(inside, lab[nn[..., 0], nn[..., 1], nn[..., 2]], 0)
+counts = {str(int(v)): int((res == v).sum()) for v in np.unique(lab) if v != 0}
+probes = [[int(i), int(j), int(k), int(res[i, j, k])]
+          for i, j, k in [(24, 20, 16), (24, 20, 10), (30, 20, 16), (10, 5, 3), (24, 8, 16)]]
+print(json.dumps({"counts": counts, "probes": probes}))
+"#;
+
+/// `cao-xr info` rows of the structures table: (value, name, voxels).
+fn info_structures(args: &[&str]) -> Vec<(u32, String, usize)> {
+    let out = common::run_cao(args, &[]);
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    text.lines()
+        .skip_while(|l| !l.trim_start().starts_with("value  name"))
+        .skip(1)
+        .map(|l| {
+            // value, name (to the colour's `#`), colour, voxels, ml, shown
+            let (value, rest) = l.trim_start().split_once(' ').unwrap();
+            let (name, rest) = rest.split_once(" #").unwrap();
+            let voxels = rest.split_whitespace().nth(1).unwrap();
+            (
+                value.parse().unwrap(),
+                name.trim().to_string(),
+                voxels.parse().unwrap(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn label_maps_written_by_nibabel_resample_by_position_as_nibabel_reads_them() {
+    let Some(py) = nibabel_python() else { return };
+    let dir = tmp("nibabel");
+    let out = Command::new(py)
+        .args(["-c", WRITE, dir.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let want: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let ct = dir.join("ct.nii.gz");
+    let ct = ct.to_str().unwrap();
+    let count = |v: u32| want["counts"][v.to_string()].as_u64().unwrap() as usize;
+
+    // The multi-label map: TotalSegmentator's class table names values 5, 52 and 64.
+    let labels = dir.join("labels.nii.gz");
+    let rows = info_structures(&["info", ct, "--labels", labels.to_str().unwrap()]);
+    let names: Vec<(u32, &str, usize)> = rows.iter().map(|r| (r.0, r.1.as_str(), r.2)).collect();
+    assert_eq!(
+        names,
+        vec![
+            (5, "liver", count(5)),
+            (52, "aorta", count(52)),
+            (64, "portal_vein_and_splenic_vein", count(64)),
+        ]
+    );
+    assert!(
+        count(5) > 1000 && count(52) > 100 && count(64) > 100,
+        "{want}"
+    );
+
+    // The label at single voxels, through `ao --opacity-out` with every structure but one hidden:
+    // O is 0 wherever the voxel's structure is hidden.
+    let o_of = |extra: &[&str]| -> Vec<f32> {
+        let (ao, op) = (dir.join("ao.nrrd"), dir.join("o.nrrd"));
+        let mut args = vec![
+            "ao",
+            ct,
+            "--tf",
+            "ct-soft-tissue",
+            "--rays",
+            "6",
+            "--steps",
+            "2",
+            "--labels",
+            labels.to_str().unwrap(),
+            "--out",
+            ao.to_str().unwrap(),
+            "--opacity-out",
+            op.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let run = common::run_cao(&args, &[]);
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let bytes = std::fs::read(&op).unwrap();
+        let split = bytes.windows(2).position(|w| w == b"\n\n").unwrap();
+        bytes[split + 2..]
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect()
+    };
+    let all = o_of(&[]);
+    let only_aorta = o_of(&["--show", "aorta"]);
+    // The CT's i and j axes run right-to-left and anterior-to-posterior in LPS (its RAS affine):
+    // the loader keeps the file's voxel order, so voxel (i, j, k) is nibabel's (i, j, k).
+    for p in want["probes"].as_array().unwrap() {
+        let [i, j, k, label] = [0, 1, 2, 3].map(|n| p[n].as_u64().unwrap() as usize);
+        let v = i + 48 * (j + 40 * k);
+        let kept = only_aorta[v] == all[v];
+        match label {
+            52 => assert!(kept, "voxel {i},{j},{k} (aorta) lost its opacity"),
+            0 => assert!(kept, "voxel {i},{j},{k} (unlabelled) changed"),
+            _ => assert!(
+                only_aorta[v] == 0.0,
+                "voxel {i},{j},{k} (label {label}) is hidden but has O = {}",
+                only_aorta[v]
+            ),
+        }
+    }
+    assert!(
+        all.iter().zip(&only_aorta).any(|(a, b)| a > b),
+        "nothing was hidden"
+    );
+
+    // A folder of masks names the structures by file, with the same voxels.
+    let masks = dir.join("masks");
+    let rows = info_structures(&["info", ct, "--labels", masks.to_str().unwrap()]);
+    let by_name: Vec<(&str, usize)> = rows.iter().map(|r| (r.1.as_str(), r.2)).collect();
+    assert_eq!(
+        by_name,
+        vec![
+            ("aorta", count(52)),
+            ("liver", count(5)),
+            ("portal_vein", count(64))
+        ]
+    );
+
+    // An ITK-SNAP label description names them instead.
+    let names = dir.join("names.txt");
+    std::fs::write(
+        &names,
+        "# ITK-SnAP Label Description File\n\
+         \x20   0     0    0    0        0  0  0    \"Clear Label\"\n\
+         \x20   5   221  130  101        1  1  1    \"Liver\"\n\
+         \x20  52   255    0    0        1  1  1    \"Aorta\"\n\
+         \x20  64     0  151  206        1  1  1    \"Portal vein\"\n",
+    )
+    .unwrap();
+    let out = common::run_cao(
+        &[
+            "info",
+            ct,
+            "--labels",
+            labels.to_str().unwrap(),
+            "--label-names",
+            names.to_str().unwrap(),
+        ],
+        &[],
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("Liver") && text.contains("#dd8265") && text.contains("Portal vein"),
+        "{text}"
+    );
+
+    // Rendered: a carve through the liver takes everything but the protected vessels, which
+    // stand in their own colours; without protection they go too.
+    let render = |name: &str, extra: &[&str]| -> Vec<u8> {
+        let out = dir.join(name);
+        let mut args = vec![
+            "render",
+            ct,
+            "--labels",
+            labels.to_str().unwrap(),
+            "--tf",
+            "ct-soft-tissue",
+            "--rays",
+            "6",
+            "--steps",
+            "3",
+            "--size",
+            "64x64",
+            "--background",
+            "transparent",
+            "--tool",
+            "sphere:30:0,0,15",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let run = common::run_cao(&args, &[]);
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let decoder = png::Decoder::new(std::io::BufReader::new(
+            std::fs::File::open(out.join("left.png")).unwrap(),
+        ));
+        let mut reader = decoder.read_info().unwrap();
+        let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        buf.truncate(info.buffer_size());
+        buf
+    };
+    let coverage = |rgba: &[u8]| rgba.chunks_exact(4).filter(|p| p[3] > 32).count();
+    let protected = render(
+        "protected",
+        &["--protect", "aorta,portal_vein_and_splenic_vein"],
+    );
+    let open = render("open", &[]);
+    assert!(
+        coverage(&protected) > coverage(&open) + 10,
+        "protected vessels cover {} pixels, the open carve {}",
+        coverage(&protected),
+        coverage(&open)
+    );
+    // A label map elsewhere is refused with both extents.
+    let far = dir.join("far.nii.gz");
+    let out = common::run_cao(&["info", ct, "--labels", far.to_str().unwrap()], &[]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("far.nii.gz")
+            && err.contains("does not overlap")
+            && err.contains("the volume"),
+        "{err}"
+    );
+    // A structure nobody labelled is named in the refusal.
+    let out = common::run_cao(
+        &[
+            "info",
+            ct,
+            "--labels",
+            labels.to_str().unwrap(),
+            "--hide",
+            "tumour",
+        ],
+        &[],
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("no structure 'tumour'"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_slicer_segmentation_gives_its_segments_names_colours_and_values() {
+    let dir = tmp("seg");
+    let path = dir.join("vessels.seg.nrrd");
+    // As 3D Slicer writes a one-layer segmentation: a cropped box with its own origin.
+    // 32 mm around the phantom's centre, where its middle 2 x 2 x 2 voxels lie (at +-6.875 mm):
+    // value 3 in the left half, 7 in the right.
+    let (w, h, d) = (16usize, 16usize, 16usize);
+    let data: Vec<u8> = (0..w * h * d)
+        .map(|i| if i % w < 8 { 3 } else { 7 })
+        .collect();
+    let header = format!(
+        "NRRD0004\n# Complete NRRD file format specification at:\n\
+         type: unsigned char\ndimension: 3\nspace: left-posterior-superior\n\
+         sizes: {w} {h} {d}\nspace directions: (2,0,0) (0,2,0) (0,0,2)\n\
+         kinds: domain domain domain\nencoding: raw\nspace origin: (-15,-15,-15)\n\
+         Segment0_Color:=0.9 0.1 0.1\nSegment0_ID:=Segment_1\nSegment0_LabelValue:=3\n\
+         Segment0_Layer:=0\nSegment0_Name:=hepatic artery\n\
+         Segment1_Color:=0.2 0.3 0.9\nSegment1_ID:=Segment_2\nSegment1_LabelValue:=7\n\
+         Segment1_Layer:=0\nSegment1_Name:=portal vein\n\n"
+    );
+    let mut bytes = header.into_bytes();
+    bytes.extend_from_slice(&data);
+    std::fs::write(&path, bytes).unwrap();
+    let rows = info_structures(&["info", "phantom:16", "--labels", path.to_str().unwrap()]);
+    let got: Vec<(u32, &str)> = rows.iter().map(|r| (r.0, r.1.as_str())).collect();
+    assert_eq!(got, vec![(3, "hepatic artery"), (7, "portal vein")]);
+    let out = common::run_cao(
+        &["info", "phantom:16", "--labels", path.to_str().unwrap()],
+        &[],
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("#e61a1a") && text.contains("#334de6"),
+        "{text}"
+    );
+    // Each segment holds 4 of the phantom's middle voxels, by position.
+    assert!(rows.iter().all(|r| r.2 == 4), "{rows:?}");
+    // A second layer (overlapping segments) is refused by name, not misread.
+    let mut two_bytes = std::fs::read(&path).unwrap();
+    let at = two_bytes
+        .windows(16)
+        .position(|w| w == b"Segment1_Layer:=")
+        .unwrap()
+        + 16;
+    two_bytes[at] = b'1';
+    let two = dir.join("two.seg.nrrd");
+    std::fs::write(&two, two_bytes).unwrap();
+    let out = common::run_cao(
+        &["info", "phantom:16", "--labels", two.to_str().unwrap()],
+        &[],
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("layer 1"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The phantom head with two structures: a vessel (a rod through the skull, id 1) and the
+/// tissue around it (a ball, id 2).
+fn labelled_head(n: usize, protect_vessel: bool) -> cao_xr::volume::Volume {
+    let mut vol = cao_xr::volume::phantom::head(n);
+    let c = n as f64 / 2.0;
+    let ids: Vec<u8> = (0..vol.voxel_count())
+        .map(|i| {
+            let (x, y, z) = (i % n, (i / n) % n, i / (n * n));
+            let p = [x as f64 + 0.5 - c, y as f64 + 0.5 - c, z as f64 + 0.5 - c];
+            if (p[0] * p[0] + p[1] * p[1]).sqrt() < 2.5 {
+                1
+            } else if (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() < 0.4 * n as f64 {
+                2
+            } else {
+                0
+            }
+        })
+        .collect();
+    let structure = |value, name: &str, protected| Structure {
+        value,
+        name: name.into(),
+        colour: [0.8, 0.1, 0.1],
+        opacity: 1.0,
+        protected,
+        voxels: 0,
+    };
+    vol.labels = Some(Arc::new(LabelMap {
+        source: "test".into(),
+        ids,
+        structures: vec![
+            structure(1, "vessel", protect_vessel),
+            structure(2, "tissue", false),
+        ],
+    }));
+    vol
+}
+
+#[test]
+fn carving_around_a_protected_structure_equals_the_full_recompute_and_leaves_it_standing() {
+    let gpu = common::gpu();
+    let vol = labelled_head(40, true);
+    let (mut cao, o, _) = crate::cao::setup(&gpu, &vol);
+    let (mut naive, _, _) = crate::cao::setup(&gpu, &vol);
+    let placement = Placement::default();
+    let c = placement.center;
+    let carve = |position: Vec3, size: f32| Tool {
+        shape: cao_xr::clip::Shape::Sphere,
+        pose: Pose {
+            position,
+            orientation: Quat::IDENTITY,
+        },
+        size,
+        mode: ToolMode::Carve,
+        active: true,
+    };
+    // Through the vessel's middle, along it, and a frame with no tool.
+    let frames = [
+        vec![carve(c, 0.06)],
+        vec![carve(c + Vec3::new(0.0, 0.03, 0.02), 0.05)],
+        vec![carve(c + Vec3::new(0.02, -0.02, 0.0), 0.04), carve(c, 0.03)],
+        vec![],
+    ];
+    let ids = &vol.labels.as_ref().unwrap().ids;
+    let mut spared_somewhere = false;
+    for (f, tools) in frames.iter().enumerate() {
+        cao.run_frame(tools, &placement, Mode::Contextual).unwrap();
+        naive.run_frame(tools, &placement, Mode::Naive).unwrap();
+        let (a, b) = (crate::cao::read(&cao.ao), crate::cao::read(&naive.ao));
+        let diff = common::first_bit_difference(&a, &b);
+        assert!(
+            diff.is_none(),
+            "frame {f}: CAO differs from the full recompute at {diff:?}"
+        );
+        let oc = crate::cao::read(&cao.clipped);
+        assert_eq!(oc, crate::cao::read(&naive.clipped), "frame {f}");
+        // Inside the cut the vessel keeps O, the tissue around it is carved.
+        let vessel_kept = (0..o.len()).all(|i| ids[i] != 1 || oc[i] == o[i]);
+        assert!(vessel_kept, "frame {f}: a protected voxel lost opacity");
+        if !tools.is_empty() {
+            let carved_tissue = (0..o.len()).any(|i| ids[i] == 2 && o[i] > 0.0 && oc[i] == 0.0);
+            assert!(carved_tissue, "frame {f}: the tissue was not carved");
+            spared_somewhere = true;
+        }
+    }
+    assert!(spared_somewhere);
+    // Without protection the same carve takes the vessel too.
+    let open = labelled_head(40, false);
+    let (mut plain, o, _) = crate::cao::setup(&gpu, &open);
+    plain
+        .run_frame(&frames[0], &placement, Mode::Contextual)
+        .unwrap();
+    let oc = crate::cao::read(&plain.clipped);
+    let ids = &open.labels.as_ref().unwrap().ids;
+    assert!(
+        (0..o.len()).any(|i| ids[i] == 1 && o[i] > 0.0 && oc[i] == 0.0),
+        "without protection the vessel should be carved"
+    );
+    common::assert_no_validation_messages(&gpu);
+}
+
+#[test]
+fn hidden_structures_leave_o_and_translucent_ones_scale_it() {
+    let mut vol = labelled_head(24, false);
+    let tf = TransferFunction::preset("ct-skin").unwrap();
+    let base = {
+        let mut plain = vol.clone();
+        plain.labels = None;
+        tf.opacity_volume(&plain)
+    };
+    let mut map = (**vol.labels.as_ref().unwrap()).clone();
+    map.apply(&cao_xr::volume::labels::LabelDisplay {
+        hide: vec!["vessel".into()],
+        opacity: vec!["tissue=0.5".into()],
+        ..Default::default()
+    })
+    .unwrap();
+    let ids = map.ids.clone();
+    vol.labels = Some(Arc::new(map));
+    let o = tf.opacity_volume(&vol);
+    for i in 0..o.len() {
+        let want = match ids[i] {
+            1 => 0.0,
+            2 => base[i] * 0.5,
+            _ => base[i],
+        };
+        assert_eq!(o[i], want, "voxel {i} (structure {})", ids[i]);
+    }
+    assert!(ids.iter().zip(&base).any(|(&id, &b)| id == 1 && b > 0.0));
+}
