@@ -59,7 +59,7 @@ const vec3 AA[32] = vec3[32](
 
 // Whether voxel i belongs to a protected structure: the carving tools leave it standing.
 bool spared(int i) {
-    if (pc.dims.w == 0 || true) return false;
+    if (pc.dims.w == 0) return false;
     uint id = (label_words[i >> 2] >> (8 * (i & 3))) & 0xffu;
     return ((protect_bits[id >> 5] >> (id & 31u)) & 1u) != 0u;
 }

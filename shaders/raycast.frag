@@ -10,6 +10,10 @@
 // noise. Opacity is corrected per mm; depth is written where the ray enters visible material, so
 // later geometry (tools, hands) is depth-correct.
 #extension GL_GOOGLE_include_directive : require
+// [[unroll]]: lavapipe (gallivm) ends every loop of an invocation after 65,535 iterations in
+// all, counting a loop in a branch not taken as one, so the per-sample loops of fixed length
+// are unrolled: a ray's budget goes to its samples.
+#extension GL_EXT_control_flow_attributes : require
 #include "frame.glsl"
 layout(set = 0, binding = 1) uniform sampler3D scalars;
 layout(set = 0, binding = 2) uniform sampler3D ambient;
@@ -77,7 +81,7 @@ float scalar_tricubic(vec3 t) {
     vec3 h0 = (i - 0.5 + w1 / g0) / size;
     vec3 h1 = (i + 1.5 + w3 / g1) / size;
     float r = 0.0;
-    for (int k = 0; k < 8; k++) {
+    [[unroll]] for (int k = 0; k < 8; k++) {
         vec3 h = vec3((k & 1) != 0 ? h1.x : h0.x, (k & 2) != 0 ? h1.y : h0.y, (k & 4) != 0 ? h1.z : h0.z);
         vec3 g = vec3((k & 1) != 0 ? g1.x : g0.x, (k & 2) != 0 ? g1.y : g0.y, (k & 4) != 0 ? g1.z : g0.z);
         r += g.x * g.y * g.z * texture(scalars, h).r;
@@ -108,7 +112,7 @@ uint structure_at(vec3 t) {
 // Whether the carving tools leave the sample at texture point t standing: its nearest voxel's
 // structure is protected (the rule clip_mask.comp applies per voxel).
 bool spared_at(vec3 t) {
-    if (!flag(LABELS) || true) return false;
+    if (!flag(LABELS)) return false;
     uint id = structure_at(t);
     return ((frame.protect[id >> 7][(id >> 5) & 3u] >> (id & 31u)) & 1u) != 0u;
 }
@@ -124,7 +128,7 @@ void structures_at(vec3 t, out float unlabelled, out float shown, out vec3 colou
     unlabelled = 0.0;
     shown = 0.0;
     colour = vec3(0.0);
-    for (int k = 0; k < 8; k++) {
+    [[unroll]] for (int k = 0; k < 8; k++) {
         ivec3 o = ivec3(k & 1, (k >> 1) & 1, k >> 2);
         vec3 w3 = mix(1.0 - f, f, vec3(o));
         float w = w3.x * w3.y * w3.z;
@@ -194,13 +198,13 @@ vec3 map_normal(ClipTool tool, vec3 q) {
     ivec2 px = ivec2(floor((q.xy + tool.map.x) * tool.map.y));
     int which = 0;
     float best = 1e38;
-    for (int k = 0; k < 4; k++) {
+    [[unroll]] for (int k = 0; k < 4; k++) {
         float z = map_depth(tool, px, k);
         if (z != EMPTY_IN && abs(z - q.z) < best) { best = abs(z - q.z); which = k; }
     }
     float texel = 1.0 / tool.map.y;
     vec2 dh = vec2(0.0);
-    for (int a = 0; a < 2; a++) {
+    [[unroll]] for (int a = 0; a < 2; a++) {
         ivec2 e = a == 0 ? ivec2(1, 0) : ivec2(0, 1);
         float h0 = map_depth(tool, px, which);
         float hp = map_depth(tool, px + e, which);
@@ -289,7 +293,11 @@ void main() {
         ivec3 brick = ivec3(-1);
         bool brick_empty = false;
         bool prev_skippable = false;
-        for (int i = 0; i < 8192 && t < tf; i++, t += dt) {
+        // No fixed sample cap: every ray runs to its exit. An iteration advances t by at least
+        // one step, except that a cut-face bisection may step back by less than a step once per
+        // hidden run (at most every other iteration), so twice the sample count bounds the loop.
+        int max_iterations = 2 * int(ceil((tf - t) / dt)) + 4;
+        for (int i = 0; i < max_iterations && t < tf; i++, t += dt) {
             vec3 p = o + t * d;
             if (skipping) {
                 vec3 v = p * dims;
@@ -303,15 +311,23 @@ void main() {
                 if (here && prev_skippable) {
                     // This sample and the one before read only values (and, pre-integrated,
                     // the segment between them) that classify as transparent, and no tool hides
-                    // it: it adds nothing. Only its value matters, to the next segment, and only
-                    // when the next sample is not skipped too (it leaves the brick or enters a
-                    // tool's reach). One sample per iteration: an inner loop over the run, much
-                    // faster, lost visible samples on lavapipe's long reference rays.
-                    vec3 vn = (o + (t + dt) * d) * dims;
-                    ivec3 bn = clamp(ivec3(floor(vn)) >> RAY_BRICK_SHIFT, ivec3(0), last_brick);
-                    if (bn != brick || in_tool_reach(vn)) {
-                        s_prev = scalar_at(p);
-                        have_prev = true;
+                    // it: it adds nothing, and so does every next sample in the same brick out
+                    // of the tools' reach. Run over them by the same additions t += dt, so the
+                    // ray lands on the sample it would have reached one by one; only the run's
+                    // last value matters, to the next segment. (The inner loop once lost
+                    // samples: the fixed 8192-iteration cap counted iterations, not samples,
+                    // so the rays with and without skipping ended at different samples.)
+                    for (;;) {
+                        float tn = t + dt;
+                        if (tn >= tf) break;
+                        vec3 vn = (o + tn * d) * dims;
+                        ivec3 bn = clamp(ivec3(floor(vn)) >> RAY_BRICK_SHIFT, ivec3(0), last_brick);
+                        if (bn != brick || in_tool_reach(vn)) {
+                            s_prev = scalar_at(o + t * d);
+                            have_prev = true;
+                            break;
+                        }
+                        t = tn;
                     }
                     continue;
                 }
@@ -332,7 +348,7 @@ void main() {
                     // step on from there, so a cut face sits where the tool is rather than
                     // where the jittered samples happen to fall.
                     float lo = t - dt;
-                    for (int k = 0; k < CUT_BISECTIONS; k++) {
+                    [[unroll]] for (int k = 0; k < CUT_BISECTIONS; k++) {
                         float mid = 0.5 * (lo + t);
                         if (hiding_tool(a_w + mid * (b_w - a_w), spared_at(o + mid * d)) >= 0) lo = mid; else t = mid;
                     }

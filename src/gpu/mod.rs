@@ -381,10 +381,13 @@ impl Gpu {
             .dynamic_rendering(true)
             .synchronization2(true);
         // Buffer device addresses: the volume passes reach buffers past maxStorageBufferRange.
-        let mut f12 = vk::PhysicalDeviceVulkan12Features::default().buffer_device_address(true);
+        // Its own struct, not Vulkan12Features: an OpenXR runtime creating the device (Monado)
+        // chains Vulkan 1.2 feature structs of its own, which Vulkan12Features may not join.
+        let mut bda =
+            vk::PhysicalDeviceBufferDeviceAddressFeatures::default().buffer_device_address(true);
         let mut f2 = vk::PhysicalDeviceFeatures2::default()
             .push_next(&mut f13)
-            .push_next(&mut f12);
+            .push_next(&mut bda);
         let dinfo = vk::DeviceCreateInfo::default()
             .queue_create_infos(&queue_info)
             .enabled_extension_names(&dev_exts)

@@ -765,7 +765,7 @@ mod tests {
             DMat3::IDENTITY,
         );
         let e = resample(&src, &values, &far, &|v| v as u8).unwrap_err();
-        assert!(e.contains("does not overlap") && e.contains("500.0"), "{e}");
+        assert!(e.contains("does not overlap") && e.contains("499.5"), "{e}");
     }
 
     #[test]

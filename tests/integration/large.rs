@@ -250,3 +250,61 @@ fn a_routine_chest_ct_renders_at_full_resolution_carved_with_every_method() {
     assert!(pictures[0] != pictures[1] && pictures[1] != pictures[2] && pictures[0] != pictures[2]);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn rays_longer_than_8192_samples_reach_what_lies_behind_with_and_without_skipping() {
+    // 16 x 1024 x 16 voxels of 4 x 0.25 x 4 mm (64 x 256 x 64 mm), long in j (posterior), the
+    // viewing direction: air, and a bone plate at the far end. At the reference step (1/16 of
+    // half the smallest spacing) a ray needs 32,000 samples to reach it; the old cap of 8192
+    // stopped it a quarter of the way.
+    let dir = tmp("long");
+    let dims = [16, 1024, 16];
+    let plate: Vec<i16> = vec![1500; 16 * 8 * 16];
+    let raw = dir.join("long.raw");
+    write_raw(&raw, dims, &plate, [16, 8, 16], [0, 1000, 0]);
+    let render = |name: &str, extra: &[&str]| -> Vec<u8> {
+        let out = dir.join(name);
+        let mut args = vec![
+            "render",
+            raw.to_str().unwrap(),
+            "--raw-dims",
+            "16,1024,16",
+            "--raw-spacing",
+            "4,0.25,4",
+            "--raw-type",
+            "i16",
+            "--tf",
+            "ct-bone",
+            "--rays",
+            "6",
+            "--steps",
+            "2",
+            "--size",
+            "24x24",
+            "--reference",
+            "--background",
+            "transparent",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let run = crate::common::run_cao(&args, &[]);
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        cao_xr::render::compare::read_png(&out.join("left.png"))
+            .unwrap()
+            .rgba
+    };
+    let plain = render("plain", &[]);
+    let opaque = plain.chunks_exact(4).filter(|p| p[3] > 128).count();
+    assert!(opaque > 20, "the plate behind 250 mm of air is not seen ({opaque} pixels)");
+    let skipping = render("skipping", &["--empty-skip"]);
+    assert!(
+        plain == skipping,
+        "empty-space skipping changed the reference picture"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
