@@ -10,9 +10,8 @@
 // noise. Opacity is corrected per mm; depth is written where the ray enters visible material, so
 // later geometry (tools, hands) is depth-correct.
 #extension GL_GOOGLE_include_directive : require
-// [[unroll]]: lavapipe (gallivm) ends every loop of an invocation after 65,535 iterations in
-// all, counting a loop in a branch not taken as one, so the per-sample loops of fixed length
-// are unrolled: a ray's budget goes to its samples.
+// [[unroll]] on the fixed-length loops of the features that are on: lavapipe (gallivm) ends
+// every loop of an invocation after 65,535 iterations in all (docs/design.md).
 #extension GL_EXT_control_flow_attributes : require
 #include "frame.glsl"
 layout(set = 0, binding = 1) uniform sampler3D scalars;
@@ -45,6 +44,16 @@ layout(set = 0, binding = 16) uniform sampler3D structure_ids;
 #define CLIP_TOOL_COUNT frame.viewport.z
 #include "clip.glsl"
 
+// The first tool that hides world point w (the ray caster's shadow test), or -1; the same rule
+// as clip_test_index for a `spared` point.
+int hiding_tool(vec3 w, bool spared) {
+    for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
+        bool inside = (tool_test(t, (tools[t].local_from_world * vec4(w, 1.0)).xyz) & 1u) != 0u;
+        if (tools[t].map.w > 0.5 ? !inside : inside && !spared) return int(t);
+    }
+    return -1;
+}
+
 // Which eye (layer of the stereo target) this draw renders.
 layout(push_constant) uniform Eye { uint index; } eye;
 
@@ -60,8 +69,13 @@ const uint JITTER = 2u;
 const uint TRICUBIC = 4u;
 const uint SKIP_EMPTY = 8u;
 const uint LABELS = 16u;
+const uint CLIPPING = 32u;
 
-bool flag(uint f) { return (uint(frame.viewport.w) & f) != 0u; }
+// The features this pipeline is specialised for (src/render/mod.rs Renderer::pipeline): the
+// code of a feature that is off is not compiled in.
+layout(constant_id = 0) const uint FLAGS = 0u;
+
+bool flag(uint f) { return (FLAGS & f) != 0u; }
 
 // Cubic B-spline of the scalars through eight trilinear fetches (Sigg and Hadwiger, GPU Gems 2
 // ch. 20): smooth reconstruction for small volumes and close-ups.
@@ -100,6 +114,27 @@ bool in_tool_reach(vec3 v) {
             && all(lessThan(v, vec3(frame.tool_reach[2 * k + 1].xyz)))) return true;
     }
     return false;
+}
+
+// Where the ray v(t) = ov + t dv (index space) leaves brick b (an edge brick extends past the
+// grid, as the clamped lookup does) or first enters a tool's reach, whichever comes first.
+float run_end(vec3 ov, vec3 dv, float t, ivec3 b, ivec3 last_brick) {
+    vec3 lo = vec3(b << RAY_BRICK_SHIFT);
+    vec3 hi = vec3((b + 1) << RAY_BRICK_SHIFT);
+    float end = 3.0e38;
+    [[unroll]] for (int a = 0; a < 3; a++) {
+        if (dv[a] > 0.0 && b[a] < last_brick[a]) end = min(end, (hi[a] - ov[a]) / dv[a]);
+        if (dv[a] < 0.0 && b[a] > 0) end = min(end, (lo[a] - ov[a]) / dv[a]);
+    }
+    vec3 inv = 1.0 / dv;
+    for (int k = 0; k < min(int(CLIP_TOOL_COUNT), MAX_TOOLS); k++) {
+        vec3 t0 = (vec3(frame.tool_reach[2 * k].xyz) - ov) * inv;
+        vec3 t1 = (vec3(frame.tool_reach[2 * k + 1].xyz) - ov) * inv;
+        float enter = max(max(min(t0.x, t1.x), min(t0.y, t1.y)), min(t0.z, t1.z));
+        float leave = min(min(max(t0.x, t1.x), max(t0.y, t1.y)), max(t0.z, t1.z));
+        if (enter <= leave && leave >= t) end = min(end, max(enter, t));
+    }
+    return end;
 }
 
 // The structure id of the voxel nearest texture point t.
@@ -277,7 +312,7 @@ void main() {
         // The headlight: from the eye along the ray, so l = v = h.
         vec3 light = -d_mm / len_mm;
         float t = tn + dt * pixel_jitter(gl_FragCoord.xy, v);
-        bool clipping = frame.viewport.z > 0.0;
+        bool clipping = flag(CLIPPING);
         // The previous sample's value (pre-integration), or none after a gap in the material.
         float s_prev = 0.0;
         bool have_prev = false;
@@ -293,11 +328,16 @@ void main() {
         ivec3 brick = ivec3(-1);
         bool brick_empty = false;
         bool prev_skippable = false;
-        // No fixed sample cap: every ray runs to its exit. An iteration advances t by at least
-        // one step, except that a cut-face bisection may step back by less than a step once per
-        // hidden run (at most every other iteration), so twice the sample count bounds the loop.
+        // The samples lie on the lattice t = t0 + k dt (computed, not accumulated, so that a
+        // jump over k lands exactly where stepping would have); a cut-face bisection restarts
+        // it at the cut. No fixed sample cap: the loop is bounded by twice the ray's sample
+        // count (each bisection steps back by less than a step, at most every other sample).
+        float t0 = t;
+        int k = 0;
         int max_iterations = 2 * int(ceil((tf - t) / dt)) + 4;
-        for (int i = 0; i < max_iterations && t < tf; i++, t += dt) {
+        for (int it = 0; it < max_iterations; it++, k++) {
+            t = t0 + float(k) * dt;
+            if (t >= tf) break;
             vec3 p = o + t * d;
             if (skipping) {
                 vec3 v = p * dims;
@@ -311,23 +351,24 @@ void main() {
                 if (here && prev_skippable) {
                     // This sample and the one before read only values (and, pre-integrated,
                     // the segment between them) that classify as transparent, and no tool hides
-                    // it: it adds nothing, and so does every next sample in the same brick out
-                    // of the tools' reach. Run over them by the same additions t += dt, so the
-                    // ray lands on the sample it would have reached one by one; only the run's
-                    // last value matters, to the next segment. (The inner loop once lost
-                    // samples: the fixed 8192-iteration cap counted iterations, not samples,
-                    // so the rays with and without skipping ended at different samples.)
-                    for (;;) {
-                        float tn = t + dt;
-                        if (tn >= tf) break;
-                        vec3 vn = (o + tn * d) * dims;
-                        ivec3 bn = clamp(ivec3(floor(vn)) >> RAY_BRICK_SHIFT, ivec3(0), last_brick);
-                        if (bn != brick || in_tool_reach(vn)) {
-                            s_prev = scalar_at(o + t * d);
-                            have_prev = true;
-                            break;
-                        }
-                        t = tn;
+                    // it: it adds exactly nothing, and so does every next sample in this brick
+                    // out of the tools' reach. Jump over those that lie two steps or more inside
+                    // both (the lattice makes the jump land on a sample; the margin keeps
+                    // rounding from ever skipping one the per-sample test would keep); the
+                    // rest are tested one by one. Only the last skipped value matters, to the
+                    // next segment.
+                    float t_out = min(tf, run_end(o * dims, d * dims, t, brick, last_brick));
+                    int n = int(floor((t_out - t) / dt)) - 2;
+                    if (n > 0) {
+                        k += n;
+                        t = t0 + float(k) * dt;
+                        p = o + t * d;
+                    }
+                    vec3 vn = (o + (t0 + float(k + 1) * dt) * d) * dims;
+                    ivec3 bn = clamp(ivec3(floor(vn)) >> RAY_BRICK_SHIFT, ivec3(0), last_brick);
+                    if (bn != brick || in_tool_reach(vn)) {
+                        s_prev = scalar_at(p);
+                        have_prev = true;
                     }
                     continue;
                 }
@@ -348,12 +389,14 @@ void main() {
                     // step on from there, so a cut face sits where the tool is rather than
                     // where the jittered samples happen to fall.
                     float lo = t - dt;
-                    [[unroll]] for (int k = 0; k < CUT_BISECTIONS; k++) {
+                    for (int k = 0; k < CUT_BISECTIONS; k++) {
                         float mid = 0.5 * (lo + t);
                         if (hiding_tool(a_w + mid * (b_w - a_w), spared_at(o + mid * d)) >= 0) lo = mid; else t = mid;
                     }
                     p = o + t * d;
                     w = a_w + t * (b_w - a_w);
+                    t0 = t;
+                    k = 0;
                     // The sample moved back, maybe out of its brick.
                     brick = ivec3(-1);
                     if (frame.surface.y > 0.0) {

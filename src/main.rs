@@ -442,13 +442,13 @@ struct VolumeArgs {
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     downsample: u32,
     /// Raw volume dimensions X,Y,Z (x fastest).
-    #[arg(long, value_parser = parse_triple::<usize>)]
+    #[arg(long, value_parser = cao_xr::space::parse_triple::<usize>)]
     raw_dims: Option<[usize; 3]>,
     /// Raw voxel type: u8, u16, i16.
     #[arg(long, default_value = "i16")]
     raw_type: String,
     /// Raw voxel spacing X,Y,Z in mm.
-    #[arg(long, value_parser = parse_triple::<f64>, default_value = "1,1,1")]
+    #[arg(long, value_parser = cao_xr::space::parse_triple::<f64>, default_value = "1,1,1")]
     raw_spacing: [f64; 3],
     /// Raw data is big-endian.
     #[arg(long)]
@@ -528,9 +528,10 @@ struct LightArgs {
     /// Reconstruct the scalars with a cubic B-spline (smoother close-ups, 8x the fetches).
     #[arg(long)]
     tricubic: bool,
-    /// Skip samples in bricks where nothing can be seen (the same image; on lavapipe barely faster).
+    /// Visit every sample instead of jumping over bricks where nothing can be seen (the same
+    /// image, slower; for measuring).
     #[arg(long)]
-    empty_skip: bool,
+    no_empty_skip: bool,
     /// Ray-casting step in mm (default: half the smallest voxel spacing).
     #[arg(long, default_value_t = 0.0)]
     ray_step_mm: f32,
@@ -557,7 +558,7 @@ impl LightArgs {
                 preintegrated: !self.no_preintegration,
                 jitter: !self.no_jitter,
                 tricubic: self.tricubic,
-                skip_empty: self.empty_skip,
+                skip_empty: !self.no_empty_skip,
                 step_mm: self.ray_step_mm,
                 ..Default::default()
             },
@@ -655,21 +656,6 @@ impl LaoArgs {
             bleeding: self.bleeding,
         })
     }
-}
-
-/// Three comma-separated values, X,Y,Z (clap's `num_args = 3` wants them as three words).
-fn parse_triple<T: std::str::FromStr>(s: &str) -> std::result::Result<[T; 3], String> {
-    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
-    let [x, y, z] = parts[..] else {
-        return Err(format!(
-            "expected X,Y,Z (three comma-separated values), got {s:?}"
-        ));
-    };
-    let one = |v: &str| {
-        v.parse::<T>()
-            .map_err(|_| format!("{v:?} in {s:?} is not a number"))
-    };
-    Ok([one(x)?, one(y)?, one(z)?])
 }
 
 impl VolumeArgs {

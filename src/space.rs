@@ -65,6 +65,26 @@ impl View {
 }
 
 /// A symmetric field of view: `half_angle` radians to each side, up and down.
+/// `X,Y,Z`: exactly three comma-separated values, each a `T` (a float must be finite), for every
+/// triple the command line takes (points, offsets, dims, spacings); anything else is refused
+/// with the text it was given.
+pub fn parse_triple<T: std::str::FromStr + ToString>(s: &str) -> Result<[T; 3], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [x, y, z] = parts[..] else {
+        return Err(format!(
+            "'{s}': expected X,Y,Z, three comma-separated numbers"
+        ));
+    };
+    let one = |v: &str| {
+        v.parse::<T>()
+            .ok()
+            // NaN and infinities parse as floats; a triple is never one.
+            .filter(|x| x.to_string().parse::<f64>().is_ok_and(f64::is_finite))
+            .ok_or_else(|| format!("'{s}': {v:?} is not a finite number"))
+    };
+    Ok([one(x)?, one(y)?, one(z)?])
+}
+
 pub fn symmetric_fov(half_angle: f32) -> Fov {
     Fov {
         angle_left: -half_angle,
@@ -144,6 +164,19 @@ pub fn default_stereo_views(vol: &Volume, placement: &Placement, ipd: f32) -> [V
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn triples_are_three_finite_numbers_or_refused_by_name() {
+        assert_eq!(parse_triple::<f32>("0.2, 1.3,-0.58"), Ok([0.2, 1.3, -0.58]));
+        assert_eq!(parse_triple::<usize>("512,512,133"), Ok([512, 512, 133]));
+        for bad in [
+            "1,x,2,3", "1,2", "1,2,3,4", "nan,0,0", "0,inf,0", "1,2,", "",
+        ] {
+            let e = parse_triple::<f32>(bad).unwrap_err();
+            assert!(e.contains(&format!("'{bad}'")), "{bad}: {e}");
+        }
+        assert!(parse_triple::<usize>("1,-2,3").is_err());
+    }
 
     #[test]
     fn lps_maps_upright_and_facing_the_viewer() {

@@ -79,13 +79,3 @@ bool sh_affected_index(vec3 p) {
     }
     return false;
 }
-
-// The first tool that hides world point w (the ray caster's shadow test), or -1; the same rule
-// as clip_test_index for a `spared` point.
-int hiding_tool(vec3 w, bool spared) {
-    for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
-        bool inside = (tool_test(t, (tools[t].local_from_world * vec4(w, 1.0)).xyz) & 1u) != 0u;
-        if (tools[t].map.w > 0.5 ? !inside : inside && !spared) return int(t);
-    }
-    return -1;
-}

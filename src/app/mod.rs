@@ -699,15 +699,16 @@ pub fn parse_tool(spec: &str, placement: &Placement) -> Result<Tool> {
         None => 30.0,
     };
     let offset = match parts.next() {
-        Some(s) => {
-            let v: Vec<f32> = s.split(',').filter_map(|x| x.parse().ok()).collect();
-            if v.len() != 3 {
-                return Err(bad("offset must be X,Y,Z in mm"));
-            }
-            glam::Vec3::new(v[0], v[1], v[2])
-        }
+        Some(s) => crate::space::parse_triple::<f32>(s)
+            .map(glam::Vec3::from_array)
+            .map_err(|e| bad(&format!("the offset must be X,Y,Z in mm ({e})")))?,
         None => glam::Vec3::new(0.0, 30.0, 70.0),
     };
+    if let Some(extra) = parts.next() {
+        return Err(bad(&format!(
+            "unexpected ':{extra}': expected SHAPE[:SIZE_MM[:X,Y,Z]]"
+        )));
+    }
     Ok(Tool {
         shape,
         pose: crate::space::Pose {
@@ -892,4 +893,30 @@ pub fn write_ao(
         )?;
     }
     Ok(timing)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tool_specs_are_parsed_strictly_and_refused_by_name() {
+        let p = Placement::default();
+        let t = parse_tool("probe-box:25:10,-5,30", &p).unwrap();
+        assert_eq!(t.mode, crate::scene::ToolMode::Probe);
+        let want = p.center + glam::Vec3::new(10.0, -5.0, 30.0) * 1e-3 * p.scale;
+        assert!((t.pose.position - want).length() < 1e-6);
+        for bad in [
+            "sphere:30:1,x,2,3",
+            "sphere:30:nan,0,0",
+            "sphere:30:0,inf,0",
+            "sphere:30:1,2",
+            "sphere:30:1,2,3:4",
+            "sphere:nan",
+            "cone:30",
+        ] {
+            let e = parse_tool(bad, &p).unwrap_err().to_string();
+            assert!(e.contains(&format!("--tool '{bad}'")), "{bad}: {e}");
+        }
+    }
 }

@@ -670,6 +670,7 @@ fn peel_pipelines(gpu: &Gpu, layout: vk::PipelineLayout) -> crate::gpu::Result<[
         color_format: PEEL_FORMAT,
         depth_format: DEPTH_FORMAT,
         blend: pipeline::opaque(),
+        fs_constants: &[],
     };
     // Every crossing counts, front- or back-facing; one sample per texel at the CPU reference's
     // sample point.

@@ -15,6 +15,8 @@ pub struct GraphicsDesc<'a> {
     pub color_format: vk::Format,
     pub depth_format: vk::Format,
     pub blend: vk::PipelineColorBlendAttachmentState,
+    /// The fragment shader's specialization constants, constant_id 0.. (u32 each).
+    pub fs_constants: &'a [u32],
 }
 
 /// Rasterisation state with culling `cull` (front faces counter-clockwise), filled triangles.
@@ -57,6 +59,17 @@ pub fn graphics_pipelines(
             return Err(e);
         }
     };
+    let entries: Vec<vk::SpecializationMapEntry> = (0..desc.fs_constants.len() as u32)
+        .map(|i| {
+            vk::SpecializationMapEntry::default()
+                .constant_id(i)
+                .offset(4 * i)
+                .size(4)
+        })
+        .collect();
+    let specialization = vk::SpecializationInfo::default()
+        .map_entries(&entries)
+        .data(bytemuck::cast_slice(desc.fs_constants));
     let stages = [
         vk::PipelineShaderStageCreateInfo::default()
             .stage(vk::ShaderStageFlags::VERTEX)
@@ -65,7 +78,8 @@ pub fn graphics_pipelines(
         vk::PipelineShaderStageCreateInfo::default()
             .stage(vk::ShaderStageFlags::FRAGMENT)
             .module(fs)
-            .name(c"main"),
+            .name(c"main")
+            .specialization_info(&specialization),
     ];
     let vertex_input = vk::PipelineVertexInputStateCreateInfo::default()
         .vertex_binding_descriptions(desc.vertex_bindings)

@@ -150,13 +150,24 @@ impl Buffer {
         Ok(b)
     }
 
+    /// Writes `bytes` at `offset` of a host-visible buffer; past its end is an error, not a panic.
     pub fn write(&mut self, offset: usize, bytes: &[u8]) -> Result<()> {
+        let size = self.size as usize;
         let slice = self
             .alloc
             .as_mut()
             .and_then(|a| a.mapped_slice_mut())
             .ok_or_else(|| GpuError::Other("buffer is not host visible".into()))?;
-        slice[offset..offset + bytes.len()].copy_from_slice(bytes);
+        let end = offset
+            .checked_add(bytes.len())
+            .filter(|&e| e <= size.min(slice.len()))
+            .ok_or_else(|| {
+                GpuError::Other(format!(
+                    "writing {} bytes at offset {offset} overruns a buffer of {size} bytes",
+                    bytes.len()
+                ))
+            })?;
+        slice[offset..end].copy_from_slice(bytes);
         Ok(())
     }
 

@@ -134,7 +134,7 @@ impl Default for RenderSettings {
             preintegrated: true,
             jitter: true,
             tricubic: false,
-            skip_empty: false,
+            skip_empty: true,
             background: [0.06, 0.07, 0.09],
             sh_weight: 1.0,
             sh_times_ao: false,
@@ -869,10 +869,45 @@ const FLAG_JITTER: u32 = 2;
 const FLAG_TRICUBIC: u32 = 4;
 const FLAG_SKIP_EMPTY: u32 = 8;
 const FLAG_LABELS: u32 = 16;
+const FLAG_CLIPPING: u32 = 32;
+
+impl Renderer {
+    /// The ray caster specialised for `flags`.
+    fn pipeline(&self, flags: u32) -> Result<vk::Pipeline> {
+        if let Some(&p) = self.pipelines.borrow().get(&flags) {
+            return Ok(p);
+        }
+        // One draw per eye rather than multiview: lavapipe (Mesa 22.3) renders only the first
+        // layer of a multiview pass with dynamic rendering. The ray caster writes every pixel's
+        // depth itself (gl_FragDepth), so the test always passes.
+        let desc = pipeline::GraphicsDesc {
+            vs: include_bytes!(concat!(env!("OUT_DIR"), "/raycast.vert.spv")),
+            fs: include_bytes!(concat!(env!("OUT_DIR"), "/raycast.frag.spv")),
+            layout: self.layout,
+            vertex_bindings: &[],
+            vertex_attributes: &[],
+            color_format: COLOR_FORMAT,
+            depth_format: DEPTH_FORMAT,
+            blend: pipeline::opaque(),
+            fs_constants: &[flags],
+        };
+        let variant = (
+            pipeline::raster(vk::CullModeFlags::NONE),
+            pipeline::depth(vk::CompareOp::ALWAYS, true),
+        );
+        let p = pipeline::graphics_pipelines(&self.gpu, &desc, &[variant])?[0];
+        self.pipelines.borrow_mut().insert(flags, p);
+        Ok(p)
+    }
+}
 
 pub struct Renderer {
     gpu: Gpu,
-    pipeline: vk::Pipeline,
+    /// The ray caster specialised per combination of flags (FLAG_*; the shader's constant_id
+    /// 0), made on first use: code for a feature that is off is not there at all. On lavapipe
+    /// that matters twice: its SIMD runs every branch, taken or not, and every loop iteration
+    /// of an invocation, taken or not, counts against one budget of 65,535 (docs/design.md).
+    pipelines: std::cell::RefCell<std::collections::HashMap<u32, vk::Pipeline>>,
     layout: vk::PipelineLayout,
     set_layout: vk::DescriptorSetLayout,
     sampler: vk::Sampler,
@@ -997,21 +1032,7 @@ impl Renderer {
             // One draw per eye rather than multiview: lavapipe (Mesa 22.3) renders only the first
             // layer of a multiview pass with dynamic rendering. The ray caster writes every pixel's
             // depth itself (gl_FragDepth), so the test always passes.
-            let desc = pipeline::GraphicsDesc {
-                vs: include_bytes!(concat!(env!("OUT_DIR"), "/raycast.vert.spv")),
-                fs: include_bytes!(concat!(env!("OUT_DIR"), "/raycast.frag.spv")),
-                layout,
-                vertex_bindings: &[],
-                vertex_attributes: &[],
-                color_format: COLOR_FORMAT,
-                depth_format: DEPTH_FORMAT,
-                blend: pipeline::opaque(),
-            };
-            let variant = (
-                pipeline::raster(vk::CullModeFlags::NONE),
-                pipeline::depth(vk::CompareOp::ALWAYS, true),
-            );
-            let pipeline = pipeline::graphics_pipelines(gpu, &desc, &[variant])?[0];
+            let pipelines = Default::default();
             let sampler = d.create_sampler(
                 &vk::SamplerCreateInfo::default()
                     .mag_filter(vk::Filter::LINEAR)
@@ -1025,7 +1046,7 @@ impl Renderer {
             )?;
             Ok(Renderer {
                 gpu: gpu.clone(),
-                pipeline,
+                pipelines,
                 layout,
                 set_layout,
                 sampler,
@@ -1095,10 +1116,12 @@ impl Renderer {
                 FLAG_SKIP_EMPTY,
             ),
             (tex.labelled, FLAG_LABELS),
+            (clip.is_some_and(|c| c.count > 0), FLAG_CLIPPING),
         ]
         .iter()
         .filter(|f| f.0)
         .fold(0, |acc, f| acc | f.1);
+        let pipeline = self.pipeline(flags)?;
         let [ox, oy] = blue_noise::RIGHT_EYE_OFFSET;
         let vp = views.map(|v| v.view_proj());
         let u = FrameUniforms {
@@ -1293,7 +1316,7 @@ impl Renderer {
                 .depth_attachment(&depth_att);
             unsafe {
                 d.cmd_begin_rendering(cmd, &info);
-                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, self.pipeline);
+                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
                 self.gpu.push_descriptor.cmd_push_descriptor_set(
                     cmd,
                     vk::PipelineBindPoint::GRAPHICS,
@@ -1336,7 +1359,9 @@ impl Drop for Renderer {
             let d = &self.gpu.device;
             let _ = d.device_wait_idle();
             d.destroy_sampler(self.sampler, None);
-            d.destroy_pipeline(self.pipeline, None);
+            for (_, p) in self.pipelines.borrow_mut().drain() {
+                d.destroy_pipeline(p, None);
+            }
             d.destroy_pipeline_layout(self.layout, None);
             d.destroy_descriptor_set_layout(self.set_layout, None);
         }

@@ -329,6 +329,7 @@ impl OverlayRenderer {
                     .dst_alpha_blend_factor(vk::BlendFactor::ONE_MINUS_SRC_ALPHA)
                     .alpha_blend_op(vk::BlendOp::ADD)
                     .color_write_mask(vk::ColorComponentFlags::RGBA),
+                fs_constants: &[],
             };
             let depth = pipeline::depth(vk::CompareOp::LESS, false);
             // Back faces first, then front faces.

@@ -276,6 +276,9 @@ fn read_header<R: BufRead>(path: &Path, r: &mut R) -> Result<(Header, bool), Vol
 }
 
 /// Loads a 3-D NRRD (`.nrrd` with attached data or `.nhdr` with a detached data file).
+/// The shortest voxel spacing a space direction may give (mm).
+const MIN_SPACING_MM: f64 = 1e-6;
+
 pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     load_frame(path, None)
 }
@@ -399,8 +402,11 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
                 ))
             })?;
             let len = v.length();
-            if len <= 0.0 || !len.is_finite() {
-                return Err(fmt(format!("space directions: axis {a} has a zero vector")));
+            // A vector a millionth of a millimetre long is no voxel spacing: refused like zero.
+            if !len.is_finite() || len < MIN_SPACING_MM {
+                return Err(fmt(format!(
+                    "space directions: axis {a} has a zero (or near-zero, {len:e} mm) vector"
+                )));
             }
             spacing[a] = len;
             cols[a] = v / len * flip;
@@ -750,7 +756,7 @@ fn write_components(
         ));
     }
     let cols = [directions.x_axis, directions.y_axis, directions.z_axis];
-    if cols.iter().any(|c| !c.is_finite() || c.length() == 0.0) || !origin.is_finite() {
+    if cols.iter().any(|c| !c.is_finite() || c.length() < 1e-6) || !origin.is_finite() {
         return Err(VolumeError::format(
             path,
             "cannot write: directions or origin are not finite / zero",
@@ -1000,6 +1006,25 @@ mod tests {
         .to_string();
         assert!(e.contains("bad.nrrd") && e.contains("3 samples"), "{e}");
         assert!(!p.exists());
+    }
+
+    #[test]
+    fn near_zero_space_directions_are_refused_like_zero_ones() {
+        let s = scratch("tiny");
+        for (name, dir) in [("zero", "(0,0,0)"), ("tiny", "(1e-12,0,0)")] {
+            let p = s.file(&format!("{name}.nrrd"));
+            write_file(
+                &p,
+                &format!(
+                    "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 1 1\nencoding: raw\n\
+                     space: left-posterior-superior\n\
+                     space directions: {dir} (0,1,0) (0,0,1)\n\n"
+                ),
+                &[1, 2],
+            );
+            let e = load(&p).unwrap_err().to_string();
+            assert!(e.contains("axis 0 has a zero"), "{name}: {e}");
+        }
     }
 
     #[test]

@@ -104,15 +104,7 @@ pub struct XrSummary {
 
 /// Parses `X,Y,Z` (metres) for the command line.
 pub fn parse_point(s: &str) -> std::result::Result<Vec3, String> {
-    let v: Vec<f32> = s
-        .split(',')
-        .map(|c| c.trim().parse::<f32>().ok().filter(|x| x.is_finite()))
-        .collect::<Option<_>>()
-        .ok_or_else(|| format!("'{s}': expected X,Y,Z in metres, e.g. 0,1.4,-0.6"))?;
-    match v[..] {
-        [x, y, z] => Ok(Vec3::new(x, y, z)),
-        _ => Err(format!("'{s}': expected three numbers X,Y,Z")),
-    }
+    crate::space::parse_triple::<f32>(s).map(Vec3::from_array)
 }
 
 /// Whether an OpenXR loader is installed and a runtime answers with a head-mounted display;

@@ -107,3 +107,23 @@ fn a_volume_beyond_the_gpu_memory_budget_is_refused_with_the_downsample_that_fit
     assert!(String::from_utf8_lossy(&out.stderr).contains("CAO_XR_GPU_BUDGET_MB=lots"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_write_past_a_buffers_end_is_an_error_not_a_panic() {
+    let gpu = crate::common::gpu();
+    let mut b = cao_xr::gpu::Buffer::from_slice(
+        &gpu,
+        &[0u32; 4],
+        ash::vk::BufferUsageFlags::TRANSFER_SRC,
+        "sixteen",
+    )
+    .unwrap();
+    assert!(b.write(8, &[1; 8]).is_ok());
+    let e = b.write(12, &[1; 8]).unwrap_err().to_string();
+    assert!(
+        e.contains("8 bytes at offset 12") && e.contains("16 bytes"),
+        "{e}"
+    );
+    assert!(b.write(usize::MAX, &[1]).is_err());
+    assert_eq!(&b.mapped().unwrap()[8..16], &[1; 8]);
+}
