@@ -23,6 +23,15 @@ if [ "${CAO_XR_TEST_DEVICE:-lavapipe}" = "lavapipe" ]; then
   export VK_DRIVER_FILES="$LVP_ICD"
 fi
 export CAO_XR_VALIDATION=1
+# The lint gate (Cargo.toml [lints]): formatting and clippy, warnings as errors. A minimal
+# rustup install has neither tool: add them.
+if command -v rustup >/dev/null 2>&1; then
+  for c in clippy rustfmt; do
+    rustup component list --installed 2>/dev/null | grep -q "^$c" || rustup component add "$c"
+  done
+fi
+cargo fmt --check
+cargo clippy --all-targets -- -D warnings
 # The OpenXR test (tests/integration/xr.rs) runs against Monado in a Debian trixie root, built once and
 # cached (scripts/xr-root.sh); without it that test fails with the reason rather than skipping.
 scripts/xr-root.sh >/dev/null || echo "test.sh: the Monado test root could not be built; tests/integration/xr.rs will fail" >&2

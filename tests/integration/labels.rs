@@ -273,14 +273,9 @@ fn label_maps_written_by_nibabel_resample_by_position_as_nibabel_reads_them() {
             "{}",
             String::from_utf8_lossy(&run.stderr)
         );
-        let decoder = png::Decoder::new(std::io::BufReader::new(
-            std::fs::File::open(out.join("left.png")).unwrap(),
-        ));
-        let mut reader = decoder.read_info().unwrap();
-        let mut buf = vec![0; reader.output_buffer_size().unwrap()];
-        let info = reader.next_frame(&mut buf).unwrap();
-        buf.truncate(info.buffer_size());
-        buf
+        cao_xr::render::compare::read_png(&out.join("left.png"))
+            .unwrap()
+            .rgba
     };
     let coverage = |rgba: &[u8]| rgba.chunks_exact(4).filter(|p| p[3] > 32).count();
     let protected = render(
