@@ -1,5 +1,6 @@
 #version 460
 #extension GL_EXT_buffer_reference : require
+#extension GL_GOOGLE_include_directive : require
 // CAO per frame, step 0: voxels the previous frame's tools touched go back to the background state
 // before this frame's tools are applied: unclipped (O_c = O, AO = V_PAO, category c), or with a
 // probe active, clipped away (O_c = 0, AO = 1, category a).
@@ -9,7 +10,7 @@ layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Clipped { float clipped[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Mask { uint mask[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) buffer Mask { uint mask[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pao { float pao[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Ao { float ao[]; };
 // O_c again, inside the zero border the LAO kernel reads (src/ao/lao.rs LaoLayout).
@@ -30,6 +31,8 @@ layout(push_constant) uniform Push {
 #define opacity pc.opacity_buf.opacity
 #define clipped pc.clipped_buf.clipped
 #define mask pc.mask_buf.mask
+#define MASK_WRITE
+#include "mask.glsl"
 #define pao pc.pao_buf.pao
 #define ao pc.ao_buf.ao
 #define clipped_padded pc.clipped_padded_buf.clipped_padded
@@ -42,6 +45,6 @@ void main() {
     float o = away ? 0.0 : opacity[i];
     clipped[i] = o;
     clipped_padded[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = o;
-    mask[i] = away ? 0u : 2u;
+    mask_set(i, away ? 0u : 2u);
     ao[i] = away ? 1.0 : pao[i];
 }

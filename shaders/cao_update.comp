@@ -40,6 +40,7 @@ layout(push_constant) uniform Push {
 #define ao pc.ao_buf.ao
 #define clear_bits pc.clear_bits_buf.clear_bits
 #define mask pc.mask_buf.mask
+#include "mask.glsl"
 #define pao pc.pao_buf.pao
 
 #include "opacity.glsl"
@@ -49,7 +50,7 @@ void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
     if (any(greaterThanEqual(v, pc.box_max.xyz))) return;
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
-    uint category = mask[i];
+    uint category = mask_get(i);
     if (category == 0u) {
         ao[i] = 1.0;
     } else if (category == 2u && pc.naive == 0u) {

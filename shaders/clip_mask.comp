@@ -10,7 +10,7 @@ layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Clipped { float clipped[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Mask { uint mask[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) buffer Mask { uint mask[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer ClippedPadded { float clipped_padded[]; };
 // The structure of every voxel (src/volume/labels.rs: one byte each, 0 unlabelled), and the
 // 256-bit set of protected structures, read where dims.w says some structure is protected.
@@ -34,6 +34,8 @@ layout(push_constant) uniform Push {
 #define opacity pc.opacity_buf.opacity
 #define clipped pc.clipped_buf.clipped
 #define mask pc.mask_buf.mask
+#define MASK_WRITE
+#include "mask.glsl"
 #define clipped_padded pc.clipped_padded_buf.clipped_padded
 #define label_words pc.label_words_buf.label_words
 
@@ -93,6 +95,6 @@ void main() {
     clipped[i] = oc;
     clipped_padded[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = oc;
     uint category = affected == 0u ? 2u : (visible > 0u ? 1u : 0u);
-    mask[i] = category;
+    mask_set(i, category);
     atomicAdd(counts[category], 1u);
 }

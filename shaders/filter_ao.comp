@@ -1,5 +1,6 @@
 #version 460
 #extension GL_EXT_buffer_reference : require
+#extension GL_GOOGLE_include_directive : require
 // Filtered AO (Ruiz et al.), the openness of every voxel of a box, exactly as docs/design.md
 // defines it: the tangent box's centre from the density gradient, then the cdf (t^beta), gauss
 // (Winitzki's erf) or penner estimator from that box's statistics (filter_box.comp), or the
@@ -32,6 +33,7 @@ layout(push_constant) uniform Push {
 #define stats pc.stats_buf.stats
 #define ao pc.ao_buf.ao
 #define mask pc.mask_buf.mask
+#include "mask.glsl"
 #define pre pc.pre_buf.pre
 
 float d_at(ivec3 p) {
@@ -97,7 +99,7 @@ void main() {
     if (any(greaterThanEqual(v, pc.box_max.xyz))) return;
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
     int mode = pc.box_min.w;
-    uint category = mode == 0 ? 1u : mask[i];
+    uint category = mode == 0 ? 1u : mask_get(i);
     if (category == 0u) {
         ao[i] = 1.0;
     } else if (category == 2u && mode == 1) {

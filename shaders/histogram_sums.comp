@@ -43,6 +43,7 @@ layout(push_constant) uniform Push {
 #define q pc.q_buf.q
 #define bins pc.bins_buf.bins
 #define mask pc.mask_buf.mask
+#include "mask.glsl"
 #define pre_a pc.pre_a_buf.pre_a
 #define pre_e pc.pre_e_buf.pre_e
 #define out_a pc.out_a_buf.out_a
@@ -84,7 +85,7 @@ void main() {
         out_e[i] = packUnorm4x8(vec4(c.rgb, 1.0));
         return;
     }
-    uint category = mode == 0 ? 1u : mask[i];
+    uint category = mode == 0 ? 1u : mask_get(i);
     if (mode == 3 || (mode == 1 && category == 2u)) {
         out_a[i] = pre_a[i];
         out_e[i] = pre_e[i];

@@ -318,7 +318,15 @@ impl Cao {
             | vk::BufferUsageFlags::TRANSFER_SRC
             | vk::BufferUsageFlags::TRANSFER_DST;
         let dev = |name| Buffer::new(gpu, n * 4, storage, MemoryLocation::GpuOnly, name);
-        let (clipped, mask, ao) = (dev("cao-clipped")?, dev("cao-mask")?, dev("cao-ao")?);
+        let (clipped, ao) = (dev("cao-clipped")?, dev("cao-ao")?);
+        // One byte per voxel (shaders/include/mask.glsl), in whole words.
+        let mask = Buffer::new(
+            gpu,
+            n.div_ceil(4) * 4,
+            storage,
+            MemoryLocation::GpuOnly,
+            "cao-mask",
+        )?;
         let layout = LaoLayout::new(&params, spacing, dims);
         let stride = layout.stride();
         check_layout(&vol.name, &skip, stride)?;
@@ -899,8 +907,8 @@ impl Cao {
         &self.opacity
     }
 
-    /// The last frame's voxel categories (0: clipped, 1: affected, 2: unaffected; restored
-    /// boxes read 2, or 0 while a probe is active).
+    /// The last frame's voxel categories, one byte per voxel (0: clipped, 1: affected,
+    /// 2: unaffected; restored boxes read 2, or 0 while a probe is active).
     pub fn mask(&self) -> &Buffer {
         &self.mask
     }
