@@ -389,7 +389,7 @@ void main() {
                     // step on from there, so a cut face sits where the tool is rather than
                     // where the jittered samples happen to fall.
                     float lo = t - dt;
-                    for (int k = 0; k < CUT_BISECTIONS; k++) {
+                    for (int n = 0; n < CUT_BISECTIONS; n++) {
                         float mid = 0.5 * (lo + t);
                         if (hiding_tool(a_w + mid * (b_w - a_w), spared_at(o + mid * d)) >= 0) lo = mid; else t = mid;
                     }

@@ -236,23 +236,7 @@ fn structure_image(
         }
         None => ([1, 1, 1], &[0]),
     };
-    let img = Image::new(
-        gpu,
-        ImageDesc {
-            image_type: vk::ImageType::TYPE_3D,
-            view_type: vk::ImageViewType::TYPE_3D,
-            format: vk::Format::R8_UNORM,
-            extent: vk::Extent3D {
-                width: dims[0] as u32,
-                height: dims[1] as u32,
-                depth: dims[2] as u32,
-            },
-            layers: 1,
-            usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
-            aspect: vk::ImageAspectFlags::COLOR,
-        },
-        "structures",
-    )?;
+    let img = volume_image(gpu, dims, vk::Format::R8_UNORM, "structures")?;
     img.upload(ids, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
     Ok((img, table, protect))
 }
@@ -385,7 +369,8 @@ fn cmd_refill(img: &Image, cmd: vk::CommandBuffer, src: &Buffer) {
     );
 }
 
-fn volume_image(gpu: &Gpu, dims: [usize; 3], name: &str) -> Result<Image> {
+/// A sampled 3D image of `dims` voxels in `format`, within the device's 3D image limit.
+fn volume_image(gpu: &Gpu, dims: [usize; 3], format: vk::Format, name: &str) -> Result<Image> {
     let max = gpu.limits.max_image_dimension3_d as usize;
     if dims.iter().any(|&d| d > max) {
         return Err(GpuError::Other(format!(
@@ -397,7 +382,7 @@ fn volume_image(gpu: &Gpu, dims: [usize; 3], name: &str) -> Result<Image> {
         ImageDesc {
             image_type: vk::ImageType::TYPE_3D,
             view_type: vk::ImageViewType::TYPE_3D,
-            format: vk::Format::R32_SFLOAT,
+            format,
             extent: vk::Extent3D {
                 width: dims[0] as u32,
                 height: dims[1] as u32,
@@ -418,7 +403,7 @@ impl VolumeTextures {
         check_linear_filter(gpu, vk::Format::R32_SFLOAT)?;
         check_linear_filter(gpu, vk::Format::R32G32B32A32_SFLOAT)?;
         let n = vol.voxel_count();
-        let scalars = volume_image(gpu, vol.dims, "scalars")?;
+        let scalars = volume_image(gpu, vol.dims, vk::Format::R32_SFLOAT, "scalars")?;
         let values: Vec<f32> = (0..n).map(|i| vol.voxels.get(i)).collect();
         scalars.upload(
             bytemuck::cast_slice(&values),
@@ -448,7 +433,7 @@ impl VolumeTextures {
             &vec![0u8; ranges.ranges.len()],
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         )?;
-        let ambient = volume_image(gpu, vol.dims, "ao")?;
+        let ambient = volume_image(gpu, vol.dims, vk::Format::R32_SFLOAT, "ao")?;
         ambient.upload(
             bytemuck::cast_slice(&vec![1.0f32; n]),
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
@@ -548,7 +533,7 @@ impl VolumeTextures {
     pub fn set_variance(&mut self, gpu: &Gpu, variance: Option<&[f32]>) -> Result<()> {
         self.variance = match variance {
             Some(v) => {
-                let img = volume_image(gpu, self.dims, "variance")?;
+                let img = volume_image(gpu, self.dims, vk::Format::R32_SFLOAT, "variance")?;
                 img.upload(
                     bytemuck::cast_slice(v),
                     vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,

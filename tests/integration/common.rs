@@ -133,6 +133,13 @@ pub fn run_cao(args: &[&str], env: &[(&str, &str)]) -> std::process::Output {
     out
 }
 
+/// A fresh scratch folder for test module `module`'s `name` (the caller removes it).
+pub fn scratch(module: &str, name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("cao-{module}-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
 /// The first index where `a` and `b` differ bit for bit (exactness checks), or None.
 pub fn first_bit_difference(a: &[f32], b: &[f32]) -> Option<usize> {
     assert_eq!(a.len(), b.len());

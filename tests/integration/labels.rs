@@ -16,9 +16,7 @@ use std::process::Command;
 use std::sync::Arc;
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("cao-labels-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    crate::common::scratch("labels", name)
 }
 
 /// A Python with nibabel and numpy (`python3` on PATH, else the system's).

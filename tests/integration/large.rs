@@ -8,9 +8,7 @@
 use std::path::{Path, PathBuf};
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("cao-large-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    crate::common::scratch("large", name)
 }
 
 /// A little-endian int16 raw file of `dims`, air (-1000 HU) except `content` (of `cdims`)
