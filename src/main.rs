@@ -885,6 +885,12 @@ fn run(cli: Cli) -> Result<()> {
                     m.update_ms
                 );
             }
+            let peak = gpu.memory_peak();
+            println!(
+                "GPU memory: peak {} MiB, {:.1} bytes per voxel",
+                peak >> 20,
+                peak as f64 / spec.volume.voxel_count().max(1) as f64
+            );
             println!(
                 "wrote {0}/left.png {0}/right.png {0}/stereo.png in {1:.1} s",
                 out.display(),

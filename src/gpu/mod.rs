@@ -88,6 +88,8 @@ struct MemoryUse {
     next: u64,
     held: std::collections::BTreeMap<u64, u64>,
     total: u64,
+    /// The most `total` has been.
+    peak: u64,
 }
 
 /// Fails the build unless a `#[repr(C)]` struct that a shader reads has the size and field
@@ -550,6 +552,11 @@ impl Core {
         self.memory.lock().map_or(0, |m| m.total)
     }
 
+    /// The most GPU memory held through Buffer and Image at once so far.
+    pub fn memory_peak(&self) -> u64 {
+        self.memory.lock().map_or(0, |m| m.peak)
+    }
+
     /// Counts `bytes` for `what` before they are allocated; refused beyond the budget. The
     /// id returned is given back with [`Core::release`].
     pub(crate) fn reserve(&self, what: &str, bytes: u64) -> Result<u64> {
@@ -570,6 +577,7 @@ impl Core {
         m.next += 1;
         m.held.insert(id, bytes);
         m.total += bytes;
+        m.peak = m.peak.max(m.total);
         Ok(id)
     }
 
