@@ -605,7 +605,7 @@ impl VolumeTextures {
         if settings.preintegrated && self.preint_step.get() != step {
             self.upload_preintegrated(step)?;
         }
-        // The empty bricks of what the shader will look up, when it skips (opt-in).
+        // The empty bricks of what the shader will look up, when it skips (by default).
         let key = self.skip_key(settings);
         if settings.skip_empty && self.skip_for.get() != Some(key) {
             let table = if settings.preintegrated {
