@@ -8,9 +8,7 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     vec4 value_map;          // lut coordinate = value * y + x; pre-integration table's: * w + z
     vec4 background;         // rgb background, a: 1 = modulate by AO
     vec4 viewport;           // xy: width, height in pixels; z: number of clipping tools;
-                             // w: the pipeline's flags (raycast.frag FLAGS: 1 pre-integrated,
-                             // 2 jitter, 4 tricubic, 8 empty-space skipping, 16 labels,
-                             // 32 clipping)
+                             // w: unused (the features are raycast.frag's FLAGS constant)
     vec4 phong;              // Blinn-Phong ka, kd, ks, shininess (headlight per eye)
     vec4 surface;            // x: least gradient (data units / mm) that lights a sample,
                              // y: cut layer in mm (0: cut faces lit by the data's gradient),

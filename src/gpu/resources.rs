@@ -10,7 +10,7 @@ pub struct Buffer {
     pub raw: vk::Buffer,
     pub size: u64,
     /// Its device address, for the compute passes that reach storage buffers by address
-    /// ([`ComputePipeline::by_address`]); 0 for a buffer that is not a storage buffer.
+    /// ([`ComputePipeline::with_addresses`]); 0 for a buffer that is not a storage buffer.
     pub address: vk::DeviceAddress,
     alloc: Option<Allocation>,
     /// Its share of [`super::Core::memory_in_use`].
@@ -602,9 +602,7 @@ impl ComputePipeline {
             .iter()
             .map(|r| (*r == Reach::Descriptor).then_some(vk::DescriptorType::STORAGE_BUFFER))
             .collect();
-        let mut p = ComputePipeline::build(gpu, spv, &descriptors, bytes)?;
-        p.reach = reach.to_vec();
-        Ok(p)
+        ComputePipeline::build(gpu, spv, &descriptors, bytes, reach.to_vec())
     }
 
     pub fn new(
@@ -613,18 +611,19 @@ impl ComputePipeline {
         bindings: &[vk::DescriptorType],
         push_constant_bytes: u32,
     ) -> Result<ComputePipeline> {
+        let reach = vec![Reach::Descriptor; bindings.len()];
         let bindings: Vec<_> = bindings.iter().map(|&t| Some(t)).collect();
-        let mut p = ComputePipeline::build(gpu, spv, &bindings, push_constant_bytes)?;
-        p.reach = vec![Reach::Descriptor; bindings.len()];
-        Ok(p)
+        ComputePipeline::build(gpu, spv, &bindings, push_constant_bytes, reach)
     }
 
-    /// The pipeline with a descriptor at each binding that has a type (the others are absent).
+    /// The pipeline with a descriptor at each binding that has a type (the others are absent),
+    /// its buffers bound as `reach` says.
     fn build(
         gpu: &Gpu,
         spv: &[u8],
         bindings: &[Option<vk::DescriptorType>],
         push_constant_bytes: u32,
+        reach: Vec<Reach>,
     ) -> Result<ComputePipeline> {
         unsafe {
             let set_layout = sparse_set_layout(gpu, bindings, vk::ShaderStageFlags::COMPUTE)?;
@@ -655,7 +654,7 @@ impl ComputePipeline {
                 pipeline,
                 layout,
                 set_layout,
-                reach: Vec::new(),
+                reach,
             })
         }
     }

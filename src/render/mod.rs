@@ -848,43 +848,13 @@ crate::gpu::glsl_layout!(FrameUniforms, 5120,
     lighting: 448, bleeding: 464, sh_light: 480, tool_reach: 736, structures: 992,
     protect: 5088);
 
-/// Flags of `viewport.w` (shaders/raycast.frag).
+/// The features the ray caster is specialised on (raycast.frag FLAGS, constant_id 0).
 const FLAG_PREINTEGRATED: u32 = 1;
 const FLAG_JITTER: u32 = 2;
 const FLAG_TRICUBIC: u32 = 4;
 const FLAG_SKIP_EMPTY: u32 = 8;
 const FLAG_LABELS: u32 = 16;
 const FLAG_CLIPPING: u32 = 32;
-
-impl Renderer {
-    /// The ray caster specialised for `flags`.
-    fn pipeline(&self, flags: u32) -> Result<vk::Pipeline> {
-        if let Some(&p) = self.pipelines.borrow().get(&flags) {
-            return Ok(p);
-        }
-        // One draw per eye rather than multiview: lavapipe (Mesa 22.3) renders only the first
-        // layer of a multiview pass with dynamic rendering. The ray caster writes every pixel's
-        // depth itself (gl_FragDepth), so the test always passes.
-        let desc = pipeline::GraphicsDesc {
-            vs: include_bytes!(concat!(env!("OUT_DIR"), "/raycast.vert.spv")),
-            fs: include_bytes!(concat!(env!("OUT_DIR"), "/raycast.frag.spv")),
-            layout: self.layout,
-            vertex_bindings: &[],
-            vertex_attributes: &[],
-            color_format: COLOR_FORMAT,
-            depth_format: DEPTH_FORMAT,
-            blend: pipeline::opaque(),
-            fs_constants: &[flags],
-        };
-        let variant = (
-            pipeline::raster(vk::CullModeFlags::NONE),
-            pipeline::depth(vk::CompareOp::ALWAYS, true),
-        );
-        let p = pipeline::graphics_pipelines(&self.gpu, &desc, &[variant])?[0];
-        self.pipelines.borrow_mut().insert(flags, p);
-        Ok(p)
-    }
-}
 
 pub struct Renderer {
     gpu: Gpu,
@@ -935,6 +905,34 @@ pub struct ClipBinding<'a> {
 }
 
 impl Renderer {
+    /// The ray caster specialised for `flags`.
+    fn pipeline(&self, flags: u32) -> Result<vk::Pipeline> {
+        if let Some(&p) = self.pipelines.borrow().get(&flags) {
+            return Ok(p);
+        }
+        // One draw per eye rather than multiview: lavapipe (Mesa 22.3) renders only the first
+        // layer of a multiview pass with dynamic rendering. The ray caster writes every pixel's
+        // depth itself (gl_FragDepth), so the test always passes.
+        let desc = pipeline::GraphicsDesc {
+            vs: include_bytes!(concat!(env!("OUT_DIR"), "/raycast.vert.spv")),
+            fs: include_bytes!(concat!(env!("OUT_DIR"), "/raycast.frag.spv")),
+            layout: self.layout,
+            vertex_bindings: &[],
+            vertex_attributes: &[],
+            color_format: COLOR_FORMAT,
+            depth_format: DEPTH_FORMAT,
+            blend: pipeline::opaque(),
+            fs_constants: &[flags],
+        };
+        let variant = (
+            pipeline::raster(vk::CullModeFlags::NONE),
+            pipeline::depth(vk::CompareOp::ALWAYS, true),
+        );
+        let p = pipeline::graphics_pipelines(&self.gpu, &desc, &[variant])?[0];
+        self.pipelines.borrow_mut().insert(flags, p);
+        Ok(p)
+    }
+
     pub fn new(gpu: &Gpu) -> Result<Renderer> {
         // The buffers and images first: they free themselves when a later step fails (a GPU
         // memory budget can refuse them), where the raw handles below would be left behind.
@@ -1125,7 +1123,7 @@ impl Renderer {
                 target.width as f32,
                 target.height as f32,
                 clip.map_or(0, |c| c.count) as f32,
-                flags as f32,
+                0.0,
             ],
             phong: [
                 settings.ambient,

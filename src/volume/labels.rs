@@ -275,11 +275,26 @@ fn resample(
     if m.determinant().abs() < 1e-12 {
         return Err("the label map's directions or spacing are degenerate".into());
     }
+    // Refused before any voxel is resampled: the two boxes must meet.
+    let (a, b) = (lps_box(vol), lps_box(src));
+    if !(0..3).all(|k| a.0[k] < b.1[k] && b.0[k] < a.1[k]) {
+        let f = |(lo, hi): (DVec3, DVec3)| {
+            format!(
+                "({:.1}, {:.1}, {:.1}) to ({:.1}, {:.1}, {:.1}) mm LPS",
+                lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+            )
+        };
+        return Err(format!(
+            "the label map does not overlap the volume: the label map spans {}, the volume {}",
+            f(b),
+            f(a)
+        ));
+    }
     let inv = m.inverse();
     let sd = src.dims;
     let row = vol.dims[0];
     let slice = row * vol.dims[1];
-    let ids: Vec<u8> = (0..vol.voxel_count())
+    Ok((0..vol.voxel_count())
         .into_par_iter()
         .map(|i| {
             let p = DVec3::new(
@@ -287,8 +302,7 @@ fn resample(
                 ((i / row) % vol.dims[1]) as f64,
                 (i / slice) as f64,
             );
-            let q = inv * (lps(vol, p) - src.origin);
-            let n = q.round();
+            let n = (inv * (lps(vol, p) - src.origin)).round();
             let inside = (0..3).all(|a| n[a] >= 0.0 && n[a] < sd[a] as f64);
             if !inside {
                 return 0;
@@ -296,55 +310,26 @@ fn resample(
             let (x, y, z) = (n.x as usize, n.y as usize, n.z as usize);
             id(values[x + sd[0] * (y + sd[1] * z)])
         })
-        .collect();
-    let overlaps = {
-        // Any volume voxel centre inside the label map's box (labelled or not).
-        let corners = |g: &Volume| -> (DVec3, DVec3) {
-            let mut lo = DVec3::splat(f64::MAX);
-            let mut hi = DVec3::splat(f64::MIN);
-            for c in 0..8 {
-                let idx = DVec3::new(
-                    if c & 1 == 0 {
-                        -0.5
-                    } else {
-                        g.dims[0] as f64 - 0.5
-                    },
-                    if c & 2 == 0 {
-                        -0.5
-                    } else {
-                        g.dims[1] as f64 - 0.5
-                    },
-                    if c & 4 == 0 {
-                        -0.5
-                    } else {
-                        g.dims[2] as f64 - 0.5
-                    },
-                );
-                let p = lps(g, idx);
-                lo = lo.min(p);
-                hi = hi.max(p);
+        .collect())
+}
+
+/// The LPS bounding box (mm) of `g`'s voxels, their outer faces included.
+fn lps_box(g: &Volume) -> (DVec3, DVec3) {
+    let mut lo = DVec3::splat(f64::MAX);
+    let mut hi = DVec3::splat(f64::MIN);
+    for c in 0..8 {
+        let corner = DVec3::from_array(std::array::from_fn(|a| {
+            if c & (1 << a) == 0 {
+                -0.5
+            } else {
+                g.dims[a] as f64 - 0.5
             }
-            (lo, hi)
-        };
-        let (a, b) = (corners(vol), corners(src));
-        let meets = (0..3).all(|k| a.0[k] < b.1[k] && b.0[k] < a.1[k]);
-        if !meets {
-            let f = |(lo, hi): (DVec3, DVec3)| {
-                format!(
-                    "({:.1}, {:.1}, {:.1}) to ({:.1}, {:.1}, {:.1}) mm LPS",
-                    lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
-                )
-            };
-            return Err(format!(
-                "the label map does not overlap the volume: the label map spans {}, the volume {}",
-                f(b),
-                f(a)
-            ));
-        }
-        true
-    };
-    debug_assert!(overlaps);
-    Ok(ids)
+        }));
+        let p = lps(g, corner);
+        lo = lo.min(p);
+        hi = hi.max(p);
+    }
+    (lo, hi)
 }
 
 /// A label value per voxel from a volume's stored values (rounded; negatives are unlabelled).

@@ -140,6 +140,18 @@ pub fn scratch(module: &str, name: &str) -> std::path::PathBuf {
     d
 }
 
+/// [`run_cao`], which must succeed: a failure fails the test with the arguments and stderr.
+pub fn run_cao_ok(args: &[&str]) -> std::process::Output {
+    let out = run_cao(args, &[]);
+    assert!(
+        out.status.success(),
+        "cao-xr {}:\n{}",
+        args.join(" "),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
 /// The first index where `a` and `b` differ bit for bit (exactness checks), or None.
 pub fn first_bit_difference(a: &[f32], b: &[f32]) -> Option<usize> {
     assert_eq!(a.len(), b.len());

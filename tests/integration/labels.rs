@@ -163,12 +163,7 @@ fn label_maps_written_by_nibabel_resample_by_position_as_nibabel_reads_them() {
             op.to_str().unwrap(),
         ];
         args.extend_from_slice(extra);
-        let run = common::run_cao(&args, &[]);
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
-        );
+        common::run_cao_ok(&args);
         let bytes = std::fs::read(&op).unwrap();
         let split = bytes.windows(2).position(|w| w == b"\n\n").unwrap();
         bytes[split + 2..]
@@ -265,12 +260,7 @@ fn label_maps_written_by_nibabel_resample_by_position_as_nibabel_reads_them() {
             out.to_str().unwrap(),
         ];
         args.extend_from_slice(extra);
-        let run = common::run_cao(&args, &[]);
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
-        );
+        common::run_cao_ok(&args);
         cao_xr::render::compare::read_png(&out.join("left.png"))
             .unwrap()
             .rgba

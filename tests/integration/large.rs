@@ -77,12 +77,7 @@ fn ao(dir: &Path, tag: &str, raw: &Path, dims: [usize; 3], method: &[&str]) -> V
     if histogram {
         args.extend_from_slice(&["--bleeding-out", e.to_str().unwrap()]);
     }
-    let run = crate::common::run_cao(&args, &[]);
-    assert!(
-        run.status.success(),
-        "{tag}: {}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    crate::common::run_cao_ok(&args);
     let mut vols = vec![read_f32_nrrd(&out)];
     if histogram {
         vols.push(read_f32_nrrd(&e));
@@ -288,12 +283,7 @@ fn rays_longer_than_8192_samples_reach_what_lies_behind_with_and_without_skippin
             out.to_str().unwrap(),
         ];
         args.extend_from_slice(extra);
-        let run = crate::common::run_cao(&args, &[]);
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
-        );
+        crate::common::run_cao_ok(&args);
         cao_xr::render::compare::read_png(&out.join("left.png"))
             .unwrap()
             .rgba
