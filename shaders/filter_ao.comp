@@ -11,6 +11,8 @@ layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Density { float density[]; };
+// The statistics (filter_box.comp), split into slabs.
+#include "slabs.glsl"
 layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer Stats { vec4 stats[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Ao { float ao[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Mask { uint mask[]; };
@@ -18,7 +20,7 @@ layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pre
 
 layout(push_constant) uniform Push {
     Density density_buf;
-    Stats stats_buf;
+    SlabTable stats_buf;
     Ao ao_buf;
     Mask mask_buf;
     Pre pre_buf;
@@ -30,7 +32,6 @@ layout(push_constant) uniform Push {
     vec4 spacing;    // xyz: mm per voxel; w: R in mm
 } pc;
 #define density pc.density_buf.density
-#define stats pc.stats_buf.stats
 #define ao pc.ao_buf.ao
 #define mask pc.mask_buf.mask
 #include "mask.glsl"
@@ -74,7 +75,8 @@ float openness(ivec3 v, float dv) {
                     below += uint(d_at(ivec3(x, y, z)) <= dv);
         return float(below) / n;
     }
-    vec4 s = stats[c.x + pc.dims.x * (c.y + pc.dims.y * c.z)];
+    ivec2 at = slab_at(pc.stats_buf, c, pc.dims.xyz);
+    vec4 s = Stats(pc.stats_buf.slab[at.x]).stats[at.y];
     float lo = s.z, hi = s.w;
     // (mean, M2) from filter_box.comp; a box of one value has that mean and no variance exactly.
     float mu = lo == hi ? lo : s.x;

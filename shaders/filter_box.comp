@@ -1,5 +1,6 @@
 #version 460
 #extension GL_EXT_buffer_reference : require
+#extension GL_GOOGLE_include_directive : require
 // Filtered AO (Ruiz et al.), the separable box statistics: one pass along one axis. Over the
 // window [-h, h] along that axis it combines (mean, M2 = sum of squared deviations, min, max) of
 // the members, each itself such an aggregate of `count` voxels (1 in pass x, which reads the
@@ -12,21 +13,20 @@ layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Density { float density[]; };
-layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer Src { vec4 src[]; };
-layout(buffer_reference, std430, buffer_reference_align = 16) writeonly buffer Dst { vec4 dst[]; };
+// The statistics are 16 bytes per voxel: split into slabs (slabs.glsl).
+#include "slabs.glsl"
+layout(buffer_reference, std430, buffer_reference_align = 16) buffer Stats { vec4 stats[]; };
 
 layout(push_constant) uniform Push {
     Density density_buf;
-    Src src_buf;
-    Dst dst_buf;
+    SlabTable src_buf;
+    SlabTable dst_buf;
     uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;      // w: axis (0 = x, reading the density; 1 = y, 2 = z)
     ivec4 box_min;   // w: half-width h along the axis
     ivec4 box_max;   // exclusive; w: voxels per member (count)
 } pc;
 #define density pc.density_buf.density
-#define src pc.src_buf.src
-#define dst pc.dst_buf.dst
 
 vec4 member(ivec3 p) {
     if (any(lessThan(p, ivec3(0))) || any(greaterThanEqual(p, pc.dims.xyz))) return vec4(0.0);
@@ -35,7 +35,8 @@ vec4 member(ivec3 p) {
         float d = density[i];
         return vec4(d, 0.0, d, d);
     }
-    return src[i];
+    ivec2 at = slab_at(pc.src_buf, p, pc.dims.xyz);
+    return Stats(pc.src_buf.slab[at.x]).stats[at.y];
 }
 
 void main() {
@@ -55,5 +56,6 @@ void main() {
         acc.zw = vec2(min(acc.z, m.z), max(acc.w, m.w));
         na = n;
     }
-    dst[v.x + pc.dims.x * (v.y + pc.dims.y * v.z)] = acc;
+    ivec2 at = slab_at(pc.dst_buf, v, pc.dims.xyz);
+    Stats(pc.dst_buf.slab[at.x]).stats[at.y] = acc;
 }

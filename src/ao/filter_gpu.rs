@@ -6,7 +6,7 @@
 
 use super::cao::{dispatch_box, BoxPush, VoxelBox};
 use super::filtered::FilterParams;
-use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Reach, Result};
+use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Reach, Result, SlabBuffer};
 use ash::vk;
 use gpu_allocator::MemoryLocation;
 
@@ -37,8 +37,8 @@ pub struct FilterGpu {
     gpu: Gpu,
     boxes: ComputePipeline,
     estimate: ComputePipeline,
-    pass_a: Buffer,
-    pass_b: Buffer,
+    pass_a: SlabBuffer,
+    pass_b: SlabBuffer,
     pub dims: [usize; 3],
     pub spacing: [f64; 3],
     pub params: FilterParams,
@@ -53,16 +53,8 @@ impl FilterGpu {
     ) -> Result<FilterGpu> {
         let spv_box = include_bytes!(concat!(env!("OUT_DIR"), "/filter_box.comp.spv"));
         let spv_ao = include_bytes!(concat!(env!("OUT_DIR"), "/filter_ao.comp.spv"));
-        let n = (dims[0] * dims[1] * dims[2]).max(1) as u64;
-        let scratch = |name| {
-            Buffer::new(
-                gpu,
-                n * 16,
-                vk::BufferUsageFlags::STORAGE_BUFFER,
-                MemoryLocation::GpuOnly,
-                name,
-            )
-        };
+        // (mean, M2, min, max) per voxel, 16 bytes: split into slabs where one buffer is too small.
+        let scratch = |name| SlabBuffer::new(gpu, dims, 16, name);
         Ok(FilterGpu {
             gpu: gpu.clone(),
             boxes: ComputePipeline::with_addresses(gpu, spv_box, &[Reach::Address; 3], 48)?,
@@ -82,7 +74,7 @@ impl FilterGpu {
 
     /// GPU memory the filters hold beyond the volumes every method has (the two stat volumes).
     pub fn resident_bytes(&self) -> u64 {
-        self.pass_a.size + self.pass_b.size
+        self.pass_a.size() + self.pass_b.size()
     }
 
     fn whole(&self) -> VoxelBox {
@@ -131,16 +123,11 @@ impl FilterGpu {
         let exact = self.params.estimator == super::filtered::Estimator::Exact;
         if !exact {
             // (axis, growth, source, target, voxels per member aggregate)
+            let (a, b) = (&self.pass_a.table, &self.pass_b.table);
             let passes: [(usize, [usize; 3], &Buffer, &Buffer, usize); 3] = [
-                (0, [0, h[1], h[2]], &self.pass_b, &self.pass_a, 1),
-                (1, [0, 0, h[2]], &self.pass_a, &self.pass_b, 2 * h[0] + 1),
-                (
-                    2,
-                    [0, 0, 0],
-                    &self.pass_b,
-                    &self.pass_a,
-                    (2 * h[0] + 1) * (2 * h[1] + 1),
-                ),
+                (0, [0, h[1], h[2]], b, a, 1),
+                (1, [0, 0, h[2]], a, b, 2 * h[0] + 1),
+                (2, [0, 0, 0], b, a, (2 * h[0] + 1) * (2 * h[1] + 1)),
             ];
             for (axis, grow, src, dst, count) in passes {
                 for s in &stats {
@@ -171,7 +158,7 @@ impl FilterGpu {
                     self.params.radius_mm as f32,
                 ],
             };
-            let bufs = [density, &self.pass_a, out, mask, pre];
+            let bufs = [density, &self.pass_a.table, out, mask, pre];
             self.estimate.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.estimate, cmd, b);
         }

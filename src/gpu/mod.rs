@@ -4,12 +4,14 @@
 pub mod pipeline;
 pub mod present;
 mod resources;
+mod slabs;
 mod timer;
 
 pub use resources::{
     address_bytes, cmd_blit_color, cmd_image_barrier, push_set_layout, shader_module, Buffer,
     ComputePipeline, Image, ImageDesc, Reach,
 };
+pub use slabs::{SlabBuffer, MAX_BUFFER_ENV};
 pub use timer::GpuTimer;
 
 /// The most frames the frame loop keeps on the GPU at once (`--frames-in-flight`): the slots
@@ -80,6 +82,18 @@ impl std::fmt::Display for OutOfMemory {
             }
         )
     }
+}
+
+/// The host's physical memory (`MemTotal` of /proc/meminfo), where the system says.
+pub fn host_memory_bytes() -> Option<u64> {
+    let info = std::fs::read_to_string("/proc/meminfo").ok()?;
+    parse_mem_total(&info)
+}
+
+fn parse_mem_total(meminfo: &str) -> Option<u64> {
+    let line = meminfo.lines().find(|l| l.starts_with("MemTotal:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib << 10)
 }
 
 /// GPU memory held through Buffer and Image: allocation id -> bytes.
@@ -158,6 +172,9 @@ pub struct Core {
     memory: Mutex<MemoryUse>,
     /// The [`BUDGET_ENV`] cap, in bytes.
     pub memory_budget: Option<u64>,
+    /// The largest slab of a [`SlabBuffer`] ([`MAX_BUFFER_ENV`], or less for a test); 0: the
+    /// device's largest buffer.
+    slab_limit: std::sync::atomic::AtomicU64,
     pub device_name: String,
     pub device_type: vk::PhysicalDeviceType,
     /// Whether the context can present to windows (GpuOptions::present).
@@ -285,6 +302,17 @@ impl Gpu {
     }
 
     unsafe fn create(opts: &GpuOptions, factory: &mut dyn VulkanFactory) -> Result<Gpu> {
+        let slab_limit = match std::env::var(MAX_BUFFER_ENV) {
+            Err(_) => 0,
+            Ok(v) => match v.trim().parse::<u64>() {
+                Ok(kb) if kb > 0 && kb < 1 << 40 => kb << 10,
+                _ => {
+                    return Err(GpuError::Other(format!(
+                        "{MAX_BUFFER_ENV}={v}: expected a whole number of KiB above 0"
+                    )))
+                }
+            },
+        };
         let budget = match std::env::var(BUDGET_ENV) {
             Err(_) => None,
             Ok(v) => match v.trim().parse::<u64>() {
@@ -430,6 +458,7 @@ impl Gpu {
             cmd_pool: Mutex::new(cmd_pool),
             memory: Mutex::new(MemoryUse::default()),
             memory_budget: budget,
+            slab_limit: std::sync::atomic::AtomicU64::new(slab_limit),
             device_name,
             device_type: props.device_type,
             present: opts.present,
@@ -534,17 +563,42 @@ impl Core {
         p11.max_memory_allocation_size.min(p13.max_buffer_size)
     }
 
+    /// The largest buffer one slab of a [`SlabBuffer`] may be.
+    pub fn max_slab_bytes(&self) -> u64 {
+        let device = self.max_buffer_bytes();
+        match self.slab_limit.load(std::sync::atomic::Ordering::Relaxed) {
+            0 => device,
+            forced => forced.min(device),
+        }
+    }
+
+    /// Splits every [`SlabBuffer`] made from now on into slabs of at most `bytes` (tests compare
+    /// a split volume with one buffer).
+    pub fn set_max_slab_bytes(&self, bytes: u64) {
+        self.slab_limit
+            .store(bytes.max(1), std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// The largest device-local heap. A CPU device's memory is the host's: Mesa 22's lavapipe
+    /// reports a fixed 2 GiB heap whatever the machine has (later Mesa reports the host's
+    /// physical memory, as this does for every CPU device).
     pub fn device_local_heap_bytes(&self) -> u64 {
         let mem = unsafe {
             self.instance
                 .get_physical_device_memory_properties(self.physical)
         };
-        mem.memory_heaps_as_slice()
+        let heap = mem
+            .memory_heaps_as_slice()
             .iter()
             .filter(|h| h.flags.contains(vk::MemoryHeapFlags::DEVICE_LOCAL))
             .map(|h| h.size)
             .max()
-            .unwrap_or(0)
+            .unwrap_or(0);
+        if self.is_cpu() {
+            heap.max(host_memory_bytes().unwrap_or(0))
+        } else {
+            heap
+        }
     }
 
     /// Bytes of GPU memory held through [`Buffer`] and [`Image`].
@@ -700,5 +754,18 @@ impl Drop for Core {
             }
             self.instance.destroy_instance(None);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_mem_total;
+
+    #[test]
+    fn host_memory_is_mem_total_in_bytes() {
+        let info = "MemFree:  100 kB\nMemTotal:       24576000 kB\nMemAvailable: 5 kB\n";
+        assert_eq!(parse_mem_total(info), Some(24_576_000 << 10));
+        assert_eq!(parse_mem_total("MemFree: 1 kB\n"), None);
+        assert_eq!(parse_mem_total("MemTotal: lots kB\n"), None);
     }
 }

@@ -98,6 +98,34 @@ fn the_filters_clip_update_equals_a_full_refilter_bit_for_bit_every_frame() {
 }
 
 #[test]
+fn statistics_split_into_slabs_equal_one_buffer_bit_for_bit_every_frame() {
+    // The box statistics (16 bytes per voxel) split into slabs of 3 slices, 14 slabs for 40
+    // slices with a short last one, against one buffer: the precompute and every clip update of
+    // a carving sequence are the same bits.
+    let (whole, split) = (common::gpu(), common::gpu());
+    let vol = phantom::head(40);
+    let slice = (40 * 40 * 16) as u64;
+    split.set_max_slab_bytes(3 * slice + 5);
+    let slabs = cao_xr::gpu::SlabBuffer::new(&split, vol.dims, 16, "probe").unwrap();
+    assert_eq!((slabs.slab_count(), slabs.slices_per_slab), (14, 3));
+    let placement = Placement::default();
+    let ao = config(Estimator::Gauss, FilterInput::Opacity, 11.0);
+    let (mut one, _) = setup(&whole, &vol, &ao);
+    let (mut many, _) = setup(&split, &vol, &ao);
+    assert!(common::first_bit_difference(&read(&one.ao), &read(&many.ao)).is_none());
+    for (i, tools) in frames(placement.center).iter().enumerate() {
+        one.run_frame(tools, &placement, Mode::Contextual).unwrap();
+        many.run_frame(tools, &placement, Mode::Contextual).unwrap();
+        let diff = common::first_bit_difference(&read(&one.ao), &read(&many.ao));
+        assert!(
+            diff.is_none(),
+            "frame {i}: slabs differ from one buffer at voxel {diff:?}"
+        );
+    }
+    common::assert_no_validation_messages(&split);
+}
+
+#[test]
 fn a_tf_switch_refilters_to_the_new_tfs_filtered_ao() {
     use cao_xr::app::frame_loop::FrameLoop;
     use cao_xr::input::{FrameInput, InteractionSettings};
