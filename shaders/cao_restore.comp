@@ -26,7 +26,7 @@ layout(push_constant) uniform Push {
     ivec4 dims;
     ivec4 box_min;   // w: 1 = clipped away
     ivec4 box_max;   // exclusive
-    ivec4 stride;    // the padded grid's (origin, row, slice)
+    ivec4 stride;    // the padded grid's (origin, row, slice); 0 where there is none
 } pc;
 #define opacity pc.opacity_buf.opacity
 #define clipped pc.clipped_buf.clipped
@@ -44,7 +44,8 @@ void main() {
     bool away = pc.box_min.w != 0;
     float o = away ? 0.0 : opacity[i];
     clipped[i] = o;
-    clipped_padded[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = o;
+    // Stride 0: the method is not LAO, and there is no padded copy.
+    if (pc.stride.y != 0) clipped_padded[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = o;
     mask_set(i, away ? 0u : 2u);
     ao[i] = away ? 1.0 : pao[i];
 }

@@ -29,7 +29,7 @@ layout(push_constant) uniform Push {
     ivec4 dims;      // w: 1 = some structure is protected
     ivec4 box_min;   // w: tool count
     ivec4 box_max;   // exclusive
-    ivec4 stride;    // the padded grid's (origin, row, slice)
+    ivec4 stride;    // the padded grid's (origin, row, slice); 0 where there is none
 } pc;
 #define opacity pc.opacity_buf.opacity
 #define clipped pc.clipped_buf.clipped
@@ -93,7 +93,8 @@ void main() {
         oc = o * (float(visible) / 41.0);
     }
     clipped[i] = oc;
-    clipped_padded[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = oc;
+    // Stride 0: the method is not LAO, and there is no padded copy.
+    if (pc.stride.y != 0) clipped_padded[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = oc;
     uint category = affected == 0u ? 2u : (visible > 0u ? 1u : 0u);
     mask_set(i, category);
     atomicAdd(counts[category], 1u);

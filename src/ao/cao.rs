@@ -192,6 +192,7 @@ pub struct Cao {
     /// O_c: the anti-aliased clipped opacity.
     pub clipped: Buffer,
     /// O_c again inside the zero border the LAO kernel reads ([`LaoLayout`]); the border stays 0.
+    /// Only while the method is LAO (real skipping data): a 4-byte stand-in for the others.
     clipped_padded: Buffer,
     /// [`LaoLayout::stride`] of `clipped_padded`.
     stride: [i32; 4],
@@ -330,13 +331,7 @@ impl Cao {
         let layout = LaoLayout::new(&params, spacing, dims);
         let stride = layout.stride();
         check_layout(&vol.name, &skip, stride)?;
-        let clipped_padded = Buffer::new(
-            gpu,
-            layout.padded_len() as u64 * 4,
-            storage,
-            MemoryLocation::GpuOnly,
-            "cao-clipped-padded",
-        )?;
+        let clipped_padded = padded_copy(gpu, &layout, lao_reads(&skip))?;
         let slots = (0..MAX_FRAMES_IN_FLIGHT)
             .map(|_| FrameSlot::new(gpu))
             .collect::<Result<Vec<_>>>()?;
@@ -377,16 +372,8 @@ impl Cao {
         };
         // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere.
         let all = cao.whole();
-        cao.gpu.submit_and_wait(|cmd| {
-            unsafe {
-                let raw = cao.clipped_padded.raw;
-                cao.gpu
-                    .device
-                    .cmd_fill_buffer(cmd, raw, 0, vk::WHOLE_SIZE, 0);
-            }
-            cao.gpu.barrier(cmd);
-            cao.record_restore(cmd, &[all], false);
-        })?;
+        cao.gpu
+            .submit_and_wait(|cmd| cao.record_restore(cmd, &[all], false))?;
         Ok(cao)
     }
 
@@ -416,10 +403,25 @@ impl Cao {
         self.opacity = opacity;
         self.pao = pao;
         if let Some(skip) = skip {
+            if lao_reads(&skip) && !lao_reads(&self.skip) {
+                // A switch to LAO: its padded O_c, filled by the whole restore below.
+                let layout = LaoLayout::new(&self.params, self.spacing, self.dims);
+                self.clipped_padded = padded_copy(&self.gpu, &layout, true)?;
+            }
             self.skip = skip;
         }
         self.prev_boxes = vec![self.whole()];
         Ok(())
+    }
+
+    /// The strides the restore and clip passes write the padded O_c with; 0 (no copy) when the
+    /// method is not LAO.
+    fn padded_stride(&self) -> [i32; 4] {
+        if lao_reads(&self.skip) {
+            self.stride
+        } else {
+            [0; 4]
+        }
     }
 
     fn whole(&self) -> VoxelBox {
@@ -676,7 +678,7 @@ impl Cao {
                 dims: self.dims4(),
                 box_min: [b.min[0], b.min[1], b.min[2], clipped as i32],
                 box_max: [b.max[0], b.max[1], b.max[2], 0],
-                stride: self.stride,
+                stride: self.padded_stride(),
             };
             let bufs = [
                 &self.opacity,
@@ -767,7 +769,7 @@ impl Cao {
                 dims: [x, y, z, self.any_protected as i32],
                 box_min: [b.min[0], b.min[1], b.min[2], count as i32],
                 box_max: [b.max[0], b.max[1], b.max[2], 0],
-                stride: self.stride,
+                stride: self.padded_stride(),
             };
             let bufs = [
                 &self.opacity,
@@ -955,6 +957,36 @@ impl FrameSlot {
     fn clip_buffers(&self) -> (&Buffer, &Buffer) {
         (&self.tools, self.maps.as_ref().unwrap_or(&self.tools))
     }
+}
+
+/// Whether `skip` is LAO's own skipping data, not a stand-in: LAO, and only LAO, reads the
+/// padded O_c.
+fn lao_reads(skip: &SkipBuffers) -> bool {
+    skip.stride != [0; 4]
+}
+
+/// The padded O_c, zero throughout (the border stays so), or a 4-byte stand-in where `needed`
+/// is false.
+fn padded_copy(gpu: &Gpu, layout: &LaoLayout, needed: bool) -> Result<Buffer> {
+    let bytes = if needed {
+        layout.padded_len() as u64 * 4
+    } else {
+        4
+    };
+    let usage = vk::BufferUsageFlags::STORAGE_BUFFER
+        | vk::BufferUsageFlags::TRANSFER_SRC
+        | vk::BufferUsageFlags::TRANSFER_DST;
+    let b = Buffer::new(
+        gpu,
+        bytes,
+        usage,
+        MemoryLocation::GpuOnly,
+        "cao-clipped-padded",
+    )?;
+    gpu.submit_and_wait(|cmd| unsafe {
+        gpu.device.cmd_fill_buffer(cmd, b.raw, 0, vk::WHOLE_SIZE, 0);
+    })?;
+    Ok(b)
 }
 
 /// Skipping data made for another grid than the CAO state's (a stand-in has stride 0) would make

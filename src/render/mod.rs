@@ -210,6 +210,39 @@ pub struct VolumeTextures {
     pub dims: [usize; 3],
     pub spacing: [f64; 3],
     pub value_range: (f32, f32),
+    /// The scalar image holds (value - lo) / span: `(lo, span)` ([`ScalarStorage`]).
+    scalar_map: (f32, f32),
+}
+
+/// How the scalar image stores the voxels: integers in their own width (8 or 16 bits, unorm),
+/// exactly, at a quarter or half of f32's memory; floats as R32F.
+struct ScalarStorage;
+
+impl ScalarStorage {
+    /// The image format, its texels, and `(lo, span)` with value = texel * span + lo.
+    fn of(voxels: &crate::volume::Voxels) -> (vk::Format, Vec<u8>, (f32, f32)) {
+        use crate::volume::Voxels;
+        match voxels {
+            Voxels::U8(v) => (vk::Format::R8_UNORM, v.clone(), (0.0, 255.0)),
+            Voxels::U16(v) => (
+                vk::Format::R16_UNORM,
+                bytemuck::cast_slice(v).to_vec(),
+                (0.0, 65535.0),
+            ),
+            Voxels::I16(v) => (
+                vk::Format::R16_UNORM,
+                v.iter()
+                    .flat_map(|&x| ((x as i32 + 32768) as u16).to_ne_bytes())
+                    .collect(),
+                (-32768.0, 65535.0),
+            ),
+            Voxels::F32(v) => (
+                vk::Format::R32_SFLOAT,
+                bytemuck::cast_slice(v).to_vec(),
+                (0.0, 1.0),
+            ),
+        }
+    }
 }
 
 /// The label map's ids as an R8 unorm volume (a single 0 voxel without labels), its structures'
@@ -403,13 +436,14 @@ impl VolumeTextures {
         check_linear_filter(gpu, vk::Format::R32_SFLOAT)?;
         check_linear_filter(gpu, vk::Format::R32G32B32A32_SFLOAT)?;
         let n = vol.voxel_count();
-        let scalars = volume_image(gpu, vol.dims, vk::Format::R32_SFLOAT, "scalars")?;
+        let (format, stored, scalar_map) = ScalarStorage::of(&vol.voxels);
+        check_linear_filter(gpu, format)?;
+        let scalars = volume_image(gpu, vol.dims, format, "scalars")?;
+        scalars.upload(&stored, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
+        drop(stored);
         let values: Vec<f32> = (0..n).map(|i| vol.voxels.get(i)).collect();
-        scalars.upload(
-            bytemuck::cast_slice(&values),
-            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-        )?;
         let ranges = empty_space::BrickRanges::of(&values, vol.dims);
+        drop(values);
         let [bx, by, bz] = ranges.bricks.map(|b| b as u32);
         let skip = Image::new(
             gpu,
@@ -523,6 +557,7 @@ impl VolumeTextures {
             dims: vol.dims,
             spacing: vol.spacing,
             value_range: vol.value_range(),
+            scalar_map,
         };
         t.set_transfer_function(tf)?;
         Ok(t)
@@ -670,11 +705,14 @@ impl VolumeTextures {
 
     /// Coordinate in a lookup table of `n` texels over the value range = value * scale +
     /// offset, hitting the first and last texel centres at the ends of the range.
+    /// `(offset, scale)` with a table of `n` entries' coordinate = texel * scale + offset, the
+    /// table spanning the value range.
     fn lut_map(&self, n: usize) -> (f32, f32) {
         let (lo, hi) = self.value_range;
         let n = n as f32;
         let scale = (n - 1.0) / (n * (hi - lo).max(1e-6));
-        (0.5 / n - lo * scale, scale)
+        let (s_lo, span) = self.scalar_map;
+        (0.5 / n + (s_lo - lo) * scale, scale * span)
     }
 
     fn extent_mm(&self) -> Vec3 {
@@ -1132,7 +1170,8 @@ impl Renderer {
                 PHONG[3],
             ],
             surface: [
-                MIN_GRADIENT * (hi - lo),
+                // In texel units per mm, as the shader's gradient is.
+                MIN_GRADIENT * (hi - lo) / tex.scalar_map.1,
                 if settings.cut_lighting {
                     CUT_LAYER_VOXELS * max_spacing
                 } else {
