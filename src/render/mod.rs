@@ -297,7 +297,8 @@ impl VolumeLimits {
     }
 }
 
-/// GPU bytes per voxel: the scalar and AO images (R32F), O, O_c, V_PAO and V_AO (f32 buffers).
+/// GPU bytes per voxel, at least: the scalar and AO images, O, O_c, V_PAO and V_AO (4 bytes each
+/// for f32 data; an integer scalar takes 2 or 1), before the method's own volumes.
 pub const GPU_BYTES_PER_VOXEL: u64 = 6 * 4;
 
 /// The shaders index a volume's voxels with 32-bit signed integers.
