@@ -14,7 +14,7 @@
 // every loop of an invocation after 65,535 iterations in all (docs/design.md).
 #extension GL_EXT_control_flow_attributes : require
 #include "frame.glsl"
-// The scalars as stored (src/render/mod.rs ScalarStorage: integers as unorm texels); value_map
+// The scalars as stored (src/render/mod.rs scalar_storage: integers as unorm texels); value_map
 // and the gradient threshold surface.x are in those units.
 layout(set = 0, binding = 1) uniform sampler3D scalars;
 layout(set = 0, binding = 2) uniform sampler3D ambient;

@@ -210,38 +210,34 @@ pub struct VolumeTextures {
     pub dims: [usize; 3],
     pub spacing: [f64; 3],
     pub value_range: (f32, f32),
-    /// The scalar image holds (value - lo) / span: `(lo, span)` ([`ScalarStorage`]).
+    /// The scalar image holds (value - lo) / span: `(lo, span)` ([`scalar_storage`]).
     scalar_map: (f32, f32),
 }
 
 /// How the scalar image stores the voxels: integers in their own width (8 or 16 bits, unorm),
-/// exactly, at a quarter or half of f32's memory; floats as R32F.
-struct ScalarStorage;
-
-impl ScalarStorage {
-    /// The image format, its texels, and `(lo, span)` with value = texel * span + lo.
-    fn of(voxels: &crate::volume::Voxels) -> (vk::Format, Vec<u8>, (f32, f32)) {
-        use crate::volume::Voxels;
-        match voxels {
-            Voxels::U8(v) => (vk::Format::R8_UNORM, v.clone(), (0.0, 255.0)),
-            Voxels::U16(v) => (
-                vk::Format::R16_UNORM,
-                bytemuck::cast_slice(v).to_vec(),
-                (0.0, 65535.0),
-            ),
-            Voxels::I16(v) => (
-                vk::Format::R16_UNORM,
-                v.iter()
-                    .flat_map(|&x| ((x as i32 + 32768) as u16).to_ne_bytes())
-                    .collect(),
-                (-32768.0, 65535.0),
-            ),
-            Voxels::F32(v) => (
-                vk::Format::R32_SFLOAT,
-                bytemuck::cast_slice(v).to_vec(),
-                (0.0, 1.0),
-            ),
-        }
+/// exactly, at a quarter or half of f32's memory; floats as R32F. Returns the image format, its
+/// texels, and `(lo, span)` with value = texel * span + lo.
+fn scalar_storage(voxels: &crate::volume::Voxels) -> (vk::Format, Vec<u8>, (f32, f32)) {
+    use crate::volume::Voxels;
+    match voxels {
+        Voxels::U8(v) => (vk::Format::R8_UNORM, v.clone(), (0.0, 255.0)),
+        Voxels::U16(v) => (
+            vk::Format::R16_UNORM,
+            bytemuck::cast_slice(v).to_vec(),
+            (0.0, 65535.0),
+        ),
+        Voxels::I16(v) => (
+            vk::Format::R16_UNORM,
+            v.iter()
+                .flat_map(|&x| ((x as i32 + 32768) as u16).to_ne_bytes())
+                .collect(),
+            (-32768.0, 65535.0),
+        ),
+        Voxels::F32(v) => (
+            vk::Format::R32_SFLOAT,
+            bytemuck::cast_slice(v).to_vec(),
+            (0.0, 1.0),
+        ),
     }
 }
 
@@ -437,7 +433,7 @@ impl VolumeTextures {
         check_linear_filter(gpu, vk::Format::R32_SFLOAT)?;
         check_linear_filter(gpu, vk::Format::R32G32B32A32_SFLOAT)?;
         let n = vol.voxel_count();
-        let (format, stored, scalar_map) = ScalarStorage::of(&vol.voxels);
+        let (format, stored, scalar_map) = scalar_storage(&vol.voxels);
         check_linear_filter(gpu, format)?;
         let scalars = volume_image(gpu, vol.dims, format, "scalars")?;
         scalars.upload(&stored, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
@@ -704,10 +700,9 @@ impl VolumeTextures {
         cmd_refill(&self.ambient, cmd, ao);
     }
 
-    /// Coordinate in a lookup table of `n` texels over the value range = value * scale +
-    /// offset, hitting the first and last texel centres at the ends of the range.
-    /// `(offset, scale)` with a table of `n` entries' coordinate = texel * scale + offset, the
-    /// table spanning the value range.
+    /// Coordinate in a lookup table of `n` texels over the value range = texel * scale +
+    /// offset (the scalar image's texel, [`scalar_storage`]), hitting the first and last texel
+    /// centres at the ends of the range.
     fn lut_map(&self, n: usize) -> (f32, f32) {
         let (lo, hi) = self.value_range;
         let n = n as f32;
