@@ -84,6 +84,20 @@ impl std::fmt::Display for OutOfMemory {
     }
 }
 
+/// A size from environment variable `name`, a whole number of units (`unit`, 2^`shift` bytes)
+/// above 0; None where it is unset.
+fn env_bytes(name: &str, shift: u32, unit: &str) -> Result<Option<u64>> {
+    let Ok(v) = std::env::var(name) else {
+        return Ok(None);
+    };
+    match v.trim().parse::<u64>() {
+        Ok(n) if n > 0 && n < 1 << 40 => Ok(Some(n << shift)),
+        _ => Err(GpuError::Other(format!(
+            "{name}={v}: expected a whole number of {unit} above 0"
+        ))),
+    }
+}
+
 /// The host's physical memory (`MemTotal` of /proc/meminfo), where the system says.
 pub fn host_memory_bytes() -> Option<u64> {
     let info = std::fs::read_to_string("/proc/meminfo").ok()?;
@@ -302,28 +316,8 @@ impl Gpu {
     }
 
     unsafe fn create(opts: &GpuOptions, factory: &mut dyn VulkanFactory) -> Result<Gpu> {
-        let slab_limit = match std::env::var(MAX_BUFFER_ENV) {
-            Err(_) => 0,
-            Ok(v) => match v.trim().parse::<u64>() {
-                Ok(kb) if kb > 0 && kb < 1 << 40 => kb << 10,
-                _ => {
-                    return Err(GpuError::Other(format!(
-                        "{MAX_BUFFER_ENV}={v}: expected a whole number of KiB above 0"
-                    )))
-                }
-            },
-        };
-        let budget = match std::env::var(BUDGET_ENV) {
-            Err(_) => None,
-            Ok(v) => match v.trim().parse::<u64>() {
-                Ok(mb) if mb > 0 && mb < 1 << 40 => Some(mb << 20),
-                _ => {
-                    return Err(GpuError::Other(format!(
-                        "{BUDGET_ENV}={v}: expected a whole number of MiB above 0"
-                    )))
-                }
-            },
-        };
+        let slab_limit = env_bytes(MAX_BUFFER_ENV, 10, "KiB")?.unwrap_or(0);
+        let budget = env_bytes(BUDGET_ENV, 20, "MiB")?;
         let entry = ash::Entry::load()?;
         let log = Arc::new(ValidationLog::default());
 

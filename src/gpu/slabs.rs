@@ -28,11 +28,11 @@ impl SlabBuffer {
         name: &str,
     ) -> Result<SlabBuffer> {
         let slice = (dims[0] * dims[1]).max(1) as u64 * bytes_per_voxel;
-        let per_slab = (gpu.max_slab_bytes() / slice).clamp(1, dims[2].max(1) as u64) as usize;
-        let count = dims[2].max(1).div_ceil(per_slab);
-        let slabs = (0..count)
+        let depth = dims[2].max(1);
+        let per_slab = (gpu.max_slab_bytes() / slice).clamp(1, depth as u64) as usize;
+        let slabs = (0..depth.div_ceil(per_slab))
             .map(|s| {
-                let slices = per_slab.min(dims[2].max(1) - s * per_slab);
+                let slices = per_slab.min(depth - s * per_slab);
                 Buffer::new(
                     gpu,
                     slices as u64 * slice,
