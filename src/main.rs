@@ -367,6 +367,38 @@ enum BenchCmd {
         #[arg(long, default_value_t = 16)]
         frames: usize,
     },
+    /// How cao-xr scales with the volume: synthetic chest CTs of clinical sizes, written as
+    /// NIfTI and read back; per size the load time and the time to a first picture, per size
+    /// and method the precompute, GPU bytes per voxel, peak host memory, the CAO update of a
+    /// fixed tool and the ray cast per eye.
+    Scale {
+        /// Grids, WxHxD, comma-separated.
+        #[arg(long, value_delimiter = ',', default_value = "512x512x133,512x512x600", value_parser = parse_dims)]
+        sizes: Vec<[usize; 3]>,
+        /// Voxel spacing in mm, X,Y,Z (a routine chest CT's by default).
+        #[arg(long, default_value = "0.7,0.7,2.5", value_parser = parse_spacing)]
+        spacing: [f64; 3],
+        /// AO methods to measure at each size.
+        #[arg(long, value_delimiter = ',', default_value = "filter-gauss,lao")]
+        methods: Vec<String>,
+        #[command(flatten)]
+        lao: LaoArgs,
+        /// Transfer function.
+        #[arg(long, default_value = "ct-bone")]
+        tf: String,
+        /// Pixels per eye, WIDTHxHEIGHT.
+        #[arg(long, default_value = "320x320", value_parser = parse_size)]
+        size: (u32, u32),
+        /// Frames with the fixed tool.
+        #[arg(long, default_value_t = 5)]
+        frames: usize,
+        /// The fixed tool, SHAPE[:SIZE_MM[:X,Y,Z]] as for render --tool.
+        #[arg(long, default_value = "sphere:40:0,0,60")]
+        tool: String,
+        /// Where the NIfTI files are written (and removed after reading).
+        #[arg(long, default_value = "out/bench-scale")]
+        dir: PathBuf,
+    },
     /// LAO precompute time and throughput: phantom 64^3 and 128^3 and the CT head (or VOLUME).
     Lao {
         #[command(flatten)]
@@ -477,6 +509,10 @@ struct VolumeArgs {
     /// Structures the tools leave standing inside a cut (comma-separated).
     #[arg(long, value_delimiter = ',', requires = "labels")]
     protect: Vec<String>,
+    /// A structure's safety margin, NAME=MM (repeatable or comma-separated): a tool within MM
+    /// of it is warned (a haptic pulse, the tool drawn in the warning colour, a stats line).
+    #[arg(long, value_delimiter = ',', requires = "labels")]
+    margin: Vec<String>,
 }
 
 #[derive(Args)]
@@ -630,6 +666,14 @@ impl LaoArgs {
         }
     }
 
+    fn hist(&self) -> HistParams {
+        HistParams {
+            radius_mm: self.hist_radius_mm,
+            bins: self.hist_bins,
+            clusters: self.clusters,
+        }
+    }
+
     fn config(&self) -> Result<AoConfig> {
         let filter = FilterParams {
             radius_mm: self.filter_radius_mm,
@@ -641,11 +685,7 @@ impl LaoArgs {
         };
         // The stick click cycles through the filters whatever --ao says: check them up front.
         filter.validate().map_err(anyhow::Error::msg)?;
-        let hist = HistParams {
-            radius_mm: self.hist_radius_mm,
-            bins: self.hist_bins,
-            clusters: self.clusters,
-        };
+        let hist = self.hist();
         if !(self.bleeding.is_finite() && (0.0..=1.0).contains(&self.bleeding)) {
             bail!("--bleeding must be in [0, 1], got {}", self.bleeding);
         }
@@ -688,6 +728,7 @@ impl VolumeArgs {
                 hide: self.hide.clone(),
                 opacity: self.opacity.clone(),
                 protect: self.protect.clone(),
+                margin: self.margin.clone(),
             })
             .map_err(anyhow::Error::msg)?;
             vol.labels = Some(std::sync::Arc::new(map));
@@ -697,6 +738,29 @@ impl VolumeArgs {
             None => TransferFunction::default_for(&vol),
         };
         Ok((vol, tf))
+    }
+}
+
+/// WxHxD voxels, each 1..=65536.
+fn parse_dims(s: &str) -> Result<[usize; 3], String> {
+    let d: Vec<usize> = s
+        .split('x')
+        .map(|v| v.parse::<usize>().ok().filter(|n| (1..=65536).contains(n)))
+        .collect::<Option<_>>()
+        .ok_or_else(|| format!("'{s}': expected WxHxD with each 1..=65536, e.g. 512x512x133"))?;
+    d.try_into()
+        .map_err(|_| format!("'{s}': expected three sizes WxHxD, e.g. 512x512x133"))
+}
+
+/// X,Y,Z in mm, each positive and finite.
+fn parse_spacing(s: &str) -> Result<[f64; 3], String> {
+    let v = cao_xr::space::parse_triple::<f64>(s).map_err(|e| format!("'{s}': {e}"))?;
+    if v.iter().all(|x| x.is_finite() && *x > 0.0) {
+        Ok(v)
+    } else {
+        Err(format!(
+            "'{s}': each spacing must be a positive number of mm"
+        ))
     }
 }
 
@@ -1034,6 +1098,38 @@ fn run(cli: Cli) -> Result<()> {
             let b = common.setup(cli.validation)?;
             let lao = LaoParams { rays, ..b.base };
             app::bench_frame::bench_frame(&b.gpu, &b.volumes[0], &b.tf, lao, size, frames, b.runs)?;
+        }
+        Cmd::Bench {
+            what:
+                BenchCmd::Scale {
+                    sizes,
+                    spacing,
+                    methods,
+                    lao,
+                    tf,
+                    size,
+                    frames,
+                    tool,
+                    dir,
+                },
+        } => {
+            let config = lao.config()?;
+            let methods = methods
+                .iter()
+                .map(|m| AoMethod::parse(m, config.filter, lao.hist()))
+                .collect::<std::result::Result<Vec<_>, _>>()
+                .map_err(anyhow::Error::msg)?;
+            let opts = app::bench_scale::ScaleOptions {
+                sizes,
+                spacing,
+                config,
+                methods,
+                tf: TransferFunction::resolve(&tf)?,
+                eye: size,
+                frames,
+                tool: app::parse_tool(&tool, &cao_xr::space::Placement::default())?,
+            };
+            app::bench_scale::bench_scale(&gpu(cli.validation)?, &opts, &dir)?;
         }
         Cmd::Bench {
             what:

@@ -10,6 +10,7 @@
 use super::filter_gpu::{FilterGpu, FilterMode};
 use super::histogram_gpu::{HistMode, HistogramGpu};
 use super::lao::{LaoLayout, LaoParams, SkipBuffers, LAO_GROUP};
+use crate::clip::margin::{self, MarginHit};
 use crate::clip::Shape;
 use crate::clip::{shape_mesh, ClipMap, ClipMapGpu, TriMesh};
 use crate::gpu::{
@@ -17,6 +18,7 @@ use crate::gpu::{
 };
 use crate::scene::{Tool, ToolMode};
 use crate::space::{world_from_tex, Placement};
+use crate::volume::distance::MarginField;
 use crate::volume::Volume;
 use ash::vk;
 use glam::{Mat4, Vec3};
@@ -532,6 +534,42 @@ impl Cao {
         Ok(map)
     }
 
+    /// The safety margins each of `tools` (active or not: the warning comes before the cut) is
+    /// inside ([`crate::clip::margin`]).
+    pub fn margin_hits(
+        &mut self,
+        tools: &[Tool],
+        placement: &Placement,
+        fields: &[MarginField],
+    ) -> Result<Vec<MarginHit>> {
+        if fields.is_empty() {
+            return Ok(Vec::new());
+        }
+        let world_from_index = self.world_from_index(placement);
+        let radius = self.dilation_radius_mm();
+        let mut hits = Vec::new();
+        for (n, tool) in tools.iter().enumerate() {
+            // the active tools' maps are cached already; an idle tool's is built on the CPU once
+            let map = self.map_for(tool, placement, false, radius)?;
+            let world_from_local = tool.pose.matrix() * Mat4::from_scale(Vec3::splat(tool.size));
+            let local_from_index = world_from_local.inverse() * world_from_index;
+            let b = self.box_of(&map, local_from_index.inverse());
+            let range = (b.min.map(|v| v as usize), b.max.map(|v| v as usize));
+            hits.extend(margin::hits(n, &map, local_from_index, range, fields));
+        }
+        Ok(hits)
+    }
+
+    /// Voxel index coordinates (centres at i + 0.5) to the world.
+    fn world_from_index(&self, placement: &Placement) -> Mat4 {
+        world_from_tex(&self.geometry, placement)
+            * Mat4::from_scale(Vec3::new(
+                1.0 / self.dims[0] as f32,
+                1.0 / self.dims[1] as f32,
+                1.0 / self.dims[2] as f32,
+            ))
+    }
+
     /// Builds on the GPU, and caches, the clip maps the active tools need and the cache lacks.
     /// Call it before [`Cao::record_frame`], outside any command recording; [`Cao::run_frame`]
     /// does.
@@ -552,12 +590,7 @@ impl Cao {
         placement: &Placement,
     ) -> Result<(u32, Vec<VoxelBox>)> {
         let active: Vec<&Tool> = tools.iter().filter(|t| t.active).take(MAX_TOOLS).collect();
-        let world_from_index = world_from_tex(&self.geometry, placement)
-            * Mat4::from_scale(Vec3::new(
-                1.0 / self.dims[0] as f32,
-                1.0 / self.dims[1] as f32,
-                1.0 / self.dims[2] as f32,
-            ));
+        let world_from_index = self.world_from_index(placement);
         let mut gpu_tools = Vec::new();
         let mut texels: Vec<[f32; 4]> = Vec::new();
         let mut boxes = Vec::new();

@@ -27,11 +27,13 @@ pub fn slab_slices(total: usize, cost_per_slice: f64, budget: f64) -> usize {
 }
 
 /// Hands out consecutive z-ranges `[z0, z1)` of `slab` slices until `total` slices are covered.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct SlabScheduler {
     total: usize,
     slab: usize,
     next: usize,
+    /// The cost of one slice when the slabs follow a budget ([`SlabScheduler::set_budget`]).
+    cost_per_slice: Option<f64>,
 }
 
 impl SlabScheduler {
@@ -40,12 +42,25 @@ impl SlabScheduler {
             total,
             slab: slab.max(1),
             next: 0,
+            cost_per_slice: None,
         }
     }
 
     /// A scheduler whose slabs cost at most `budget` each ([`slab_slices`]).
     pub fn with_budget(total: usize, cost_per_slice: f64, budget: f64) -> SlabScheduler {
-        Self::new(total, slab_slices(total, cost_per_slice, budget))
+        SlabScheduler {
+            cost_per_slice: Some(cost_per_slice),
+            ..Self::new(total, slab_slices(total, cost_per_slice, budget))
+        }
+    }
+
+    /// Sizes the slabs still to come for a new `budget` (a scheduler made by
+    /// [`SlabScheduler::with_budget`]; one of fixed slabs keeps them). The slices already handed
+    /// out stay as they were: a slab's result does not depend on where the slabs split.
+    pub fn set_budget(&mut self, budget: f64) {
+        if let Some(cost) = self.cost_per_slice {
+            self.slab = slab_slices(self.total, cost, budget);
+        }
     }
 
     /// The next slab to record, or None once every slice was handed out.
@@ -132,6 +147,20 @@ impl<T: Send + 'static> HostTask<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_new_budget_resizes_the_slabs_still_to_come() {
+        let mut s = SlabScheduler::with_budget(32, 10.0, 45.0);
+        assert_eq!(s.next_slab(), Some(0..4));
+        s.set_budget(85.0);
+        assert_eq!(s.next_slab(), Some(4..12));
+        s.set_budget(1.0);
+        assert_eq!(s.next_slab(), Some(12..13));
+        // fixed slabs stay fixed
+        let mut f = SlabScheduler::new(1, 1);
+        f.set_budget(1e9);
+        assert_eq!(f.slab(), 1);
+    }
 
     #[test]
     fn slabs_cover_the_volume_once_within_budget() {

@@ -231,7 +231,7 @@ pub fn bench_ao(
 }
 
 /// Peak resident memory of this process so far (VmHWM), in bytes; 0 where /proc lacks it.
-fn peak_rss_bytes() -> u64 {
+pub(crate) fn peak_rss_bytes() -> u64 {
     std::fs::read_to_string("/proc/self/status")
         .ok()
         .and_then(|s| {

@@ -34,7 +34,7 @@ pub struct PassMedians {
 }
 
 impl PassMedians {
-    fn of(frames: &[FrameStats]) -> PassMedians {
+    pub fn of(frames: &[FrameStats]) -> PassMedians {
         let m =
             |f: &dyn Fn(&FrameStats) -> f64| median(&mut frames.iter().map(f).collect::<Vec<_>>());
         PassMedians {

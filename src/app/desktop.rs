@@ -161,8 +161,12 @@ impl App {
                 ),
                 None => String::new(),
             };
+            let margin = self
+                .fl
+                .margin_warning(&stats.margins)
+                .map_or(String::new(), |w| format!(" | {w}"));
             w.set_title(&format!(
-                "cao-xr | {:.1} fps | AO {} {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}",
+                "cao-xr | {:.1} fps | AO {} {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}{margin}",
                 self.fps,
                 self.fl.cao.method_name(),
                 m.gpu_ms(),
@@ -279,7 +283,7 @@ pub fn run(spec: &SessionSpec, opts: ViewOptions) -> Result<usize> {
     let gpu = start_gpu(opts.validation, true)?;
     let event_loop = EventLoop::new()
         .map_err(|e| AppError::Usage(format!("cannot open the display: {e} (is DISPLAY set?)")))?;
-    let mut fl = spec.frame_loop(&gpu, opts.size, desktop_interaction(), true)?;
+    let mut fl = spec.frame_loop(&gpu, opts.size, desktop_interaction(), true, true)?;
     if let Some(n) = opts.frames_in_flight {
         fl.set_frames_in_flight(n)?;
     }

@@ -13,9 +13,10 @@ use super::lighting::{LightingOptions, ShLighting};
 use super::tf_switch::{default_tf_samples_per_frame, TfProgress, TfSwitcher};
 use super::{precompute_method, AppError, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode, PendingFrame};
-use crate::ao::filtered::{variance_volume, FilterInput, VarianceModulation};
+use crate::ao::filtered::{variance_volume, Estimator, FilterInput, VarianceModulation};
 use crate::ao::sh::ShFrameMetrics;
 use crate::ao::{AoConfig, AoMethod, LaoGpu};
+use crate::clip::margin::MarginHit;
 use crate::gpu::{Buffer, Gpu, GpuError, GpuTimer};
 use crate::input::{FrameInput, Interaction, InteractionSettings};
 use crate::render::{joint_overlay, scene_overlay, OverlayRenderer};
@@ -25,6 +26,7 @@ use crate::render::{
 };
 use crate::scene::Scene;
 use crate::space::world_from_tex;
+use crate::volume::distance::MarginField;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use ash::vk;
@@ -56,6 +58,8 @@ pub struct FrameStats {
     pub ao_method: String,
     /// Recorded while the frame before was still in flight (two frames in flight).
     pub overlapped: bool,
+    /// The tools inside a structure's safety margin this frame (`--margin`).
+    pub margins: Vec<MarginHit>,
 }
 
 /// GPU ms of a frame's passes after CAO's (restore, clip + mask and update are in
@@ -101,12 +105,18 @@ pub struct FrameLoop {
     tfs: TfSwitcher,
     /// Opacity samples (K*M per voxel) of V_PAO' one frame may record during a switch.
     pub tf_samples_per_frame: f64,
+    /// When set, [`FrameLoop::tf_samples_per_frame`] follows the measured GPU times so that a
+    /// switch's slab takes about this share of the eyes' ray cast (the frame rate drops to
+    /// about 1 / (1 + share) while a switch runs); None keeps the budget fixed (replay, tests).
+    pub tf_slab_share: Option<f64>,
     /// Environment lighting through the SH visibility volume ([`FrameLoop::set_lighting`]).
     pub lighting: Option<ShLighting>,
     /// Persistent command buffers, fences and timers, one set per frame in flight.
     slots: Slots,
     /// Frames [`FrameLoop::submit`] leaves in flight (1 or 2).
     depth: usize,
+    /// The distance fields of the structures with a safety margin (`--margin`).
+    margins: Vec<MarginField>,
 }
 
 /// How a frame loop is set up beside its volume and transfer functions ([`FrameLoop::new`]).
@@ -116,6 +126,39 @@ pub struct Built {
     /// Pixels per eye.
     pub size: (u32, u32),
     pub interaction: InteractionSettings,
+    /// A first picture in seconds: when the configured method's precompute would take longer
+    /// than this many seconds ([`precompute_seconds`]: LAO on a large volume), the first
+    /// frames are lit by [`fast_method`]'s one pass while the configured method is computed
+    /// slab by slab, as a switch to it ([`super::tf_switch`]), the slab budget following the
+    /// frame times ([`FrameLoop::tf_slab_share`]). None for replay and renders, whose frames
+    /// must not depend on how fast the machine is.
+    pub fast_start_after_s: Option<f64>,
+}
+
+/// The share of the eyes' GPU time a fast start's slabs take ([`FrameLoop::tf_slab_share`]).
+pub const FAST_START_SLAB_SHARE: f64 = 1.0;
+
+/// The desktop window's and the headset's [`Built::fast_start_after_s`].
+pub const FAST_START_AFTER_S: f64 = 2.0;
+
+/// About how long `config`'s method takes to precompute on `gpu`: LAO's K·M opacity samples per
+/// voxel at about 2e7 samples/s on a CPU device (lavapipe on two cores, measured) and 2e10 on a
+/// GPU (an estimate); 0 for the others (the filters take one pass, and the local histograms
+/// cannot be computed slab by slab, so a fast start does not apply to them).
+pub fn precompute_seconds(gpu: &Gpu, dims: [usize; 3], config: &AoConfig) -> f64 {
+    if config.method != AoMethod::Lao {
+        return 0.0;
+    }
+    let samples = LaoGpu::samples_per_slice(dims, &config.lao) * dims[2] as f64;
+    samples / if gpu.is_cpu() { 2e7 } else { 2e10 }
+}
+
+pub fn fast_method(methods: &[AoMethod]) -> usize {
+    let gauss = |m: &AoMethod| matches!(m, AoMethod::Filter(f) if f.estimator == Estimator::Gauss);
+    match methods.first() {
+        Some(AoMethod::Lao) => methods.iter().position(gauss).unwrap_or(0),
+        _ => 0,
+    }
 }
 
 /// Downsampling factors tried, from the estimate up, for the one that fits.
@@ -139,6 +182,7 @@ impl FrameLoop {
             config: ao.into(),
             size,
             interaction,
+            fast_start_after_s: None,
         };
         Self::new_lit(gpu, vol, tfs, built, None, show_progress)
     }
@@ -192,17 +236,26 @@ impl FrameLoop {
             config,
             size,
             mut interaction,
+            fast_start_after_s,
         } = built;
-        let ao = config;
-        let params = ao.lao;
+        let params = config.lao;
         let tf = tfs.first().ok_or_else(|| {
             AppError::Usage(format!("{}: no transfer function to show", vol.name))
         })?;
         interaction.tf_presets = tfs.len();
-        let methods = ao.cycle();
+        let methods = config.cycle();
         interaction.ao_methods = methods.len();
+        // The scene asks for the configured method (ao_index 0); a fast start shows another
+        // first, so the first frame starts the switch to the configured one.
+        let long =
+            fast_start_after_s.is_some_and(|s| precompute_seconds(gpu, vol.dims, &config) > s);
+        let shown = if long { fast_method(&methods) } else { 0 };
+        let first = AoConfig {
+            method: methods[shown],
+            ..config
+        };
         let lao = LaoGpu::new(gpu)?;
-        let ao = precompute_method(gpu, &lao, &vol, tf, &ao, show_progress)?;
+        let ao = precompute_method(gpu, &lao, &vol, tf, &first, show_progress)?;
         let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
         let mut tex = VolumeTextures::new(gpu, &vol, tf)?;
         let histogram = methods.iter().any(|m| matches!(m, AoMethod::Histogram(_)));
@@ -225,9 +278,14 @@ impl FrameLoop {
             show_overlay: true,
             slots: Slots::new(gpu)?,
             depth: MAX_FRAMES_IN_FLIGHT,
-            tfs: TfSwitcher::new(gpu, tfs, methods, lao, lao_dirs)?,
+            tfs: TfSwitcher::new(gpu, tfs, (methods, shown), lao, lao_dirs)?,
             tf_samples_per_frame: default_tf_samples_per_frame(gpu),
+            tf_slab_share: (shown != 0).then_some(FAST_START_SLAB_SHARE),
             lighting: None,
+            margins: vol
+                .labels
+                .as_ref()
+                .map_or_else(Vec::new, |l| l.margin_fields(vol.dims, vol.spacing)),
             volume: vol,
         })
     }
@@ -301,6 +359,21 @@ impl FrameLoop {
     /// The volume the frames show.
     pub fn volume(&self) -> &Volume {
         &self.volume
+    }
+
+    /// "margin aorta 3.2 mm < 5 mm (tool 0)" for each of `hits`, joined; None without hits.
+    pub fn margin_warning(&self, hits: &[MarginHit]) -> Option<String> {
+        let labels = self.volume.labels.as_ref()?;
+        let line: Vec<String> = hits
+            .iter()
+            .map(|h| {
+                format!(
+                    "margin {} {:.1} mm < {} mm (tool {})",
+                    labels.structures[h.structure].name, h.distance_mm, h.margin_mm, h.tool
+                )
+            })
+            .collect();
+        (!line.is_empty()).then(|| line.join(", "))
     }
 
     /// The AO methods the stick click cycles through (the first is the one configured).
@@ -404,6 +477,9 @@ impl FrameLoop {
     ) -> Result<Option<Retired>> {
         let t0 = std::time::Instant::now();
         self.interaction.update(input, &mut self.scene);
+        let margins = self
+            .cao
+            .margin_hits(&self.scene.tools, &self.scene.volume, &self.margins)?;
         // Everything a frame writes from the host or reads back has one copy per slot (CAO's
         // tool table, maps, counters and timer, the SH timers, the uniforms, the read-back).
         // A transfer-function switch is the exception: it replaces buffers the frame in flight
@@ -412,7 +488,7 @@ impl FrameLoop {
         if !self.tfs.settled((self.scene.tf_index, self.scene.ao_index)) {
             retired = self.retire()?;
         }
-        self.record_and_submit(input, read_back, after, signal, t0)?;
+        self.record_and_submit(input, read_back, after, signal, (t0, margins))?;
         if retired.is_none() && self.slots.flights.len() >= self.depth {
             retired = self.retire()?;
         }
@@ -453,6 +529,12 @@ impl FrameLoop {
             copy_ms: ms(PASS_COPY),
         };
         let tf_ms = if f.slab { self.tfs.read_ms()? } else { 0.0 };
+        let render_ms = passes.eye_ms[0] + passes.eye_ms[1];
+        if let (Some(share), true) = (self.tf_slab_share, tf_ms > 0.0) {
+            // Towards a slab of `share` times the ray cast, at most doubling or halving per frame.
+            let scale = (share * render_ms.max(1.0) / tf_ms).clamp(0.5, 2.0);
+            self.tf_samples_per_frame *= scale;
+        }
         let image = match (&slot.readback, f.read_back) {
             (Some(bufs), true) => Some(self.target.image_from(bufs)?),
             _ => None,
@@ -460,7 +542,7 @@ impl FrameLoop {
         Ok(Some(Retired {
             stats: FrameStats {
                 metrics,
-                render_ms: passes.eye_ms[0] + passes.eye_ms[1],
+                render_ms,
                 frame_ms: f.t0.elapsed().as_secs_f64() * 1e3,
                 tf_ms,
                 tf_progress: f.tf_progress,
@@ -469,6 +551,7 @@ impl FrameLoop {
                 tf_name: f.tf_name,
                 ao_method: f.ao_method,
                 overlapped: f.overlapped,
+                margins: f.margins,
             },
             image,
         }))
@@ -480,7 +563,7 @@ impl FrameLoop {
         read_back: bool,
         after: impl FnOnce(vk::CommandBuffer, &StereoTarget),
         signal: Option<vk::Semaphore>,
-        t0: std::time::Instant,
+        (t0, margins): (std::time::Instant, Vec<MarginHit>),
     ) -> Result<()> {
         self.tfs.advance(
             (self.scene.tf_index, self.scene.ao_index),
@@ -581,7 +664,9 @@ impl FrameLoop {
                         .hand_pose(h)
                         .filter(|_| interaction.is_tracked(h))
                 });
-                let mut items = scene_overlay(scene, &hands, interaction.settings().tool_offset);
+                let warned: Vec<usize> = margins.iter().map(|h| h.tool).collect();
+                let offset = interaction.settings().tool_offset;
+                let mut items = scene_overlay(scene, &hands, offset, &warned);
                 joint_overlay(&input.joints, &mut items);
                 overlay.record(cmd, target, &input.views, &items)?;
             }
@@ -623,6 +708,7 @@ impl FrameLoop {
             tf_progress: tfs.progress(),
             tf_name: tfs.shown().name.clone(),
             ao_method: cao.method_name(),
+            margins,
             read_back,
             overlapped,
             t0,
@@ -671,6 +757,7 @@ struct InFlight {
     tf_progress: Option<TfProgress>,
     tf_name: String,
     ao_method: String,
+    margins: Vec<MarginHit>,
     read_back: bool,
     overlapped: bool,
     t0: std::time::Instant,

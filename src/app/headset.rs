@@ -6,7 +6,7 @@ use super::frame_loop::FrameLoop;
 use super::mirror::Mirror;
 use super::session::{gpu_banner, gpu_options, record_error, recorder, Recorder, SessionSpec};
 use super::Result;
-use crate::input::{InteractionSettings, StreamHeader, RIGHT};
+use crate::input::{tool_hand, InteractionSettings, StreamHeader, RIGHT};
 use crate::xr::session::{XrRuntime, XrSession};
 use crate::xr::{XrError, XrOptions, XrSummary};
 
@@ -21,7 +21,7 @@ pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
     let (result, summary, recorder) = {
         let mut xs = XrSession::new(&runtime, &gpu, &opts)?;
         let extent = xs.extent();
-        let mut fl = spec.frame_loop(&gpu, extent, InteractionSettings::default(), false)?;
+        let mut fl = spec.frame_loop(&gpu, extent, InteractionSettings::default(), false, true)?;
         if let Some(n) = opts.frames_in_flight {
             fl.set_frames_in_flight(n)?;
         }
@@ -83,6 +83,7 @@ fn frames(
     opts: &XrOptions,
 ) -> Result<()> {
     let mut prev_clipped = 0u64;
+    let mut prev_margins: Vec<crate::clip::margin::MarginHit> = Vec::new();
     while xs.poll_events()? {
         if !xs.running() {
             if super::interrupt::caught().is_some() {
@@ -139,6 +140,21 @@ fn frames(
                 );
             }
             prev_clipped = stats.metrics.clipped;
+            // A pulse on the hand whose tool entered a safety margin, on the frame it entered.
+            for h in &stats.margins {
+                if !prev_margins
+                    .iter()
+                    .any(|p| (p.tool, p.structure) == (h.tool, h.structure))
+                {
+                    if let Some(hand) = tool_hand(h.tool) {
+                        xs.pulse(hand)?;
+                    }
+                }
+            }
+            if let Some(w) = fl.margin_warning(&stats.margins) {
+                eprintln!("xr: frame {}: {w}", xs.summary.frames);
+            }
+            prev_margins = stats.margins;
         }
         xs.end_frame(&frame)?;
         if let Some(m) = mirror {

@@ -5,6 +5,7 @@ pub mod bench;
 pub mod bench_ao;
 pub mod bench_frame;
 pub mod bench_quality;
+pub mod bench_scale;
 pub mod desktop;
 pub mod frame_loop;
 pub mod headset;
@@ -569,6 +570,7 @@ pub fn render_to_dir(
         config: spec.ao,
         size,
         interaction: InteractionSettings::default(),
+        fast_start_after_s: None,
     };
     let lighting = Some(&spec.lighting);
     let tfs = vec![spec.tf.clone()];

@@ -157,7 +157,7 @@ pub fn replay(
     } else {
         InteractionSettings::default()
     };
-    let mut fl = spec.frame_loop(gpu, opts.size, interaction, true)?;
+    let mut fl = spec.frame_loop(gpu, opts.size, interaction, true, false)?;
     fl.mode = opts.mode;
     // Where the session put the volume (`--volume-at` overrides the stream's header).
     if let Some(c) = opts
@@ -242,8 +242,11 @@ pub fn replay(
         } else {
             String::new()
         };
+        let margin = fl
+            .margin_warning(&f.margins)
+            .map_or(String::new(), |w| format!("  {w}"));
         eprintln!(
-            "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {} {:>8.1} ms{sh}  render {:>8.1} ms  recomputed {:>6.2} %{tf}",
+            "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {} {:>8.1} ms{sh}  render {:>8.1} ms  recomputed {:>6.2} %{tf}{margin}",
             frames.len(),
             frames[i].time,
             f.frame_ms,

@@ -55,19 +55,23 @@ pub struct SessionSpec {
 
 impl SessionSpec {
     /// The frame loop for `size` pixels per eye: V_PAO (and V_PSH with SH lighting) precomputed,
-    /// the menu cycling through [`tf_cycle`], lit as asked.
+    /// the menu cycling through [`tf_cycle`], lit as asked. With `fast_start` (the window and
+    /// the headset) a long LAO precompute does not hold the first picture
+    /// ([`super::frame_loop::Built::fast_start_after_s`]).
     pub fn frame_loop(
         &self,
         gpu: &Gpu,
         size: (u32, u32),
         interaction: InteractionSettings,
         show_progress: bool,
+        fast_start: bool,
     ) -> Result<FrameLoop> {
         let tfs = tf_cycle(&self.tf, &self.volume);
         let built = super::frame_loop::Built {
             config: self.ao,
             size,
             interaction,
+            fast_start_after_s: fast_start.then_some(super::frame_loop::FAST_START_AFTER_S),
         };
         let lighting = Some(&self.lighting);
         let vol = Arc::clone(&self.volume);

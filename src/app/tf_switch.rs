@@ -132,11 +132,11 @@ pub struct TfSwitcher {
 
 impl TfSwitcher {
     /// `lao_dirs` holds the directions of the CAO state's LAO parameters (V_PAO' uses them).
-    /// The first of `tfs` and of `methods` are the ones the CAO state shows.
+    /// The CAO state shows the first of `tfs` and `methods[shown_method]`.
     pub fn new(
         gpu: &Gpu,
         tfs: Vec<TransferFunction>,
-        methods: Vec<AoMethod>,
+        (methods, shown_method): (Vec<AoMethod>, usize),
         lao: LaoGpu,
         lao_dirs: Buffer,
     ) -> Result<Self> {
@@ -145,7 +145,7 @@ impl TfSwitcher {
             tfs,
             shown: 0,
             methods,
-            shown_method: 0,
+            shown_method,
             switch: None,
             parked: None,
             lao,
@@ -193,8 +193,8 @@ impl TfSwitcher {
     }
 
     /// Follows `want` (the scene's TF and AO-method indices): starts, restarts or drops a
-    /// switch, hands finished host work to the GPU, and switches `cao`, `tex` and `lighting`
-    /// over once every slab has executed. Runs before the frame is recorded, after the previous
+    /// switch, sizes the slabs still to come for `budget`, hands finished host work to the GPU,
+    /// and switches `cao`, `tex` and `lighting` over once every slab has executed. Runs before the frame is recorded, after the previous
     /// frame's wait, so no submitted work uses what it drops.
     pub fn advance(
         &mut self,
@@ -268,6 +268,12 @@ impl TfSwitcher {
                     ),
                 },
             };
+        }
+        if let Stage::Computing { slabs, sh, .. } = &mut sw.stage {
+            slabs.set_budget(budget);
+            if let Some((_, sh_slabs)) = sh {
+                sh_slabs.set_budget(budget);
+            }
         }
         let finished = matches!(&sw.stage, Stage::Computing { slabs, sh, .. }
             if slabs.is_finished() && sh.as_ref().is_none_or(|s| s.1.is_finished()));

@@ -11,6 +11,7 @@
 //! the same crossing rule and dilating with the same kernel.
 
 pub mod gpu;
+pub mod margin;
 pub mod mesh;
 
 pub use gpu::{ClipGpuError, ClipMapGpu};

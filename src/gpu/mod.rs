@@ -605,6 +605,14 @@ impl Core {
         self.memory.lock().map_or(0, |m| m.peak)
     }
 
+    /// Starts [`Gpu::memory_peak`] again from what is held now (a benchmark measures one set-up
+    /// after another).
+    pub fn reset_memory_peak(&self) {
+        if let Ok(mut m) = self.memory.lock() {
+            m.peak = m.total;
+        }
+    }
+
     /// Counts `bytes` for `what` before they are allocated; refused beyond the budget. The
     /// id returned is given back with [`Core::release`].
     pub(crate) fn reserve(&self, what: &str, bytes: u64) -> Result<u64> {

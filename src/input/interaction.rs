@@ -39,6 +39,15 @@ pub const RIGHT_TOOL: usize = 0;
 /// Index in [`Scene::tools`] of the tool the left hand holds, once it has one.
 pub const LEFT_TOOL: usize = 1;
 
+/// The hand ([`RIGHT`] or [`LEFT`]) that holds tool `index` of [`Scene::tools`], if one does.
+pub fn tool_hand(index: usize) -> Option<usize> {
+    match index {
+        RIGHT_TOOL => Some(RIGHT),
+        LEFT_TOOL => Some(LEFT),
+        _ => None,
+    }
+}
+
 /// An analogue button (trigger, grip) counts as pressed once it rises past this value...
 pub const PRESS_THRESHOLD: f32 = 0.5;
 /// ...and as released only once it falls below this one, so a finger resting near the

@@ -15,7 +15,8 @@ pub mod script;
 pub mod stream;
 
 pub use interaction::{
-    GrabMode, Interaction, InteractionSettings, LEFT_TOOL, RIGHT_TOOL, SUGGESTED_SMOOTHING_HZ,
+    tool_hand, GrabMode, Interaction, InteractionSettings, LEFT_TOOL, RIGHT_TOOL,
+    SUGGESTED_SMOOTHING_HZ,
 };
 pub use script::{generate, script_header, write_script, ScriptError, ScriptKind, ScriptParams};
 pub use stream::{

@@ -16,7 +16,9 @@ use crate::volume::Volume;
 use ash::vk;
 use glam::{Mat4, Vec3};
 use gpu_allocator::MemoryLocation;
-pub use overlay::{joint_overlay, scene_overlay, OverlayItem, OverlayMesh, OverlayRenderer};
+pub use overlay::{
+    colors, joint_overlay, scene_overlay, OverlayItem, OverlayMesh, OverlayRenderer,
+};
 
 pub const COLOR_FORMAT: vk::Format = vk::Format::R8G8B8A8_UNORM;
 pub const DEPTH_FORMAT: vk::Format = vk::Format::D32_SFLOAT;

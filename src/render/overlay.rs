@@ -40,6 +40,8 @@ pub mod colors {
     pub const JOINT: [f32; 4] = [0.95, 0.8, 0.7, 0.7];
     /// The rod from the right grip to the centre of its tool.
     pub const OFFSET: [f32; 4] = [1.0, 0.85, 0.3, 0.6];
+    /// A tool inside a structure's safety margin: amber, brighter than any other tool.
+    pub const WARNING: [f32; 4] = [1.0, 0.7, 0.0, 0.55];
 }
 
 /// Length (m) of the controller marker: a cone pointing down the grip's -Z, 1.5 cm long.
@@ -89,14 +91,20 @@ pub fn scene_overlay(
     scene: &Scene,
     hands: &[Option<Pose>; 2],
     tool_offset: Vec3,
+    warned: &[usize],
 ) -> Vec<OverlayItem> {
     let mut items: Vec<OverlayItem> = scene
         .tools
         .iter()
-        .map(|t| OverlayItem {
+        .enumerate()
+        .map(|(n, t)| OverlayItem {
             mesh: OverlayMesh::Tool(t.shape),
             model: t.pose.matrix() * Mat4::from_scale(Vec3::splat(t.size)),
-            color: tool_color(t),
+            color: if warned.contains(&n) {
+                colors::WARNING
+            } else {
+                tool_color(t)
+            },
         })
         .collect();
     for side in [LEFT, RIGHT] {

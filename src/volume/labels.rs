@@ -5,6 +5,7 @@
 //! centre is nearest in the label map's own index space (its directions and spacing applied,
 //! never by index alone); outside the label map L = 0 (unlabelled). See docs/design.md.
 
+use super::distance::MarginField;
 use super::{nifti, nrrd, Volume, VolumeError};
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
@@ -27,6 +28,8 @@ pub struct Structure {
     pub opacity: f32,
     /// Whether tools leave it standing (`--protect`).
     pub protected: bool,
+    /// The safety margin in mm a tool is warned at (`--margin NAME=MM`).
+    pub margin_mm: Option<f32>,
     /// Its voxels in the volume's grid.
     pub voxels: usize,
 }
@@ -120,7 +123,33 @@ impl LabelMap {
             let k = self.find(n)?;
             self.structures[k].protected = true;
         }
+        for spec in &d.margin {
+            let (n, m) = spec
+                .rsplit_once('=')
+                .ok_or_else(|| format!("--margin {spec}: expected NAME=MM, e.g. aorta=5"))?;
+            let m: f32 = m
+                .trim()
+                .parse()
+                .ok()
+                .filter(|m: &f32| m.is_finite() && *m > 0.0 && *m <= 100.0)
+                .ok_or_else(|| format!("--margin {spec}: the margin must be 0..100 mm"))?;
+            let k = self.find(n.trim())?;
+            self.structures[k].margin_mm = Some(m);
+        }
         Ok(())
+    }
+
+    /// The distance fields of the structures that carry a margin, in a grid of `dims` and
+    /// `spacing` (the volume's): what [`crate::clip::margin`] checks the tools against.
+    pub fn margin_fields(&self, dims: [usize; 3], spacing: [f64; 3]) -> Vec<MarginField> {
+        self.structures
+            .iter()
+            .enumerate()
+            .filter_map(|(k, s)| {
+                let m = s.margin_mm?;
+                MarginField::new(&self.ids, k as u8 + 1, dims, spacing, k, m)
+            })
+            .collect()
     }
 
     /// `info`'s table: value, name, colour, voxel count, volume in ml, and how it is shown.
@@ -149,6 +178,10 @@ impl LabelMap {
                 },
                 if st.protected { ", protected" } else { "" }
             ));
+            if let Some(m) = st.margin_mm {
+                s.truncate(s.len() - 1);
+                s.push_str(&format!(", margin {m} mm\n"));
+            }
         }
         s
     }
@@ -161,6 +194,8 @@ pub struct LabelDisplay {
     pub hide: Vec<String>,
     pub opacity: Vec<String>,
     pub protect: Vec<String>,
+    /// NAME=MM safety margins.
+    pub margin: Vec<String>,
 }
 
 /// Structure names, and colours where the file gives them, by label value.
@@ -226,6 +261,7 @@ pub fn load(path: &Path, names: Option<&Path>, vol: &Volume) -> Result<LabelMap,
                 colour: colour.unwrap_or_else(|| palette(k)),
                 opacity: 1.0,
                 protected: false,
+                margin_mm: None,
                 voxels: 0,
             }
         })
@@ -761,6 +797,7 @@ mod tests {
             colour: palette(0),
             opacity: 1.0,
             protected: false,
+            margin_mm: None,
             voxels: 0,
         };
         let mut m = LabelMap {

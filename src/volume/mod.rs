@@ -3,6 +3,7 @@
 
 pub mod ct_head;
 pub mod dicom;
+pub mod distance;
 pub mod labels;
 pub mod metaimage;
 pub mod nifti;

@@ -389,6 +389,7 @@ fn labelled_head(n: usize, protect_vessel: bool) -> cao_xr::volume::Volume {
         colour: [0.8, 0.1, 0.1],
         opacity: 1.0,
         protected,
+        margin_mm: None,
         voxels: 0,
     };
     vol.labels = Some(Arc::new(LabelMap {
@@ -493,4 +494,103 @@ fn hidden_structures_leave_o_and_translucent_ones_scale_it() {
         assert_eq!(o[i], want, "voxel {i} (structure {})", ids[i]);
     }
     assert!(ids.iter().zip(&base).any(|(&id, &b)| id == 1 && b > 0.0));
+}
+
+#[test]
+fn a_tool_entering_a_safety_margin_is_told_with_the_exact_distance() {
+    use cao_xr::app::frame_loop::FrameLoop;
+    use cao_xr::input::{FrameInput, InteractionSettings};
+    use cao_xr::space::{default_stereo_views, world_from_tex};
+    let gpu = common::gpu();
+    let n = 48;
+    let mut vol = labelled_head(n, false);
+    let margin = 20.0;
+    let mut map = (**vol.labels.as_ref().unwrap()).clone();
+    map.apply(&cao_xr::volume::labels::LabelDisplay {
+        margin: vec![format!("vessel={margin}")],
+        ..Default::default()
+    })
+    .unwrap();
+    assert!(map.report(vol.spacing).contains("margin 20 mm"));
+    vol.labels = Some(Arc::new(map));
+    let vol = Arc::new(vol);
+    let params = cao_xr::ao::LaoParams {
+        rays: 6,
+        steps: 4,
+        step_mm: 4.0,
+    };
+    let mut fl = FrameLoop::new(
+        &gpu,
+        Arc::clone(&vol),
+        vec![TransferFunction::preset("ct-skin").unwrap()],
+        params,
+        (32, 32),
+        InteractionSettings::default(),
+        false,
+    )
+    .unwrap();
+    let placement = Placement::default();
+    // The vessel's voxel centres in the world, for the brute-force distance.
+    let model = world_from_tex(&vol, &placement);
+    let ids = &vol.labels.as_ref().unwrap().ids;
+    let vessel: Vec<Vec3> = (0..ids.len())
+        .filter(|&i| ids[i] == 1)
+        .map(|i| {
+            let p = [i % n, (i / n) % n, i / (n * n)].map(|v| (v as f32 + 0.5) / n as f32);
+            model.transform_point3(Vec3::from_array(p))
+        })
+        .collect();
+    let half_diagonal = 0.5 * 3f32.sqrt() * vol.spacing[0] as f32;
+    let radius = 0.01;
+    let views = default_stereo_views(&vol, &placement, 0.064);
+    let mut seen = [false; 2];
+    // Sideways from the vessel, from far to touching; carving or only held.
+    for (f, dx) in [0.07f32, 0.05, 0.04, 0.032, 0.02, 0.0]
+        .into_iter()
+        .enumerate()
+    {
+        let centre = placement.center + Vec3::new(dx, 0.0, 0.0);
+        fl.scene.tools = vec![Tool {
+            shape: cao_xr::clip::Shape::Sphere,
+            pose: Pose {
+                position: centre,
+                orientation: Quat::IDENTITY,
+            },
+            size: radius,
+            mode: ToolMode::Carve,
+            active: f % 2 == 0,
+        }];
+        let out = fl
+            .frame(&FrameInput::without_hands(f as f64, views))
+            .unwrap();
+        let brute = vessel
+            .iter()
+            .map(|v| ((v.distance(centre) - radius) * 1e3).max(0.0))
+            .fold(f32::INFINITY, f32::min);
+        let hit = out.stats.margins.first();
+        if (brute - margin).abs() > half_diagonal {
+            assert_eq!(
+                hit.is_some(),
+                brute < margin,
+                "frame {f}: {brute} mm, {hit:?}"
+            );
+        }
+        if let Some(h) = hit {
+            assert_eq!((h.tool, h.structure, h.margin_mm), (0, 0, margin));
+            assert!(
+                (h.distance_mm - brute).abs() <= half_diagonal,
+                "frame {f}: reported {} mm, brute force {brute} mm",
+                h.distance_mm
+            );
+            let line = fl.margin_warning(&out.stats.margins).unwrap();
+            assert!(line.starts_with("margin vessel "), "{line}");
+        }
+        seen[hit.is_some() as usize] = true;
+    }
+    assert_eq!(
+        seen,
+        [true, true],
+        "frames both outside and inside the margin"
+    );
+    common::assert_no_validation_messages(&gpu);
 }

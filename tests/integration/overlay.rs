@@ -122,7 +122,7 @@ fn a_tool_in_front_tints_where_it_projects_and_nowhere_else() {
         tools: vec![tool],
         ..Default::default()
     };
-    let items = scene_overlay(&scene, &[None, None], Vec3::ZERO);
+    let items = scene_overlay(&scene, &[None, None], Vec3::ZERO, &[]);
     assert_eq!(items.len(), 1);
     let imgs = render(&gpu, &[Vec::new(), items.clone(), items]);
     let (base, over) = (&imgs[0], &imgs[1]);
@@ -179,7 +179,7 @@ fn a_tool_behind_the_ball_is_hidden_by_it_and_drawn_around_it() {
         tools: vec![sphere_tool(centre, radius, ToolMode::Carve, false)],
         ..Default::default()
     };
-    let items = scene_overlay(&scene, &[None, None], Vec3::ZERO);
+    let items = scene_overlay(&scene, &[None, None], Vec3::ZERO, &[]);
     let imgs = render(&gpu, &[Vec::new(), items]);
     let (base, over) = (&imgs[0], &imgs[1]);
     for eye in 0..2 {
@@ -247,7 +247,7 @@ fn scene_overlay_lists_tools_tracked_hands_and_the_right_offset() {
     let markers = |m: &OverlayMesh| matches!(m, OverlayMesh::Marker);
     let rods = |m: &OverlayMesh| matches!(m, OverlayMesh::Rod);
 
-    let both = scene_overlay(&scene, &[Some(left), Some(right)], offset);
+    let both = scene_overlay(&scene, &[Some(left), Some(right)], offset, &[]);
     assert_eq!(both.len(), 5, "2 tools + 2 markers + 1 offset rod");
     assert_eq!(
         (
@@ -281,7 +281,7 @@ fn scene_overlay_lists_tools_tracked_hands_and_the_right_offset() {
         .collect();
     assert_eq!(marker_at, vec![left.position, right.position]);
 
-    let right_only = scene_overlay(&scene, &[None, Some(right)], offset);
+    let right_only = scene_overlay(&scene, &[None, Some(right)], offset, &[]);
     assert_eq!(
         (
             count(&right_only, tools),
@@ -290,7 +290,7 @@ fn scene_overlay_lists_tools_tracked_hands_and_the_right_offset() {
         ),
         (2, 1, 1)
     );
-    let left_only = scene_overlay(&scene, &[Some(left), None], offset);
+    let left_only = scene_overlay(&scene, &[Some(left), None], offset, &[]);
     assert_eq!(
         (
             count(&left_only, tools),
@@ -300,9 +300,14 @@ fn scene_overlay_lists_tools_tracked_hands_and_the_right_offset() {
         (2, 1, 0),
         "the offset belongs to the right hand"
     );
-    let none = scene_overlay(&scene, &[None, None], offset);
+    let none = scene_overlay(&scene, &[None, None], offset, &[]);
     assert_eq!(none.len(), 2, "untracked hands draw nothing");
-    assert!(scene_overlay(&Scene::default(), &[None, None], offset).is_empty());
+    // A tool inside a safety margin is drawn in the warning colour, the others as they are.
+    let warned = scene_overlay(&scene, &[None, None], offset, &[1]);
+    assert_eq!(warned[1].color, cao_xr::render::colors::WARNING);
+    assert_eq!(warned[0].color, none[0].color);
+    assert_ne!(none[1].color, cao_xr::render::colors::WARNING);
+    assert!(scene_overlay(&Scene::default(), &[None, None], offset, &[]).is_empty());
 }
 
 #[test]

@@ -8,7 +8,7 @@ use crate::common;
 use cao_xr::ao::cao::Mode;
 use cao_xr::ao::filtered::{Estimator, FilterParams};
 use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
-use cao_xr::app::frame_loop::{FrameLoop, FrameOutput};
+use cao_xr::app::frame_loop::{Built, FrameLoop, FrameOutput};
 use cao_xr::clip::Shape;
 use cao_xr::gpu::{Buffer, Gpu};
 use cao_xr::input::{FrameInput, InteractionSettings};
@@ -427,5 +427,78 @@ fn cycling_back_to_the_shown_tf_cancels_the_switch() {
         assert!(a.image == b.image, "frame {i}");
         i += 1;
     }
+    common::assert_no_validation_messages(&gpu);
+}
+
+#[test]
+fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(N));
+    let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
+    let built = |after: f64| Built {
+        config: PARAMS.into(),
+        size: (48, 48),
+        interaction: InteractionSettings::default(),
+        fast_start_after_s: Some(after),
+    };
+    let new = |after: f64| {
+        let mut fl = FrameLoop::new_lit(
+            &gpu,
+            Arc::clone(&vol),
+            tfs.clone(),
+            built(after),
+            None,
+            false,
+        )
+        .unwrap();
+        fl.tf_samples_per_frame = LaoGpu::samples_per_slice(vol.dims, &PARAMS) * SLAB as f64;
+        fl
+    };
+    // A precompute shorter than the threshold is waited for, as without a fast start.
+    let waited = new(1e9);
+    assert_eq!(waited.cao.method_name(), "lao");
+    assert!(waited.tf_slab_share.is_none());
+    drop(waited);
+
+    let mut fl = new(0.0);
+    assert_eq!(
+        fl.cao.method_name(),
+        "filter-gauss",
+        "the first picture's method"
+    );
+    let budget = fl.tf_samples_per_frame;
+    let c = Placement::default().center;
+    let (mut i, mut switching) = (0, 0);
+    let (done, t) = loop {
+        assert!(i < 200, "LAO never arrived");
+        let t = tool(c, i, true);
+        let a = click_frame(&mut fl, &vol, t, false, i, false);
+        i += 1;
+        let Some(p) = a.stats.tf_progress.clone() else {
+            break (a, t);
+        };
+        // The filter lights the frames until LAO is complete.
+        assert_eq!((p.what, p.name.as_str()), ("AO", "lao"), "frame {i}");
+        assert_eq!(a.stats.ao_method, "filter-gauss", "frame {i}");
+        switching += 1;
+    };
+    assert!(
+        switching > 1,
+        "LAO arrived in {switching} frames, not slab by slab"
+    );
+    assert_ne!(
+        fl.tf_samples_per_frame, budget,
+        "the slab budget follows the frame times"
+    );
+    assert_eq!(done.stats.ao_method, "lao");
+    // Then exactly what a loop that waited for LAO shows, on the same carved frame.
+    let mut fresh = new_loop(&gpu, &vol, tfs.clone(), Mode::Contextual);
+    let f = click_frame(&mut fresh, &vol, t, false, i, false);
+    let d = common::first_bit_difference(&read(&fl.cao.ao), &read(&fresh.cao.ao));
+    assert!(
+        d.is_none(),
+        "V_AO differs from a loop that waited, at {d:?}"
+    );
+    assert!(done.image == f.image, "the image differs");
     common::assert_no_validation_messages(&gpu);
 }
