@@ -39,6 +39,8 @@ layout(set = 0, binding = 14) uniform sampler3D empty_bricks;
 layout(set = 0, binding = 15) uniform sampler2D preint_at;
 // The structure id of every voxel (R8 unorm: id / 255; src/volume/labels.rs), when LABELS.
 layout(set = 0, binding = 16) uniform sampler3D structure_ids;
+// The safety margins' glow intensity (R8 unorm; src/render/mod.rs margin_glow), when GLOW.
+layout(set = 0, binding = 17) uniform sampler3D glow;
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 4
@@ -72,6 +74,7 @@ const uint TRICUBIC = 4u;
 const uint SKIP_EMPTY = 8u;
 const uint LABELS = 16u;
 const uint CLIPPING = 32u;
+const uint GLOW = 64u;
 
 // The features this pipeline is specialised for (src/render/mod.rs Renderer::pipeline): the
 // code of a feature that is off is not compiled in.
@@ -375,6 +378,11 @@ void main() {
                     continue;
                 }
                 prev_skippable = here;
+            }
+            // The safety margins' volumetric glow (Ropinski et al., Sect. 4.4): emission only,
+            // through what lies in front, and also where a tool cut the tissue away.
+            if (flag(GLOW)) {
+                color += (1.0 - alpha) * frame.glow.rgb * (texture(glow, p).r * frame.glow.a * step_mm);
             }
             // Shadow-test clipping: the same maps the AO update used.
             if (clipping) {

@@ -18,6 +18,7 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     vec4 lighting;           // x: SH light weight (0: off), y: SH coefficients, z: 1 = times AO,
                              // w: 1 / V_max of variance opacity modulation (0: off)
     vec4 bleeding;           // x: bleeding weight W of the local-histogram method (0: off)
+    vec4 glow;               // rgb: the safety margins' glow colour, a: its emission per mm
     vec4 sh_light[16];       // rgb: Y_0 * L_k per colour channel (the environment in data space)
     ivec4 tool_reach[2 * MAX_TOOLS]; // per tool, index-space [min, max) holding all it hides
     vec4 structures[256];    // per structure id (0: unlabelled): rgb colour, a: opacity a_l

@@ -258,6 +258,16 @@ impl FrameLoop {
         let ao = precompute_method(gpu, &lao, &vol, tf, &first, show_progress)?;
         let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
         let mut tex = VolumeTextures::new(gpu, &vol, tf)?;
+        let margins = vol
+            .labels
+            .as_ref()
+            .map_or_else(Vec::new, |l| l.margin_fields(vol.dims, vol.spacing));
+        if !margins.is_empty() {
+            tex.set_glow(
+                gpu,
+                Some(&crate::volume::distance::glow(&margins, vol.dims)),
+            )?;
+        }
         let histogram = methods.iter().any(|m| matches!(m, AoMethod::Histogram(_)));
         tex.set_bleeding(gpu, histogram)?;
         let settings = RenderSettings {
@@ -282,10 +292,7 @@ impl FrameLoop {
             tf_samples_per_frame: default_tf_samples_per_frame(gpu),
             tf_slab_share: (shown != 0).then_some(FAST_START_SLAB_SHARE),
             lighting: None,
-            margins: vol
-                .labels
-                .as_ref()
-                .map_or_else(Vec::new, |l| l.margin_fields(vol.dims, vol.spacing)),
+            margins,
             volume: vol,
         })
     }

@@ -2,10 +2,11 @@
 //! session locates the eyes and hands, the one frame loop renders both eyes and copies them into
 //! the swapchain in the same command buffer, and the session submits the views it rendered.
 
-use super::frame_loop::FrameLoop;
+use super::frame_loop::{FrameLoop, FrameStats};
 use super::mirror::Mirror;
 use super::session::{gpu_banner, gpu_options, record_error, recorder, Recorder, SessionSpec};
 use super::Result;
+use crate::clip::margin::MarginHit;
 use crate::input::{tool_hand, InteractionSettings, StreamHeader, RIGHT};
 use crate::xr::session::{XrRuntime, XrSession};
 use crate::xr::{XrError, XrOptions, XrSummary};
@@ -82,8 +83,7 @@ fn frames(
     recorder: &mut Option<Recorder>,
     opts: &XrOptions,
 ) -> Result<()> {
-    let mut prev_clipped = 0u64;
-    let mut prev_margins: Vec<crate::clip::margin::MarginHit> = Vec::new();
+    let mut last = Reacted::default();
     while xs.poll_events()? {
         if !xs.running() {
             if super::interrupt::caught().is_some() {
@@ -130,31 +130,13 @@ fn frames(
             shown.as_ref().map(|a| a.rendered),
         );
         xs.release()?;
-        let retired = retired?;
-        if let Some(stats) = retired.map(|r| r.stats) {
-            if stats.metrics.clipped > 0 && prev_clipped == 0 {
-                xs.pulse(RIGHT)?;
-                eprintln!(
-                    "xr: haptic pulse: the tool touched tissue at frame {}",
-                    xs.summary.frames
-                );
-            }
-            prev_clipped = stats.metrics.clipped;
-            // A pulse on the hand whose tool entered a safety margin, on the frame it entered.
-            for h in &stats.margins {
-                if !prev_margins
-                    .iter()
-                    .any(|p| (p.tool, p.structure) == (h.tool, h.structure))
-                {
-                    if let Some(hand) = tool_hand(h.tool) {
-                        xs.pulse(hand)?;
-                    }
-                }
-            }
-            if let Some(w) = fl.margin_warning(&stats.margins) {
-                eprintln!("xr: frame {}: {w}", xs.summary.frames);
-            }
-            prev_margins = stats.margins;
+        let mut retired: Vec<_> = retired?.into_iter().collect();
+        if done {
+            // The session's last frame: its stats (a carve or a margin it starts) count too.
+            retired.extend(fl.flush()?);
+        }
+        for r in retired {
+            react(xs, fl, r.stats, &mut last)?;
         }
         xs.end_frame(&frame)?;
         if let Some(m) = mirror {
@@ -170,5 +152,42 @@ fn frames(
             eprintln!("xr: {} frames submitted", xs.summary.frames);
         }
     }
+    Ok(())
+}
+
+/// What the frame before told the hands: whether its tool clipped, and its margins.
+#[derive(Default)]
+struct Reacted {
+    clipped: u64,
+    margins: Vec<MarginHit>,
+}
+
+/// The hands' answer to a frame that left the GPU: a pulse on the right hand when its tool
+/// starts to clip tissue, and on the hand whose tool enters a safety margin (with a line naming
+/// the structure and the distance on every frame it stays inside).
+fn react(xs: &mut XrSession, fl: &FrameLoop, stats: FrameStats, last: &mut Reacted) -> Result<()> {
+    if stats.metrics.clipped > 0 && last.clipped == 0 {
+        xs.pulse(RIGHT)?;
+        eprintln!(
+            "xr: haptic pulse: the tool touched tissue at frame {}",
+            xs.summary.frames
+        );
+    }
+    for h in &stats.margins {
+        let entered = !last
+            .margins
+            .iter()
+            .any(|p| (p.tool, p.structure) == (h.tool, h.structure));
+        if let (true, Some(hand)) = (entered, tool_hand(h.tool)) {
+            xs.pulse(hand)?;
+        }
+    }
+    if let Some(w) = fl.margin_warning(&stats.margins) {
+        eprintln!("xr: frame {}: {w}", xs.summary.frames);
+    }
+    *last = Reacted {
+        clipped: stats.metrics.clipped,
+        margins: stats.margins,
+    };
     Ok(())
 }

@@ -590,6 +590,9 @@ pub fn render_to_dir(
     fl.scene.tools = tools.to_vec();
     let views = default_stereo_views(vol, &fl.scene.volume, DEFAULT_IPD);
     let frame = fl.frame(&FrameInput::without_hands(0.0, views))?;
+    if let Some(w) = fl.margin_warning(&frame.stats.margins) {
+        println!("{w}");
+    }
     if settings.transparent {
         frame.image.write_pngs_rgba(out)?;
     } else {

@@ -121,7 +121,16 @@ pub struct RenderSettings {
     /// A transparent background (`render --background transparent`): black, alpha 0 where a
     /// ray misses, premultiplied colour; the PNGs get straight alpha.
     pub transparent: bool,
+    /// The safety margins' glow, emitted per mm at full intensity ([`GLOW_COLOUR`]); takes
+    /// effect where the textures hold a glow volume ([`VolumeTextures::set_glow`]); 0 = off.
+    pub glow: f32,
 }
+
+/// The colour a safety margin glows in: the amber a tool inside a margin is drawn in.
+pub const GLOW_COLOUR: [f32; 3] = [1.0, 0.62, 0.1];
+
+/// The default glow: about a third of full emission over 10 mm of a full-intensity zone.
+pub const DEFAULT_GLOW: f32 = 0.04;
 
 impl Default for RenderSettings {
     fn default() -> Self {
@@ -143,6 +152,7 @@ impl Default for RenderSettings {
             variance_max: 0.0,
             bleeding: DEFAULT_BLEEDING,
             transparent: false,
+            glow: DEFAULT_GLOW,
         };
         Shading::default().apply(&mut s);
         s
@@ -203,6 +213,8 @@ pub struct VolumeTextures {
     pub variance: Option<Image>,
     /// The local-histogram method's bleeding colour E (RGBA8 per voxel), when it is the method.
     pub bleeding: Option<Image>,
+    /// The safety margins' glow (R8 unorm per voxel, [`crate::volume::distance::glow`]), when a structure has one.
+    pub glow: Option<Image>,
     /// The label map's structure id per voxel (R8 unorm, id / 255; 1 voxel of 0 without labels),
     /// and per id its colour and opacity a_l and whether it is protected (frame.glsl).
     pub structures: Image,
@@ -553,6 +565,7 @@ impl VolumeTextures {
             tf_version: Default::default(),
             variance: None,
             bleeding: None,
+            glow: None,
             dims: vol.dims,
             spacing: vol.spacing,
             value_range: vol.value_range(),
@@ -572,6 +585,19 @@ impl VolumeTextures {
                     bytemuck::cast_slice(v),
                     vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
                 )?;
+                Some(img)
+            }
+            None => None,
+        };
+        Ok(())
+    }
+
+    /// Uploads the safety margins' glow (one byte per voxel, [`crate::volume::distance::glow`]); None turns it off.
+    pub fn set_glow(&mut self, gpu: &Gpu, glow: Option<&[u8]>) -> Result<()> {
+        self.glow = match glow {
+            Some(g) => {
+                let img = volume_image(gpu, self.dims, vk::Format::R8_UNORM, "glow")?;
+                img.upload(g, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
                 Some(img)
             }
             None => None,
@@ -873,16 +899,17 @@ struct FrameUniforms {
     jitter: [f32; 4],
     lighting: [f32; 4],
     bleeding: [f32; 4],
+    glow: [f32; 4],
     sh_light: [[f32; 4]; 16],
     tool_reach: [[i32; 4]; 2 * MAX_TOOLS],
     structures: [[f32; 4]; 256],
     protect: [[u32; 4]; 2],
 }
-crate::gpu::glsl_layout!(FrameUniforms, 5120,
+crate::gpu::glsl_layout!(FrameUniforms, 5136,
     inv_view_proj: 0, view_proj: 128, tex_from_world: 256, extent_mm: 320, value_map: 336,
     background: 352, viewport: 368, phong: 384, surface: 400, cut_tint: 416, jitter: 432,
-    lighting: 448, bleeding: 464, sh_light: 480, tool_reach: 736, structures: 992,
-    protect: 5088);
+    lighting: 448, bleeding: 464, glow: 480, sh_light: 496, tool_reach: 752, structures: 1008,
+    protect: 5104);
 
 /// The features the ray caster is specialised on (raycast.frag FLAGS, constant_id 0).
 const FLAG_PREINTEGRATED: u32 = 1;
@@ -891,6 +918,7 @@ const FLAG_TRICUBIC: u32 = 4;
 const FLAG_SKIP_EMPTY: u32 = 8;
 const FLAG_LABELS: u32 = 16;
 const FLAG_CLIPPING: u32 = 32;
+const FLAG_GLOW: u32 = 64;
 
 pub struct Renderer {
     gpu: Gpu,
@@ -1036,6 +1064,7 @@ impl Renderer {
                     sampled,
                     sampled,
                     sampled,
+                    sampled,
                 ],
                 vk::ShaderStageFlags::FRAGMENT,
             )?;
@@ -1126,16 +1155,19 @@ impl Renderer {
         let (pre_offset, pre_scale) = tex.lut_map(preintegration::SIZE);
         let max_spacing = tex.spacing.iter().cloned().fold(0.0, f64::max) as f32;
         let (lo, hi) = tex.value_range;
+        let glow = tex.glow.is_some() && settings.glow > 0.0;
         let flags = [
             (preintegrated, FLAG_PREINTEGRATED),
             (settings.jitter, FLAG_JITTER),
             (settings.tricubic, FLAG_TRICUBIC),
+            // The glow lies in empty space: no skipping where it shines.
             (
-                settings.skip_empty && tex.skip_ready(settings),
+                settings.skip_empty && tex.skip_ready(settings) && !glow,
                 FLAG_SKIP_EMPTY,
             ),
             (tex.labelled, FLAG_LABELS),
             (clip.is_some_and(|c| c.count > 0), FLAG_CLIPPING),
+            (glow, FLAG_GLOW),
         ]
         .iter()
         .filter(|f| f.0)
@@ -1211,6 +1243,12 @@ impl Renderer {
                 0.0,
                 0.0,
             ],
+            glow: [
+                GLOW_COLOUR[0],
+                GLOW_COLOUR[1],
+                GLOW_COLOUR[2],
+                settings.glow,
+            ],
             sh_light: std::array::from_fn(|k| {
                 let l = frame.sh.map_or([[0.0; 16]; 3], |sh| *sh.light);
                 let y0 = crate::light::sh::Y0 as f32;
@@ -1281,6 +1319,7 @@ impl Renderer {
             (14, tex.skip.view),
             (15, tex.preint_at.view),
             (16, tex.structures.view),
+            (17, tex.glow.as_ref().unwrap_or(&tex.ambient).view),
         ];
         let infos = sampled_views.map(|(_, view)| img(view));
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];

@@ -174,6 +174,29 @@ impl MarginField {
     }
 }
 
+/// The volumetric glow of the safety margins (Ropinski et al., Sect. 4.4), one byte per voxel:
+/// around each structure l with a margin m_l, 1 − dist_l / m_l where 0 < dist_l < m_l (fading
+/// from the structure's surface to the margin's edge), 0 on the structure and beyond; the
+/// largest over the structures.
+pub fn glow(fields: &[MarginField], dims: [usize; 3]) -> Vec<u8> {
+    let mut glow = vec![0u8; dims[0] * dims[1] * dims[2]];
+    for f in fields {
+        for (n, &d) in f.dist.iter().enumerate() {
+            if d > 0.0 && d < f.margin_mm {
+                let p = [
+                    n % f.dims[0],
+                    (n / f.dims[0]) % f.dims[1],
+                    n / (f.dims[0] * f.dims[1]),
+                ];
+                let v = f.min[0] + p[0] + dims[0] * (f.min[1] + p[1] + dims[1] * (f.min[2] + p[2]));
+                let g = ((1.0 - d / f.margin_mm) * 255.0).round() as u8;
+                glow[v] = glow[v].max(g);
+            }
+        }
+    }
+    glow
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -250,5 +273,20 @@ mod tests {
             }
         }
         assert!(MarginField::new(&ids, 7, d, s, 0, 3.0).is_none());
+        // The glow fades from the structure's surface to the margin's edge.
+        let g = glow(std::slice::from_ref(&f), d);
+        for (n, &v) in g.iter().enumerate() {
+            let w = whole[n];
+            let want = if w > 0.0 && w < 3.0 {
+                ((1.0 - w / 3.0) * 255.0).round() as u8
+            } else {
+                0
+            };
+            assert!(
+                v.abs_diff(want) <= 1,
+                "voxel {n} at {w} mm: glow {v}, not {want}"
+            );
+        }
+        assert!(g.iter().any(|&v| v > 100), "the glow is lit somewhere");
     }
 }

@@ -592,5 +592,36 @@ fn a_tool_entering_a_safety_margin_is_told_with_the_exact_distance() {
         [true, true],
         "frames both outside and inside the margin"
     );
+    // The margin glows (emission only): without tools, the same frame without the margin is
+    // nowhere brighter and somewhere darker.
+    let mut plain = (*vol).clone();
+    let mut map = (**plain.labels.as_ref().unwrap()).clone();
+    map.structures[0].margin_mm = None;
+    plain.labels = Some(Arc::new(map));
+    let mut dark = FrameLoop::new(
+        &gpu,
+        Arc::new(plain),
+        vec![TransferFunction::preset("ct-skin").unwrap()],
+        params,
+        (32, 32),
+        InteractionSettings::default(),
+        false,
+    )
+    .unwrap();
+    let shot = |fl: &mut FrameLoop| {
+        fl.settings.jitter = false;
+        fl.scene.tools.clear();
+        fl.frame(&FrameInput::without_hands(0.0, views))
+            .unwrap()
+            .image
+            .rgba[0]
+            .clone()
+    };
+    let (glowing, plain) = (shot(&mut fl), shot(&mut dark));
+    assert!(
+        glowing.iter().zip(&plain).all(|(g, p)| g >= p),
+        "the glow darkened a pixel"
+    );
+    assert!(glowing != plain, "no glow");
     common::assert_no_validation_messages(&gpu);
 }
