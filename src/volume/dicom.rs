@@ -22,6 +22,7 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
+pub mod seg;
 mod tolerant;
 
 /// Which series of a directory to load.
@@ -464,6 +465,15 @@ fn read_header(path: &Path) -> Result<Result<Planes, String>, VolumeError> {
         == DICOMDIR_SOP_CLASS
     {
         return Ok(Err("DICOMDIR".into()));
+    }
+    // a segmentation of the series beside it is read by --labels, not as an image series
+    if obj
+        .meta()
+        .media_storage_sop_class_uid()
+        .trim_end_matches('\0')
+        == seg::SEG_SOP_CLASS
+    {
+        return Ok(Err("a DICOM segmentation (read it with --labels)".into()));
     }
     let (Some(rows), Some(cols)) = (int(&obj, tags::ROWS), int(&obj, tags::COLUMNS)) else {
         return Ok(Err("without an image (no Rows/Columns)".into()));

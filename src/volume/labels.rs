@@ -6,7 +6,7 @@
 //! never by index alone); outside the label map L = 0 (unlabelled). See docs/design.md.
 
 use super::distance::MarginField;
-use super::{nifti, nrrd, Volume, VolumeError};
+use super::{dicom, nifti, nrrd, Volume, VolumeError};
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -214,10 +214,10 @@ struct Source {
 /// description or a colour table; else the file's own; else TotalSegmentator's class table for
 /// 117 or fewer labels; else "label N"), and resamples it into `vol`'s grid.
 pub fn load(path: &Path, names: Option<&Path>, vol: &Volume) -> Result<LabelMap, VolumeError> {
-    let mut src = if path.is_dir() {
-        read_mask_folder(path)?
-    } else {
-        read_label_file(path)?
+    let mut src = match find_seg(path)? {
+        Some(seg) => read_seg(&seg)?,
+        None if path.is_dir() => read_mask_folder(path)?,
+        None => read_label_file(path)?,
     };
     if let Some(n) = names {
         for (value, entry) in read_names(n)? {
@@ -381,6 +381,46 @@ fn label_values(v: &Volume) -> Vec<u32> {
             }
         })
         .collect()
+}
+
+/// The DICOM SEG at `path`, or the one in the folder `path` (a series folder with its
+/// segmentation beside the images); None when there is none. Several in one folder are
+/// refused with their names.
+fn find_seg(path: &Path) -> Result<Option<std::path::PathBuf>, VolumeError> {
+    if !path.is_dir() {
+        return Ok(dicom::seg::is_seg(path).then(|| path.to_path_buf()));
+    }
+    let mut found: Vec<_> = std::fs::read_dir(path)
+        .map_err(|e| VolumeError::io(path, e))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_file() && dicom::seg::is_seg(p))
+        .collect();
+    found.sort();
+    match found.len() {
+        0 | 1 => Ok(found.pop()),
+        _ => Err(VolumeError::unsupported(
+            path,
+            format!(
+                "{} DICOM segmentations in one folder ({}): give one with --labels FILE",
+                found.len(),
+                found
+                    .iter()
+                    .map(|p| p.display().to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        )),
+    }
+}
+
+/// A DICOM SEG: its segment numbers as label values, named and coloured by its segment table.
+fn read_seg(path: &Path) -> Result<Source, VolumeError> {
+    let s = dicom::seg::read(path)?;
+    Ok(Source {
+        geometry: s.geometry,
+        values: s.values,
+        named: s.segments,
+    })
 }
 
 /// A multi-label NIfTI or NRRD (a `.seg.nrrd` with its segments' names, colours and values).

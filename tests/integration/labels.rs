@@ -11,7 +11,7 @@ use cao_xr::space::{Placement, Pose};
 use cao_xr::volume::labels::{LabelMap, Structure};
 use cao_xr::volume::transfer::TransferFunction;
 use glam::{Quat, Vec3};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Arc;
 
@@ -624,4 +624,138 @@ fn a_tool_entering_a_safety_margin_is_told_with_the_exact_distance() {
     );
     assert!(glowing != plain, "no glow");
     common::assert_no_validation_messages(&gpu);
+}
+
+/// A Python with highdicom: a private virtual environment in the cache, made once with pip
+/// (`python3 -m venv`; highdicom pinned so that the files it writes do not change under us).
+fn highdicom_python() -> Option<PathBuf> {
+    let home = std::env::var_os("HOME").map(PathBuf::from)?;
+    let venv = home.join(".cache/cao-xr/highdicom-0.28.2");
+    let py = venv.join("bin/python");
+    let works = |py: &PathBuf| {
+        Command::new(py)
+            .args(["-c", "import highdicom, pydicom, numpy"])
+            .output()
+            .is_ok_and(|o| o.status.success())
+    };
+    if !works(&py) {
+        let made = Command::new("python3")
+            .args(["-m", "venv"])
+            .arg(&venv)
+            .status()
+            .is_ok_and(|s| s.success())
+            && Command::new(venv.join("bin/pip"))
+                .args(["install", "-q", "highdicom==0.28.2"])
+                .status()
+                .is_ok_and(|s| s.success());
+        if !made {
+            let _ = std::fs::remove_dir_all(&venv);
+        }
+    }
+    common::require_or_skip(
+        "CAO_XR_REQUIRE_HIGHDICOM",
+        works(&py),
+        "highdicom could not be installed into a private Python environment (python3-venv, pip)",
+    )
+    .then_some(py)
+}
+
+#[test]
+fn dicom_segmentations_written_by_highdicom_resample_by_position_as_highdicom_reads_them() {
+    let Some(py) = highdicom_python() else { return };
+    let dir = tmp("dicom-seg");
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/write_dicom_seg.py");
+    let out = Command::new(&py).arg(script).arg(&dir).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let want: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let voxels = |name: &str| -> Vec<usize> {
+        want[name]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_u64().unwrap() as usize)
+            .collect()
+    };
+    let (tumour, liver) = (voxels("tumour"), voxels("liver"));
+    assert!(!tumour.is_empty() && !liver.is_empty(), "{want}");
+    let expected = vec![
+        (1, "tumour".to_string(), tumour.len()),
+        (2, "liver".to_string(), liver.len()),
+    ];
+    let ct = dir.join("ct");
+    let ct = ct.to_str().unwrap();
+    // An opacity everywhere, so that O shows where a hidden structure is.
+    let tf = dir.join("flat.json");
+    std::fs::write(
+        &tf,
+        r#"{ "name": "flat", "domain": "data", "points": [
+            { "value": -2000, "color": [1, 1, 1], "alpha": 0.5 },
+            { "value": 3000, "color": [1, 1, 1], "alpha": 0.5 } ] }"#,
+    )
+    .unwrap();
+    let hidden_voxels = |seg: &Path, name: &str| -> Vec<usize> {
+        let (op, ao) = (dir.join("o.nrrd"), dir.join("ao.nrrd"));
+        let args = [
+            "ao",
+            ct,
+            "--tf",
+            tf.to_str().unwrap(),
+            "--rays",
+            "6",
+            "--steps",
+            "2",
+            "--labels",
+            seg.to_str().unwrap(),
+            "--hide",
+            name,
+            "--out",
+            ao.to_str().unwrap(),
+            "--opacity-out",
+            op.to_str().unwrap(),
+        ];
+        common::run_cao_ok(&args);
+        let bytes = std::fs::read(&op).unwrap();
+        let split = bytes.windows(2).position(|w| w == b"\n\n").unwrap();
+        bytes[split + 2..]
+            .chunks_exact(4)
+            .enumerate()
+            .filter(|(_, c)| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) == 0.0)
+            .map(|(i, _)| i)
+            .collect()
+    };
+    // Binary and fractional, each given as a file: segment numbers, labels, voxel counts, and
+    // each segment's voxels where highdicom puts them.
+    for kind in ["binary", "fractional"] {
+        let seg = dir.join(format!("seg-{kind}.dcm"));
+        let rows = info_structures(&["info", ct, "--labels", seg.to_str().unwrap()]);
+        assert_eq!(rows, expected, "{kind}");
+        assert_eq!(
+            hidden_voxels(&seg, "tumour"),
+            tumour,
+            "{kind}: the tumour's voxels"
+        );
+        assert_eq!(
+            hidden_voxels(&seg, "liver"),
+            liver,
+            "{kind}: the liver's voxels"
+        );
+    }
+    // The recommended display colour (CIELab of pure red for the tumour) reads as red.
+    let seg = dir.join("seg-binary.dcm");
+    let out = common::run_cao_ok(&["info", ct, "--labels", seg.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("tumour                            #ff0000"),
+        "{text}"
+    );
+    // Beside the series in its folder: the series still loads (the SEG is not an image), and
+    // --labels with the folder finds the SEG.
+    std::fs::copy(&seg, dir.join("ct/seg.dcm")).unwrap();
+    let rows = info_structures(&["info", ct, "--labels", ct]);
+    assert_eq!(rows, expected, "the SEG in the series folder");
+    let _ = std::fs::remove_dir_all(&dir);
 }
