@@ -489,8 +489,9 @@ struct VolumeArgs {
     #[arg(long, default_value_t = 0)]
     raw_header: u64,
     /// A segmentation shown over the volume: a multi-label NIfTI (TotalSegmentator --ml), a
-    /// folder of binary NIfTI masks (one per structure, named by the file), or a 3D Slicer
-    /// .seg.nrrd. Resampled into the volume's grid by physical position.
+    /// folder of binary NIfTI masks (one per structure, named by the file), a 3D Slicer
+    /// .seg.nrrd, or a DICOM SEG (the file, or a folder holding one, such as the series' own).
+    /// Resampled into the volume's grid by physical position.
     #[arg(long)]
     labels: Option<PathBuf>,
     /// Names and colours of the label values: an ITK-SNAP label description file or a 3D Slicer
