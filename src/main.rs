@@ -201,6 +201,10 @@ enum Cmd {
         /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
         #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
         frames_in_flight: Option<u32>,
+        /// Hold this frame time (ms) by lengthening the ray step (up to 3x; the AO is
+        /// untouched). Off by default in the window.
+        #[arg(long, value_parser = parse_budget)]
+        frame_budget_ms: Option<f64>,
     },
     /// Run a headset session through OpenXR (XR_KHR_vulkan_enable2): both eyes into the
     /// runtime's swapchain, controllers as hands, optionally recording the pose stream.
@@ -244,6 +248,10 @@ enum Cmd {
         /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
         #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
         frames_in_flight: Option<u32>,
+        /// Hold this frame time (ms) by lengthening the ray step (up to 3x; the AO is
+        /// untouched); 0 turns it off. Default: 90 Hz.
+        #[arg(long, value_parser = parse_budget, default_value_t = app::budget::HEADSET_FRAME_MS)]
+        frame_budget_ms: f64,
     },
     /// Generate a scripted pose stream (JSON Lines) for replay and tests.
     Script {
@@ -740,6 +748,14 @@ impl VolumeArgs {
         };
         Ok((vol, tf))
     }
+}
+
+/// A frame time in ms: 0 (off) to 10 s.
+fn parse_budget(s: &str) -> Result<f64, String> {
+    s.parse::<f64>()
+        .ok()
+        .filter(|v| (0.0..=10_000.0).contains(v))
+        .ok_or_else(|| format!("'{s}': a frame time in ms, 0..10000 (e.g. 11.1 for 90 Hz)"))
 }
 
 /// WxHxD voxels, each 1..=65536.
@@ -1255,9 +1271,11 @@ fn run(cli: Cli) -> Result<()> {
             screenshot,
             dump,
             frames_in_flight,
+            frame_budget_ms,
         } => {
             let spec = session_spec(&vol, &lao, &light)?;
             let opts = app::desktop::ViewOptions {
+                frame_budget_ms,
                 size,
                 frames,
                 record,
@@ -1285,6 +1303,7 @@ fn run(cli: Cli) -> Result<()> {
             blend,
             passthrough,
             frames_in_flight,
+            frame_budget_ms,
         } => {
             let spec = session_spec(&vol, &lao, &light)?;
             let opts = cao_xr::xr::XrOptions {
@@ -1299,6 +1318,7 @@ fn run(cli: Cli) -> Result<()> {
                 blend,
                 passthrough,
                 frames_in_flight: frames_in_flight.map(|n| n as usize),
+                frame_budget_ms: (frame_budget_ms > 0.0).then_some(frame_budget_ms),
             };
             let s = app::headset::run(&spec, opts)?;
             interrupted_note();

@@ -34,6 +34,8 @@ pub struct ViewOptions {
     pub validation: bool,
     /// `--frames-in-flight`: 1 or 2 (default [`crate::render::MAX_FRAMES_IN_FLIGHT`]).
     pub frames_in_flight: Option<usize>,
+    /// `--frame-budget-ms`: the frame time the ray step is scaled to hold (None: off).
+    pub frame_budget_ms: Option<f64>,
 }
 
 /// Interaction settings of desktop sessions (and of their replays): the emulated grip is the
@@ -161,12 +163,16 @@ impl App {
                 ),
                 None => String::new(),
             };
+            let step = match self.opts.frame_budget_ms {
+                Some(_) => format!(" | step x{:.2}", stats.step_factor),
+                None => String::new(),
+            };
             let margin = self
                 .fl
                 .margin_warning(&stats.margins)
                 .map_or(String::new(), |w| format!(" | {w}"));
             w.set_title(&format!(
-                "cao-xr | {:.1} fps | AO {} {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}{margin}",
+                "cao-xr | {:.1} fps | AO {} {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}{step}{margin}",
                 self.fps,
                 self.fl.cao.method_name(),
                 m.gpu_ms(),
@@ -287,6 +293,7 @@ pub fn run(spec: &SessionSpec, opts: ViewOptions) -> Result<usize> {
     if let Some(n) = opts.frames_in_flight {
         fl.set_frames_in_flight(n)?;
     }
+    fl.set_frame_budget(opts.frame_budget_ms);
     let header = StreamHeader::new("desktop", format!("cao-xr view of {}", spec.volume.name));
     let recorder = recorder(opts.record.as_deref(), &header)?;
     if let Some(d) = &opts.dump {

@@ -9,6 +9,7 @@
 //! clip-aware update is recorded right after CAO's, and the environment is projected into the
 //! volume's data frame every frame (turning it costs no recompute).
 
+use super::budget::FrameBudget;
 use super::lighting::{LightingOptions, ShLighting};
 use super::tf_switch::{default_tf_samples_per_frame, TfProgress, TfSwitcher};
 use super::{precompute_method, AppError, Result};
@@ -58,6 +59,9 @@ pub struct FrameStats {
     pub ao_method: String,
     /// Recorded while the frame before was still in flight (two frames in flight).
     pub overlapped: bool,
+    /// The ray step, as a multiple of the configured one, that the frame budget chose after this
+    /// frame ([`FrameLoop::set_frame_budget`]; 1 without one).
+    pub step_factor: f64,
     /// The tools inside a structure's safety margin this frame (`--margin`).
     pub margins: Vec<MarginHit>,
 }
@@ -117,6 +121,8 @@ pub struct FrameLoop {
     depth: usize,
     /// The distance fields of the structures with a safety margin (`--margin`).
     margins: Vec<MarginField>,
+    /// A frame budget and the step it scales ([`FrameLoop::set_frame_budget`]).
+    budget: Option<(FrameBudget, f32)>,
 }
 
 /// How a frame loop is set up beside its volume and transfer functions ([`FrameLoop::new`]).
@@ -293,6 +299,7 @@ impl FrameLoop {
             tf_slab_share: (shown != 0).then_some(FAST_START_SLAB_SHARE),
             lighting: None,
             margins,
+            budget: None,
             volume: vol,
         })
     }
@@ -386,6 +393,20 @@ impl FrameLoop {
     /// The AO methods the stick click cycles through (the first is the one configured).
     pub fn ao_methods(&self) -> &[AoMethod] {
         self.tfs.methods()
+    }
+
+    /// Holds a frame time of `target_ms` by lengthening the ray step (up to
+    /// [`super::budget::MAX_STEP_FACTOR`] times the step of the settings now) from the measured
+    /// GPU times ([`FrameBudget`]); the AO is never touched. None: the settings' step, always.
+    /// Replay and renders run without one: their pictures must not depend on the machine.
+    pub fn set_frame_budget(&mut self, target_ms: Option<f64>) {
+        if let Some((_, base)) = self.budget.take() {
+            self.settings.step_mm = base;
+        }
+        self.budget = target_ms.filter(|t| *t > 0.0).map(|t| {
+            let base = self.settings.step_mm;
+            (FrameBudget::new(t), base)
+        });
     }
 
     /// Frames the GPU may hold at once (1 or 2, [`crate::render::MAX_FRAMES_IN_FLIGHT`]).
@@ -495,6 +516,19 @@ impl FrameLoop {
         if !self.tfs.settled((self.scene.tf_index, self.scene.ao_index)) {
             retired = self.retire()?;
         }
+        // The budget's step: a new one rebuilds the pre-integration table and the empty bricks
+        // the frame in flight reads, so that frame is waited for first.
+        if let Some((b, base)) = &self.budget {
+            let auto = self.settings.step_for(self.volume.spacing);
+            let base = if *base > 0.0 { *base } else { auto };
+            let step = base * b.step_factor() as f32;
+            if step != self.settings.step_for(self.volume.spacing) {
+                if retired.is_none() {
+                    retired = self.retire()?;
+                }
+                self.settings.step_mm = step;
+            }
+        }
         self.record_and_submit(input, read_back, after, signal, (t0, margins))?;
         if retired.is_none() && self.slots.flights.len() >= self.depth {
             retired = self.retire()?;
@@ -537,6 +571,18 @@ impl FrameLoop {
         };
         let tf_ms = if f.slab { self.tfs.read_ms()? } else { 0.0 };
         let render_ms = passes.eye_ms[0] + passes.eye_ms[1];
+        let step_factor = match self.budget.as_mut() {
+            Some((b, _)) => {
+                let other = metrics.gpu_ms()
+                    + sh.gpu_ms
+                    + tf_ms
+                    + passes.texture_ms
+                    + passes.overlay_ms
+                    + passes.copy_ms;
+                b.observe(render_ms, other)
+            }
+            None => 1.0,
+        };
         if let (Some(share), true) = (self.tf_slab_share, tf_ms > 0.0) {
             // Towards a slab of `share` times the ray cast, at most doubling or halving per frame.
             let scale = (share * render_ms.max(1.0) / tf_ms).clamp(0.5, 2.0);
@@ -559,6 +605,7 @@ impl FrameLoop {
                 ao_method: f.ao_method,
                 overlapped: f.overlapped,
                 margins: f.margins,
+                step_factor,
             },
             image,
         }))

@@ -26,6 +26,7 @@ pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
         if let Some(n) = opts.frames_in_flight {
             fl.set_frames_in_flight(n)?;
         }
+        fl.set_frame_budget(opts.frame_budget_ms);
         if let Some(c) = opts.volume_at {
             fl.scene.volume.center = c;
         }

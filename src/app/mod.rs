@@ -6,6 +6,7 @@ pub mod bench_ao;
 pub mod bench_frame;
 pub mod bench_quality;
 pub mod bench_scale;
+pub mod budget;
 pub mod desktop;
 pub mod frame_loop;
 pub mod headset;
@@ -609,6 +610,7 @@ pub fn start(spec: &SessionSpec, validation: bool) -> Result<String> {
         eprintln!("start: an OpenXR runtime answered: starting the headset session");
         let opts = crate::xr::XrOptions {
             validation,
+            frame_budget_ms: Some(budget::HEADSET_FRAME_MS),
             ..Default::default()
         };
         let s = headset::run(spec, opts)?;

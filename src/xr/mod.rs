@@ -73,6 +73,8 @@ pub struct XrOptions {
     pub passthrough: bool,
     /// `--frames-in-flight`: 1 or 2 (default [`crate::render::MAX_FRAMES_IN_FLIGHT`]).
     pub frames_in_flight: Option<usize>,
+    /// `--frame-budget-ms`: the frame time the ray step is scaled to hold (None: off).
+    pub frame_budget_ms: Option<f64>,
 }
 
 /// What a session did.

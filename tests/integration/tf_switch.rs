@@ -502,3 +502,42 @@ fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
     assert!(done.image == f.image, "the image differs");
     common::assert_no_validation_messages(&gpu);
 }
+
+#[test]
+fn a_frame_budget_lengthens_the_step_and_leaves_the_ao_alone() {
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(N));
+    let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
+    let mut held = new_loop(&gpu, &vol, tfs.clone(), Mode::Contextual);
+    let mut free = new_loop(&gpu, &vol, tfs.clone(), Mode::Contextual);
+    // A budget no frame can meet: the step grows to its bound over the frames.
+    held.set_frame_budget(Some(0.001));
+    let c = Placement::default().center;
+    let mut factors = Vec::new();
+    for i in 0..12 {
+        let t = tool(c, i, true);
+        let a = click_frame(&mut held, &vol, t, false, i, false);
+        let b = click_frame(&mut free, &vol, t, false, i, false);
+        factors.push(a.stats.step_factor);
+        assert_eq!(b.stats.step_factor, 1.0);
+        // The AO is the same bits with and without the budget, every frame.
+        let d = common::first_bit_difference(&read(&held.cao.ao), &read(&free.cao.ao));
+        assert!(d.is_none(), "frame {i}: the budget changed V_AO at {d:?}");
+        if i == 11 {
+            assert!(
+                a.image != b.image,
+                "the longer step changed nothing on screen"
+            );
+        }
+    }
+    assert!(factors.windows(2).all(|w| w[1] >= w[0]), "{factors:?}");
+    assert_eq!(
+        *factors.last().unwrap(),
+        cao_xr::app::budget::MAX_STEP_FACTOR,
+        "{factors:?}"
+    );
+    // Off again: the configured step.
+    held.set_frame_budget(None);
+    assert_eq!(held.settings.step_mm, free.settings.step_mm);
+    common::assert_no_validation_messages(&gpu);
+}

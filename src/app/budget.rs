@@ -1,0 +1,113 @@
+//! A frame budget: the headset (and, when asked, the window) holds a target frame time by
+//! lengthening the ray caster's step, within bounds, from the measured GPU times of the frames
+//! before. The ray cast is nearly all of a frame and costs about 1 / step; the AO is never
+//! touched (its volumes are data-space and shared by every view, so they stay exact).
+
+/// The headset's frame budget by default: 90 Hz.
+pub const HEADSET_FRAME_MS: f64 = 1000.0 / 90.0;
+
+/// The longest step the budget takes, as a multiple of the configured one.
+pub const MAX_STEP_FACTOR: f64 = 3.0;
+/// Step factors are multiples of this (a new step rebuilds the pre-integration table and the
+/// empty bricks, so it should not change on every frame).
+const QUANTUM: f64 = 0.125;
+/// Frame times within this share of the target leave the step alone.
+const DEADBAND: f64 = 0.1;
+
+/// The controller: a step factor in [1, MAX_STEP_FACTOR] following the frame times.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameBudget {
+    pub target_ms: f64,
+    factor: f64,
+}
+
+impl FrameBudget {
+    pub fn new(target_ms: f64) -> FrameBudget {
+        FrameBudget {
+            target_ms,
+            factor: 1.0,
+        }
+    }
+
+    /// The ray step as a multiple of the configured one.
+    pub fn step_factor(&self) -> f64 {
+        self.factor
+    }
+
+    /// Takes one frame's GPU times, the ray cast and everything else, and returns the step
+    /// factor for the frames to come: the one at which the ray cast fits the room the rest
+    /// leaves (at least a tenth of the target), approached halfway (in ratio) per frame, and
+    /// only when the frame is more than [`DEADBAND`] off.
+    pub fn observe(&mut self, ray_ms: f64, other_ms: f64) -> f64 {
+        if !(ray_ms > 0.0 && other_ms >= 0.0 && self.target_ms > 0.0) {
+            return self.factor;
+        }
+        let frame = ray_ms + other_ms;
+        let off = frame / self.target_ms;
+        if (1.0 - DEADBAND..=1.0 + DEADBAND).contains(&off) {
+            return self.factor;
+        }
+        let room = (self.target_ms - other_ms).max(0.1 * self.target_ms);
+        let ratio = ray_ms / room;
+        let next = (self.factor * ratio.sqrt()).clamp(1.0, MAX_STEP_FACTOR);
+        // Round away from the current factor so that a wanted move is at least one quantum.
+        let q = next / QUANTUM;
+        let q = if next > self.factor {
+            q.ceil()
+        } else {
+            q.floor()
+        };
+        self.factor = (q * QUANTUM).clamp(1.0, MAX_STEP_FACTOR);
+        self.factor
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A simulated GPU: the ray cast costs `ray_at_1 / factor`, the rest `other`; returns the
+    /// factors chosen frame by frame.
+    fn run(b: &mut FrameBudget, ray_at_1: f64, other: f64, frames: usize) -> Vec<f64> {
+        (0..frames)
+            .map(|_| {
+                let f = b.step_factor();
+                b.observe(ray_at_1 / f, other)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_step_settles_where_the_frame_fits_and_returns_when_the_load_drops() {
+        let mut b = FrameBudget::new(1000.0 / 90.0);
+        // 20 ms of ray cast at the configured step and 2 ms of AO: about 2.2x fits 11.1 ms.
+        let f = run(&mut b, 20.0, 2.0, 30);
+        let last = *f.last().unwrap();
+        let frame = 20.0 / last + 2.0;
+        assert!(
+            (frame - b.target_ms).abs() <= 0.15 * b.target_ms,
+            "settled at x{last}: {frame} ms"
+        );
+        assert!(f[20..].iter().all(|&x| x == last), "it keeps moving: {f:?}");
+        assert!(f[0] > 1.0 && f[0] < last, "it moves gradually: {f:?}");
+        // A load it cannot meet: the longest step, no further.
+        let f = run(&mut b, 200.0, 2.0, 20);
+        assert_eq!(*f.last().unwrap(), MAX_STEP_FACTOR);
+        // The load drops: back to the configured step.
+        let f = run(&mut b, 5.0, 1.0, 30);
+        assert_eq!(*f.last().unwrap(), 1.0);
+        // Every factor is a quantum multiple within the bounds.
+        assert!(f
+            .iter()
+            .all(|&x| (1.0..=MAX_STEP_FACTOR).contains(&x) && (x / QUANTUM).fract() == 0.0));
+    }
+
+    #[test]
+    fn a_frame_within_the_deadband_or_without_times_changes_nothing() {
+        let mut b = FrameBudget::new(10.0);
+        assert_eq!(b.observe(9.5, 0.0), 1.0);
+        assert_eq!(b.observe(0.0, 3.0), 1.0);
+        assert_eq!(b.observe(f64::NAN, 3.0), 1.0);
+        assert!(b.observe(30.0, 0.0) > 1.0);
+    }
+}
