@@ -314,6 +314,24 @@ fn scan_files(dir: &Path, mut files: Vec<PathBuf>) -> Result<Scan, VolumeError> 
             }
         }
     }
+    // A segmentation beside an image series is read by --labels, not offered as a volume (alone
+    // in a folder it still loads, as its segment values, as other DICOM readers show it).
+    if by_uid.values().any(|s| s.modality != "SEG") {
+        let segs: Vec<String> = by_uid
+            .iter()
+            .filter(|(_, s)| s.modality == "SEG")
+            .map(|(uid, _)| uid.clone())
+            .collect();
+        for uid in segs {
+            if let Some(s) = by_uid.remove(&uid) {
+                let mut paths: Vec<PathBuf> = s.slices.into_iter().map(|p| p.path).collect();
+                paths.dedup();
+                for p in paths {
+                    skipped.push((p, "a DICOM segmentation (read it with --labels)".into()));
+                }
+            }
+        }
+    }
     if by_uid.is_empty() {
         // A broken DICOM file and no image beside it: its own error.
         if let Some(e) = unreadable.into_iter().next() {
@@ -465,15 +483,6 @@ fn read_header(path: &Path) -> Result<Result<Planes, String>, VolumeError> {
         == DICOMDIR_SOP_CLASS
     {
         return Ok(Err("DICOMDIR".into()));
-    }
-    // a segmentation of the series beside it is read by --labels, not as an image series
-    if obj
-        .meta()
-        .media_storage_sop_class_uid()
-        .trim_end_matches('\0')
-        == seg::SEG_SOP_CLASS
-    {
-        return Ok(Err("a DICOM segmentation (read it with --labels)".into()));
     }
     let (Some(rows), Some(cols)) = (int(&obj, tags::ROWS), int(&obj, tags::COLUMNS)) else {
         return Ok(Err("without an image (no Rows/Columns)".into()));
