@@ -53,17 +53,19 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let placement = Placement::default();
     let views = default_stereo_views(&volume, &placement, DEFAULT_IPD);
     let out = Path::new("out/example-carve");
+    // The cut itself, without the tool drawn over it.
+    frames.show_overlay = false;
 
-    // A 30 mm sphere sweeping left to right across the face (the face looks towards +Z).
+    // A 35 mm sphere sweeping left to right through the face (the face looks towards +Z).
     for i in 0..5 {
         let x = -0.04 + 0.02 * i as f32;
         frames.scene.tools = vec![Tool {
             shape: Shape::Sphere,
             pose: Pose {
-                position: placement.center + Vec3::new(x, 0.02, 0.08),
+                position: placement.center + Vec3::new(x, 0.02, 0.07),
                 orientation: Quat::IDENTITY,
             },
-            size: 0.03,
+            size: 0.035,
             mode: ToolMode::Carve,
             active: true,
         }];
