@@ -435,8 +435,14 @@ fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
     let gpu = common::gpu();
     let vol = Arc::new(phantom::head(N));
     let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
+    // LAO deep enough that the filter's one pass is the faster first light.
+    let deep = LaoParams {
+        rays: 26,
+        steps: 12,
+        step_mm: 4.0,
+    };
     let built = |after: f64| Built {
-        config: PARAMS.into(),
+        config: deep.into(),
         size: (48, 48),
         interaction: InteractionSettings::default(),
         fast_start_after_s: Some(after),
@@ -451,7 +457,7 @@ fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
             false,
         )
         .unwrap();
-        fl.tf_samples_per_frame = LaoGpu::samples_per_slice(vol.dims, &PARAMS) * SLAB as f64;
+        fl.tf_samples_per_frame = LaoGpu::samples_per_slice(vol.dims, &deep) * SLAB as f64;
         fl
     };
     // A precompute shorter than the threshold is waited for, as without a fast start.
@@ -459,6 +465,14 @@ fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
     assert_eq!(waited.cao.method_name(), "lao");
     assert!(waited.tf_slab_share.is_none());
     drop(waited);
+    // LAO cheaper than the filter's pass: nothing to gain, so it is waited for.
+    let cheap = Built {
+        config: PARAMS.into(),
+        ..built(0.0)
+    };
+    let fl = FrameLoop::new_lit(&gpu, Arc::clone(&vol), tfs.clone(), cheap, None, false).unwrap();
+    assert_eq!(fl.cao.method_name(), "lao");
+    drop(fl);
 
     let mut fl = new(0.0);
     assert_eq!(
@@ -492,7 +506,7 @@ fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
     );
     assert_eq!(done.stats.ao_method, "lao");
     // Then exactly what a loop that waited for LAO shows, on the same carved frame.
-    let mut fresh = new_loop(&gpu, &vol, tfs.clone(), Mode::Contextual);
+    let mut fresh = new_loop_with(&gpu, &vol, tfs.clone(), Mode::Contextual, deep.into());
     let f = click_frame(&mut fresh, &vol, t, false, i, false);
     let d = common::first_bit_difference(&read(&fl.cao.ao), &read(&fresh.cao.ao));
     assert!(
