@@ -518,6 +518,10 @@ struct VolumeArgs {
     /// Structures the tools leave standing inside a cut (comma-separated).
     #[arg(long, value_delimiter = ',', requires = "labels")]
     protect: Vec<String>,
+    /// Points and rulers to show over the volume: a 3D Slicer markups file (.mrk.json; points
+    /// and lines, LPS or RAS); the rulers' lengths are printed.
+    #[arg(long)]
+    markups: Option<PathBuf>,
     /// A structure's safety margin, NAME=MM (repeatable or comma-separated): a tool within MM
     /// of it is warned (a haptic pulse, the tool drawn in the warning colour, a stats line).
     #[arg(long, value_delimiter = ',', requires = "labels")]
@@ -820,6 +824,10 @@ fn session_spec(vol: &VolumeArgs, lao: &LaoArgs, light: &LightArgs) -> Result<Se
         ao: lao.config()?,
         lighting: light.options(),
         variance: lao.variance()?,
+        markups: match &vol.markups {
+            Some(p) => cao_xr::volume::markups::Markups::read(p)?,
+            None => Default::default(),
+        },
     })
 }
 

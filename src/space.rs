@@ -133,6 +133,16 @@ pub fn world_from_tex(vol: &Volume, placement: &Placement) -> Mat4 {
     (place * world_from_lps * lps_from_axes * axes_from_tex).as_mat4()
 }
 
+/// The world position of patient (LPS, mm) point `lps` of `vol` placed at `placement`: through
+/// the voxel index (`origin + directions · (index ⊙ spacing)` is a voxel centre's LPS) and
+/// [`world_from_tex`] (a centre's texture coordinate is (index + 0.5) / dims).
+pub fn world_from_lps_point(vol: &Volume, placement: &Placement, lps: DVec3) -> Vec3 {
+    let index = (vol.directions.inverse() * (lps - vol.origin)) / DVec3::from_array(vol.spacing);
+    let dims = DVec3::new(vol.dims[0] as f64, vol.dims[1] as f64, vol.dims[2] as f64);
+    let tex = (index + 0.5) / dims;
+    world_from_tex(vol, placement).transform_point3(tex.as_vec3())
+}
+
 /// Radius (m) of the sphere around the placed volume.
 pub fn bounding_radius(vol: &Volume, placement: &Placement) -> f32 {
     (vol.extent_mm().length() * 0.5e-3) as f32 * placement.scale

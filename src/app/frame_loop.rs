@@ -20,7 +20,7 @@ use crate::ao::{AoConfig, AoMethod, LaoGpu};
 use crate::clip::margin::MarginHit;
 use crate::gpu::{Buffer, Gpu, GpuError, GpuTimer};
 use crate::input::{FrameInput, Interaction, InteractionSettings};
-use crate::render::{joint_overlay, scene_overlay, OverlayRenderer};
+use crate::render::{joint_overlay, markup_overlay, scene_overlay, OverlayRenderer};
 use crate::render::{
     ClipBinding, FrameViews, RenderSettings, Renderer, StereoImage, StereoTarget, VolumeTextures,
     MAX_FRAMES_IN_FLIGHT,
@@ -28,6 +28,7 @@ use crate::render::{
 use crate::scene::Scene;
 use crate::space::world_from_tex;
 use crate::volume::distance::MarginField;
+use crate::volume::markups::Markups;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use ash::vk;
@@ -123,6 +124,8 @@ pub struct FrameLoop {
     margins: Vec<MarginField>,
     /// A frame budget and the step it scales ([`FrameLoop::set_frame_budget`]).
     budget: Option<(FrameBudget, f32)>,
+    /// Points and rulers drawn with the overlay (`--markups`).
+    pub markups: Markups,
 }
 
 /// How a frame loop is set up beside its volume and transfer functions ([`FrameLoop::new`]).
@@ -312,6 +315,7 @@ impl FrameLoop {
             lighting: None,
             margins,
             budget: None,
+            markups: Markups::default(),
             volume: vol,
         })
     }
@@ -659,6 +663,7 @@ impl FrameLoop {
             slots,
             tfs,
             lighting,
+            markups,
             ..
         } = self;
         let model = world_from_tex(volume, &scene.volume);
@@ -733,6 +738,7 @@ impl FrameLoop {
                 let warned: Vec<usize> = margins.iter().map(|h| h.tool).collect();
                 let offset = interaction.settings().tool_offset;
                 let mut items = scene_overlay(scene, &hands, offset, &warned);
+                markup_overlay(markups, volume, &scene.volume, &mut items);
                 joint_overlay(&input.joints, &mut items);
                 overlay.record(cmd, target, &input.views, &items)?;
             }

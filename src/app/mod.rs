@@ -594,6 +594,9 @@ pub fn render_to_dir(
     if let Some(w) = fl.margin_warning(&frame.stats.margins) {
         println!("{w}");
     }
+    if !spec.markups.lines.is_empty() {
+        println!("rulers: {}", spec.markups.lengths());
+    }
     if settings.transparent {
         frame.image.write_pngs_rgba(out)?;
     } else {

@@ -10,6 +10,7 @@ use crate::ao::filtered::VarianceModulation;
 use crate::ao::AoConfig;
 use crate::gpu::{Gpu, GpuOptions};
 use crate::input::{InteractionSettings, PoseStreamWriter, StreamHeader};
+use crate::volume::markups::Markups;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use std::path::Path;
@@ -51,6 +52,8 @@ pub struct SessionSpec {
     pub lighting: LightingOptions,
     /// Variance opacity modulation, when asked for (`--variance-max`).
     pub variance: Option<VarianceModulation>,
+    /// Points and rulers drawn over the volume (`--markups`).
+    pub markups: Markups,
 }
 
 impl SessionSpec {
@@ -77,6 +80,7 @@ impl SessionSpec {
         let vol = Arc::clone(&self.volume);
         let mut fl = FrameLoop::new_lit(gpu, vol, tfs, built, lighting, show_progress)?;
         fl.set_variance(self.variance)?;
+        fl.markups = self.markups.clone();
         Ok(fl)
     }
 }

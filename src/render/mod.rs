@@ -17,7 +17,7 @@ use ash::vk;
 use glam::{Mat4, Vec3};
 use gpu_allocator::MemoryLocation;
 pub use overlay::{
-    colors, joint_overlay, scene_overlay, OverlayItem, OverlayMesh, OverlayRenderer,
+    colors, joint_overlay, markup_overlay, scene_overlay, OverlayItem, OverlayMesh, OverlayRenderer,
 };
 
 pub const COLOR_FORMAT: vk::Format = vk::Format::R8G8B8A8_UNORM;

@@ -40,6 +40,8 @@ pub mod colors {
     pub const JOINT: [f32; 4] = [0.95, 0.8, 0.7, 0.7];
     /// The rod from the right grip to the centre of its tool.
     pub const OFFSET: [f32; 4] = [1.0, 0.85, 0.3, 0.6];
+    /// Markups (points and rulers, `--markups`).
+    pub const MARKUP: [f32; 4] = [0.25, 0.85, 1.0, 0.85];
     /// A tool inside a structure's safety margin: amber, brighter than any other tool.
     pub const WARNING: [f32; 4] = [1.0, 0.7, 0.0, 0.55];
 }
@@ -129,6 +131,51 @@ pub fn scene_overlay(
         }
     }
     items
+}
+
+/// Radius (m at true size) of a markup point's sphere and of a ruler's rod.
+const MARKUP_POINT: f32 = 0.0025;
+const MARKUP_ROD: f32 = 0.0008;
+
+/// The markups of `vol` placed at `placement`: a small sphere per point and per ruler end, a
+/// thin rod along each ruler; appended to `items`.
+pub fn markup_overlay(
+    markups: &crate::volume::markups::Markups,
+    vol: &crate::volume::Volume,
+    placement: &crate::space::Placement,
+    items: &mut Vec<OverlayItem>,
+) {
+    let at = |lps| crate::space::world_from_lps_point(vol, placement, lps);
+    let s = placement.scale;
+    let sphere = |p: Vec3| OverlayItem {
+        mesh: OverlayMesh::Tool(Shape::Sphere),
+        model: Mat4::from_scale_rotation_translation(
+            Vec3::splat(MARKUP_POINT * s),
+            Quat::IDENTITY,
+            p,
+        ),
+        color: colors::MARKUP,
+    };
+    for p in &markups.points {
+        items.push(sphere(at(p.lps)));
+    }
+    for l in &markups.lines {
+        let (a, b) = (at(l.ends[0]), at(l.ends[1]));
+        items.push(sphere(a));
+        items.push(sphere(b));
+        let half = 0.5 * a.distance(b);
+        if half > 1e-6 {
+            items.push(OverlayItem {
+                mesh: OverlayMesh::Rod,
+                model: Mat4::from_scale_rotation_translation(
+                    Vec3::new(MARKUP_ROD * s, MARKUP_ROD * s, half),
+                    Quat::from_rotation_arc(Vec3::Z, (b - a) / (2.0 * half)),
+                    0.5 * (a + b),
+                ),
+                color: colors::MARKUP,
+            });
+        }
+    }
 }
 
 /// Small spheres at the tracked hands' joints (their radii), appended to `items`.

@@ -5,6 +5,7 @@ pub mod ct_head;
 pub mod dicom;
 pub mod distance;
 pub mod labels;
+pub mod markups;
 pub mod metaimage;
 pub mod nifti;
 pub mod nrrd;

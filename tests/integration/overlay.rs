@@ -386,3 +386,99 @@ fn a_tracked_hand_pinches_carves_and_its_joints_are_drawn_and_replay_identically
     );
     common::assert_no_validation_messages(&gpu);
 }
+
+#[test]
+fn markups_from_slicer_are_drawn_where_they_are_and_rulers_read_their_length_in_mm() {
+    use cao_xr::volume::markups::{MarkupLine, MarkupPoint, Markups};
+    use glam::DVec3;
+    // An anisotropic volume: a ruler between two voxel centres reads the length in mm.
+    let dir = common::scratch("overlay", "markups");
+    let raw = dir.join("v.raw");
+    std::fs::write(&raw, vec![0u8; 2 * 20 * 16 * 12]).unwrap();
+    let (spacing, a, b) = ([0.7, 0.9, 2.5], [2.0, 3.0, 1.0], [14.0, 11.0, 9.0]);
+    // raw volumes have identity directions and the origin at 0: LPS = index * spacing
+    let lps = |i: [f64; 3]| DVec3::new(i[0] * spacing[0], i[1] * spacing[1], i[2] * spacing[2]);
+    let want = lps(a).distance(lps(b));
+    let ruler = Markups {
+        points: vec![],
+        lines: vec![MarkupLine {
+            label: "span".into(),
+            ends: [lps(a), lps(b)],
+        }],
+    };
+    let file = dir.join("r.mrk.json");
+    ruler.write(&file).unwrap();
+    let out = common::run_cao_ok(&[
+        "render",
+        raw.to_str().unwrap(),
+        "--raw-dims",
+        "20,16,12",
+        "--raw-type",
+        "i16",
+        "--raw-spacing",
+        "0.7,0.9,2.5",
+        "--rays",
+        "6",
+        "--steps",
+        "2",
+        "--size",
+        "16x16",
+        "--markups",
+        file.to_str().unwrap(),
+        "--out",
+        dir.join("r").to_str().unwrap(),
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains(&format!("rulers: span {want:.1} mm")),
+        "{want} mm: {text}"
+    );
+    // A point in front of the head is drawn, in the markup colour, in the frame loop's overlay.
+    let gpu = common::gpu();
+    let vol = std::sync::Arc::new(cao_xr::volume::phantom::head(32));
+    let mut fl = cao_xr::app::frame_loop::FrameLoop::new(
+        &gpu,
+        vol.clone(),
+        vec![TransferFunction::preset("ct-skin").unwrap()],
+        cao_xr::ao::LaoParams {
+            rays: 6,
+            steps: 2,
+            step_mm: 4.0,
+        },
+        (256, 256),
+        cao_xr::input::InteractionSettings::default(),
+        false,
+    )
+    .unwrap();
+    fl.settings.jitter = false;
+    let views = cao_xr::space::default_stereo_views(&vol, &Placement::default(), 0.064);
+    let input = cao_xr::input::FrameInput::without_hands(0.0, views);
+    let plain = fl.frame(&input).unwrap().image;
+    // 150 mm anterior of the centre voxel (LPS -y is anterior): between the face and the eyes.
+    let centre = vol.origin + DVec3::splat(16.0 * vol.spacing[0]);
+    fl.markups = Markups {
+        points: vec![MarkupPoint {
+            label: "p".into(),
+            lps: centre - DVec3::new(0.0, 150.0, 0.0),
+        }],
+        lines: vec![],
+    };
+    let marked = fl.frame(&input).unwrap().image;
+    let changed: Vec<usize> = (0..plain.rgba[0].len() / 4)
+        .filter(|&p| plain.rgba[0][4 * p..4 * p + 4] != marked.rgba[0][4 * p..4 * p + 4])
+        .collect();
+    assert!(!changed.is_empty(), "the point is not drawn");
+    // near the middle of the picture, where the centre's line of sight is
+    let (x, y) = (changed[0] % 256, changed[0] / 256);
+    assert!(
+        (96..160).contains(&x) && (96..160).contains(&y),
+        "drawn at {x},{y}"
+    );
+    assert!(
+        changed.len() < 400,
+        "{} pixels changed for a small point",
+        changed.len()
+    );
+    common::assert_no_validation_messages(&gpu);
+    let _ = std::fs::remove_dir_all(&dir);
+}
