@@ -107,16 +107,7 @@ impl LabelMap {
             self.structures[k].opacity = 0.0;
         }
         for spec in &d.opacity {
-            let (n, a) = spec
-                .rsplit_once('=')
-                .ok_or_else(|| format!("--opacity {spec}: expected NAME=A, e.g. liver=0.3"))?;
-            let a: f32 = a
-                .trim()
-                .parse()
-                .ok()
-                .filter(|a: &f32| (0.0..=1.0).contains(a))
-                .ok_or_else(|| format!("--opacity {spec}: the opacity must be a number in 0..1"))?;
-            let k = self.find(n.trim())?;
+            let (k, a) = self.named_value(spec, "--opacity", "liver=0.3", 0.0..=1.0)?;
             self.structures[k].opacity = a;
         }
         for n in &d.protect {
@@ -124,19 +115,42 @@ impl LabelMap {
             self.structures[k].protected = true;
         }
         for spec in &d.margin {
-            let (n, m) = spec
-                .rsplit_once('=')
-                .ok_or_else(|| format!("--margin {spec}: expected NAME=MM, e.g. aorta=5"))?;
-            let m: f32 = m
-                .trim()
-                .parse()
-                .ok()
-                .filter(|m: &f32| m.is_finite() && *m > 0.0 && *m <= 100.0)
-                .ok_or_else(|| format!("--margin {spec}: the margin must be 0..100 mm"))?;
-            let k = self.find(n.trim())?;
+            let (k, m) = self.named_value(spec, "--margin", "aorta=5", 0.0..=100.0)?;
+            if m <= 0.0 {
+                return Err(format!(
+                    "--margin {spec}: the margin must be more than 0 mm"
+                ));
+            }
             self.structures[k].margin_mm = Some(m);
         }
         Ok(())
+    }
+
+    /// The structure and the number of a `NAME=VALUE` option (`flag` and an `example` for its
+    /// messages), the number within `range`.
+    fn named_value(
+        &self,
+        spec: &str,
+        flag: &str,
+        example: &str,
+        range: std::ops::RangeInclusive<f32>,
+    ) -> Result<(usize, f32), String> {
+        let (n, v) = spec
+            .rsplit_once('=')
+            .ok_or_else(|| format!("{flag} {spec}: expected NAME=VALUE, e.g. {example}"))?;
+        let v: f32 = v
+            .trim()
+            .parse()
+            .ok()
+            .filter(|v| range.contains(v))
+            .ok_or_else(|| {
+                format!(
+                    "{flag} {spec}: the value must be a number in {}..{}",
+                    range.start(),
+                    range.end()
+                )
+            })?;
+        Ok((self.find(n.trim())?, v))
     }
 
     /// The distance fields of the structures that carry a margin, in a grid of `dims` and

@@ -519,16 +519,12 @@ fn a_tool_entering_a_safety_margin_is_told_with_the_exact_distance() {
         steps: 4,
         step_mm: 4.0,
     };
-    let mut fl = FrameLoop::new(
-        &gpu,
-        Arc::clone(&vol),
-        vec![TransferFunction::preset("ct-skin").unwrap()],
-        params,
-        (32, 32),
-        InteractionSettings::default(),
-        false,
-    )
-    .unwrap();
+    let new_loop = |vol: Arc<cao_xr::volume::Volume>| {
+        let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
+        let settings = InteractionSettings::default();
+        FrameLoop::new(&gpu, vol, tfs, params, (32, 32), settings, false).unwrap()
+    };
+    let mut fl = new_loop(Arc::clone(&vol));
     let placement = Placement::default();
     // The vessel's voxel centres in the world, for the brute-force distance.
     let model = world_from_tex(&vol, &placement);
@@ -598,16 +594,7 @@ fn a_tool_entering_a_safety_margin_is_told_with_the_exact_distance() {
     let mut map = (**plain.labels.as_ref().unwrap()).clone();
     map.structures[0].margin_mm = None;
     plain.labels = Some(Arc::new(map));
-    let mut dark = FrameLoop::new(
-        &gpu,
-        Arc::new(plain),
-        vec![TransferFunction::preset("ct-skin").unwrap()],
-        params,
-        (32, 32),
-        InteractionSettings::default(),
-        false,
-    )
-    .unwrap();
+    let mut dark = new_loop(Arc::new(plain));
     let shot = |fl: &mut FrameLoop| {
         fl.settings.jitter = false;
         fl.scene.tools.clear();
