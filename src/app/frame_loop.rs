@@ -104,7 +104,8 @@ pub struct FrameLoop {
     pub scene: Scene,
     pub mode: Mode,
     pub settings: RenderSettings,
-    /// Draw the tools and tracked hands over the volume (off for a still render of the cut).
+    /// Draw the tools and tracked hands over the volume (off for a still render of the cut;
+    /// the markups are drawn either way).
     pub show_overlay: bool,
     /// The transfer functions `scene.tf_index` picks from, and the switch between them.
     tfs: TfSwitcher,
@@ -728,8 +729,10 @@ impl FrameLoop {
                 &settings,
                 &mut |cmd, eye| timer.mark(cmd, PASS_EYES[eye]),
             )?;
+            // Tools and tracked hands over the volume, depth-tested against it (not in a still
+            // render of the cut), and the markups always.
+            let mut items = Vec::new();
             if *show_overlay {
-                // Tools and tracked hands over the volume, depth-tested against it.
                 let hands = [0, 1].map(|h| {
                     interaction
                         .hand_pose(h)
@@ -737,11 +740,11 @@ impl FrameLoop {
                 });
                 let warned: Vec<usize> = margins.iter().map(|h| h.tool).collect();
                 let offset = interaction.settings().tool_offset;
-                let mut items = scene_overlay(scene, &hands, offset, &warned);
-                markup_overlay(markups, volume, &scene.volume, &mut items);
+                items = scene_overlay(scene, &hands, offset, &warned);
                 joint_overlay(&input.joints, &mut items);
-                overlay.record(cmd, target, &input.views, &items)?;
             }
+            markup_overlay(markups, volume, &scene.volume, &mut items);
+            overlay.record(cmd, target, &input.views, &items)?;
             timer.mark(cmd, PASS_OVERLAY);
             target.cmd_finish(cmd);
             after(cmd, target);

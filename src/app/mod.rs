@@ -588,6 +588,7 @@ pub fn render_to_dir(
     spec.lighting.apply(&mut fl.settings);
     fl.set_variance(spec.variance)?;
     fl.show_overlay = false;
+    fl.markups = spec.markups.clone();
     fl.scene.tools = tools.to_vec();
     let views = default_stereo_views(vol, &fl.scene.volume, DEFAULT_IPD);
     let frame = fl.frame(&FrameInput::without_hands(0.0, views))?;
