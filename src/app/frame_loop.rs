@@ -262,9 +262,9 @@ impl FrameLoop {
         interaction.tf_presets = tfs.len();
         let methods = config.cycle();
         interaction.ao_methods = methods.len();
-        // The scene asks for the configured method (ao_index 0); a fast start shows another
-        // first, so the first frame starts the switch to the configured one.
-        // A fast start when the configured method takes long and the fast one is faster.
+        // The scene asks for the configured method (ao_index 0). A fast start (the configured
+        // method takes long and the fast one is faster) shows the fast one first, so the first
+        // frame starts the switch to the configured one.
         let fast = fast_method(&methods);
         let seconds = |method| precompute_seconds(gpu, vol.dims, &AoConfig { method, ..config });
         let long = fast_start_after_s.is_some_and(|s| {
