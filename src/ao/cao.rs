@@ -215,6 +215,9 @@ pub struct Cao {
     pub meshes: Vec<TriMesh>,
     pub clip_resolution: usize,
     prev_boxes: Vec<VoxelBox>,
+    /// Where the last recorded frame may have changed V_AO (and the bleeding colour): its
+    /// restore and tool boxes, merged (no two overlap). What the textures copy.
+    pub changed: Vec<VoxelBox>,
     /// The state of every voxel outside `prev_boxes`: clipped away (a probe was active: only its
     /// inside is kept) or unclipped (O_c = O, V_AO = V_PAO).
     background_clipped: bool,
@@ -362,6 +365,7 @@ impl Cao {
             meshes: Vec::new(),
             clip_resolution: crate::clip::DEFAULT_RESOLUTION,
             prev_boxes: Vec::new(),
+            changed: Vec::new(),
             background_clipped: false,
             sh_radius_mm: None,
             sh_boxes: Vec::new(),
@@ -879,6 +883,8 @@ impl Cao {
         self.gpu.barrier(cmd);
         self.slots[self.slot].timer.mark(cmd, "update");
         let visited = boxes.iter().map(|b| b.voxels()).sum();
+        let touched = restore.into_iter().chain(boxes.iter().copied());
+        self.changed = merge_boxes(touched.filter(|b| b.voxels() > 0).collect());
         self.prev_boxes = boxes;
         Ok(PendingFrame {
             visited,

@@ -696,9 +696,16 @@ impl FrameLoop {
             let slab = tfs.record_slab(cmd, volume, cao);
             let pending = cao.record_frame(cmd, &scene.tools, &scene.volume, *mode)?;
             timer.begin(cmd);
-            tex.cmd_update_ambient(cmd, &cao.ao);
+            // Only where this frame's passes may have changed V_AO (and E): the copy follows the
+            // tools, not the volume.
+            let changed: Vec<_> = cao
+                .changed
+                .iter()
+                .map(|b| (b.min.map(|v| v as u32), b.max.map(|v| v as u32)))
+                .collect();
+            tex.cmd_update_ambient(cmd, &cao.ao, &changed);
             if let Some(h) = cao.histogram() {
-                tex.cmd_update_bleeding(cmd, &h.e);
+                tex.cmd_update_bleeding(cmd, &h.e, &changed);
             }
             timer.mark(cmd, PASS_TEXTURE);
             let sh = lighting.as_mut().map(|l| l.record_frame(gpu, cmd, cao));

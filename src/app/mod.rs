@@ -544,7 +544,7 @@ impl HeadlessRenderer {
         let mut rec = Ok(());
         self.gpu.submit_and_wait(|cmd| {
             if let Some(ao) = ao {
-                tex.cmd_update_ambient(cmd, ao);
+                tex.cmd_update_ambient(cmd, ao, &tex.whole());
             }
             rec = renderer
                 .record(cmd, &target, tex, frame, settings)

@@ -5,6 +5,9 @@ use ash::vk;
 use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 use gpu_allocator::MemoryLocation;
 
+/// A box of texels `[min, max)` per axis.
+pub type BoxRegion = ([u32; 3], [u32; 3]);
+
 pub struct Buffer {
     gpu: Gpu,
     pub raw: vk::Buffer,
@@ -375,6 +378,48 @@ impl Image {
                 self.raw,
                 vk::ImageLayout::TRANSFER_DST_OPTIMAL,
                 &region,
+            );
+        }
+    }
+
+    /// [`Image::cmd_copy_from`] of the boxes `[min, max)` (texels; a tightly packed buffer of
+    /// the whole image, x fastest) only; the boxes must not overlap.
+    pub fn cmd_copy_boxes_from(&self, cmd: vk::CommandBuffer, src: &Buffer, boxes: &[BoxRegion]) {
+        let e = self.desc.extent;
+        let texel = src.size / (e.width as u64 * e.height as u64 * e.depth as u64).max(1);
+        let regions: Vec<vk::BufferImageCopy> = boxes
+            .iter()
+            .filter(|(lo, hi)| (0..3).all(|a| hi[a] > lo[a]))
+            .map(|(lo, hi)| {
+                let first =
+                    lo[0] as u64 + e.width as u64 * (lo[1] as u64 + e.height as u64 * lo[2] as u64);
+                vk::BufferImageCopy::default()
+                    .buffer_offset(first * texel)
+                    .buffer_row_length(e.width)
+                    .buffer_image_height(e.height)
+                    .image_subresource(self.layers_all())
+                    .image_offset(vk::Offset3D {
+                        x: lo[0] as i32,
+                        y: lo[1] as i32,
+                        z: lo[2] as i32,
+                    })
+                    .image_extent(vk::Extent3D {
+                        width: hi[0] - lo[0],
+                        height: hi[1] - lo[1],
+                        depth: hi[2] - lo[2],
+                    })
+            })
+            .collect();
+        if regions.is_empty() {
+            return;
+        }
+        unsafe {
+            self.gpu.device.cmd_copy_buffer_to_image(
+                cmd,
+                src.raw,
+                self.raw,
+                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                &regions,
             );
         }
     }

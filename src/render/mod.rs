@@ -8,7 +8,7 @@ pub mod overlay;
 pub mod png_out;
 pub mod preintegration;
 
-use crate::gpu::{pipeline, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
+use crate::gpu::{pipeline, BoxRegion, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
 use crate::shader_constants::MAX_TOOLS;
 use crate::space::View;
 use crate::volume::transfer::TransferFunction;
@@ -399,13 +399,13 @@ fn check_linear_filter(gpu: &Gpu, format: vk::Format) -> Result<()> {
 }
 
 /// Records a copy of `src` into a sampled image, which stays in SHADER_READ_ONLY_OPTIMAL.
-fn cmd_refill(img: &Image, cmd: vk::CommandBuffer, src: &Buffer) {
+fn cmd_refill(img: &Image, cmd: vk::CommandBuffer, src: &Buffer, boxes: &[BoxRegion]) {
     img.transition(
         cmd,
         vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
     );
-    img.cmd_copy_from(cmd, src);
+    img.cmd_copy_boxes_from(cmd, src, boxes);
     img.transition(
         cmd,
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
@@ -638,9 +638,9 @@ impl VolumeTextures {
 
     /// Records a copy of a bleeding buffer (RGBA8 per voxel) into the bleeding texture, when
     /// there is one.
-    pub fn cmd_update_bleeding(&self, cmd: vk::CommandBuffer, e: &Buffer) {
+    pub fn cmd_update_bleeding(&self, cmd: vk::CommandBuffer, e: &Buffer, boxes: &[BoxRegion]) {
         if let Some(img) = &self.bleeding {
-            cmd_refill(img, cmd, e);
+            cmd_refill(img, cmd, e, boxes);
         }
     }
 
@@ -724,8 +724,13 @@ impl VolumeTextures {
     }
 
     /// Records a copy of an AO buffer (f32, x fastest) into the AO texture.
-    pub fn cmd_update_ambient(&self, cmd: vk::CommandBuffer, ao: &Buffer) {
-        cmd_refill(&self.ambient, cmd, ao);
+    pub fn cmd_update_ambient(&self, cmd: vk::CommandBuffer, ao: &Buffer, boxes: &[BoxRegion]) {
+        cmd_refill(&self.ambient, cmd, ao, boxes);
+    }
+
+    /// The whole volume as the one box of [`VolumeTextures::cmd_update_ambient`].
+    pub fn whole(&self) -> [BoxRegion; 1] {
+        [([0; 3], self.dims.map(|d| d as u32))]
     }
 
     /// Coordinate in a lookup table of `n` texels over the value range = texel * scale +
