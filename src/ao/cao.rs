@@ -216,7 +216,9 @@ pub struct Cao {
     pub clip_resolution: usize,
     prev_boxes: Vec<VoxelBox>,
     /// Where the last recorded frame may have changed V_AO (and the bleeding colour): its
-    /// restore and tool boxes, merged (no two overlap). What the textures copy.
+    /// restore and tool boxes, merged (no two overlap). What the textures copy: the first frame
+    /// after [`Cao::set_method`] or [`Cao::replace_precomputed`] (every frame loop starts with
+    /// one) restores, and so copies, the whole volume.
     pub changed: Vec<VoxelBox>,
     /// The state of every voxel outside `prev_boxes`: clipped away (a probe was active: only its
     /// inside is kept) or unclipped (O_c = O, V_AO = V_PAO).
