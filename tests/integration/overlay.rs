@@ -408,53 +408,39 @@ fn markups_from_slicer_are_drawn_where_they_are_and_rulers_read_their_length_in_
     };
     let file = dir.join("r.mrk.json");
     ruler.write(&file).unwrap();
-    let out = common::run_cao_ok(&[
-        "render",
-        raw.to_str().unwrap(),
-        "--raw-dims",
-        "20,16,12",
-        "--raw-type",
-        "i16",
-        "--raw-spacing",
-        "0.7,0.9,2.5",
-        "--rays",
-        "6",
-        "--steps",
-        "2",
-        "--size",
-        "16x16",
-        "--markups",
-        file.to_str().unwrap(),
-        "--out",
-        dir.join("r").to_str().unwrap(),
-    ]);
-    let text = String::from_utf8_lossy(&out.stdout);
+    // The raw volume rendered into `out`, with `extra` arguments; its stdout.
+    let render = |out: &std::path::Path, extra: &[&str]| {
+        let mut args = vec![
+            "render",
+            raw.to_str().unwrap(),
+            "--raw-dims",
+            "20,16,12",
+            "--raw-type",
+            "i16",
+            "--raw-spacing",
+            "0.7,0.9,2.5",
+            "--rays",
+            "6",
+            "--steps",
+            "2",
+            "--size",
+            "16x16",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        String::from_utf8_lossy(&common::run_cao_ok(&args).stdout).to_string()
+    };
+    let (marked, plain) = (dir.join("r"), dir.join("plain"));
+    let text = render(&marked, &["--markups", file.to_str().unwrap()]);
     assert!(
         text.contains(&format!("rulers: span {want:.1} mm")),
         "{want} mm: {text}"
     );
     // render draws the markups (not the tools): the same render without them differs.
-    let plain = dir.join("plain");
-    common::run_cao_ok(&[
-        "render",
-        raw.to_str().unwrap(),
-        "--raw-dims",
-        "20,16,12",
-        "--raw-type",
-        "i16",
-        "--raw-spacing",
-        "0.7,0.9,2.5",
-        "--rays",
-        "6",
-        "--steps",
-        "2",
-        "--size",
-        "16x16",
-        "--out",
-        plain.to_str().unwrap(),
-    ]);
+    render(&plain, &[]);
     let png = |d: &std::path::Path| std::fs::read(d.join("left.png")).unwrap();
-    assert!(png(&dir.join("r")) != png(&plain), "render drew no ruler");
+    assert!(png(&marked) != png(&plain), "render drew no ruler");
     // A point in front of the head is drawn, in the markup colour, in the frame loop's overlay.
     let gpu = common::gpu();
     let vol = std::sync::Arc::new(cao_xr::volume::phantom::head(32));
