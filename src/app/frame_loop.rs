@@ -123,8 +123,9 @@ pub struct FrameLoop {
     depth: usize,
     /// The distance fields of the structures with a safety margin (`--margin`).
     margins: Vec<MarginField>,
-    /// A frame budget and the step it scales ([`FrameLoop::set_frame_budget`]).
-    budget: Option<(FrameBudget, f32)>,
+    /// A frame budget, the settings' step it replaced (0: automatic) and that step in mm, which
+    /// it scales ([`FrameLoop::set_frame_budget`]).
+    budget: Option<(FrameBudget, f32, f32)>,
     /// Points and rulers drawn with the overlay (`--markups`).
     pub markups: Markups,
 }
@@ -417,13 +418,13 @@ impl FrameLoop {
     /// GPU times ([`FrameBudget`]); the AO is never touched. None: the settings' step, always.
     /// Replay and renders run without one: their pictures must not depend on the machine.
     pub fn set_frame_budget(&mut self, target_ms: Option<f64>) {
-        if let Some((_, base)) = self.budget.take() {
-            self.settings.step_mm = base;
+        if let Some((_, configured, _)) = self.budget.take() {
+            self.settings.step_mm = configured;
         }
-        self.budget = target_ms.filter(|t| *t > 0.0).map(|t| {
-            let base = self.settings.step_mm;
-            (FrameBudget::new(t), base)
-        });
+        let base = self.settings.step_for(self.volume.spacing);
+        self.budget = target_ms
+            .filter(|t| *t > 0.0)
+            .map(|t| (FrameBudget::new(t), self.settings.step_mm, base));
     }
 
     /// Frames the GPU may hold at once (1 or 2, [`crate::render::MAX_FRAMES_IN_FLIGHT`]).
@@ -535,9 +536,7 @@ impl FrameLoop {
         }
         // The budget's step: a new one rebuilds the pre-integration table and the empty bricks
         // the frame in flight reads, so that frame is waited for first.
-        if let Some((b, base)) = &self.budget {
-            let auto = self.settings.step_for(self.volume.spacing);
-            let base = if *base > 0.0 { *base } else { auto };
+        if let Some((b, _, base)) = &self.budget {
             let step = base * b.step_factor() as f32;
             if step != self.settings.step_for(self.volume.spacing) {
                 if retired.is_none() {
@@ -589,7 +588,7 @@ impl FrameLoop {
         let tf_ms = if f.slab { self.tfs.read_ms()? } else { 0.0 };
         let render_ms = passes.eye_ms[0] + passes.eye_ms[1];
         let step_factor = match self.budget.as_mut() {
-            Some((b, _)) => {
+            Some((b, _, _)) => {
                 let other = metrics.gpu_ms()
                     + sh.gpu_ms
                     + tf_ms

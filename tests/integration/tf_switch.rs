@@ -525,6 +525,7 @@ fn a_frame_budget_lengthens_the_step_and_leaves_the_ao_alone() {
     let mut held = new_loop(&gpu, &vol, tfs.clone(), Mode::Contextual);
     let mut free = new_loop(&gpu, &vol, tfs.clone(), Mode::Contextual);
     // A budget no frame can meet: the step grows to its bound over the frames.
+    let base = held.settings.step_for(vol.spacing);
     held.set_frame_budget(Some(0.001));
     let c = Placement::default().center;
     let mut factors = Vec::new();
@@ -533,6 +534,13 @@ fn a_frame_budget_lengthens_the_step_and_leaves_the_ao_alone() {
         let a = click_frame(&mut held, &vol, t, false, i, false);
         let b = click_frame(&mut free, &vol, t, false, i, false);
         factors.push(a.stats.step_factor);
+        // The step stays within its bound of the configured one.
+        let step = held.settings.step_for(vol.spacing);
+        let max = base * cao_xr::app::budget::MAX_STEP_FACTOR as f32;
+        assert!(
+            step >= base && step <= max * 1.0001,
+            "frame {i}: step {step} mm of {base}"
+        );
         assert_eq!(b.stats.step_factor, 1.0);
         // The AO is the same bits with and without the budget, every frame.
         let d = common::first_bit_difference(&read(&held.cao.ao), &read(&free.cao.ao));
