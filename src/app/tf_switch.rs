@@ -194,8 +194,9 @@ impl TfSwitcher {
 
     /// Follows `want` (the scene's TF and AO-method indices): starts, restarts or drops a
     /// switch, sizes the slabs still to come for `budget`, hands finished host work to the GPU,
-    /// and switches `cao`, `tex` and `lighting` over once every slab has executed. Runs before the frame is recorded, after the previous
-    /// frame's wait, so no submitted work uses what it drops.
+    /// and switches `cao`, `tex` and `lighting` over once every slab has executed. Runs before
+    /// the frame is recorded, after the previous frame's wait, so no submitted work uses what it
+    /// drops.
     pub fn advance(
         &mut self,
         want: (usize, usize),

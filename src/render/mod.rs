@@ -213,7 +213,8 @@ pub struct VolumeTextures {
     pub variance: Option<Image>,
     /// The local-histogram method's bleeding colour E (RGBA8 per voxel), when it is the method.
     pub bleeding: Option<Image>,
-    /// The safety margins' glow (R8 unorm per voxel, [`crate::volume::distance::glow`]), when a structure has one.
+    /// The safety margins' glow (R8 unorm per voxel, [`crate::volume::distance::glow`]), when a
+    /// structure has one.
     pub glow: Option<Image>,
     /// The label map's structure id per voxel (R8 unorm, id / 255; 1 voxel of 0 without labels),
     /// and per id its colour and opacity a_l and whether it is protected (frame.glsl).
@@ -592,7 +593,8 @@ impl VolumeTextures {
         Ok(())
     }
 
-    /// Uploads the safety margins' glow (one byte per voxel, [`crate::volume::distance::glow`]); None turns it off.
+    /// Uploads the safety margins' glow (one byte per voxel, [`crate::volume::distance::glow`]);
+    /// None turns it off.
     pub fn set_glow(&mut self, gpu: &Gpu, glow: Option<&[u8]>) -> Result<()> {
         self.glow = match glow {
             Some(g) => {
