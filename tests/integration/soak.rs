@@ -13,12 +13,16 @@ const MAX_RSS_GROWTH: f64 = 0.02;
 /// once by 1 MiB between frames 500 and 800, then stayed flat over 10,000 frames but for
 /// transient 1 MiB mappings (with validation off too), which alone are 0.85 % of 123 MB.
 const RSS_WARM_UP: usize = 1000;
-/// Frame time, the last tenth against the second (the first is warm-up). The process's own CPU
-/// time per frame is the measure that must stay level: a trend (work or lists growing with the
-/// frame count) shows in it, while the load of other processes hardly does (measured on two
-/// shared cores: wall time per tenth went from 3.3 s to 1.4 s and back as neighbours built;
-/// CPU time per tenth stayed within 1.61-1.71 s).
+/// Frame time, the last three tenths against the second to fourth (the first is warm-up), each
+/// side by its quietest tenth. The process's own CPU time per frame is the measure that must stay
+/// level: a trend (work or lists growing with the frame count) raises every late tenth, while a
+/// neighbour's load only adds time to some tenths, so the minimum of three sees through it.
+/// One tenth against one was not enough: on CI, with the Monado tests running beside it, the
+/// last tenth alone once took 31 % more CPU than the second (lavapipe's threads contend too).
 const MAX_CPU_PER_FRAME_RATIO: f64 = 1.3;
+/// The tenths (0-based) each side of the comparison takes its quietest from.
+const EARLY_TENTHS: std::ops::RangeInclusive<usize> = 1..=3;
+const LATE_TENTHS: std::ops::RangeInclusive<usize> = 7..=9;
 /// Wall-clock time, the frame loop's median frame time (metrics.csv) and the replay's whole
 /// time per frame (the stats lines; PNG and CSV writing included), only has to stay within a
 /// factor a busy neighbour cannot reach alone: it catches a gross trend, such as waiting that
@@ -170,14 +174,26 @@ fn a_2000_frame_carving_replay_holds_its_memory_and_its_pace() {
     let ms = frame_ms(&csv);
     assert_eq!(ms.len(), FRAMES);
     let (early, late) = (median(&ms[TENTH..2 * TENTH]), median(&ms[FRAMES - TENTH..]));
+    // Per frame over tenth k, the quietest tenth of a range.
     let per_frame =
         |t: fn(&Sample) -> f64, k: usize| (t(&stats[k]) - t(&stats[k - 1])) * 1e3 / TENTH as f64;
-    let (cpu_early, cpu_late) = (per_frame(|s| s.cpu_s, 1), per_frame(|s| s.cpu_s, 9));
-    let (wall_early, wall_late) = (per_frame(|s| s.wall_s, 1), per_frame(|s| s.wall_s, 9));
+    let quietest = |t: fn(&Sample) -> f64, tenths: std::ops::RangeInclusive<usize>| {
+        tenths
+            .map(|k| per_frame(t, k))
+            .fold(f64::INFINITY, f64::min)
+    };
+    let (cpu_early, cpu_late) = (
+        quietest(|s| s.cpu_s, EARLY_TENTHS),
+        quietest(|s| s.cpu_s, LATE_TENTHS),
+    );
+    let (wall_early, wall_late) = (
+        quietest(|s| s.wall_s, EARLY_TENTHS),
+        quietest(|s| s.wall_s, LATE_TENTHS),
+    );
     eprintln!(
         "soak: median frame {early:.2} ms (frames {TENTH}-{}) -> {late:.2} ms (last {TENTH}); \
-         CPU {cpu_early:.2} -> {cpu_late:.2} ms per frame; replay {wall_early:.2} -> \
-         {wall_late:.2} ms per frame",
+         quietest tenth of 2-4 -> of 8-10: CPU {cpu_early:.2} -> {cpu_late:.2} ms per frame; \
+         replay {wall_early:.2} -> {wall_late:.2} ms per frame",
         2 * TENTH,
     );
     if cpu_late > MAX_CPU_PER_FRAME_RATIO * cpu_early {
