@@ -40,4 +40,12 @@ pub struct Scene {
     /// session's starting turn; SH lighting re-projects the light, no visibility recompute.
     #[serde(default)]
     pub light_yaw: f32,
+    /// Each labelled structure's opacity a_l (1 shown, 0 hidden, between: translucent), by
+    /// structure index; starts as the command line set it. The structure menu changes it, and
+    /// every AO method follows as after a TF change.
+    #[serde(default)]
+    pub structures: Vec<f32>,
+    /// The structure the menu acts on (an index into `structures`).
+    #[serde(default)]
+    pub structure_selected: usize,
 }

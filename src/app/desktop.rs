@@ -79,6 +79,8 @@ fn key_of(code: KeyCode) -> Option<Key> {
         KeyCode::Minus | KeyCode::NumpadSubtract => Key::Shrink,
         KeyCode::KeyM => Key::Menu,
         KeyCode::KeyO => Key::NextAo,
+        KeyCode::KeyN => Key::NextStructure,
+        KeyCode::KeyH => Key::ShowStructure,
         KeyCode::BracketLeft => Key::LightLeft,
         KeyCode::BracketRight => Key::LightRight,
         _ => return None,
@@ -170,7 +172,10 @@ impl App {
             let margin = self
                 .fl
                 .margin_warning(&stats.margins)
-                .map_or(String::new(), |w| format!(" | {w}"));
+                .into_iter()
+                .chain(self.fl.structure_menu())
+                .map(|w| format!(" | {w}"))
+                .collect::<String>();
             w.set_title(&format!(
                 "cao-xr | {:.1} fps | AO {} {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}{step}{margin}",
                 self.fps,

@@ -305,13 +305,22 @@ impl FrameLoop {
             overlay: OverlayRenderer::new(gpu)?,
             target: StereoTarget::new(gpu, size.0, size.1)?,
             interaction: Interaction::new(interaction),
-            scene: Scene::default(),
+            scene: Scene {
+                structures: vol.labels.as_ref().map_or_else(Vec::new, |l| l.opacities()),
+                ..Default::default()
+            },
             mode: Mode::Contextual,
             settings,
             show_overlay: true,
             slots: Slots::new(gpu)?,
             depth: MAX_FRAMES_IN_FLIGHT,
-            tfs: TfSwitcher::new(gpu, tfs, (methods, shown), lao, lao_dirs)?,
+            tfs: TfSwitcher::new(
+                gpu,
+                tfs,
+                (methods, shown),
+                vol.labels.as_deref(),
+                (lao, lao_dirs),
+            )?,
             tf_samples_per_frame: default_tf_samples_per_frame(gpu),
             tf_slab_share: (shown != 0).then_some(FAST_START_SLAB_SHARE),
             lighting: None,
@@ -391,6 +400,22 @@ impl FrameLoop {
     /// The volume the frames show.
     pub fn volume(&self) -> &Volume {
         &self.volume
+    }
+
+    /// The structure menu's line: the selected structure and how the scene asks to show it,
+    /// "structure 2/5 liver: hidden"; None without labels.
+    pub fn structure_menu(&self) -> Option<String> {
+        let labels = self.volume.labels.as_ref()?;
+        let n = self.scene.structures.len().min(labels.structures.len());
+        let k = self.scene.structure_selected % n.max(1);
+        (n > 0).then(|| {
+            format!(
+                "structure {}/{n} {}: {}",
+                k + 1,
+                labels.structures[k].name,
+                crate::volume::labels::shown_as(self.scene.structures[k])
+            )
+        })
     }
 
     /// "margin aorta 3.2 mm < 5 mm (tool 0)" for each of `hits`, joined; None without hits.
@@ -531,7 +556,7 @@ impl FrameLoop {
         // A transfer-function switch is the exception: it replaces buffers the frame in flight
         // reads and has one timer, so while one runs the frame before is waited for first.
         let mut retired = None;
-        if !self.tfs.settled((self.scene.tf_index, self.scene.ao_index)) {
+        if !self.tfs.settled(&self.scene) {
             retired = self.retire()?;
         }
         // The budget's step: a new one rebuilds the pre-integration table and the empty bricks
@@ -636,7 +661,7 @@ impl FrameLoop {
         (t0, margins): (std::time::Instant, Vec<MarginHit>),
     ) -> Result<()> {
         self.tfs.advance(
-            (self.scene.tf_index, self.scene.ao_index),
+            &self.scene,
             &self.volume,
             self.tf_samples_per_frame,
             &mut self.cao,

@@ -161,6 +161,8 @@ fn frames(
 struct Reacted {
     clipped: u64,
     margins: Vec<MarginHit>,
+    /// The structure menu's line, told again when it changes.
+    menu: Option<String>,
 }
 
 /// The hands' answer to a frame that left the GPU: a pulse on the right hand when its tool
@@ -186,9 +188,16 @@ fn react(xs: &mut XrSession, fl: &FrameLoop, stats: FrameStats, last: &mut React
     if let Some(w) = fl.margin_warning(&stats.margins) {
         eprintln!("xr: frame {}: {w}", xs.summary.frames);
     }
+    let menu = fl.structure_menu();
+    if menu != last.menu {
+        if let Some(m) = &menu {
+            eprintln!("xr: frame {}: {m}", xs.summary.frames);
+        }
+    }
     *last = Reacted {
         clipped: stats.metrics.clipped,
         margins: stats.margins,
+        menu,
     };
     Ok(())
 }

@@ -244,7 +244,10 @@ pub fn replay(
         };
         let margin = fl
             .margin_warning(&f.margins)
-            .map_or(String::new(), |w| format!("  {w}"));
+            .into_iter()
+            .chain(fl.structure_menu())
+            .map(|w| format!("  {w}"))
+            .collect::<String>();
         eprintln!(
             "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {} {:>8.1} ms{sh}  render {:>8.1} ms  recomputed {:>6.2} %{tf}{margin}",
             frames.len(),

@@ -1,5 +1,7 @@
 //! The transfer-function and AO-method switch (the menu button, `scene.tf_index`; the stick
-//! click, `scene.ao_index`): progressive, so the frame rate holds. O' and its skipping data are
+//! click, `scene.ao_index`), and the structure menu (`scene.structures`: what is shown is part
+//! of the opacity, so hiding a structure is a change of O like a TF change): progressive, so
+//! the frame rate holds. O' and its skipping data are
 //! classified on a worker thread, then each frame records one slab of V_PAO' (bounded by a
 //! budget of opacity samples; a filter method refilters in one go) ahead of its CAO passes while
 //! the frame still shows the old TF, method and AO; with SH lighting and a new TF, slabs of
@@ -18,6 +20,8 @@ use crate::ao::sh::ShVolume;
 use crate::ao::{AoMethod, LaoGpu};
 use crate::gpu::{Buffer, Gpu, GpuTimer};
 use crate::render::VolumeTextures;
+use crate::scene::Scene;
+use crate::volume::labels::{shown_as, LabelMap};
 use crate::volume::transfer::{presets_for_volume, TransferFunction};
 use crate::volume::Volume;
 use ash::vk;
@@ -71,12 +75,26 @@ pub fn default_tf_samples_per_frame(gpu: &Gpu) -> f64 {
     }
 }
 
+/// What is shown, or asked for: the TF and AO method (indices into [`TfSwitcher::tfs`] and
+/// [`TfSwitcher::methods`]) and each structure's opacity a_l.
+#[derive(Clone, Debug, PartialEq)]
+struct Choice {
+    tf: usize,
+    method: usize,
+    structures: Vec<f32>,
+}
+
+impl Choice {
+    /// Whether `other` classifies to the same opacity O (the same TF and structures).
+    fn same_opacity(&self, other: &Choice) -> bool {
+        self.tf == other.tf && self.structures == other.structures
+    }
+}
+
 /// A switch in flight.
 struct Switch {
-    /// Index into [`TfSwitcher::tfs`] of the TF being computed.
-    index: usize,
-    /// Index into [`TfSwitcher::methods`] of the AO method being computed.
-    method: usize,
+    /// What it computes.
+    choice: Choice,
     /// That method's filters (None for LAO).
     filter: Option<FilterGpu>,
     stage: Stage,
@@ -118,9 +136,10 @@ impl Switch {
 pub struct TfSwitcher {
     gpu: Gpu,
     tfs: Vec<TransferFunction>,
-    shown: usize,
     methods: Vec<AoMethod>,
-    shown_method: usize,
+    shown: Choice,
+    /// The structures' names, for the progress line.
+    names: Vec<String>,
     switch: Option<Switch>,
     /// The local-histogram method's state while another method is shown (its clustering is
     /// kept, so switching back is a table update).
@@ -132,20 +151,27 @@ pub struct TfSwitcher {
 
 impl TfSwitcher {
     /// `lao_dirs` holds the directions of the CAO state's LAO parameters (V_PAO' uses them).
-    /// The CAO state shows the first of `tfs` and `methods[shown_method]`.
+    /// The CAO state shows the first of `tfs`, `methods[shown_method]` and the structures of
+    /// `labels` as it sets them.
     pub fn new(
         gpu: &Gpu,
         tfs: Vec<TransferFunction>,
         (methods, shown_method): (Vec<AoMethod>, usize),
-        lao: LaoGpu,
-        lao_dirs: Buffer,
+        labels: Option<&LabelMap>,
+        (lao, lao_dirs): (LaoGpu, Buffer),
     ) -> Result<Self> {
         Ok(TfSwitcher {
             gpu: gpu.clone(),
             tfs,
-            shown: 0,
             methods,
-            shown_method,
+            shown: Choice {
+                tf: 0,
+                method: shown_method,
+                structures: labels.map_or_else(Vec::new, LabelMap::opacities),
+            },
+            names: labels.map_or_else(Vec::new, |l| {
+                l.structures.iter().map(|s| s.name.clone()).collect()
+            }),
             switch: None,
             parked: None,
             lao,
@@ -160,7 +186,22 @@ impl TfSwitcher {
 
     /// The transfer function whose colours and AO the frames show.
     pub fn shown(&self) -> &TransferFunction {
-        &self.tfs[self.shown]
+        &self.tfs[self.shown.tf]
+    }
+
+    /// What `scene` asks for. A scene whose structure list does not match (none set) asks
+    /// for the structures as shown.
+    fn wanted(&self, scene: &Scene) -> Choice {
+        let structures = if scene.structures.len() == self.shown.structures.len() {
+            scene.structures.clone()
+        } else {
+            self.shown.structures.clone()
+        };
+        Choice {
+            tf: scene.tf_index % self.tfs.len(),
+            method: scene.ao_index % self.methods.len(),
+            structures,
+        }
     }
 
     /// The AO methods the stick click cycles through.
@@ -168,21 +209,22 @@ impl TfSwitcher {
         &self.methods
     }
 
-    /// Whether `want` (transfer function, AO method) is shown with no switch in flight: then
-    /// [`TfSwitcher::advance`] replaces nothing and records no slab.
-    pub fn settled(&self, want: (usize, usize)) -> bool {
-        self.switch.is_none()
-            && (want.0 % self.tfs.len(), want.1 % self.methods.len())
-                == (self.shown, self.shown_method)
+    /// Whether what `scene` asks for (transfer function, AO method, structures) is shown with
+    /// no switch in flight: then [`TfSwitcher::advance`] replaces nothing and records no slab.
+    pub fn settled(&self, scene: &Scene) -> bool {
+        self.switch.is_none() && self.wanted(scene) == self.shown
     }
 
     /// The switch in flight, if any.
     pub fn progress(&self) -> Option<TfProgress> {
         self.switch.as_ref().map(|sw| {
-            let (what, name) = if sw.index != self.shown {
-                ("TF", self.tfs[sw.index].name.clone())
+            let (want, shown) = (&sw.choice, &self.shown);
+            let (what, name) = if want.tf != shown.tf {
+                ("TF", self.tfs[want.tf].name.clone())
+            } else if want.method != shown.method {
+                ("AO", self.methods[want.method].name())
             } else {
-                ("AO", self.methods[sw.method].name())
+                ("labels", self.structure_change(&want.structures))
             };
             TfProgress {
                 what,
@@ -192,35 +234,46 @@ impl TfSwitcher {
         })
     }
 
-    /// Follows `want` (the scene's TF and AO-method indices): starts, restarts or drops a
-    /// switch, sizes the slabs still to come for `budget`, hands finished host work to the GPU,
+    /// How `structures` differ from the shown ones, by name ("ribs hidden").
+    fn structure_change(&self, structures: &[f32]) -> String {
+        let changed: Vec<String> = structures
+            .iter()
+            .zip(&self.shown.structures)
+            .enumerate()
+            .filter(|(_, (a, b))| a != b)
+            .map(|(k, (&a, _))| format!("{} {}", self.names[k], shown_as(a)))
+            .collect();
+        changed.join(", ")
+    }
+
+    /// Follows what `scene` asks for (its TF and AO-method indices and structure opacities):
+    /// starts, restarts or drops a switch, sizes the slabs still to come for `budget`, hands finished host work to the GPU,
     /// and switches `cao`, `tex` and `lighting` over once every slab has executed. Runs before
     /// the frame is recorded, after the previous frame's wait, so no submitted work uses what it
     /// drops.
     pub fn advance(
         &mut self,
-        want: (usize, usize),
+        scene: &Scene,
         vol: &Arc<Volume>,
         budget: f64,
         cao: &mut Cao,
         tex: &mut VolumeTextures,
         lighting: Option<&mut ShLighting>,
     ) -> Result<()> {
-        let want = (want.0 % self.tfs.len(), want.1 % self.methods.len());
-        let shown = (self.shown, self.shown_method);
-        let target = self.switch.as_ref().map_or(shown, |s| (s.index, s.method));
-        if want != shown && matches!(self.methods[want.1], AoMethod::Histogram(_)) {
+        let want = self.wanted(scene);
+        let target = self.switch.as_ref().map_or(&self.shown, |s| &s.choice);
+        if want != self.shown && matches!(self.methods[want.method], AoMethod::Histogram(_)) {
             // The local histograms follow a new TF (or come back) with one table update.
             self.switch = None;
             return self.switch_to_histogram(want, vol, cao, tex);
         }
-        if want != target {
+        if &want != target {
             // Dropping the switch in flight frees O', V_PAO' and skip': safe, because the frame
             // loop waits for the frame in flight before a frame that is not
             // [`TfSwitcher::settled`], so none of them is in use any more; an unfinished
             // classification thread is detached and its result discarded.
             self.switch = None;
-            if want != shown {
+            if want != self.shown {
                 self.switch = Some(self.start(want, vol, cao)?);
             }
         }
@@ -231,16 +284,17 @@ impl TfSwitcher {
             let Some(done) = task.poll() else {
                 return Ok(());
             };
-            let name = &self.tfs[sw.index].name;
+            let name = &self.tfs[sw.choice.tf].name;
             let (opacity, skip) = done.map_err(|msg| {
                 AppError::Usage(format!(
                     "{}: classifying with transfer function '{name}' failed: {msg}",
                     vol.name
                 ))
             })?;
-            // The SH visibility depends on the TF's opacity, not on the AO method.
+            // The SH visibility depends on the opacity (TF and structures), not on the AO
+            // method.
             let sh = match &lighting {
-                Some(l) if sw.index != self.shown => {
+                Some(l) if !sw.choice.same_opacity(&self.shown) => {
                     let v = ShVolume::new(&self.gpu, vol, l.volume.params)?;
                     let slabs =
                         SlabScheduler::with_budget(v.grid.dims[2], v.samples_per_slice(), budget);
@@ -290,7 +344,8 @@ impl TfSwitcher {
             else {
                 unreachable!("finished implies computing")
             };
-            tex.set_transfer_function(&self.tfs[sw.index])?;
+            tex.set_transfer_function(&self.tfs[sw.choice.tf])?;
+            tex.set_structure_opacities(&sw.choice.structures);
             cao.replace_precomputed(opacity, pao, skip)?;
             let method = match sw.filter {
                 Some(f) => MethodGpu::Filter(f),
@@ -303,8 +358,7 @@ impl TfSwitcher {
                 self.gpu.submit_and_wait(|cmd| v.record_publish(cmd))?;
                 l.volume = v;
             }
-            self.shown = sw.index;
-            self.shown_method = sw.method;
+            self.shown = sw.choice;
         }
         Ok(())
     }
@@ -313,12 +367,12 @@ impl TfSwitcher {
     /// tables, q, and one pass for V_PAO and the bleeding volume.
     fn switch_to_histogram(
         &mut self,
-        (index, method): (usize, usize),
+        want: Choice,
         vol: &Volume,
         cao: &mut Cao,
         tex: &mut VolumeTextures,
     ) -> Result<()> {
-        let tf = &self.tfs[index];
+        let tf = &self.tfs[want.tf];
         let (gpu, lao) = (&self.gpu, &self.lao);
         let build = |h: &mut HistogramGpu| super::histogram_tables(gpu, lao, vol.dims, h, tf);
         let shown_here = match cao.histogram_mut() {
@@ -337,28 +391,25 @@ impl TfSwitcher {
             }
         }
         tex.set_transfer_function(tf)?;
-        self.shown = index;
-        self.shown_method = method;
+        tex.set_structure_opacities(&want.structures);
+        self.shown = want;
         Ok(())
     }
 
-    fn start(
-        &self,
-        (index, method): (usize, usize),
-        vol: &Arc<Volume>,
-        cao: &Cao,
-    ) -> Result<Switch> {
-        let filter = match self.methods[method] {
+    fn start(&self, choice: Choice, vol: &Arc<Volume>, cao: &Cao) -> Result<Switch> {
+        let index = choice.tf;
+        let filter = match self.methods[choice.method] {
             AoMethod::Filter(p) => Some(FilterGpu::new(&self.gpu, vol.dims, vol.spacing, p)?),
             _ => None,
         };
         let vol = Arc::clone(vol);
         let tf = self.tfs[index].clone();
+        let structures = choice.structures.clone();
         let params = cao.params;
         let input = filter.as_ref().map(|f| f.params.input);
         let name = vol.name.clone();
         let task = HostTask::spawn("cao-xr-classify", move || {
-            let opacity = tf.opacity_volume(&vol);
+            let opacity = tf.opacity_volume_showing(&vol, &structures);
             match input {
                 Some(input) => (filtered::density(input, &opacity, &vol), None),
                 None => {
@@ -374,8 +425,7 @@ impl TfSwitcher {
             ))
         })?;
         Ok(Switch {
-            index,
-            method,
+            choice,
             filter,
             stage: Stage::Classifying(task),
         })

@@ -3,7 +3,9 @@
 //! Keys: left drag orbits the head around the volume, the wheel zooms; W/S move the tool away /
 //! towards the head, A/D left / right, Q/E down / up (also right drag in the view plane); Space
 //! (held) is the trigger and toggles carving; Tab cycles the tool shape; P switches carve/probe;
-//! +/- resize the tool; M cycles transfer-function presets; O cycles the AO method; 1 / 2 show one eye / both; Esc quits.
+//! +/- resize the tool; M cycles transfer-function presets; O cycles the AO method; N selects the
+//! next labelled structure and H shows it translucent / hidden / shown (the left hand's primary
+//! and secondary buttons, the structure menu); 1 / 2 show one eye / both; Esc quits.
 
 use super::{Buttons, FrameInput, HandInput, LEFT, RIGHT};
 use crate::space::{symmetric_fov, Pose, DEFAULT_IPD};
@@ -29,6 +31,10 @@ pub enum Key {
     /// Sideways stick: turn the environment light.
     LightLeft,
     LightRight,
+    /// The structure menu (the left hand's primary and secondary buttons): select the next
+    /// structure; show it translucent, hidden, shown.
+    NextStructure,
+    ShowStructure,
 }
 
 /// The emulated head and right hand.
@@ -137,7 +143,10 @@ impl DesktopInput {
         };
         let mut hands = [HandInput::default(), HandInput::default()];
         hands[RIGHT] = right;
+        // The left hand is not tracked, but its buttons act (the structure menu).
         hands[LEFT].tracked = false;
+        hands[LEFT].buttons.primary = pressed(Key::NextStructure);
+        hands[LEFT].buttons.secondary = pressed(Key::ShowStructure);
         FrameInput {
             time,
             views,

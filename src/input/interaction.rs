@@ -18,7 +18,12 @@
 //! | menu (either hand)      | next transfer-function preset                                 |
 //! | stick click (either)    | next AO method (LAO, the filters)                             |
 //! | thumbstick left/right   | turns the environment light about the up axis (SH lighting)   |
+//! | left primary (X), labels| the structure menu: selects the next labelled structure       |
+//! | left secondary (Y), labels | shows the selected structure translucent, hidden, shown    |
 //!
+//! With a label map (`scene.structures` not empty) the left hand's primary and secondary buttons
+//! are the structure menu rather than its tool's shape and mode: a surgeon hides the ribs or
+//! sees through the liver with the hand that does not carve.
 //! The left hand gets a tool of its own (tool 1) the first time its trigger is pulled, so a
 //! two-handed carve (the `two-tools` script) works while a surgeon who only grabs with the left
 //! never sees a second tool. Tools from index 2 on (placed by something else) are left alone.
@@ -38,6 +43,27 @@ use std::f32::consts::TAU;
 pub const RIGHT_TOOL: usize = 0;
 /// Index in [`Scene::tools`] of the tool the left hand holds, once it has one.
 pub const LEFT_TOOL: usize = 1;
+
+/// The opacity the structure menu's "translucent" sets.
+pub const TRANSLUCENT: f32 = 0.3;
+
+/// The structure menu: `next` selects the next structure, `cycle` shows the selected one
+/// translucent (from shown), hidden (from translucent or any opacity between) or shown (from
+/// hidden).
+fn structure_menu(scene: &mut Scene, next: bool, cycle: bool) {
+    let n = scene.structures.len();
+    if next {
+        scene.structure_selected = (scene.structure_selected + 1) % n;
+    }
+    if cycle {
+        let a = &mut scene.structures[scene.structure_selected % n];
+        *a = match *a {
+            a if a >= 1.0 => TRANSLUCENT,
+            a if a > 0.0 => 0.0,
+            _ => 1.0,
+        };
+    }
+}
 
 /// The hand ([`RIGHT`] or [`LEFT`]) that holds tool `index` of [`Scene::tools`], if one does.
 pub fn tool_hand(index: usize) -> Option<usize> {
@@ -532,6 +558,14 @@ impl Interaction {
             }
         }
 
+        if !scene.structures.is_empty() {
+            let menu = &mut pressed[LEFT];
+            structure_menu(
+                scene,
+                std::mem::take(&mut menu.primary),
+                std::mem::take(&mut menu.secondary),
+            );
+        }
         self.update_tools(input, &pressed, dt, scene);
         self.update_grab(scene);
 

@@ -660,6 +660,13 @@ impl VolumeTextures {
         }
     }
 
+    /// Shows each structure (by index) with opacity a_l from the next frame on.
+    pub fn set_structure_opacities(&mut self, opacities: &[f32]) {
+        for (entry, &a) in self.structure_table[1..].iter_mut().zip(opacities) {
+            entry[3] = a;
+        }
+    }
+
     /// Makes the pre-integrated table fit `settings`' step (built once per TF and step; call
     /// before recording a frame that uses it).
     pub fn prepare(&self, settings: &RenderSettings) -> Result<()> {

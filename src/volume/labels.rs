@@ -47,10 +47,24 @@ pub struct LabelMap {
 impl LabelMap {
     /// The opacity factor of voxel `i`: 1 unlabelled, else its structure's a_l.
     pub fn factor(&self, i: usize) -> f32 {
-        match self.ids[i] {
+        self.factor_showing(i, &[])
+    }
+
+    /// [`LabelMap::factor`] with the structures' opacities `shown` (by structure index; past
+    /// its end, the structure's own).
+    pub fn factor_showing(&self, i: usize, shown: &[f32]) -> f32 {
+        match self.ids[i] as usize {
             0 => 1.0,
-            id => self.structures[id as usize - 1].opacity,
+            id => shown
+                .get(id - 1)
+                .copied()
+                .unwrap_or(self.structures[id - 1].opacity),
         }
+    }
+
+    /// Every structure's opacity a_l, by structure index.
+    pub fn opacities(&self) -> Vec<f32> {
+        self.structures.iter().map(|s| s.opacity).collect()
     }
 
     /// Whether any structure is protected from the tools.
@@ -185,11 +199,7 @@ impl LabelMap {
                 c[2],
                 st.voxels,
                 st.voxels as f64 * ml_per_voxel,
-                match st.opacity {
-                    a if a <= 0.0 => "hidden".to_string(),
-                    a if a >= 1.0 => "yes".to_string(),
-                    a => format!("{a:.2}"),
-                },
+                shown_as(st.opacity),
                 if st.protected { ", protected" } else { "" }
             ));
             if let Some(m) = st.margin_mm {
@@ -198,6 +208,15 @@ impl LabelMap {
             }
         }
         s
+    }
+}
+
+/// How a structure of opacity `a` is shown, in words: "shown", "hidden" or the opacity.
+pub fn shown_as(a: f32) -> String {
+    match a {
+        a if a <= 0.0 => "hidden".to_string(),
+        a if a >= 1.0 => "shown".to_string(),
+        a => format!("{a:.2}"),
     }
 }
 

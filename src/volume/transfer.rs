@@ -337,13 +337,21 @@ impl TransferFunction {
     /// The opacity volume O of docs/design.md (before clipping): tf alpha of every voxel's value,
     /// times its structure's opacity a_l where the volume has labels (0 hidden, 1 unlabelled).
     pub fn opacity_volume(&self, vol: &Volume) -> Vec<f32> {
+        let shown = vol.labels.as_deref().map(|l| l.opacities());
+        self.opacity_volume_showing(vol, shown.as_deref().unwrap_or(&[]))
+    }
+
+    /// [`TransferFunction::opacity_volume`] with the structures' opacities a_l given (by
+    /// structure index; a structure past the end keeps its label map's own): what a run-time
+    /// show / hide classifies.
+    pub fn opacity_volume_showing(&self, vol: &Volume, structures: &[f32]) -> Vec<f32> {
         let range = vol.value_range();
         let labels = vol.labels.as_deref();
         (0..vol.voxel_count())
             .into_par_iter()
             .map(|i| {
                 let a = self.eval(vol.voxels.get(i), range)[3];
-                labels.map_or(a, |l| a * l.factor(i))
+                labels.map_or(a, |l| a * l.factor_showing(i, structures))
             })
             .collect()
     }

@@ -746,3 +746,141 @@ fn dicom_segmentations_written_by_highdicom_resample_by_position_as_highdicom_re
     assert_eq!(rows, expected, "the SEG in the series folder");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The structure menu (the left hand's X selects, Y cycles shown / translucent / hidden) hides a
+/// structure at run time as a TF switch does: the old picture and AO stay until V_PAO' is
+/// complete, slab by slab ("labels tissue hidden x%"), a second press mid-way restarts it, and
+/// from then on V_AO and the picture equal a loop started with the structure hidden, carving.
+#[test]
+fn the_structure_menu_hides_a_structure_progressively_then_equals_a_fresh_start() {
+    use cao_xr::ao::{AoConfig, LaoGpu, LaoParams};
+    use cao_xr::app::frame_loop::{FrameLoop, FrameOutput};
+    use cao_xr::input::{FrameInput, InteractionSettings};
+    use cao_xr::space::default_stereo_views;
+
+    const N: usize = 32;
+    const PARAMS: LaoParams = LaoParams {
+        rays: 6,
+        steps: 6,
+        step_mm: 4.0,
+    };
+    let gpu = common::gpu();
+    let vol = Arc::new(labelled_head(N, false));
+    let mut hidden = labelled_head(N, false);
+    Arc::get_mut(hidden.labels.as_mut().unwrap())
+        .unwrap()
+        .structures[1]
+        .opacity = 0.0;
+    let hidden = Arc::new(hidden);
+    let tf = TransferFunction::preset("ct-bone").unwrap();
+    let new_loop = |vol: &Arc<cao_xr::volume::Volume>, mode: Mode| {
+        let mut fl = FrameLoop::new(
+            &gpu,
+            Arc::clone(vol),
+            vec![tf.clone()],
+            AoConfig::from(PARAMS),
+            (48, 48),
+            InteractionSettings::default(),
+            false,
+        )
+        .unwrap();
+        fl.mode = mode;
+        fl.tf_samples_per_frame = LaoGpu::samples_per_slice(vol.dims, &PARAMS) * 8.0;
+        fl
+    };
+    let c = Placement::default().center;
+    let tool = |i: usize| Tool {
+        shape: cao_xr::clip::Shape::Sphere,
+        pose: Pose {
+            position: c + Vec3::new(-0.03 + 0.01 * (i % 6) as f32, 0.02, 0.05),
+            orientation: Quat::IDENTITY,
+        },
+        size: 0.03,
+        mode: ToolMode::Carve,
+        active: i % 4 != 3,
+    };
+    // Frame i with the left hand's X (`next`) and Y (`cycle`) buttons.
+    let frame = |fl: &mut FrameLoop, i: usize, next: bool, cycle: bool| -> FrameOutput {
+        let views = default_stereo_views(&vol, &Placement::default(), 0.064);
+        let mut input = FrameInput::without_hands(i as f64 / 60.0, views);
+        input.hands[0].buttons.primary = next;
+        input.hands[0].buttons.secondary = cycle;
+        fl.scene.tools = vec![tool(i)];
+        fl.frame(&input).unwrap()
+    };
+    let read = |b: &cao_xr::gpu::Buffer| -> Vec<f32> {
+        bytemuck::cast_slice(&b.read_back().unwrap()).to_vec()
+    };
+
+    let mut fl = new_loop(&vol, Mode::Contextual);
+    let mut still = new_loop(&vol, Mode::Contextual);
+    assert_eq!(fl.scene.structures, [1.0, 1.0]);
+    assert_eq!(
+        fl.structure_menu().as_deref(),
+        Some("structure 1/2 vessel: shown")
+    );
+    // X selects the tissue; Y makes it translucent; Y again (after a release, mid-way through
+    // that switch) hides it, restarting the recompute.
+    let presses = [(true, false), (false, true), (false, false), (false, false)];
+    let mut progress = Vec::new();
+    let mut i = 0;
+    let switched = loop {
+        assert!(i < 100, "the switch never finished: {progress:?}");
+        let (next, mut cycle) = presses.get(i).copied().unwrap_or((false, false));
+        if i == 4 {
+            cycle = true;
+        }
+        let a = frame(&mut fl, i, next, cycle);
+        let b = frame(&mut still, i, false, false);
+        match a.stats.tf_progress {
+            Some(p) if i > 0 => {
+                // The old structures, picture and AO while V_PAO' is computed.
+                assert!(a.image == b.image, "frame {i}: the picture changed early");
+                let d = common::first_bit_difference(&read(&fl.cao.ao), &read(&still.cao.ao));
+                assert!(d.is_none(), "frame {i}: V_AO changed early at {d:?}");
+                progress.push(p.to_string());
+            }
+            None if i > 4 => break a,
+            _ => {}
+        }
+        i += 1;
+    };
+    assert_eq!(fl.scene.structures, [1.0, 0.0]);
+    assert_eq!(
+        fl.structure_menu().as_deref(),
+        Some("structure 2/2 tissue: hidden")
+    );
+    assert!(
+        progress.iter().any(|p| p.starts_with("labels tissue 0.30")),
+        "{progress:?}"
+    );
+    assert!(
+        progress.iter().any(|p| p.starts_with("labels tissue hidden")),
+        "{progress:?}"
+    );
+    assert!(
+        progress.len() > 3,
+        "LAO should arrive over several frames: {progress:?}"
+    );
+
+    // From the switch on: bit for bit a loop started with the tissue hidden (and its naive
+    // full recompute), carving and not.
+    let mut fresh = new_loop(&hidden, Mode::Contextual);
+    let mut naive = new_loop(&hidden, Mode::Naive);
+    let mut shown = Some(switched);
+    for k in 0..3 {
+        let at = i + k;
+        let a = shown.take().unwrap_or_else(|| frame(&mut fl, at, false, false));
+        let f = frame(&mut fresh, at, false, false);
+        frame(&mut naive, at, false, false);
+        let ao = read(&fl.cao.ao);
+        let d = common::first_bit_difference(&ao, &read(&fresh.cao.ao));
+        assert!(d.is_none(), "frame {at}: V_AO differs from a fresh start at {d:?}");
+        let d = common::first_bit_difference(&ao, &read(&naive.cao.ao));
+        assert!(d.is_none(), "frame {at}: V_AO differs from the full recompute at {d:?}");
+        assert!(a.image == f.image, "frame {at}: the picture differs from a fresh start");
+        let b = frame(&mut still, at, false, false);
+        assert!(a.image != b.image, "frame {at}: hiding the tissue changed nothing");
+    }
+    common::assert_no_validation_messages(&gpu);
+}
