@@ -116,7 +116,8 @@ if [ ${#volumes[@]} -eq 0 ]; then
   ct="$cache/ct-head.nrrd"
   [ -f "$ct" ] || "$bin" fetch-ct >&2 || { echo "bench-peer: could not fetch the CT head" >&2; exit 1; }
   chest_dims="${BENCH_PEER_CHEST:-512x512x133}"
-  volumes=("ct-head=$ct" "chest-$chest_dims=$(chest_volume "$chest_dims")")
+  chest=$(chest_volume "$chest_dims")
+  volumes=("ct-head=$ct" "chest-$chest_dims=$chest")
 fi
 
 # EGL (offscreen, no display) first; GLX under Xvfb only if EGL cannot render here.
