@@ -855,7 +855,9 @@ fn the_structure_menu_hides_a_structure_progressively_then_equals_a_fresh_start(
         "{progress:?}"
     );
     assert!(
-        progress.iter().any(|p| p.starts_with("labels tissue hidden")),
+        progress
+            .iter()
+            .any(|p| p.starts_with("labels tissue hidden")),
         "{progress:?}"
     );
     assert!(
@@ -870,17 +872,31 @@ fn the_structure_menu_hides_a_structure_progressively_then_equals_a_fresh_start(
     let mut shown = Some(switched);
     for k in 0..3 {
         let at = i + k;
-        let a = shown.take().unwrap_or_else(|| frame(&mut fl, at, false, false));
+        let a = shown
+            .take()
+            .unwrap_or_else(|| frame(&mut fl, at, false, false));
         let f = frame(&mut fresh, at, false, false);
         frame(&mut naive, at, false, false);
         let ao = read(&fl.cao.ao);
         let d = common::first_bit_difference(&ao, &read(&fresh.cao.ao));
-        assert!(d.is_none(), "frame {at}: V_AO differs from a fresh start at {d:?}");
+        assert!(
+            d.is_none(),
+            "frame {at}: V_AO differs from a fresh start at {d:?}"
+        );
         let d = common::first_bit_difference(&ao, &read(&naive.cao.ao));
-        assert!(d.is_none(), "frame {at}: V_AO differs from the full recompute at {d:?}");
-        assert!(a.image == f.image, "frame {at}: the picture differs from a fresh start");
+        assert!(
+            d.is_none(),
+            "frame {at}: V_AO differs from the full recompute at {d:?}"
+        );
+        assert!(
+            a.image == f.image,
+            "frame {at}: the picture differs from a fresh start"
+        );
         let b = frame(&mut still, at, false, false);
-        assert!(a.image != b.image, "frame {at}: hiding the tissue changed nothing");
+        assert!(
+            a.image != b.image,
+            "frame {at}: hiding the tissue changed nothing"
+        );
     }
     common::assert_no_validation_messages(&gpu);
 }
