@@ -588,12 +588,7 @@ impl FrameLoop {
             return Ok(None);
         };
         let slot = &self.slots.slots[f.slot];
-        unsafe {
-            self.gpu
-                .device
-                .wait_for_fences(&[slot.fence], true, u64::MAX)
-                .map_err(crate::gpu::GpuError::from)?;
-        }
+        self.gpu.wait_fences(&[slot.fence])?;
         let metrics = self.cao.read_metrics(f.pending)?;
         let sh = match (f.sh, self.lighting.as_ref()) {
             (Some(m), Some(l)) => ShStats {
@@ -940,8 +935,9 @@ impl Drop for Slots {
                 .iter()
                 .map(|f| self.slots[f.slot].fence)
                 .collect();
-            if !fences.is_empty() {
-                let _ = d.wait_for_fences(&fences, true, u64::MAX);
+            if !fences.is_empty() && self.gpu.wait_fences(&fences).is_err() {
+                // A device that stopped answering may still use them: leaked, not destroyed.
+                return;
             }
             for s in &self.slots {
                 d.destroy_fence(s.fence, None);

@@ -30,7 +30,7 @@ pub enum GpuError {
     #[error("cannot load the Vulkan library (install libvulkan1 and a driver, e.g. mesa-vulkan-drivers): {0}")]
     Loader(#[from] ash::LoadingError),
     #[error("Vulkan call failed: {0}")]
-    Vk(#[from] vk::Result),
+    Vk(vk::Result),
     #[error("GPU memory allocation failed: {0}")]
     Alloc(#[from] gpu_allocator::AllocationError),
     #[error("{0}")]
@@ -39,11 +39,36 @@ pub enum GpuError {
     NoDevice(String),
     #[error("Vulkan validation layer VK_LAYER_KHRONOS_validation was asked for but is not installed (apt-get install vulkan-validationlayers)")]
     NoValidationLayer,
+    #[error(
+        "the GPU stopped answering: work submitted to it had not finished after {0:.1} s \
+         (a hung or overloaded device; {GPU_TIMEOUT_ENV} sets the bound in seconds)"
+    )]
+    Stalled(f64),
+    #[error(
+        "the GPU device was lost (VK_ERROR_DEVICE_LOST: the driver reset it after a hang or \
+         fault, or it was removed); restart cao-xr"
+    )]
+    DeviceLost,
     #[error("{0}")]
     Other(String),
 }
 
 pub type Result<T> = std::result::Result<T, GpuError>;
+
+impl From<vk::Result> for GpuError {
+    /// A lost device is told as such, whichever call noticed it.
+    fn from(e: vk::Result) -> Self {
+        match e {
+            vk::Result::ERROR_DEVICE_LOST => GpuError::DeviceLost,
+            e => GpuError::Vk(e),
+        }
+    }
+}
+
+/// Seconds a wait for the GPU may last before it is reported as [`GpuError::Stalled`]
+/// ([`Gpu::wait_fences`]); unset: 60 s on a GPU (drivers reset a hung GPU well within), 30 min on
+/// a CPU device (where one submission of a large volume's precompute takes minutes).
+pub const GPU_TIMEOUT_ENV: &str = "CAO_XR_GPU_TIMEOUT_S";
 
 /// Caps the GPU memory handed out through [`Buffer`] and [`Image`] at this many MiB, as if
 /// other programs (or a smaller card) left only that much: simulates memory exhaustion.
@@ -696,6 +721,38 @@ impl Core {
         self.device_type == vk::PhysicalDeviceType::CPU
     }
 
+    /// How long [`Gpu::wait_fences`] waits ([`GPU_TIMEOUT_ENV`]).
+    pub fn timeout(&self) -> std::time::Duration {
+        let default = if self.is_cpu() { 1800.0 } else { 60.0 };
+        let s = std::env::var(GPU_TIMEOUT_ENV)
+            .ok()
+            .and_then(|v| v.trim().parse::<f64>().ok())
+            .filter(|s| s.is_finite() && *s > 0.0)
+            .unwrap_or(default);
+        std::time::Duration::from_secs_f64(s)
+    }
+
+    /// Waits for all of `fences`, within [`Gpu::timeout`]: a device that stops answering is an
+    /// error ([`GpuError::Stalled`], [`GpuError::DeviceLost`]), not a silent freeze.
+    pub fn wait_fences(&self, fences: &[vk::Fence]) -> Result<()> {
+        self.wait_fences_within(fences, self.timeout())
+    }
+
+    /// [`Gpu::wait_fences`] with the bound given.
+    pub fn wait_fences_within(
+        &self,
+        fences: &[vk::Fence],
+        bound: std::time::Duration,
+    ) -> Result<()> {
+        let ns = u64::try_from(bound.as_nanos()).unwrap_or(u64::MAX);
+        // SAFETY: the fences belong to this device and outlive the call.
+        match unsafe { self.device.wait_for_fences(fences, true, ns) } {
+            Ok(()) => Ok(()),
+            Err(vk::Result::TIMEOUT) => Err(GpuError::Stalled(bound.as_secs_f64())),
+            Err(e) => Err(e.into()),
+        }
+    }
+
     /// Records commands into a fresh command buffer, submits it and waits for completion.
     pub fn submit_and_wait<R>(&self, record: impl FnOnce(vk::CommandBuffer) -> R) -> Result<R> {
         unsafe {
@@ -721,7 +778,12 @@ impl Core {
             let res = self
                 .device
                 .queue_submit2(self.queue, &submit, fence)
-                .and_then(|_| self.device.wait_for_fences(&[fence], true, u64::MAX));
+                .map_err(GpuError::from)
+                .and_then(|_| self.wait_fences(&[fence]));
+            if matches!(res, Err(GpuError::Stalled(_))) {
+                // Still in use by a device that stopped answering: leaked, not destroyed.
+                return res.map(|_| r);
+            }
             self.device.destroy_fence(fence, None);
             self.device.free_command_buffers(*pool, &[cmd]);
             res?;

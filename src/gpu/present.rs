@@ -198,8 +198,7 @@ impl Presenter {
             }
             Err(e) => return Err(GpuError::from(e)),
         };
-        d.wait_for_fences(&[self.fence], true, u64::MAX)
-            .map_err(GpuError::from)?;
+        self.gpu.wait_fences(&[self.fence])?;
         d.reset_fences(&[self.fence]).map_err(GpuError::from)?;
         Ok(Some(Acquired {
             index,

@@ -2,7 +2,7 @@
 //! beside everything else the GPU holds, simulated with the allocator budget
 //! `CAO_XR_GPU_BUDGET_MB`, is refused with what did not fit and the `--downsample N` that
 //! does; with that N the same command renders under the same budget. No abort, no panic, no
-//! validation message.
+//! validation message. And a GPU that stops answering is an error, not a freeze.
 
 use std::path::{Path, PathBuf};
 use std::process::Output;
@@ -126,4 +126,37 @@ fn a_write_past_a_buffers_end_is_an_error_not_a_panic() {
     );
     assert!(b.write(usize::MAX, &[1]).is_err());
     assert_eq!(&b.mapped().unwrap()[8..16], &[1; 8]);
+}
+
+/// A wait for the GPU is bounded: a fence that never signals (a device that stopped answering)
+/// ends the wait with a clear error after the bound instead of freezing, and a lost device is
+/// told by name.
+#[test]
+fn a_gpu_that_stops_answering_is_an_error_not_a_freeze() {
+    use ash::vk;
+    use cao_xr::gpu::GpuError;
+    let gpu = crate::common::gpu();
+    // SAFETY: a fence of this device, destroyed below after the wait returned.
+    let fence = unsafe {
+        gpu.device
+            .create_fence(&vk::FenceCreateInfo::default(), None)
+            .unwrap()
+    };
+    let bound = std::time::Duration::from_millis(200);
+    let t0 = std::time::Instant::now();
+    let err = gpu.wait_fences_within(&[fence], bound).unwrap_err();
+    let waited = t0.elapsed();
+    // SAFETY: never submitted, so no queue uses it.
+    unsafe { gpu.device.destroy_fence(fence, None) };
+    assert!(matches!(err, GpuError::Stalled(_)), "{err}");
+    assert!(waited >= bound && waited < 20 * bound, "waited {waited:?}");
+    let msg = err.to_string();
+    assert!(
+        msg.contains("stopped answering") && msg.contains("CAO_XR_GPU_TIMEOUT_S"),
+        "{msg}"
+    );
+    let lost = GpuError::from(vk::Result::ERROR_DEVICE_LOST).to_string();
+    assert!(lost.contains("device was lost"), "{lost}");
+    assert!(gpu.timeout() >= std::time::Duration::from_secs(60));
+    crate::common::assert_no_validation_messages(&gpu);
 }
