@@ -98,6 +98,11 @@ fn frames(
         let done = opts.frames.is_some_and(|n| xs.summary.frames >= n)
             || super::interrupt::caught().is_some();
         if done {
+            // The frame still in flight is told to the hands now, while the session runs: the
+            // next frame may not begin (the runtime stops it), and a carve it starts must pulse.
+            if let Some(r) = fl.flush()? {
+                react(xs, fl, r.stats, &mut last)?;
+            }
             xs.request_exit()?;
         }
         let Some(frame) = xs.begin_frame(done, opts.carve)? else {

@@ -1,11 +1,11 @@
 //! The transfer-function and AO-method switch (the menu button, `scene.tf_index`; the stick
 //! click, `scene.ao_index`), and the structure menu (`scene.structures`: what is shown is part
 //! of the opacity, so hiding a structure is a change of O like a TF change): progressive, so
-//! the frame rate holds. O' and its skipping data are
-//! classified on a worker thread, then each frame records one slab of V_PAO' (bounded by a
-//! budget of opacity samples; a filter method refilters in one go) ahead of its CAO passes while
-//! the frame still shows the old TF, method and AO; with SH lighting and a new TF, slabs of
-//! V_PSH' follow. The frame after the last slab switches the LUT, the CAO state (its method
+//! the frame rate holds. O' and its skipping data are classified on a worker thread, then each
+//! frame records one slab of V_PAO' (bounded by a budget of opacity samples; a filter method
+//! refilters in one go) ahead of its CAO passes while the frame still shows the old TF, method,
+//! structures and AO; with SH lighting and a new opacity, slabs of V_PSH' follow. The frame
+//! after the last slab switches the LUT, the structure table, the CAO state (its method
 //! included) and the SH volume over at once.
 
 use super::lighting::ShLighting;

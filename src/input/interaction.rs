@@ -18,12 +18,13 @@
 //! | menu (either hand)      | next transfer-function preset                                 |
 //! | stick click (either)    | next AO method (LAO, the filters)                             |
 //! | thumbstick left/right   | turns the environment light about the up axis (SH lighting)   |
-//! | left primary (X), labels| the structure menu: selects the next labelled structure       |
-//! | left secondary (Y), labels | shows the selected structure translucent, hidden, shown    |
+//! | left primary (labels)   | the structure menu: selects the next labelled structure       |
+//! | left secondary (labels) | shows the selected structure translucent, hidden, shown       |
 //!
 //! With a label map (`scene.structures` not empty) the left hand's primary and secondary buttons
 //! are the structure menu rather than its tool's shape and mode: a surgeon hides the ribs or
 //! sees through the liver with the hand that does not carve.
+//!
 //! The left hand gets a tool of its own (tool 1) the first time its trigger is pulled, so a
 //! two-handed carve (the `two-tools` script) works while a surgeon who only grabs with the left
 //! never sees a second tool. Tools from index 2 on (placed by something else) are left alone.

@@ -20,6 +20,16 @@ fn png_size(path: &Path) -> (u32, u32) {
     (info.width, info.height)
 }
 
+/// xvfb-run's options: any free display, and the X auth file in the test's own folder. Without
+/// `-f`, xvfb-run makes a temporary folder of its own and exits 5 when removing it fails, which
+/// CI once saw with the viewer itself ending cleanly.
+fn xvfb_args(dir: &std::path::Path) -> Vec<String> {
+    let auth = dir.join("xauth").to_string_lossy().into_owned();
+    ["-a", "-f", &auth, "-s", "-screen 0 640x480x24"]
+        .map(String::from)
+        .to_vec()
+}
+
 #[test]
 fn window_session_replays_into_the_images_it_showed() {
     if !have_xvfb() {
@@ -44,7 +54,8 @@ fn window_session_replays_into_the_images_it_showed() {
         "80x64",
     ];
     let out = Command::new("xvfb-run")
-        .args(["-a", "-s", "-screen 0 640x480x24", bin, "view"])
+        .args(xvfb_args(&dir))
+        .args([bin, "view"])
         .args(common)
         .args([
             "--frames",
@@ -128,7 +139,8 @@ fn a_signal_ends_a_recording_session_cleanly() {
         let (rec, shown, pid_file) = (dir.join("rec.jsonl"), dir.join("shown"), dir.join("pid"));
         // xvfb-run starts the viewer as its child: the shell notes its pid, then becomes it.
         let child = Command::new("xvfb-run")
-            .args(["-a", "-s", "-screen 0 640x480x24", "sh", "-c"])
+            .args(xvfb_args(&dir))
+            .args(["sh", "-c"])
             .arg("echo $$ > \"$0\"; exec \"$@\"")
             .arg(&pid_file)
             .args([bin, "view", "phantom:32", "--rays", "6", "--steps", "4"])
