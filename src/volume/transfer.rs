@@ -337,8 +337,8 @@ impl TransferFunction {
     /// The opacity volume O of docs/design.md (before clipping): tf alpha of every voxel's value,
     /// times its structure's opacity a_l where the volume has labels (0 hidden, 1 unlabelled).
     pub fn opacity_volume(&self, vol: &Volume) -> Vec<f32> {
-        let shown = vol.labels.as_deref().map(|l| l.opacities());
-        self.opacity_volume_showing(vol, shown.as_deref().unwrap_or(&[]))
+        // No opacities given: each structure keeps its label map's own.
+        self.opacity_volume_showing(vol, &[])
     }
 
     /// [`TransferFunction::opacity_volume`] with the structures' opacities a_l given (by
