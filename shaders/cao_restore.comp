@@ -1,6 +1,7 @@
 #version 460
 #extension GL_EXT_buffer_reference : require
 #extension GL_GOOGLE_include_directive : require
+#include "ao_store.glsl"
 // CAO per frame, step 0: voxels the previous frame's tools touched go back to the background state
 // before this frame's tools are applied: unclipped (O_c = O, AO = V_PAO, category c), or with a
 // probe active, clipped away (O_c = 0, AO = 1, category a).
@@ -11,8 +12,8 @@ layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Clipped { float clipped[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) buffer Mask { uint mask[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pao { float pao[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Ao { float ao[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pao { uint16_t pao[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) writeonly buffer Ao { uint16_t ao[]; };
 // O_c again, inside the zero border the LAO kernel reads (src/ao/lao.rs LaoLayout).
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer ClippedPadded { float clipped_padded[]; };
 
@@ -47,5 +48,5 @@ void main() {
     // Stride 0: the method is not LAO, and there is no padded copy.
     if (pc.stride.y != 0) clipped_padded[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = o;
     mask_set(i, away ? 0u : 2u);
-    ao[i] = away ? 1.0 : pao[i];
+    ao[i] = away ? uint16_t(AO_OPEN) : pao[i];
 }

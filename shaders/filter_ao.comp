@@ -1,6 +1,7 @@
 #version 460
 #extension GL_EXT_buffer_reference : require
 #extension GL_GOOGLE_include_directive : require
+#include "ao_store.glsl"
 // Filtered AO (Ruiz et al.), the openness of every voxel of a box, exactly as docs/design.md
 // defines it: the tangent box's centre from the density gradient, then the cdf (t^beta), gauss
 // (Winitzki's erf) or penner estimator from that box's statistics (filter_box.comp), or the
@@ -14,9 +15,9 @@ layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Den
 // The statistics (filter_box.comp), split into slabs.
 #include "slabs.glsl"
 layout(buffer_reference, std430, buffer_reference_align = 16) readonly buffer Stats { vec4 stats[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Ao { float ao[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) writeonly buffer Ao { uint16_t ao[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Mask { uint mask[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pre { float pre[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer Pre { uint16_t pre[]; };
 
 layout(push_constant) uniform Push {
     Density density_buf;
@@ -103,10 +104,10 @@ void main() {
     int mode = pc.box_min.w;
     uint category = mode == 0 ? 1u : mask_get(i);
     if (category == 0u) {
-        ao[i] = 1.0;
+        ao[i] = uint16_t(AO_OPEN);
     } else if (category == 2u && mode == 1) {
         ao[i] = pre[i];
     } else {
-        ao[i] = openness(v, density[i]);
+        ao[i] = uint16_t(ao_word(openness(v, density[i])));
     }
 }

@@ -6,6 +6,7 @@
 // clustered values of the voxel's cluster. As an AO method of CAO it writes, per category,
 // a (clipped) -> A = 1 and no colour, c (unaffected) -> the precomputed values, b -> the sums.
 #extension GL_GOOGLE_include_directive : require
+#include "ao_store.glsl"
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
@@ -13,9 +14,9 @@ layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Q { float q[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Bins { uint bins[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Mask { uint mask[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer PreA { float pre_a[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer PreA { uint16_t pre_a[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer PreE { uint pre_e[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer OutA { float out_a[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) writeonly buffer OutA { uint16_t out_a[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer OutE { uint out_e[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Ids { uint ids[]; };
 // Per bin: rgb, and the opacity a (unused here: q already holds it).
@@ -81,7 +82,7 @@ void main() {
     int mode = pc.box_min.w;
     if (mode == 4) {
         vec4 c = clusters[ids[i]];
-        out_a[i] = c.a;
+        out_a[i] = uint16_t(ao_word(c.a));
         out_e[i] = packUnorm4x8(vec4(c.rgb, 1.0));
         return;
     }
@@ -90,13 +91,13 @@ void main() {
         out_a[i] = pre_a[i];
         out_e[i] = pre_e[i];
     } else if (category == 0u) {
-        out_a[i] = 1.0;
+        out_a[i] = uint16_t(AO_OPEN);
         out_e[i] = packUnorm4x8(vec4(0.0, 0.0, 0.0, 1.0));
     } else {
         float a;
         vec3 e;
         direct(v, a, e);
-        out_a[i] = a;
+        out_a[i] = uint16_t(ao_word(a));
         out_e[i] = packUnorm4x8(vec4(e, 1.0));
     }
 }

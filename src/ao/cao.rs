@@ -326,7 +326,8 @@ impl Cao {
             | vk::BufferUsageFlags::TRANSFER_SRC
             | vk::BufferUsageFlags::TRANSFER_DST;
         let dev = |name| Buffer::new(gpu, n * 4, storage, MemoryLocation::GpuOnly, name);
-        let (clipped, ao) = (dev("cao-clipped")?, dev("cao-ao")?);
+        let clipped = dev("cao-clipped")?;
+        let ao = super::stored::buffer(gpu, dims, "cao-ao")?;
         // One byte per voxel (shaders/include/mask.glsl), in whole words.
         let mask = Buffer::new(
             gpu,
@@ -398,10 +399,12 @@ impl Cao {
         pao: Buffer,
         skip: Option<SkipBuffers>,
     ) -> Result<()> {
-        let bytes = (self.dims[0] * self.dims[1] * self.dims[2] * 4) as u64;
-        if opacity.size != bytes || pao.size != bytes {
+        let n = (self.dims[0] * self.dims[1] * self.dims[2]) as u64;
+        let (bytes, pao_bytes) = (n * 4, super::stored::bytes(n));
+        if opacity.size != bytes || pao.size != pao_bytes {
             return Err(GpuError::Other(format!(
-                "{}: new opacity ({} bytes) or V_PAO ({} bytes) does not match the {:?} volume ({bytes} bytes)",
+                "{}: new opacity ({} bytes, not {bytes}) or V_PAO ({} bytes, not {pao_bytes}) \
+                 does not match the {:?} volume",
                 self.geometry.name, opacity.size, pao.size, self.dims
             )));
         }

@@ -8,7 +8,6 @@ use super::cao::{dispatch_box, BoxPush, VoxelBox};
 use super::filtered::FilterParams;
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Reach, Result, SlabBuffer};
 use ash::vk;
-use gpu_allocator::MemoryLocation;
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -168,16 +167,7 @@ impl FilterGpu {
     /// The openness of the whole unclipped volume of `density` (one submission); returns it
     /// with its GPU ms.
     pub fn compute(&self, density: &Buffer) -> Result<(Buffer, f64)> {
-        let n = (self.dims[0] * self.dims[1] * self.dims[2]).max(1) as u64;
-        let out = Buffer::new(
-            &self.gpu,
-            n * 4,
-            vk::BufferUsageFlags::STORAGE_BUFFER
-                | vk::BufferUsageFlags::TRANSFER_SRC
-                | vk::BufferUsageFlags::TRANSFER_DST,
-            MemoryLocation::GpuOnly,
-            "filtered-ao",
-        )?;
+        let out = super::stored::buffer(&self.gpu, self.dims, "filtered-ao")?;
         let mut timer = GpuTimer::new(&self.gpu, 2)?;
         let whole = [self.whole()];
         self.gpu.submit_and_wait(|cmd| {

@@ -422,18 +422,9 @@ impl LaoGpu {
         })
     }
 
-    /// An uninitialised device buffer for one f32 per voxel, as [`LaoGpu::compute`] fills.
+    /// An uninitialised AO volume ([`super::stored`]), as [`LaoGpu::compute`] fills.
     pub fn output_buffer(&self, dims: [usize; 3]) -> Result<Buffer> {
-        let n = dims[0] * dims[1] * dims[2];
-        Buffer::new(
-            &self.gpu,
-            (n.max(1) * 4) as u64,
-            vk::BufferUsageFlags::STORAGE_BUFFER
-                | vk::BufferUsageFlags::TRANSFER_SRC
-                | vk::BufferUsageFlags::TRANSFER_DST,
-            gpu_allocator::MemoryLocation::GpuOnly,
-            "lao",
-        )
+        super::stored::buffer(&self.gpu, dims, "lao")
     }
 
     /// The K ray steps in index units, as the kernel reads them.

@@ -9,6 +9,7 @@ pub mod histogram_gpu;
 pub mod lao;
 pub mod progressive;
 pub mod sh;
+pub mod stored;
 
 pub use lao::{directions, LaoGpu, LaoParams};
 

@@ -3,6 +3,7 @@
 use super::{precompute_ao, Result};
 use crate::ao::cao::Cao;
 use crate::ao::lao::LaoKernel;
+use crate::ao::stored;
 use crate::ao::{LaoGpu, LaoParams};
 use crate::gpu::Gpu;
 use crate::volume::transfer::TransferFunction;
@@ -109,7 +110,7 @@ pub fn bench_lao(
                     times[i].0.push(t.gpu_ms);
                     times[i].1.push(t.wall_ms);
                     samples = t.samples;
-                    outs[i] = out.read_back()?;
+                    outs[i] = stored::read(&out, vol.voxel_count())?;
                 }
             }
             let kernel_times: Vec<(LaoKernel, LaoBenchTime)> = kernels
@@ -126,12 +127,9 @@ pub fn bench_lao(
                 })
                 .collect();
             let max_diff = (outs.len() == 2).then(|| {
-                let (a, b): (&[f32], &[f32]) = (
-                    bytemuck::cast_slice(&outs[0]),
-                    bytemuck::cast_slice(&outs[1]),
-                );
-                a.iter()
-                    .zip(b)
+                outs[0]
+                    .iter()
+                    .zip(&outs[1])
                     .map(|(x, y)| (x - y).abs())
                     .fold(0.0f32, f32::max)
             });
@@ -324,11 +322,11 @@ pub fn bench_cao(
 /// The first difference between the CAO and the naive V_AO, as an error naming the frame and
 /// voxel.
 fn verify_frame(cao: &Cao, naive: &Cao, vol: &Volume, what: &str) -> Result<()> {
-    let (a, b) = (cao.ao.read_back()?, naive.ao.read_back()?);
-    let (a, b): (&[f32], &[f32]) = (bytemuck::cast_slice(&a), bytemuck::cast_slice(&b));
+    let n = vol.voxel_count();
+    let (a, b) = (stored::read(&cao.ao, n)?, stored::read(&naive.ao, n)?);
     match a
         .iter()
-        .zip(b)
+        .zip(&b)
         .position(|(x, y)| x.to_bits() != y.to_bits())
     {
         None => Ok(()),

@@ -36,8 +36,9 @@ pub struct AoBenchRow {
     pub ssim: f64,
 }
 
-fn read(b: &Buffer) -> Result<Vec<f32>> {
-    Ok(bytemuck::cast_slice(&b.read_back()?).to_vec())
+/// A stored AO volume of `vol` as values.
+fn read(b: &Buffer, vol: &Volume) -> Result<Vec<f32>> {
+    Ok(crate::ao::stored::read(b, vol.voxel_count())?)
 }
 
 /// Left-eye luma of the volume lit by `ao` from three fixed views (turned 0 and +-40 degrees).
@@ -120,7 +121,7 @@ pub fn bench_ao(
                 ..Default::default()
             };
             let cfg = AoConfig::new(AoMethod::Filter(exact), *base);
-            let exact_ao = read(&precompute(gpu, &lao, vol, tf, &cfg, false)?.ao_buf)?;
+            let exact_ao = read(&precompute(gpu, &lao, vol, tf, &cfg, false)?.ao_buf, vol)?;
             for estimator in [Estimator::Cdf, Estimator::Gauss, Estimator::Penner] {
                 let p = FilterParams { estimator, ..exact };
                 methods.push((AoMethod::Filter(p), Some(exact_ao.clone())));
@@ -140,7 +141,7 @@ pub fn bench_ao(
             }
             let v = last.expect("at least one run");
             let resident_mb = resident_bytes(&v) as f64 / (1 << 20) as f64;
-            let ao = read(&v.ao_buf)?;
+            let ao = read(&v.ao_buf, vol)?;
             let error = exact.map(|e| {
                 ao.iter()
                     .zip(&e)
@@ -327,7 +328,7 @@ pub fn bench_histogram(
             let total_s = t0.elapsed().as_secs_f64();
             let timing = h.timing;
             let v = super::precompute_histogram(gpu, &lao, vol, tf, base, h)?;
-            let a = read(&v.ao_buf)?;
+            let a = read(&v.ao_buf, vol)?;
             let mut err: Vec<f64> = sample
                 .iter()
                 .zip(&direct)

@@ -822,17 +822,12 @@ pub fn write_ao(
         Some(gpu) => {
             let lao = LaoGpu::new(gpu)?;
             let r = precompute(gpu, &lao, vol, tf, config, true)?;
-            let bytes = r.ao_buf.read_back()?;
+            let ao = crate::ao::stored::read(&r.ao_buf, vol.voxel_count())?;
             let e = match &r.method {
                 MethodGpu::Histogram(h) => Some(h.read_e(&h.pre_e)?),
                 _ => None,
             };
-            (
-                bytemuck::cast_slice::<u8, f32>(&bytes).to_vec(),
-                r.opacity,
-                r.timing,
-                e,
-            )
+            (ao, r.opacity, r.timing, e)
         }
         None => {
             params.validate().map_err(AppError::Usage)?;

@@ -434,9 +434,15 @@ impl Gpu {
         // chains Vulkan 1.2 feature structs of its own, which Vulkan12Features may not join.
         let mut bda =
             vk::PhysicalDeviceBufferDeviceAddressFeatures::default().buffer_device_address(true);
+        // 16-bit storage: V_AO and V_PAO hold AO as 16-bit unorm (`crate::ao::AoStore`).
+        let mut f16 =
+            vk::PhysicalDevice16BitStorageFeatures::default().storage_buffer16_bit_access(true);
+        // shaderInt16: a 16-bit word written as a constant (AO_OPEN) or chosen by a select.
         let mut f2 = vk::PhysicalDeviceFeatures2::default()
+            .features(vk::PhysicalDeviceFeatures::default().shader_int16(true))
             .push_next(&mut f13)
-            .push_next(&mut bda);
+            .push_next(&mut bda)
+            .push_next(&mut f16);
         let dinfo = vk::DeviceCreateInfo::default()
             .queue_create_infos(&queue_info)
             .enabled_extension_names(&dev_exts)
@@ -525,14 +531,22 @@ unsafe fn pick_device(
         }
         let mut f13 = vk::PhysicalDeviceVulkan13Features::default();
         let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
+        let mut f11 = vk::PhysicalDeviceVulkan11Features::default();
         let mut f2 = vk::PhysicalDeviceFeatures2::default()
             .push_next(&mut f13)
-            .push_next(&mut f12);
+            .push_next(&mut f12)
+            .push_next(&mut f11);
         instance.get_physical_device_features2(pd, &mut f2);
-        if f13.dynamic_rendering == 0 || f13.synchronization2 == 0 || f12.buffer_device_address == 0
+        let int16 = f2.features.shader_int16;
+        if f13.dynamic_rendering == 0
+            || f13.synchronization2 == 0
+            || f12.buffer_device_address == 0
+            || f11.storage_buffer16_bit_access == 0
+            || int16 == 0
         {
             rejected.push(format!(
-                "{name}: lacks dynamicRendering/synchronization2/bufferDeviceAddress"
+                "{name}: lacks dynamicRendering/synchronization2/bufferDeviceAddress/\
+                 storageBuffer16BitAccess/shaderInt16"
             ));
             continue;
         }

@@ -386,7 +386,7 @@ impl Image {
     /// the whole image, x fastest) only; the boxes must not overlap.
     pub fn cmd_copy_boxes_from(&self, cmd: vk::CommandBuffer, src: &Buffer, boxes: &[BoxRegion]) {
         let e = self.desc.extent;
-        let texel = src.size / (e.width as u64 * e.height as u64 * e.depth as u64).max(1);
+        let texel = texel_bytes(self.desc.format);
         let regions: Vec<vk::BufferImageCopy> = boxes
             .iter()
             .filter(|(lo, hi)| (0..3).all(|a| hi[a] > lo[a]))
@@ -772,5 +772,16 @@ impl Drop for ComputePipeline {
                 .device
                 .destroy_descriptor_set_layout(self.set_layout, None);
         }
+    }
+}
+
+/// Bytes per texel of the (uncompressed, colour) formats the images here use.
+pub fn texel_bytes(format: vk::Format) -> u64 {
+    match format {
+        vk::Format::R8_UNORM => 1,
+        vk::Format::R16_UNORM => 2,
+        vk::Format::R32G32B32A32_SFLOAT => 16,
+        vk::Format::R32G32B32_SFLOAT => 12,
+        _ => 4,
     }
 }

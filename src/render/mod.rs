@@ -308,9 +308,10 @@ impl VolumeLimits {
     }
 }
 
-/// GPU bytes per voxel, at least: the scalar and AO images, O, O_c, V_PAO and V_AO (4 bytes each
-/// for f32 data; an integer scalar takes 2 or 1), before the method's own volumes.
-pub const GPU_BYTES_PER_VOXEL: u64 = 6 * 4;
+/// GPU bytes per voxel, at least: the scalar image (4 bytes for f32 data; an integer scalar
+/// takes 2 or 1), O and O_c (4 each), and the AO image, V_PAO and V_AO (2 each, `ao::stored`),
+/// before the method's own volumes.
+pub const GPU_BYTES_PER_VOXEL: u64 = 3 * 4 + 3 * crate::ao::stored::BYTES_PER_VOXEL;
 
 /// The shaders index a volume's voxels with 32-bit signed integers.
 pub const MAX_VOXELS: u64 = (1 << 31) - 1;
@@ -479,9 +480,11 @@ impl VolumeTextures {
             &vec![0u8; ranges.ranges.len()],
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         )?;
-        let ambient = volume_image(gpu, vol.dims, vk::Format::R32_SFLOAT, "ao")?;
+        // V_AO's own 16-bit unorm words (`ao::stored`), copied in as they are.
+        check_linear_filter(gpu, vk::Format::R16_UNORM)?;
+        let ambient = volume_image(gpu, vol.dims, vk::Format::R16_UNORM, "ao")?;
         ambient.upload(
-            bytemuck::cast_slice(&vec![1.0f32; n]),
+            bytemuck::cast_slice(&vec![crate::ao::stored::pack(1.0); n]),
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         )?;
         let lut = Image::new(

@@ -746,12 +746,12 @@ fn bench_lao_prints_a_table() {
         .collect();
     assert_eq!(rows.len(), 2, "{text}");
     // Both kernels by default, side by side: their ratio, and the new one computes the old
-    // one's values (to float rounding).
+    // one's values (to float rounding, which may tip a stored 16-bit word by one step).
     for row in rows {
         let cols: Vec<&str> = row.split_whitespace().collect();
         let ratio: f64 = cols[cols.len() - 2].trim_end_matches('x').parse().unwrap();
         let diff: f64 = cols[cols.len() - 1].parse().unwrap();
-        assert!(ratio > 0.0 && diff < 1e-5, "{row}");
+        assert!(ratio > 0.0 && diff <= 1.0 / 65535.0 + 1e-7, "{row}");
     }
 }
 

@@ -3,7 +3,7 @@
 //! the per-frame clip update equal to the filters run on the whole clipped volume, bit for bit,
 //! on every frame of a carving, probing and empty sequence.
 
-use crate::cao::{frames, read};
+use crate::cao::{frames, read_ao};
 use crate::common;
 
 use cao_xr::ao::cao::{Cao, Mode};
@@ -50,7 +50,7 @@ fn the_gpu_filters_agree_with_the_cpu_reference() {
                 unreachable!()
             };
             let want = filtered::filtered_ao(&density, vol.dims, vol.spacing, &p);
-            let got = read(&cao.ao);
+            let got = read_ao(&cao.ao);
             common::assert_agrees(&got, &want, &format!("{estimator:?} {input:?}"));
             // Not trivially open: the phantom has surfaces, so some voxels are occluded.
             assert!(got.iter().any(|&a| a < 0.5), "{estimator:?} {input:?}");
@@ -69,12 +69,12 @@ fn the_filters_clip_update_equals_a_full_refilter_bit_for_bit_every_frame() {
         let ao = config(estimator, FilterInput::Opacity, 11.0);
         let (mut cao, _) = setup(&gpu, &vol, &ao);
         let (mut naive, _) = setup(&gpu, &vol, &ao);
-        let pre = read(&cao.ao);
+        let pre = read_ao(&cao.ao);
         let mut some_recomputed = false;
         for (i, tools) in frames(placement.center).iter().enumerate() {
             let m = cao.run_frame(tools, &placement, Mode::Contextual).unwrap();
             naive.run_frame(tools, &placement, Mode::Naive).unwrap();
-            let (a, b) = (read(&cao.ao), read(&naive.ao));
+            let (a, b) = (read_ao(&cao.ao), read_ao(&naive.ao));
             let diff = common::first_bit_difference(&a, &b);
             assert!(
                 diff.is_none(),
@@ -112,11 +112,11 @@ fn statistics_split_into_slabs_equal_one_buffer_bit_for_bit_every_frame() {
     let ao = config(Estimator::Gauss, FilterInput::Opacity, 11.0);
     let (mut one, _) = setup(&whole, &vol, &ao);
     let (mut many, _) = setup(&split, &vol, &ao);
-    assert!(common::first_bit_difference(&read(&one.ao), &read(&many.ao)).is_none());
+    assert!(common::first_bit_difference(&read_ao(&one.ao), &read_ao(&many.ao)).is_none());
     for (i, tools) in frames(placement.center).iter().enumerate() {
         one.run_frame(tools, &placement, Mode::Contextual).unwrap();
         many.run_frame(tools, &placement, Mode::Contextual).unwrap();
-        let diff = common::first_bit_difference(&read(&one.ao), &read(&many.ao));
+        let diff = common::first_bit_difference(&read_ao(&one.ao), &read_ao(&many.ao));
         assert!(
             diff.is_none(),
             "frame {i}: slabs differ from one buffer at voxel {diff:?}"
@@ -150,7 +150,7 @@ fn a_tf_switch_refilters_to_the_new_tfs_filtered_ao() {
     )
     .unwrap();
     let views = default_stereo_views(&vol, &Placement::default(), DEFAULT_IPD);
-    let before = read(&fl.cao.ao);
+    let before = read_ao(&fl.cao.ao);
     for i in 0..60 {
         let mut input = FrameInput::without_hands(i as f64 / 60.0, views);
         input.hands[0].buttons.menu = i == 0;
@@ -163,8 +163,8 @@ fn a_tf_switch_refilters_to_the_new_tfs_filtered_ao() {
     // Equal to the filters of a fresh start with the new TF (the frames carve nothing).
     let lao = LaoGpu::new(&gpu).unwrap();
     let fresh = precompute(&gpu, &lao, &vol, &skin, &ao, false).unwrap();
-    let want: Vec<f32> = bytemuck::cast_slice(&fresh.ao_buf.read_back().unwrap()).to_vec();
-    let got = read(&fl.cao.ao);
+    let want = read_ao(&fresh.ao_buf);
+    let got = read_ao(&fl.cao.ao);
     assert!(
         got == want,
         "the switched AO is not the new TF's filtered AO"

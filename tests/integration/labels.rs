@@ -4,6 +4,7 @@
 //! a carve with protected structures equals the full recompute of the selectively clipped volume
 //! bit for bit, leaving the protected voxels standing.
 
+use crate::cao::read_ao;
 use crate::common;
 use cao_xr::ao::cao::Mode;
 use cao_xr::scene::{Tool, ToolMode};
@@ -433,7 +434,7 @@ fn carving_around_a_protected_structure_equals_the_full_recompute_and_leaves_it_
     for (f, tools) in frames.iter().enumerate() {
         cao.run_frame(tools, &placement, Mode::Contextual).unwrap();
         naive.run_frame(tools, &placement, Mode::Naive).unwrap();
-        let (a, b) = (crate::cao::read(&cao.ao), crate::cao::read(&naive.ao));
+        let (a, b) = (crate::cao::read_ao(&cao.ao), crate::cao::read_ao(&naive.ao));
         let diff = common::first_bit_difference(&a, &b);
         assert!(
             diff.is_none(),
@@ -808,9 +809,6 @@ fn the_structure_menu_hides_a_structure_progressively_then_equals_a_fresh_start(
         fl.scene.tools = vec![tool(i)];
         fl.frame(&input).unwrap()
     };
-    let read = |b: &cao_xr::gpu::Buffer| -> Vec<f32> {
-        bytemuck::cast_slice(&b.read_back().unwrap()).to_vec()
-    };
 
     let mut fl = new_loop(&vol, Mode::Contextual);
     let mut still = new_loop(&vol, Mode::Contextual);
@@ -836,7 +834,7 @@ fn the_structure_menu_hides_a_structure_progressively_then_equals_a_fresh_start(
             Some(p) if i > 0 => {
                 // The old structures, picture and AO while V_PAO' is computed.
                 assert!(a.image == b.image, "frame {i}: the picture changed early");
-                let d = common::first_bit_difference(&read(&fl.cao.ao), &read(&still.cao.ao));
+                let d = common::first_bit_difference(&read_ao(&fl.cao.ao), &read_ao(&still.cao.ao));
                 assert!(d.is_none(), "frame {i}: V_AO changed early at {d:?}");
                 progress.push(p.to_string());
             }
@@ -877,13 +875,13 @@ fn the_structure_menu_hides_a_structure_progressively_then_equals_a_fresh_start(
             .unwrap_or_else(|| frame(&mut fl, at, false, false));
         let f = frame(&mut fresh, at, false, false);
         frame(&mut naive, at, false, false);
-        let ao = read(&fl.cao.ao);
-        let d = common::first_bit_difference(&ao, &read(&fresh.cao.ao));
+        let ao = read_ao(&fl.cao.ao);
+        let d = common::first_bit_difference(&ao, &read_ao(&fresh.cao.ao));
         assert!(
             d.is_none(),
             "frame {at}: V_AO differs from a fresh start at {d:?}"
         );
-        let d = common::first_bit_difference(&ao, &read(&naive.cao.ao));
+        let d = common::first_bit_difference(&ao, &read_ao(&naive.cao.ao));
         assert!(
             d.is_none(),
             "frame {at}: V_AO differs from the full recompute at {d:?}"

@@ -10,7 +10,7 @@ use cao_xr::ao::filtered::{Estimator, FilterParams};
 use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
 use cao_xr::app::frame_loop::{Built, FrameLoop, FrameOutput};
 use cao_xr::clip::Shape;
-use cao_xr::gpu::{Buffer, Gpu};
+use cao_xr::gpu::Gpu;
 use cao_xr::input::{FrameInput, InteractionSettings};
 use cao_xr::scene::{Tool, ToolMode};
 use cao_xr::space::{default_stereo_views, Placement, Pose};
@@ -28,9 +28,7 @@ const PARAMS: LaoParams = LaoParams {
 /// Slices per slab the budget below buys.
 const SLAB: usize = 4;
 
-fn read(b: &Buffer) -> Vec<f32> {
-    bytemuck::cast_slice(&b.read_back().unwrap()).to_vec()
-}
+use crate::cao::read_ao;
 
 /// A third TF for the restart: ct-skin with denser soft tissue.
 fn soft() -> TransferFunction {
@@ -139,7 +137,7 @@ fn the_stick_click_switches_the_ao_method_to_exactly_a_fresh_start_of_it() {
     let mut i = 0;
     // Penner -> LAO (progressive, a slab of slices per frame), then LAO -> cdf (one refilter).
     for (want, progressive) in [("lao", true), ("filter-cdf", false)] {
-        let before = read(&fl.cao.ao);
+        let before = read_ao(&fl.cao.ao);
         let shown = fl.cao.method_name();
         let mut switching = 0;
         let (done, t) = loop {
@@ -176,8 +174,8 @@ fn the_stick_click_switches_the_ao_method_to_exactly_a_fresh_start_of_it() {
         );
         assert_eq!(fresh.cao.method_name(), want);
         let f = click_frame(&mut fresh, &vol, t, false, i, false);
-        let got = read(&fl.cao.ao);
-        let d = common::first_bit_difference(&got, &read(&fresh.cao.ao));
+        let got = read_ao(&fl.cao.ao);
+        let d = common::first_bit_difference(&got, &read_ao(&fresh.cao.ao));
         assert!(
             d.is_none(),
             "{want}: V_AO differs from a fresh start at {d:?}"
@@ -267,7 +265,7 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
         let b = frame(&mut still, &vol, t, false, i);
         assert!(b.stats.tf_progress.is_none());
         assert_eq!(fl.shown_tf().name, "ct-bone", "frame {i}");
-        let d = common::first_bit_difference(&read(&fl.cao.ao), &read(&still.cao.ao));
+        let d = common::first_bit_difference(&read_ao(&fl.cao.ao), &read_ao(&still.cao.ao));
         assert!(
             d.is_none(),
             "frame {i}: V_AO changed during the recompute at {d:?}"
@@ -344,13 +342,13 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
         let carve = t.active;
         let f = frame(&mut fresh, &vol, t, false, i);
         let n = frame(&mut naive, &vol, t, false, i);
-        let ao = read(&fl.cao.ao);
-        let d = common::first_bit_difference(&ao, &read(&fresh.cao.ao));
+        let ao = read_ao(&fl.cao.ao);
+        let d = common::first_bit_difference(&ao, &read_ao(&fresh.cao.ao));
         assert!(
             d.is_none(),
             "frame {i}: V_AO differs from a fresh loop at {d:?}"
         );
-        let d = common::first_bit_difference(&ao, &read(&naive.cao.ao));
+        let d = common::first_bit_difference(&ao, &read_ao(&naive.cao.ao));
         assert!(
             d.is_none(),
             "frame {i}: V_AO differs from the naive recompute at {d:?}"
@@ -384,7 +382,7 @@ fn menu_switch_recomputes_progressively_then_equals_a_fresh_loop() {
     // V_PAO' differs from the old V_PAO (the switch did something).
     let old = frame(&mut still, &vol, tool(c, 0, false), false, 0);
     assert!(old.stats.tf_progress.is_none());
-    assert!(common::first_bit_difference(&pao.unwrap(), &read(&still.cao.ao)).is_some());
+    assert!(common::first_bit_difference(&pao.unwrap(), &read_ao(&still.cao.ao)).is_some());
     common::assert_no_validation_messages(&gpu);
 }
 
@@ -422,7 +420,7 @@ fn cycling_back_to_the_shown_tf_cancels_the_switch() {
         assert!(a.stats.tf_progress.is_none(), "frame {i}: dropped");
         assert_eq!(fl.scene.tf_index, 0);
         assert_eq!(fl.shown_tf().name, "ct-bone");
-        let d = common::first_bit_difference(&read(&fl.cao.ao), &read(&still.cao.ao));
+        let d = common::first_bit_difference(&read_ao(&fl.cao.ao), &read_ao(&still.cao.ao));
         assert!(d.is_none(), "frame {i}: V_AO changed at {d:?}");
         assert!(a.image == b.image, "frame {i}");
         i += 1;
@@ -508,7 +506,7 @@ fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
     // Then exactly what a loop that waited for LAO shows, on the same carved frame.
     let mut fresh = new_loop_with(&gpu, &vol, tfs.clone(), Mode::Contextual, deep.into());
     let f = click_frame(&mut fresh, &vol, t, false, i, false);
-    let d = common::first_bit_difference(&read(&fl.cao.ao), &read(&fresh.cao.ao));
+    let d = common::first_bit_difference(&read_ao(&fl.cao.ao), &read_ao(&fresh.cao.ao));
     assert!(
         d.is_none(),
         "V_AO differs from a loop that waited, at {d:?}"
@@ -543,7 +541,7 @@ fn a_frame_budget_lengthens_the_step_and_leaves_the_ao_alone() {
         );
         assert_eq!(b.stats.step_factor, 1.0);
         // The AO is the same bits with and without the budget, every frame.
-        let d = common::first_bit_difference(&read(&held.cao.ao), &read(&free.cao.ao));
+        let d = common::first_bit_difference(&read_ao(&held.cao.ao), &read_ao(&free.cao.ao));
         assert!(d.is_none(), "frame {i}: the budget changed V_AO at {d:?}");
         if i == 11 {
             assert!(
