@@ -8,14 +8,17 @@ cd "$(dirname "$0")/.."
 # read the real sample files pydicom ships; tests/integration/foreign.rs checks volumes nobody here wrote
 # against niftilib (nifti-bin), dcm2niix and teem (teem-apps); tests/integration/labels.rs reads
 # label maps nibabel wrote, on grids of their own, as nibabel reads them, and DICOM SEG objects
-# highdicom wrote (pip-installed into a private environment: python3-venv) as highdicom reads them.
+# and 3D Slicer segmentations that highdicom and pynrrd wrote (pip-installed into private
+# environments: python3-venv) as those read them.
 CAO_XR_EXTRA_PACKAGES="xvfb xauth dcmtk python3-pydicom nifti-bin dcm2niix teem-apps python3-nibabel python3-numpy python3-venv" source scripts/setup.sh
 export CAO_XR_REQUIRE_XVFB=1
 export CAO_XR_REQUIRE_DCMTK=1
 export CAO_XR_REQUIRE_PYDICOM=1
 export CAO_XR_REQUIRE_NIBABEL=1
-# DICOM SEG objects written by highdicom, installed with pip into a private environment.
+# DICOM SEG objects written by highdicom and .seg.nrrd files written by pynrrd, each installed
+# with pip into a private environment.
 export CAO_XR_REQUIRE_HIGHDICOM=1
+export CAO_XR_REQUIRE_PYNRRD=1
 # nibabel's and mricron's NIfTI files (downloaded once, cached) and the CT head (fetched by the
 # test itself when it is not cached yet): required, so a failed download fails CI.
 export CAO_XR_FOREIGN_DATA="${CAO_XR_FOREIGN_DATA:-$HOME/.cache/cao-xr/foreign}"

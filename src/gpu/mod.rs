@@ -434,7 +434,7 @@ impl Gpu {
         // chains Vulkan 1.2 feature structs of its own, which Vulkan12Features may not join.
         let mut bda =
             vk::PhysicalDeviceBufferDeviceAddressFeatures::default().buffer_device_address(true);
-        // 16-bit storage: V_AO and V_PAO hold AO as 16-bit unorm (`crate::ao::AoStore`).
+        // 16-bit storage: V_AO and V_PAO hold AO as 16-bit unorm (`crate::ao::stored`).
         let mut f16 =
             vk::PhysicalDevice16BitStorageFeatures::default().storage_buffer16_bit_access(true);
         // shaderInt16: a 16-bit word written as a constant (AO_OPEN) or chosen by a select.

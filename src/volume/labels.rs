@@ -462,7 +462,31 @@ fn read_label_file(path: &Path) -> Result<Source, VolumeError> {
     let geometry = if lower.ends_with(".nii") || lower.ends_with(".nii.gz") {
         nifti::load(path)?
     } else if lower.ends_with(".nrrd") || lower.ends_with(".nhdr") {
-        nrrd::load(path)?
+        let mut layers = nrrd::load_all(path)?;
+        let segments = slicer_segments(path)?;
+        if layers.len() > 1 {
+            return combine_layers(path, layers, segments);
+        }
+        if let Some(s) = segments.iter().find(|s| s.layer != 0) {
+            return Err(VolumeError::format(
+                path,
+                format!(
+                    "{} is on layer {}, but the file holds one layer",
+                    s.name, s.layer
+                ),
+            ));
+        }
+        let named = segments
+            .into_iter()
+            .map(|s| (s.value, (s.name, s.colour)))
+            .collect();
+        let geometry = layers.remove(0);
+        let values = label_values(&geometry);
+        return Ok(Source {
+            geometry,
+            values,
+            named,
+        });
     } else {
         return Err(VolumeError::unsupported(
             path,
@@ -470,22 +494,99 @@ fn read_label_file(path: &Path) -> Result<Source, VolumeError> {
         ));
     };
     let values = label_values(&geometry);
-    let named = if lower.ends_with(".nrrd") || lower.ends_with(".nhdr") {
-        slicer_segments(path)?
-    } else {
-        BTreeMap::new()
-    };
     Ok(Source {
         geometry,
+        values,
+        named: BTreeMap::new(),
+    })
+}
+
+/// One segment of a 3D Slicer segmentation: its layer, its value within that layer, its name
+/// and colour.
+struct Segment {
+    layer: usize,
+    value: u32,
+    name: String,
+    colour: Option<[f32; 3]>,
+}
+
+/// A 3D Slicer segmentation of several layers (segments that overlap, written as a 4-D file
+/// whose first axis is the layer) as one label per voxel. Each segment keeps its value unless
+/// a segment of another layer has the same value, when it takes the smallest free one. Where
+/// segments overlap, the one of fewer voxels wins: a tumour inside the liver, a vessel through
+/// it, stays itself (the larger keeps everything else).
+fn combine_layers(
+    path: &Path,
+    mut layers: Vec<Volume>,
+    segments: Vec<Segment>,
+) -> Result<Source, VolumeError> {
+    if let Some(s) = segments.iter().find(|s| s.layer >= layers.len()) {
+        return Err(VolumeError::format(
+            path,
+            format!(
+                "{} is on layer {}, but the file holds {} layers",
+                s.name,
+                s.layer,
+                layers.len()
+            ),
+        ));
+    }
+    let per_layer: Vec<Vec<u32>> = layers.iter().map(label_values).collect();
+    let clash = |s: &Segment| {
+        segments
+            .iter()
+            .any(|o| o.layer != s.layer && o.value == s.value)
+    };
+    let mut taken: std::collections::BTreeSet<u32> = segments
+        .iter()
+        .filter(|s| !clash(s))
+        .map(|s| s.value)
+        .collect();
+    let renumbered: Vec<(usize, u32)> = (0..segments.len())
+        .map(|k| {
+            if !clash(&segments[k]) {
+                return (k, segments[k].value);
+            }
+            let free = (1..).find(|v| !taken.contains(v)).expect("a free value");
+            taken.insert(free);
+            (k, free)
+        })
+        .collect();
+    // Largest first, so that a smaller segment painted later wins where they overlap.
+    let count = |s: &Segment| {
+        per_layer[s.layer]
+            .par_iter()
+            .filter(|&&v| v == s.value)
+            .count()
+    };
+    let mut order: Vec<(usize, u32, usize)> = renumbered
+        .iter()
+        .map(|&(k, v)| (k, v, count(&segments[k])))
+        .collect();
+    order.sort_by_key(|&(k, _, n)| (std::cmp::Reverse(n), k));
+    let mut values = vec![0u32; per_layer[0].len()];
+    for &(k, new, _) in &order {
+        let s = &segments[k];
+        values
+            .par_iter_mut()
+            .zip(&per_layer[s.layer])
+            .filter(|(_, &v)| v == s.value)
+            .for_each(|(out, _)| *out = new);
+    }
+    let named = renumbered
+        .iter()
+        .map(|&(k, v)| (v, (segments[k].name.clone(), segments[k].colour)))
+        .collect();
+    Ok(Source {
+        geometry: layers.swap_remove(0),
         values,
         named,
     })
 }
 
 /// The `SegmentN_Name`, `SegmentN_Color`, `SegmentN_LabelValue` and `SegmentN_Layer` fields of
-/// a 3D Slicer segmentation header (nothing for a plain NRRD). Segments on more than one layer
-/// (overlapping segments, a 4-D file) are refused.
-fn slicer_segments(path: &Path) -> Result<Names, VolumeError> {
+/// a 3D Slicer segmentation header (nothing for a plain NRRD).
+fn slicer_segments(path: &Path) -> Result<Vec<Segment>, VolumeError> {
     use std::io::BufRead;
     let file = std::fs::File::open(path).map_err(|e| VolumeError::io(path, e))?;
     let mut fields: BTreeMap<usize, BTreeMap<String, String>> = BTreeMap::new();
@@ -512,20 +613,15 @@ fn slicer_segments(path: &Path) -> Result<Names, VolumeError> {
                 .insert(field.to_string(), value.trim().to_string());
         }
     }
-    let mut named = BTreeMap::new();
+    let mut segments = Vec::new();
     for (n, f) in &fields {
         let bad = |m: String| VolumeError::format(path, format!("Segment{n}: {m}"));
-        if let Some(layer) = f.get("Layer") {
-            if layer.trim() != "0" {
-                return Err(VolumeError::unsupported(
-                    path,
-                    format!(
-                        "Segment{n} is on layer {layer}: overlapping segments (several layers) \
-                         are not read yet; export a label map with one layer"
-                    ),
-                ));
-            }
-        }
+        let layer = match f.get("Layer") {
+            Some(l) => l
+                .parse::<usize>()
+                .map_err(|_| bad(format!("Layer {l:?} is not a layer number")))?,
+            None => 0,
+        };
         let value = match f.get("LabelValue") {
             Some(v) => v
                 .parse::<u32>()
@@ -549,9 +645,14 @@ fn slicer_segments(path: &Path) -> Result<Names, VolumeError> {
                 }
             }
         };
-        named.insert(value, (name, colour));
+        segments.push(Segment {
+            layer,
+            value,
+            name,
+            colour,
+        });
     }
-    Ok(named)
+    Ok(segments)
 }
 
 /// A folder of binary NIfTI masks (TotalSegmentator's default output): each file one

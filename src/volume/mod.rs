@@ -64,6 +64,19 @@ pub enum Voxels {
 }
 
 impl Voxels {
+    /// Every `step`-th sample from `start`: one component of interleaved samples.
+    pub fn strided(self, start: usize, step: usize) -> Voxels {
+        fn pick<T>(v: Vec<T>, start: usize, step: usize) -> Vec<T> {
+            v.into_iter().skip(start).step_by(step).collect()
+        }
+        match self {
+            Voxels::U8(v) => Voxels::U8(pick(v, start, step)),
+            Voxels::U16(v) => Voxels::U16(pick(v, start, step)),
+            Voxels::I16(v) => Voxels::I16(pick(v, start, step)),
+            Voxels::F32(v) => Voxels::F32(pick(v, start, step)),
+        }
+    }
+
     pub fn len(&self) -> usize {
         match self {
             Voxels::U8(v) => v.len(),

@@ -106,17 +106,26 @@ fn split_vectors(s: &str) -> Option<Vec<String>> {
     Some(out)
 }
 
-/// The volume to read of a file with `sizes` and how many it holds: (0, 1) for 3-D data; for
-/// 4-D data the last axis must be a series (a `none` space direction or a non-spatial kind),
-/// and a series of several needs `frame`.
+/// How a file's volumes lie: one (3-D data), a series along the last axis, or components
+/// interleaved along the first (a 3D Slicer segmentation's layers, a vector per voxel).
+#[derive(Clone, Copy, PartialEq)]
+enum Layout {
+    One,
+    Series,
+    Interleaved,
+}
+
+/// The volume to read of a file with `sizes`, how many it holds and how they lie: (0, 1, One)
+/// for 3-D data; 4-D data has one non-spatial axis (a `none` space direction or a non-spatial
+/// kind), the last (a series) or the first (interleaved components), and several need `frame`.
 fn series_frame(
     path: &Path,
     h: &Header,
     sizes: &[u64],
     frame: Option<u64>,
-) -> Result<(u64, u64), VolumeError> {
+) -> Result<(u64, u64, Layout), VolumeError> {
     if sizes.len() == 3 {
-        return Ok((0, 1));
+        return Ok((0, 1, Layout::One));
     }
     // which axes are spatial: from the space directions, else the kinds
     let spatial: Vec<bool> = if let Some(sd) = &h.space_directions {
@@ -138,22 +147,35 @@ fn series_frame(
             "4-D data with other than three spatial axes",
         ));
     }
-    if !spatial[..3].iter().all(|&s| s) {
-        return Err(VolumeError::unsupported(
-            path,
-            "4-D data whose non-spatial axis is not the last one (interleaved samples, such as \
-             vectors or diffusion directions); only series of whole volumes are supported",
-        ));
-    }
-    let frames = sizes[3];
+    let (layout, list) = match spatial.iter().position(|&s| !s) {
+        Some(3) => (Layout::Series, 3),
+        Some(0) => (Layout::Interleaved, 0),
+        _ => {
+            return Err(VolumeError::unsupported(
+                path,
+                "4-D data whose non-spatial axis is in the middle; only a series (the last \
+                 axis) or interleaved components (the first) are read",
+            ))
+        }
+    };
+    let frames = sizes[list];
     if frames == 0 {
         return Err(VolumeError::format(
             path,
             "sizes: the series axis has size 0",
         ));
     }
-    let frame = pick_frame(path, frames, [sizes[0], sizes[1], sizes[2]], frame)?;
-    Ok((frame, frames))
+    let d = spatial_axes(layout).map(|a| sizes[a]);
+    let frame = pick_frame(path, frames, d, frame)?;
+    Ok((frame, frames, layout))
+}
+
+/// The spatial axes of a file laid out as `layout`.
+fn spatial_axes(layout: Layout) -> [usize; 3] {
+    match layout {
+        Layout::Interleaved => [1, 2, 3],
+        Layout::One | Layout::Series => [0, 1, 2],
+    }
 }
 
 /// The fields of a header that matter here, as written.
@@ -283,6 +305,26 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     load_frame(path, None)
 }
 
+/// Every volume of a file: the one of 3-D data, each of a series, or each interleaved component
+/// (a 3D Slicer segmentation's layers), in order.
+pub fn load_all(path: &Path) -> Result<Vec<Volume>, VolumeError> {
+    let file = File::open(path).map_err(|e| VolumeError::io(path, e))?;
+    let (h, _) = read_header(path, &mut BufReader::new(file))?;
+    let sizes: Vec<u64> = h
+        .sizes
+        .as_deref()
+        .unwrap_or_default()
+        .split_whitespace()
+        .filter_map(|s| s.parse().ok())
+        .collect();
+    // A header load_frame refuses is refused there, with its reason.
+    let count = match series_frame(path, &h, &sizes, Some(0)) {
+        Ok((_, n, _)) if sizes.len() == 4 => n,
+        _ => 1,
+    };
+    (0..count).map(|t| load_frame(path, Some(t))).collect()
+}
+
 /// Loads volume `frame` (0-based) of a 4-D NRRD whose last axis is a series (time, phases,
 /// echoes: a `none` space direction, or a non-spatial kind); `None` wants a 3-D file (or a
 /// series of one) and names the choice otherwise.
@@ -330,9 +372,10 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
             "sizes {sizes_s:?} must have {dim} entries (dimension {dim})"
         )));
     }
-    let dims = [sizes[0], sizes[1], sizes[2]];
+    let (frame, frames, layout) = series_frame(path, &h, &sizes, frame)?;
+    let axes = spatial_axes(layout);
+    let dims = axes.map(|a| sizes[a]);
     let (_, data_bytes) = checked_size(path, dims, ty.bytes())?;
-    let (frame, frames) = series_frame(path, &h, &sizes, frame)?;
     // every volume of a series is checked to be in the file; the chosen one is read
     let total_bytes = data_bytes
         .checked_mul(frames)
@@ -342,8 +385,14 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
                 "{frames} volumes of {data_bytes} bytes are too large"
             ))
         })?;
-    let frame_skip = frame * data_bytes;
+    // A series' volume lies whole after the ones before it; interleaved components are read
+    // together (as one volume `frames` times wider) and the one asked for picked out.
+    let (frame_skip, read_dims) = match layout {
+        Layout::Interleaved => (0, [dims[0] * frames, dims[1], dims[2]]),
+        Layout::One | Layout::Series => (frame * data_bytes, dims),
+    };
     let udims = dims.map(|d| d as usize);
+    let read_dims = read_dims.map(|d| d as usize);
 
     // encoding, endian
     let enc_s = required(&h.encoding, "encoding")?;
@@ -388,14 +437,22 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
     let mut directions = DMat3::IDENTITY;
     if let Some(sd) = &h.space_directions {
         let items = split_vectors(sd)
-            .filter(|v| v.len() as u64 == dim && (dim == 3 || v[3] == "none"))
+            .filter(|v| {
+                v.len() as u64 == dim
+                    && match layout {
+                        Layout::One => true,
+                        Layout::Series => v[3] == "none",
+                        Layout::Interleaved => v[0] == "none",
+                    }
+            })
             .ok_or_else(|| {
                 fmt(format!(
-                    "space directions {sd:?} must be three vectors (and `none` for a series axis)"
+                    "space directions {sd:?} must be three vectors (and `none` for a series or \
+                     component axis)"
                 ))
             })?;
         let mut cols = [DVec3::ZERO; 3];
-        for (a, item) in items.iter().take(3).enumerate() {
+        for (a, item) in axes.iter().map(|&i| &items[i]).enumerate() {
             let v = parse_vector(item).ok_or_else(|| {
                 fmt(format!(
                     "space directions: axis {a} has {item:?}, expected (x,y,z)"
@@ -426,7 +483,7 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
         if vals.len() as u64 != dim {
             return Err(fmt(format!("spacings {sp:?} must have {dim} entries")));
         }
-        for (a, &v) in vals.iter().take(3).enumerate() {
+        for (a, v) in axes.iter().map(|&i| vals[i]).enumerate() {
             if v.is_nan() {
                 continue; // "nan": no spacing known, keep 1 mm
             }
@@ -557,7 +614,9 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
                 "truncated data: decompressed data end after {skipped} of {skip} bytes to skip"
             )));
         }
-        read_wide(path, &what, &mut dec, ty, udims, big_endian, None, false)?
+        read_wide(
+            path, &what, &mut dec, ty, read_dims, big_endian, None, false,
+        )?
     } else {
         let pos = data.stream_position().map_err(dio)?;
         let len = data.get_ref().metadata().map_err(dio)?.len();
@@ -594,7 +653,13 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
         }
         data.seek(SeekFrom::Start(start + frame_skip))
             .map_err(dio)?;
-        read_wide(path, &what, &mut data, ty, udims, big_endian, None, true)?
+        read_wide(
+            path, &what, &mut data, ty, read_dims, big_endian, None, true,
+        )?
+    };
+    let voxels = match layout {
+        Layout::Interleaved => voxels.strided(frame as usize, frames as usize),
+        Layout::One | Layout::Series => voxels,
     };
     let name = path
         .file_stem()
@@ -1562,15 +1627,27 @@ mod tests {
         );
         let e = load_frame(&p, Some(0)).unwrap_err().to_string();
         assert!(e.contains("truncated data: expected 144 bytes"), "{e}");
-        // interleaved samples (a vector or diffusion axis first) are refused
-        let dwi =
-            "space directions: none (1,0,0) (0,2,0) (0,0,3)\nkinds: list domain domain domain\n";
+        // interleaved components (a 3D Slicer segmentation's layers, a vector axis first): one
+        // is picked, on the grid of the other three axes
+        let layers = "space directions: none (1,0,0) (0,2,0) (0,0,3)\n\
+                      kinds: list domain domain domain\n";
         let p = attached(
-            "dwi.nrrd",
-            head("3 2 3 4", &format!("{dwi}encoding: raw\n")),
+            "layers.nrrd",
+            head("3 2 3 4", &format!("{layers}encoding: raw\n")),
             &le,
         );
-        assert!(err_of(&p).contains("interleaved"));
+        assert!(err_of(&p).contains("pick one"));
+        let v = load_frame(&p, Some(1)).unwrap();
+        assert_eq!((v.dims, v.spacing), ([2, 3, 4], [1.0, 2.0, 3.0]));
+        assert_eq!(v.voxels, Voxels::I16((0..24).map(|i| 3 * i + 1).collect()));
+        // a non-spatial axis in the middle is refused
+        let mid = "space directions: (1,0,0) none (0,2,0) (0,0,3)\n";
+        let p = attached(
+            "mid.nrrd",
+            head("2 3 3 4", &format!("{mid}encoding: raw\n")),
+            &le,
+        );
+        assert!(err_of(&p).contains("in the middle"), "{}", err_of(&p));
         let p = attached("zero.nrrd", head("2 3 4 0", "encoding: raw\n"), &[]);
         assert!(err_of(&p).contains("size 0"));
         let p = attached("five.nrrd", head("2 3 4 3 1", "encoding: raw\n"), &le);

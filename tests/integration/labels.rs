@@ -614,15 +614,16 @@ fn a_tool_entering_a_safety_margin_is_told_with_the_exact_distance() {
     common::assert_no_validation_messages(&gpu);
 }
 
-/// A Python with highdicom: a private virtual environment in the cache, made once with pip
-/// (`python3 -m venv`; highdicom pinned so that the files it writes do not change under us).
-fn highdicom_python() -> Option<PathBuf> {
+/// A Python with `package` (pinned, so that the files it writes do not change under us): a
+/// private virtual environment in the cache, made once with pip (`python3 -m venv`); `imports`
+/// must import there. Skipped, or failed with `require` set, where it cannot be made.
+fn private_python(package: &str, imports: &str, require: &str) -> Option<PathBuf> {
     let home = std::env::var_os("HOME").map(PathBuf::from)?;
-    let venv = home.join(".cache/cao-xr/highdicom-0.28.2");
+    let venv = home.join(".cache/cao-xr").join(package.replace("==", "-"));
     let py = venv.join("bin/python");
     let works = |py: &PathBuf| {
         Command::new(py)
-            .args(["-c", "import highdicom, pydicom, numpy"])
+            .args(["-c", &format!("import {imports}")])
             .output()
             .is_ok_and(|o| o.status.success())
     };
@@ -633,7 +634,7 @@ fn highdicom_python() -> Option<PathBuf> {
             .status()
             .is_ok_and(|s| s.success())
             && Command::new(venv.join("bin/pip"))
-                .args(["install", "-q", "highdicom==0.28.2"])
+                .args(["install", "-q", package])
                 .status()
                 .is_ok_and(|s| s.success());
         if !made {
@@ -641,11 +642,60 @@ fn highdicom_python() -> Option<PathBuf> {
         }
     }
     common::require_or_skip(
-        "CAO_XR_REQUIRE_HIGHDICOM",
+        require,
         works(&py),
-        "highdicom could not be installed into a private Python environment (python3-venv, pip)",
+        &format!("{package} could not be installed into a private Python environment (python3-venv, pip)"),
     )
     .then_some(py)
+}
+
+/// highdicom, for DICOM SEG.
+fn highdicom_python() -> Option<PathBuf> {
+    private_python(
+        "highdicom==0.28.2",
+        "highdicom, pydicom, numpy",
+        "CAO_XR_REQUIRE_HIGHDICOM",
+    )
+}
+
+#[test]
+fn overlapping_slicer_segments_written_by_pynrrd_read_as_pynrrd_reads_them() {
+    let Some(py) = private_python("pynrrd==1.1.3", "nrrd, numpy", "CAO_XR_REQUIRE_PYNRRD") else {
+        return;
+    };
+    let dir = tmp("seg-layers");
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/write_seg_nrrd.py");
+    let out = Command::new(&py).arg(script).arg(&dir).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // pynrrd's reading, under the rule that the smaller segment wins where segments overlap.
+    let want: std::collections::BTreeMap<String, usize> =
+        serde_json::from_slice(&out.stdout).unwrap();
+    let (vol, seg) = (dir.join("volume.nrrd"), dir.join("overlap.seg.nrrd"));
+    let rows = info_structures(&[
+        "info",
+        vol.to_str().unwrap(),
+        "--labels",
+        seg.to_str().unwrap(),
+    ]);
+    // Two layers both use value 1: the liver keeps it, the tumour takes the first free value.
+    let got: Vec<(u32, &str)> = rows.iter().map(|r| (r.0, r.1.as_str())).collect();
+    assert_eq!(got, [(1, "liver"), (2, "portal vein"), (3, "tumour")]);
+    for (_, name, voxels) in &rows {
+        assert_eq!(
+            Some(voxels),
+            want.get(name),
+            "{name}: {rows:?} against {want:?}"
+        );
+    }
+    assert!(
+        want["tumour"] > 50,
+        "the tumour lies inside the liver: {want:?}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
