@@ -552,26 +552,28 @@ fn combine_layers(
             (k, free)
         })
         .collect();
-    // Largest first, so that a smaller segment painted later wins where they overlap.
     let count = |s: &Segment| {
         per_layer[s.layer]
             .par_iter()
             .filter(|&&v| v == s.value)
             .count()
     };
-    let mut order: Vec<(usize, u32, usize)> = renumbered
+    let size: BTreeMap<u32, usize> = renumbered
         .iter()
-        .map(|&(k, v)| (k, v, count(&segments[k])))
+        .map(|&(k, v)| (v, count(&segments[k])))
         .collect();
-    order.sort_by_key(|&(k, _, n)| (std::cmp::Reverse(n), k));
     let mut values = vec![0u32; per_layer[0].len()];
-    for &(k, new, _) in &order {
+    for &(k, new) in &renumbered {
         let s = &segments[k];
         values
             .par_iter_mut()
             .zip(&per_layer[s.layer])
             .filter(|(_, &v)| v == s.value)
-            .for_each(|(out, _)| *out = new);
+            .for_each(|(out, _)| {
+                if *out == 0 || overlap_wins((size[&new], new), (size[out], *out)) {
+                    *out = new;
+                }
+            });
     }
     let named = renumbered
         .iter()
@@ -655,8 +657,17 @@ fn slicer_segments(path: &Path) -> Result<Vec<Segment>, VolumeError> {
     Ok(segments)
 }
 
+/// Where two structures claim a voxel, whether `a` keeps it from `b`, each given as (voxel
+/// count, label value): the smaller structure wins, so a tumour or a vessel inside an organ
+/// stays itself (the organ keeps the rest); of two equal ones, the lower value. Every format
+/// that can overlap resolves it so (a mask folder, a layered `.seg.nrrd`, a DICOM SEG).
+pub(crate) fn overlap_wins(a: (usize, u32), b: (usize, u32)) -> bool {
+    a < b
+}
+
 /// A folder of binary NIfTI masks (TotalSegmentator's default output): each file one
-/// structure, named by the file, numbered in name order; where masks overlap, the first wins.
+/// structure, named by the file, numbered in name order; where masks overlap, the smaller wins
+/// ([`overlap_wins`]).
 fn read_mask_folder(dir: &Path) -> Result<Source, VolumeError> {
     let mut files: Vec<_> = std::fs::read_dir(dir)
         .map_err(|e| VolumeError::io(dir, e))?
@@ -676,6 +687,9 @@ fn read_mask_folder(dir: &Path) -> Result<Source, VolumeError> {
     let mut geometry: Option<Volume> = None;
     let mut values: Vec<u32> = Vec::new();
     let mut named = BTreeMap::new();
+    // Each mask's size, for the overlaps (a mask is compared only with earlier ones, whose
+    // sizes are known by then, so the masks need not all be held at once).
+    let mut size: Vec<usize> = vec![0];
     for (k, f) in files.iter().enumerate() {
         let mask = nifti::load(f)?;
         let g = geometry.get_or_insert_with(|| mask.clone_geometry());
@@ -702,8 +716,11 @@ fn read_mask_folder(dir: &Path) -> Result<Source, VolumeError> {
             values = vec![0; mask.voxel_count()];
         }
         let value = k as u32 + 1;
+        let inside = |i: usize| mask.voxels.get(i) >= 0.5;
+        let n = (0..mask.voxel_count()).filter(|&i| inside(i)).count();
+        size.push(n);
         for (i, v) in values.iter_mut().enumerate() {
-            if *v == 0 && mask.voxels.get(i) >= 0.5 {
+            if inside(i) && (*v == 0 || overlap_wins((n, value), (size[*v as usize], *v))) {
                 *v = value;
             }
         }

@@ -2,7 +2,7 @@
 another grid (the geometry of the series in coarse/: 2 x 2.5 x 4 mm, shifted, cropped), binary
 and fractional (with a 0.3 shell that is outside), and prints highdicom's own reading of the
 binary one resampled into the CT's grid by position (the nearest segmentation voxel to each CT
-voxel's centre; the first segment where they overlap): the CT voxels of each segment.
+voxel's centre; the smaller segment where they overlap): the CT voxels of each segment.
 Used by tests/integration/labels.rs."""
 import json, os, sys
 import numpy as np
@@ -100,8 +100,12 @@ for n, label in [(1, "tumour"), (2, "liver")]:
     nn = np.where(inside[..., None], ijk, 0)
     hit = inside & (arr[nn[..., 0], nn[..., 1], nn[..., 2]] > 0)
     counts[label] = hit
-# the first segment wins where they overlap
-tum = counts["tumour"]; liv = counts["liver"] & ~tum
+# the smaller segment wins where they overlap (cao-xr's rule; the first of equal ones)
+tum, liv = counts["tumour"], counts["liver"]
+if tum.sum() <= liv.sum():
+    liv = liv & ~tum
+else:
+    tum = tum & ~liv
 # flat CT voxel indices (x fastest) of each
 flat = lambda m: [int(i) for i in np.flatnonzero(np.transpose(m, (2, 1, 0)))]
 print(json.dumps({"tumour": flat(tum), "liver": flat(liv)}))

@@ -66,8 +66,10 @@ lab[d < 6] = 52
 lab[(np.abs(ras[..., 0] - 4) < 3) & (np.abs(ras[..., 2] - 29) < 3)] = 64
 nib.save(nib.Nifti1Image(lab, B), os.path.join(out, "labels.nii.gz"))
 os.makedirs(os.path.join(out, "masks"), exist_ok=True)
-for v, name in [(5, "liver"), (52, "aorta"), (64, "portal_vein")]:
-    nib.save(nib.Nifti1Image((lab == v).astype(np.uint8), B),
+# The liver's mask is the whole ball, overlapping the aorta's and the portal vein's: the smaller
+# structure wins, so the folder reads as the label map does.
+for name, mask in [("liver", d < 14), ("aorta", lab == 52), ("portal_vein", lab == 64)]:
+    nib.save(nib.Nifti1Image(mask.astype(np.uint8), B),
              os.path.join(out, "masks", name + ".nii.gz"))
 far = B.copy(); far[:3, 3] += 400.0
 nib.save(nib.Nifti1Image(lab, far), os.path.join(out, "far.nii.gz"))
@@ -195,7 +197,8 @@ fn label_maps_written_by_nibabel_resample_by_position_as_nibabel_reads_them() {
         "nothing was hidden"
     );
 
-    // A folder of masks names the structures by file, with the same voxels.
+    // A folder of masks names the structures by file, with the same voxels (the liver's mask
+    // overlaps the others, which are smaller and keep their voxels).
     let masks = dir.join("masks");
     let rows = info_structures(&["info", ct, "--labels", masks.to_str().unwrap()]);
     let by_name: Vec<(&str, usize)> = rows.iter().map(|r| (r.1.as_str(), r.2)).collect();

@@ -6,7 +6,7 @@
 //! along the normal, from the lowest to the highest.
 
 use super::{floats, int, open, text, tolerant};
-use crate::volume::{Modality, Volume, VolumeError, Voxels};
+use crate::volume::{labels, Modality, Volume, VolumeError, Voxels};
 use dicom_dictionary_std::tags;
 use dicom_object::{InMemDicomObject, Tag};
 use glam::{DMat3, DVec3};
@@ -196,6 +196,11 @@ pub fn read(path: &Path) -> Result<Segmentation, VolumeError> {
             pixel[n] != 0
         }
     };
+    // Each segment's size, so that the smaller wins where segments overlap.
+    let mut size: BTreeMap<u32, usize> = BTreeMap::new();
+    for (f, &(segment, _, _)) in placed.iter().enumerate() {
+        *size.entry(segment).or_default() += (0..per_frame_px).filter(|&i| set(f, i)).count();
+    }
     let mut values = vec![0u32; slices * per_frame_px];
     for (f, &(segment, p, d)) in placed.iter().enumerate() {
         let k = ((d - d0) / step).round() as usize;
@@ -212,8 +217,9 @@ pub fn read(path: &Path) -> Result<Segmentation, VolumeError> {
         }
         let slice = &mut values[k * per_frame_px..(k + 1) * per_frame_px];
         for (i, v) in slice.iter_mut().enumerate() {
-            // overlapping segments: the first (lowest number) is kept
-            if set(f, i) && (*v == 0 || segment < *v) {
+            if set(f, i)
+                && (*v == 0 || labels::overlap_wins((size[&segment], segment), (size[v], *v)))
+            {
                 *v = segment;
             }
         }
