@@ -173,6 +173,10 @@ crate::gpu::glsl_layout!(UpdatePush, 80,
 // One per CAO state: the sizes do not matter.
 #[allow(clippy::large_enum_variant)]
 pub enum MethodGpu {
+    /// No method yet: AO 1 everywhere (V_PAO open), for a first picture before the configured
+    /// method's precompute is done (a fast start, `app::frame_loop`). Its frames run the clip
+    /// machinery alone, so the tools cut the picture while V_AO stays 1.
+    Open,
     Lao,
     Filter(FilterGpu),
     Histogram(HistogramGpu),
@@ -451,17 +455,14 @@ impl Cao {
         std::mem::replace(&mut self.method, method)
     }
 
-    /// The AO method's name, as `--ao` spells it (lao, filter-gauss, histogram, ...).
+    /// The AO method's name, as `--ao` spells it (lao, filter-gauss, histogram, ...), or
+    /// "none" before one is computed ([`MethodGpu::Open`]).
     pub fn method_name(&self) -> String {
-        self.method().name()
-    }
-
-    /// The AO method, as its parameters.
-    pub fn method(&self) -> super::AoMethod {
         match &self.method {
-            MethodGpu::Lao => super::AoMethod::Lao,
-            MethodGpu::Filter(f) => super::AoMethod::Filter(f.params),
-            MethodGpu::Histogram(h) => super::AoMethod::Histogram(h.params),
+            MethodGpu::Open => "none".into(),
+            MethodGpu::Lao => super::AoMethod::Lao.name(),
+            MethodGpu::Filter(f) => super::AoMethod::Filter(f.params).name(),
+            MethodGpu::Histogram(h) => super::AoMethod::Histogram(h.params).name(),
         }
     }
 
@@ -494,6 +495,7 @@ impl Cao {
         match &self.method {
             MethodGpu::Filter(f) => f.params.reach_mm(self.spacing),
             MethodGpu::Histogram(h) => h.reach_mm(),
+            MethodGpu::Open => 0.0,
             MethodGpu::Lao => {
                 self.params.steps.saturating_sub(1) as f64 * self.params.step_mm as f64
             }
@@ -860,7 +862,7 @@ impl Cao {
                     hmode,
                 );
             }
-            MethodGpu::Lao => {}
+            MethodGpu::Lao | MethodGpu::Open => {}
         }
         let lao = matches!(self.method, MethodGpu::Lao);
         for b in boxes.iter().filter(|_| lao) {

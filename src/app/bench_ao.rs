@@ -76,6 +76,7 @@ fn resident_bytes(v: &AoVolume) -> u64 {
         MethodGpu::Filter(f) => f.resident_bytes(),
         MethodGpu::Histogram(h) => h.resident_bytes(),
         MethodGpu::Lao => v.skip.clear.size + v.skip.bricks.size,
+        MethodGpu::Open => 0,
     }
 }
 

@@ -179,6 +179,14 @@ pub fn fast_method(methods: &[AoMethod]) -> usize {
     }
 }
 
+/// How a frame loop starts: showing method k of its cycle (precomputed first), or open (AO 1,
+/// nothing precomputed) while method k is computed.
+#[derive(Clone, Copy, PartialEq)]
+enum Start {
+    Shown(usize),
+    Open(usize),
+}
+
 /// Downsampling factors tried, from the estimate up, for the one that fits.
 const FIT_TRIES: usize = 4;
 
@@ -264,21 +272,29 @@ impl FrameLoop {
         let methods = config.cycle();
         interaction.ao_methods = methods.len();
         // The scene asks for the configured method (ao_index 0). A fast start (the configured
-        // method takes long and the fast one is faster) shows the fast one first, so the first
-        // frame starts the switch to the configured one.
+        // method takes long) shows the fast one first when that is quick itself, so the first
+        // frame starts the switch to the configured one; else it shows no AO at once (open:
+        // AO 1) and computes the fast one first where it is faster, then the configured one.
         let fast = fast_method(&methods);
         let seconds = |method| precompute_seconds(gpu, vol.dims, &AoConfig { method, ..config });
-        let long = fast_start_after_s.is_some_and(|s| {
-            let configured = seconds(methods[0]);
-            configured > s && seconds(methods[fast]) < configured
-        });
-        let shown = if long { fast } else { 0 };
-        let first = AoConfig {
-            method: methods[shown],
-            ..config
+        let (configured, quick) = (seconds(methods[0]), seconds(methods[fast]));
+        let start = match fast_start_after_s {
+            Some(s) if configured > s && fast != 0 && quick <= s => Start::Shown(fast),
+            Some(s) if configured > s => Start::Open(if quick < configured { fast } else { 0 }),
+            _ => Start::Shown(0),
         };
         let lao = LaoGpu::new(gpu)?;
-        let ao = precompute_method(gpu, &lao, &vol, tf, &first, show_progress)?;
+        let (ao, shown) = match start {
+            Start::Shown(k) => {
+                let first = AoConfig {
+                    method: methods[k],
+                    ..config
+                };
+                let ao = precompute_method(gpu, &lao, &vol, tf, &first, show_progress)?;
+                (ao, k)
+            }
+            Start::Open(k) => (super::open_ao(gpu, &lao, &vol)?, k),
+        };
         let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
         let mut tex = VolumeTextures::new(gpu, &vol, tf)?;
         let margins = vol
@@ -317,12 +333,12 @@ impl FrameLoop {
             tfs: TfSwitcher::new(
                 gpu,
                 tfs,
-                (methods, shown),
+                (methods, shown, matches!(start, Start::Open(_))),
                 vol.labels.as_deref(),
                 (lao, lao_dirs),
             )?,
             tf_samples_per_frame: default_tf_samples_per_frame(gpu),
-            tf_slab_share: (shown != 0).then_some(FAST_START_SLAB_SHARE),
+            tf_slab_share: (start != Start::Shown(0)).then_some(FAST_START_SLAB_SHARE),
             lighting: None,
             margins,
             budget: None,

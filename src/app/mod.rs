@@ -214,6 +214,7 @@ impl AoVolume {
             },
             timing: self.timing.clone(),
             method: match &self.method {
+                MethodGpu::Open => MethodGpu::Open,
                 MethodGpu::Lao => MethodGpu::Lao,
                 MethodGpu::Filter(f) => MethodGpu::Filter(f.duplicate()?),
                 MethodGpu::Histogram(h) => MethodGpu::Histogram(h.duplicate()?),
@@ -363,6 +364,49 @@ pub fn precompute(
     show_progress: bool,
 ) -> Result<AoVolume> {
     precompute_method(gpu, lao, vol, tf, ao, show_progress).map_err(|e| fit_advice(vol, e, None))
+}
+
+/// The AO of no method yet ([`MethodGpu::Open`]): V_PAO 1 everywhere and O zero, both
+/// filled on the GPU, so a first picture waits for no classification, upload or precompute
+/// (the switch to a method classifies and computes its own).
+pub(crate) fn open_ao(gpu: &Gpu, lao: &LaoGpu, vol: &Volume) -> Result<AoVolume> {
+    crate::render::check_volume_fits_gpu(gpu, vol)?;
+    let n = vol.voxel_count() as u64;
+    let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST;
+    let opacity_buf = Buffer::new(
+        gpu,
+        n.max(1) * 4,
+        usage,
+        gpu_allocator::MemoryLocation::GpuOnly,
+        "opacity",
+    )?;
+    let ao_buf = crate::ao::stored::buffer(gpu, vol.dims, "pao")?;
+    // A fill writes whole 4-byte words: the last 16-bit word of an odd count is copied in.
+    let tail = Buffer::device_local(
+        gpu,
+        &[crate::ao::stored::pack(1.0)],
+        vk::BufferUsageFlags::TRANSFER_SRC,
+        "pao-tail",
+    )?;
+    gpu.submit_and_wait(|cmd| unsafe {
+        // SAFETY: the buffers were just made with these usages, and nothing else uses them.
+        let d = &gpu.device;
+        d.cmd_fill_buffer(cmd, opacity_buf.raw, 0, vk::WHOLE_SIZE, 0);
+        // Every 16-bit word all ones: AO_OPEN, AO 1.
+        d.cmd_fill_buffer(cmd, ao_buf.raw, 0, vk::WHOLE_SIZE, u32::MAX);
+        gpu.barrier(cmd);
+        let last = ao_buf.size - crate::ao::stored::BYTES_PER_VOXEL;
+        let region = vk::BufferCopy::default().dst_offset(last).size(2);
+        d.cmd_copy_buffer(cmd, tail.raw, ao_buf.raw, &[region]);
+    })?;
+    Ok(AoVolume {
+        opacity: Vec::new(),
+        opacity_buf,
+        ao_buf,
+        skip: lao.skip_stand_in()?,
+        timing: LaoTiming::default(),
+        method: MethodGpu::Open,
+    })
 }
 
 /// [`precompute`] with GPU memory exhaustion left as it is (for a caller that tells it).

@@ -138,6 +138,9 @@ pub struct TfSwitcher {
     tfs: Vec<TransferFunction>,
     methods: Vec<AoMethod>,
     shown: Choice,
+    /// Nothing is computed yet (the CAO state's method is [`MethodGpu::Open`], AO 1): the
+    /// shown choice's method is the one computed first, whatever the scene asks.
+    open: bool,
     /// The structures' names, for the progress line.
     names: Vec<String>,
     switch: Option<Switch>,
@@ -152,11 +155,12 @@ pub struct TfSwitcher {
 impl TfSwitcher {
     /// `lao_dirs` holds the directions of the CAO state's LAO parameters (V_PAO' uses them).
     /// The CAO state shows the first of `tfs`, `methods[shown_method]` and the structures of
-    /// `labels` as it sets them.
+    /// `labels` as it sets them; `open`: it shows no method yet, and `methods[shown_method]`
+    /// is computed first.
     pub fn new(
         gpu: &Gpu,
         tfs: Vec<TransferFunction>,
-        (methods, shown_method): (Vec<AoMethod>, usize),
+        (methods, shown_method, open): (Vec<AoMethod>, usize, bool),
         labels: Option<&LabelMap>,
         (lao, lao_dirs): (LaoGpu, Buffer),
     ) -> Result<Self> {
@@ -169,6 +173,7 @@ impl TfSwitcher {
                 method: shown_method,
                 structures: labels.map_or_else(Vec::new, LabelMap::opacities),
             },
+            open,
             names: labels.map_or_else(Vec::new, |l| {
                 l.structures.iter().map(|s| s.name.clone()).collect()
             }),
@@ -199,7 +204,11 @@ impl TfSwitcher {
         };
         Choice {
             tf: scene.tf_index % self.tfs.len(),
-            method: scene.ao_index % self.methods.len(),
+            method: if self.open {
+                self.shown.method
+            } else {
+                scene.ao_index % self.methods.len()
+            },
             structures,
         }
     }
@@ -212,16 +221,16 @@ impl TfSwitcher {
     /// Whether what `scene` asks for (transfer function, AO method, structures) is shown with
     /// no switch in flight: then [`TfSwitcher::advance`] replaces nothing and records no slab.
     pub fn settled(&self, scene: &Scene) -> bool {
-        self.switch.is_none() && self.wanted(scene) == self.shown
+        self.switch.is_none() && !self.open && self.wanted(scene) == self.shown
     }
 
     /// The switch in flight, if any.
     pub fn progress(&self) -> Option<TfProgress> {
         self.switch.as_ref().map(|sw| {
             let (want, shown) = (&sw.choice, &self.shown);
-            let (what, name) = if want.tf != shown.tf {
+            let (what, name) = if want.tf != shown.tf && !self.open {
                 ("TF", self.tfs[want.tf].name.clone())
-            } else if want.method != shown.method {
+            } else if want.method != shown.method || self.open {
                 ("AO", self.methods[want.method].name())
             } else {
                 ("labels", self.structure_change(&want.structures))
@@ -267,13 +276,15 @@ impl TfSwitcher {
             self.switch = None;
             return self.switch_to_histogram(want, vol, cao, tex);
         }
-        if &want != target {
+        // Open, the first switch starts though the choice is the shown one.
+        let first = self.open && self.switch.is_none();
+        if &want != target || first {
             // Dropping the switch in flight frees O', V_PAO' and skip': safe, because the frame
             // loop waits for the frame in flight before a frame that is not
             // [`TfSwitcher::settled`], so none of them is in use any more; an unfinished
             // classification thread is detached and its result discarded.
             self.switch = None;
-            if want != self.shown {
+            if want != self.shown || first {
                 self.switch = Some(self.start(want, vol, cao)?);
             }
         }
@@ -294,7 +305,7 @@ impl TfSwitcher {
             // The SH visibility depends on the opacity (TF and structures), not on the AO
             // method.
             let sh = match &lighting {
-                Some(l) if !sw.choice.same_opacity(&self.shown) => {
+                Some(l) if self.open || !sw.choice.same_opacity(&self.shown) => {
                     let v = ShVolume::new(&self.gpu, vol, l.volume.params)?;
                     let slabs =
                         SlabScheduler::with_budget(v.grid.dims[2], v.samples_per_slice(), budget);
@@ -359,6 +370,13 @@ impl TfSwitcher {
                 l.volume = v;
             }
             self.shown = sw.choice;
+            self.open = false;
+            // A fast start's next stage (the configured method after the fast one) begins on
+            // the same frame, so no frame in between reads as settled.
+            let want = self.wanted(scene);
+            if want != self.shown && !matches!(self.methods[want.method], AoMethod::Histogram(_)) {
+                self.switch = Some(self.start(want, vol, cao)?);
+            }
         }
         Ok(())
     }

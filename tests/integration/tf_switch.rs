@@ -8,7 +8,7 @@ use crate::common;
 use cao_xr::ao::cao::Mode;
 use cao_xr::ao::filtered::{Estimator, FilterParams};
 use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
-use cao_xr::app::frame_loop::{Built, FrameLoop, FrameOutput};
+use cao_xr::app::frame_loop::{precompute_seconds, Built, FrameLoop, FrameOutput};
 use cao_xr::clip::Shape;
 use cao_xr::gpu::Gpu;
 use cao_xr::input::{FrameInput, InteractionSettings};
@@ -463,55 +463,98 @@ fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
     assert_eq!(waited.cao.method_name(), "lao");
     assert!(waited.tf_slab_share.is_none());
     drop(waited);
-    // LAO cheaper than the filter's pass: nothing to gain, so it is waited for.
+    // LAO cheaper than the filter's pass, but beyond the threshold: the first picture is open
+    // and LAO is computed at once, with no filter before it.
     let cheap = Built {
         config: PARAMS.into(),
         ..built(0.0)
     };
-    let fl = FrameLoop::new_lit(&gpu, Arc::clone(&vol), tfs.clone(), cheap, None, false).unwrap();
-    assert_eq!(fl.cao.method_name(), "lao");
+    let mut fl =
+        FrameLoop::new_lit(&gpu, Arc::clone(&vol), tfs.clone(), cheap, None, false).unwrap();
+    assert_eq!(fl.cao.method_name(), "none");
+    let t = tool(Placement::default().center, 0, true);
+    let p = click_frame(&mut fl, &vol, t, false, 0, false)
+        .stats
+        .tf_progress;
+    assert_eq!(p.map(|p| (p.what, p.name)), Some(("AO", "lao".to_string())));
     drop(fl);
 
-    let mut fl = new(0.0);
+    // Frames with a carving tool until nothing is computed any more: the (shown method,
+    // method computed) of each frame, and the last frame with its tool.
+    let c = Placement::default().center;
+    let run = |fl: &mut FrameLoop| {
+        let budget = fl.tf_samples_per_frame;
+        let (mut i, mut stages) = (0, Vec::new());
+        let (done, t) = loop {
+            assert!(i < 200, "LAO never arrived");
+            let t = tool(c, i, true);
+            let a = click_frame(fl, &vol, t, false, i, false);
+            i += 1;
+            let Some(p) = a.stats.tf_progress.clone() else {
+                break (a, t);
+            };
+            assert_eq!(p.what, "AO", "frame {i}");
+            stages.push((a.stats.ao_method.clone(), p.name));
+        };
+        assert_ne!(
+            fl.tf_samples_per_frame, budget,
+            "the slab budget follows the frame times"
+        );
+        assert_eq!(done.stats.ao_method, "lao");
+        // Then exactly what a loop that waited for LAO shows, on the same carved frame.
+        let mut fresh = new_loop_with(&gpu, &vol, tfs.clone(), Mode::Contextual, deep.into());
+        let f = click_frame(&mut fresh, &vol, t, false, i, false);
+        let d = common::first_bit_difference(&read_ao(&fl.cao.ao), &read_ao(&fresh.cao.ao));
+        assert!(
+            d.is_none(),
+            "V_AO differs from a loop that waited, at {d:?}"
+        );
+        assert!(done.image == f.image, "the image differs");
+        stages
+    };
+    let count = |stages: &[(String, String)], shown: &str, computing: &str| {
+        stages
+            .iter()
+            .filter(|(s, c)| s == shown && c == computing)
+            .count()
+    };
+    // The filter's pass within the threshold: it lights the first picture, and the frames
+    // until LAO is complete, slab by slab.
+    let gauss = AoConfig::new(filter(Estimator::Gauss), deep);
+    let quick = precompute_seconds(&gpu, vol.dims, &gauss);
+    assert!(quick < precompute_seconds(&gpu, vol.dims, &deep.into()));
+    let mut fl = new(quick);
     assert_eq!(
         fl.cao.method_name(),
         "filter-gauss",
         "the first picture's method"
     );
-    let budget = fl.tf_samples_per_frame;
-    let c = Placement::default().center;
-    let (mut i, mut switching) = (0, 0);
-    let (done, t) = loop {
-        assert!(i < 200, "LAO never arrived");
-        let t = tool(c, i, true);
-        let a = click_frame(&mut fl, &vol, t, false, i, false);
-        i += 1;
-        let Some(p) = a.stats.tf_progress.clone() else {
-            break (a, t);
-        };
-        // The filter lights the frames until LAO is complete.
-        assert_eq!((p.what, p.name.as_str()), ("AO", "lao"), "frame {i}");
-        assert_eq!(a.stats.ao_method, "filter-gauss", "frame {i}");
-        switching += 1;
-    };
+    let stages = run(&mut fl);
     assert!(
-        switching > 1,
-        "LAO arrived in {switching} frames, not slab by slab"
+        count(&stages, "filter-gauss", "lao") == stages.len() && stages.len() > 1,
+        "LAO not slab by slab under the filter: {stages:?}"
     );
-    assert_ne!(
-        fl.tf_samples_per_frame, budget,
-        "the slab budget follows the frame times"
+    drop(fl);
+    // Even the filter's pass beyond it: the first picture waits for nothing (AO 1, method
+    // "none"), then the filter, then LAO slab by slab.
+    let mut fl = new(quick / 2.0);
+    assert_eq!(fl.cao.method_name(), "none", "the first picture's method");
+    assert!(read_ao(&fl.cao.ao).iter().all(|&a| a == 1.0));
+    let stages = run(&mut fl);
+    let (open, filtered) = (
+        count(&stages, "none", "filter-gauss"),
+        count(&stages, "filter-gauss", "lao"),
     );
-    assert_eq!(done.stats.ao_method, "lao");
-    // Then exactly what a loop that waited for LAO shows, on the same carved frame.
-    let mut fresh = new_loop_with(&gpu, &vol, tfs.clone(), Mode::Contextual, deep.into());
-    let f = click_frame(&mut fresh, &vol, t, false, i, false);
-    let d = common::first_bit_difference(&read_ao(&fl.cao.ao), &read_ao(&fresh.cao.ao));
     assert!(
-        d.is_none(),
-        "V_AO differs from a loop that waited, at {d:?}"
+        open >= 1 && filtered > 1 && open + filtered == stages.len(),
+        "{stages:?}"
     );
-    assert!(done.image == f.image, "the image differs");
+    assert!(
+        stages
+            .windows(2)
+            .all(|w| w[0].0 == w[1].0 || w[0].0 == "none"),
+        "in order: {stages:?}"
+    );
     common::assert_no_validation_messages(&gpu);
 }
 
