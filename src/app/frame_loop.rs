@@ -180,11 +180,11 @@ pub fn fast_method(methods: &[AoMethod]) -> usize {
 }
 
 /// How a frame loop starts: showing method k of its cycle (precomputed first), or open (AO 1,
-/// nothing precomputed) while method k is computed.
+/// nothing precomputed) while the configured method is computed.
 #[derive(Clone, Copy, PartialEq)]
 enum Start {
     Shown(usize),
-    Open(usize),
+    Open,
 }
 
 /// Downsampling factors tried, from the estimate up, for the one that fits.
@@ -274,13 +274,14 @@ impl FrameLoop {
         // The scene asks for the configured method (ao_index 0). A fast start (the configured
         // method takes long) shows the fast one first when that is quick itself, so the first
         // frame starts the switch to the configured one; else it shows no AO at once (open:
-        // AO 1) and computes the fast one first where it is faster, then the configured one.
+        // AO 1) and computes the configured one slab by slab (not the fast one first: the
+        // filters refilter in one go, and a frame held for minutes is worse than AO later).
         let fast = fast_method(&methods);
         let seconds = |method| precompute_seconds(gpu, vol.dims, &AoConfig { method, ..config });
         let (configured, quick) = (seconds(methods[0]), seconds(methods[fast]));
         let start = match fast_start_after_s {
             Some(s) if configured > s && fast != 0 && quick <= s => Start::Shown(fast),
-            Some(s) if configured > s => Start::Open(if quick < configured { fast } else { 0 }),
+            Some(s) if configured > s => Start::Open,
             _ => Start::Shown(0),
         };
         let lao = LaoGpu::new(gpu)?;
@@ -293,7 +294,7 @@ impl FrameLoop {
                 let ao = precompute_method(gpu, &lao, &vol, tf, &first, show_progress)?;
                 (ao, k)
             }
-            Start::Open(k) => (super::open_ao(gpu, &lao, &vol)?, k),
+            Start::Open => (super::open_ao(gpu, &lao, &vol)?, 0),
         };
         let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
         let mut tex = VolumeTextures::new(gpu, &vol, tf)?;
@@ -333,7 +334,7 @@ impl FrameLoop {
             tfs: TfSwitcher::new(
                 gpu,
                 tfs,
-                (methods, shown, matches!(start, Start::Open(_))),
+                (methods, shown, start == Start::Open),
                 vol.labels.as_deref(),
                 (lao, lao_dirs),
             )?,

@@ -371,12 +371,6 @@ impl TfSwitcher {
             }
             self.shown = sw.choice;
             self.open = false;
-            // A fast start's next stage (the configured method after the fast one) begins on
-            // the same frame, so no frame in between reads as settled.
-            let want = self.wanted(scene);
-            if want != self.shown && !matches!(self.methods[want.method], AoMethod::Histogram(_)) {
-                self.switch = Some(self.start(want, vol, cao)?);
-            }
         }
         Ok(())
     }

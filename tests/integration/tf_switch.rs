@@ -464,7 +464,7 @@ fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
     assert!(waited.tf_slab_share.is_none());
     drop(waited);
     // LAO cheaper than the filter's pass, but beyond the threshold: the first picture is open
-    // and LAO is computed at once, with no filter before it.
+    // and LAO is computed.
     let cheap = Built {
         config: PARAMS.into(),
         ..built(0.0)
@@ -536,24 +536,14 @@ fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
     );
     drop(fl);
     // Even the filter's pass beyond it: the first picture waits for nothing (AO 1, method
-    // "none"), then the filter, then LAO slab by slab.
+    // "none"), and LAO follows slab by slab (the filter's one-go pass would hold a frame).
     let mut fl = new(quick / 2.0);
     assert_eq!(fl.cao.method_name(), "none", "the first picture's method");
     assert!(read_ao(&fl.cao.ao).iter().all(|&a| a == 1.0));
     let stages = run(&mut fl);
-    let (open, filtered) = (
-        count(&stages, "none", "filter-gauss"),
-        count(&stages, "filter-gauss", "lao"),
-    );
     assert!(
-        open >= 1 && filtered > 1 && open + filtered == stages.len(),
-        "{stages:?}"
-    );
-    assert!(
-        stages
-            .windows(2)
-            .all(|w| w[0].0 == w[1].0 || w[0].0 == "none"),
-        "in order: {stages:?}"
+        count(&stages, "none", "lao") == stages.len() && stages.len() > 1,
+        "LAO not slab by slab while open: {stages:?}"
     );
     common::assert_no_validation_messages(&gpu);
 }
