@@ -221,9 +221,12 @@ pub struct Cao {
     prev_boxes: Vec<VoxelBox>,
     /// Where the last recorded frame may have changed V_AO (and the bleeding colour): its
     /// restore and tool boxes, merged (no two overlap). What the textures copy: the first frame
-    /// after [`Cao::set_method`] or [`Cao::replace_precomputed`] (every frame loop starts with
-    /// one) restores, and so copies, the whole volume.
+    /// after [`Cao::set_method`] or [`Cao::replace_precomputed`] restores, and so copies, the
+    /// whole volume, and so does a new state's first frame ([`Cao::unshown`]).
     pub changed: Vec<VoxelBox>,
+    /// V_AO holds values no texture was given yet (a new state's V_PAO): the next frame's
+    /// changed box is the whole volume.
+    unshown: bool,
     /// The state of every voxel outside `prev_boxes`: clipped away (a probe was active: only its
     /// inside is kept) or unclipped (O_c = O, V_AO = V_PAO).
     background_clipped: bool,
@@ -268,7 +271,8 @@ fn label_buffers(gpu: &Gpu, vol: &Volume) -> Result<(Buffer, Buffer, bool)> {
 }
 
 impl Cao {
-    /// `opacity` is O (device buffer), `pao` its LAO (V_PAO), `skip` its skipping data.
+    /// `opacity` is O (device buffer), `pao` its AO under `method` (V_PAO), `skip` its
+    /// skipping data (stand-ins for the methods that do not read it).
     pub fn new(
         gpu: &Gpu,
         vol: &Volume,
@@ -276,6 +280,7 @@ impl Cao {
         pao: Buffer,
         skip: SkipBuffers,
         params: LaoParams,
+        method: MethodGpu,
     ) -> Result<Cao> {
         let (dims, spacing) = (vol.dims, vol.spacing);
         let geometry = vol.clone_geometry();
@@ -347,7 +352,7 @@ impl Cao {
         let slots = (0..MAX_FRAMES_IN_FLIGHT)
             .map(|_| FrameSlot::new(gpu))
             .collect::<Result<Vec<_>>>()?;
-        let cao = Cao {
+        let mut cao = Cao {
             gpu: gpu.clone(),
             restore,
             clip,
@@ -373,20 +378,38 @@ impl Cao {
             clip_resolution: crate::clip::DEFAULT_RESOLUTION,
             prev_boxes: Vec::new(),
             changed: Vec::new(),
+            unshown: !matches!(method, MethodGpu::Open),
             background_clipped: false,
             sh_radius_mm: None,
             sh_boxes: Vec::new(),
             tool_count: 0,
             reach_boxes: Vec::new(),
-            method: MethodGpu::Lao,
+            method,
             labels,
             protect,
             any_protected,
         };
-        // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere.
         let all = cao.whole();
-        cao.gpu
-            .submit_and_wait(|cmd| cao.record_restore(cmd, &[all], false))?;
+        if matches!(cao.method, MethodGpu::Open) {
+            // No method yet: V_AO = V_PAO = 1, copied; O_c and the mask are first read after
+            // the first switch, whose whole restore writes them (a restore of a large volume
+            // takes seconds on a CPU device, and the first picture waits for it).
+            cao.gpu.submit_and_wait(|cmd| unsafe {
+                // SAFETY: both buffers are this state's own, made with TRANSFER_SRC/DST.
+                let region = vk::BufferCopy::default().size(cao.ao.size);
+                cao.gpu
+                    .device
+                    .cmd_copy_buffer(cmd, cao.pao.raw, cao.ao.raw, &[region]);
+            })?;
+        } else {
+            // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere.
+            cao.gpu
+                .submit_and_wait(|cmd| cao.record_restore(cmd, &[all], false))?;
+        }
+        if matches!(cao.method, MethodGpu::Histogram(_)) {
+            // The first frame's restore writes the local histograms' bleeding volume too.
+            cao.prev_boxes = vec![all];
+        }
         Ok(cao)
     }
 
@@ -891,7 +914,11 @@ impl Cao {
         self.slots[self.slot].timer.mark(cmd, "update");
         let visited = boxes.iter().map(|b| b.voxels()).sum();
         let touched = restore.into_iter().chain(boxes.iter().copied());
-        self.changed = merge_boxes(touched.filter(|b| b.voxels() > 0).collect());
+        self.changed = if std::mem::take(&mut self.unshown) {
+            vec![self.whole()]
+        } else {
+            merge_boxes(touched.filter(|b| b.voxels() > 0).collect())
+        };
         self.prev_boxes = boxes;
         Ok(PendingFrame {
             visited,

@@ -606,6 +606,7 @@ impl FrameLoop {
         };
         let slot = &self.slots.slots[f.slot];
         self.gpu.wait_fences(&[slot.fence])?;
+        self.tfs.picture_shown();
         let metrics = self.cao.read_metrics(f.pending)?;
         let sh = match (f.sh, self.lighting.as_ref()) {
             (Some(m), Some(l)) => ShStats {

@@ -224,9 +224,15 @@ impl AoVolume {
 
     /// Hands O, V_PAO and the skipping data to a CAO state for per-frame clipping.
     pub fn into_cao(self, gpu: &Gpu, vol: &Volume, params: LaoParams) -> Result<Cao> {
-        let mut cao = Cao::new(gpu, vol, self.opacity_buf, self.ao_buf, self.skip, params)?;
-        cao.set_method(self.method);
-        Ok(cao)
+        Ok(Cao::new(
+            gpu,
+            vol,
+            self.opacity_buf,
+            self.ao_buf,
+            self.skip,
+            params,
+            self.method,
+        )?)
     }
 }
 

@@ -141,6 +141,10 @@ pub struct TfSwitcher {
     /// Nothing is computed yet (the CAO state's method is [`MethodGpu::Open`], AO 1): the
     /// shown choice's method is the one computed first, whatever the scene asks.
     open: bool,
+    /// Open, the first switch waits until a picture has left the GPU
+    /// ([`TfSwitcher::picture_shown`]): its classification on the host would take the cores
+    /// from that first picture (on lavapipe, 13 s instead of 5 at 512 x 512 x 600).
+    first_picture_pending: bool,
     /// The structures' names, for the progress line.
     names: Vec<String>,
     switch: Option<Switch>,
@@ -174,6 +178,7 @@ impl TfSwitcher {
                 structures: labels.map_or_else(Vec::new, LabelMap::opacities),
             },
             open,
+            first_picture_pending: open,
             names: labels.map_or_else(Vec::new, |l| {
                 l.structures.iter().map(|s| s.name.clone()).collect()
             }),
@@ -224,8 +229,21 @@ impl TfSwitcher {
         self.switch.is_none() && !self.open && self.wanted(scene) == self.shown
     }
 
-    /// The switch in flight, if any.
+    /// A frame has left the GPU: an open start's first switch may begin.
+    pub fn picture_shown(&mut self) {
+        self.first_picture_pending = false;
+    }
+
+    /// The switch in flight, if any (an open start's first one from the first frame, at 0 %
+    /// while it waits for the first picture).
     pub fn progress(&self) -> Option<TfProgress> {
+        if self.open && self.switch.is_none() {
+            return Some(TfProgress {
+                what: "AO",
+                name: self.methods[self.shown.method].name(),
+                fraction: 0.0,
+            });
+        }
         self.switch.as_ref().map(|sw| {
             let (want, shown) = (&sw.choice, &self.shown);
             let (what, name) = if want.tf != shown.tf && !self.open {
@@ -276,8 +294,9 @@ impl TfSwitcher {
             self.switch = None;
             return self.switch_to_histogram(want, vol, cao, tex);
         }
-        // Open, the first switch starts though the choice is the shown one.
-        let first = self.open && self.switch.is_none();
+        // Open, the first switch starts though the choice is the shown one (once the first
+        // picture is out).
+        let first = self.open && self.switch.is_none() && !self.first_picture_pending;
         if &want != target || first {
             // Dropping the switch in flight frees O', V_PAO' and skip': safe, because the frame
             // loop waits for the frame in flight before a frame that is not

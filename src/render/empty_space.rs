@@ -28,22 +28,45 @@ pub struct BrickRanges {
     pub ranges: Vec<(f32, f32)>,
 }
 
+/// The voxels [lo, hi) along an axis of `n` voxels that brick `b` and its apron cover.
+fn apron(b: usize, n: usize) -> (usize, usize) {
+    let lo = (b * RAY_BRICK).saturating_sub(RAY_BRICK_APRON);
+    (lo, ((b + 1) * RAY_BRICK + RAY_BRICK_APRON).min(n))
+}
+
 impl BrickRanges {
-    /// The ranges of `values` (x fastest) on a grid of `dims`, reduced one axis at a time (the
-    /// range over a box is the range over x of the ranges over y of the ranges over z).
+    /// The ranges of `values` (x fastest) on a grid of `dims`.
     pub fn of(values: &[f32], dims: [usize; 3]) -> BrickRanges {
-        let mut cur: Vec<(f32, f32)> = values
-            .iter()
-            .map(|&v| {
-                if v.is_nan() {
-                    (f32::NEG_INFINITY, f32::INFINITY)
-                } else {
-                    (v, v)
+        Self::of_samples(dims, |i| values[i])
+    }
+
+    /// The ranges of the values `sample(i)` (voxel i, x fastest) on a grid of `dims`, reduced
+    /// one axis at a time (the range over a box is the range over z of the ranges over y of the
+    /// ranges over x). The first reduction reads the voxels themselves, a row of x per task on
+    /// every core; the others work on arrays a brick's width smaller.
+    pub fn of_samples(dims: [usize; 3], sample: impl Fn(usize) -> f32 + Sync) -> BrickRanges {
+        use rayon::prelude::*;
+        let nx = dims[0];
+        let nbx = nx.div_ceil(RAY_BRICK);
+        let mut cur = vec![(f32::INFINITY, f32::NEG_INFINITY); nbx * dims[1] * dims[2]];
+        cur.par_chunks_mut(nbx.max(1))
+            .enumerate()
+            .for_each(|(row, out)| {
+                for (b, o) in out.iter_mut().enumerate() {
+                    let (lo, hi) = apron(b, nx);
+                    *o = (lo..hi).fold(*o, |r, x| {
+                        let v = sample(row * nx + x);
+                        let (a, b) = if v.is_nan() {
+                            (f32::NEG_INFINITY, f32::INFINITY)
+                        } else {
+                            (v, v)
+                        };
+                        (r.0.min(a), r.1.max(b))
+                    });
                 }
-            })
-            .collect();
-        let mut shape = dims;
-        for axis in 0..3 {
+            });
+        let mut shape = [nbx, dims[1], dims[2]];
+        for axis in 1..3 {
             let n = shape[axis];
             let nb = n.div_ceil(RAY_BRICK);
             let mut next_shape = shape;
@@ -63,8 +86,7 @@ impl BrickRanges {
                     let dst0 =
                         i * stride(next_shape, others[0]) + j * stride(next_shape, others[1]);
                     for b in 0..nb {
-                        let lo = (b * RAY_BRICK).saturating_sub(RAY_BRICK_APRON);
-                        let hi = ((b + 1) * RAY_BRICK + RAY_BRICK_APRON).min(n);
+                        let (lo, hi) = apron(b, n);
                         let r = (lo..hi).fold((f32::INFINITY, f32::NEG_INFINITY), |r, k| {
                             let v = cur[src0 + k * src_stride];
                             (r.0.min(v.0), r.1.max(v.1))

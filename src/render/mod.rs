@@ -454,9 +454,7 @@ impl VolumeTextures {
         let scalars = volume_image(gpu, vol.dims, format, "scalars")?;
         scalars.upload(&stored, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
         drop(stored);
-        let values: Vec<f32> = (0..n).map(|i| vol.voxels.get(i)).collect();
-        let ranges = empty_space::BrickRanges::of(&values, vol.dims);
-        drop(values);
+        let ranges = empty_space::BrickRanges::of_samples(vol.dims, |i| vol.voxels.get(i));
         let [bx, by, bz] = ranges.bricks.map(|b| b as u32);
         let skip = Image::new(
             gpu,

@@ -4,7 +4,7 @@
 use crate::common;
 
 use ash::vk;
-use cao_xr::ao::cao::{Cao, FrameMetrics, Mode};
+use cao_xr::ao::cao::{Cao, FrameMetrics, MethodGpu, Mode};
 use cao_xr::ao::{LaoGpu, LaoParams};
 use cao_xr::app::HeadlessRenderer;
 use cao_xr::clip::Shape;
@@ -36,7 +36,7 @@ pub(crate) fn setup(gpu: &Gpu, vol: &Volume) -> (Cao, Vec<f32>, Vec<f32>) {
         .unwrap();
     let pao_host = read_ao(&pao);
     (
-        Cao::new(gpu, vol, obuf, pao, skip, PARAMS).unwrap(),
+        Cao::new(gpu, vol, obuf, pao, skip, PARAMS, MethodGpu::Lao).unwrap(),
         o,
         pao_host,
     )

@@ -5,7 +5,7 @@
 use crate::common;
 
 use ash::vk;
-use cao_xr::ao::cao::{Cao, Mode};
+use cao_xr::ao::cao::{Cao, MethodGpu, Mode};
 use cao_xr::ao::sh::{self, packed_coeff, ShParams, ShVolume, Y0};
 use cao_xr::ao::{LaoGpu, LaoParams};
 use cao_xr::clip::Shape;
@@ -198,7 +198,10 @@ fn cao_for(gpu: &Gpu, vol: &Volume, params: LaoParams) -> (Cao, Buffer) {
     let (pao, _) = lao
         .compute(&obuf, &skip, vol.dims, vol.spacing, &params, &mut |_, _| {})
         .unwrap();
-    (Cao::new(gpu, vol, obuf, pao, skip, params).unwrap(), o2)
+    (
+        Cao::new(gpu, vol, obuf, pao, skip, params, MethodGpu::Lao).unwrap(),
+        o2,
+    )
 }
 
 fn sphere(position: Vec3, size: f32, mode: ToolMode) -> Tool {
