@@ -1482,7 +1482,7 @@ mod tests {
 
     #[test]
     fn too_many_bytes_are_refused_with_a_downsample_hint() {
-        // 1024^3 voxels x 24 bytes = 24 GiB > 8 GiB; / 2 per axis = 3 GiB fits.
+        // 1024^3 voxels x 18 bytes = 18 GiB > 8 GiB; / 2 per axis = 2.25 GiB fits.
         let limits = VolumeLimits {
             max_buffer_bytes: u64::MAX,
             ..LIMITS
@@ -1490,7 +1490,7 @@ mod tests {
         let e = check_volume_fits("big", [1024, 1024, 1024], &limits, "gpu").unwrap_err();
         assert!(
             e.contains("volume big (1024 x 1024 x 1024)")
-                && e.contains("24576 MiB")
+                && e.contains("18432 MiB")
                 && e.contains("8192 MiB device-local heap")
                 && e.contains("--downsample 2"),
             "{e}"

@@ -464,17 +464,19 @@ fn read_label_file(path: &Path) -> Result<Source, VolumeError> {
     } else if lower.ends_with(".nrrd") || lower.ends_with(".nhdr") {
         let mut layers = nrrd::load_all(path)?;
         let segments = slicer_segments(path)?;
-        if layers.len() > 1 {
-            return combine_layers(path, layers, segments);
-        }
-        if let Some(s) = segments.iter().find(|s| s.layer != 0) {
+        if let Some(s) = segments.iter().find(|s| s.layer >= layers.len()) {
             return Err(VolumeError::format(
                 path,
                 format!(
-                    "{} is on layer {}, but the file holds one layer",
-                    s.name, s.layer
+                    "{} is on layer {}, but the file holds {} layer(s)",
+                    s.name,
+                    s.layer,
+                    layers.len()
                 ),
             ));
+        }
+        if layers.len() > 1 {
+            return Ok(combine_layers(layers, segments));
         }
         let named = segments
             .into_iter()
@@ -515,22 +517,8 @@ struct Segment {
 /// a segment of another layer has the same value, when it takes the smallest free one. Where
 /// segments overlap, the one of fewer voxels wins: a tumour inside the liver, a vessel through
 /// it, stays itself (the larger keeps everything else).
-fn combine_layers(
-    path: &Path,
-    mut layers: Vec<Volume>,
-    segments: Vec<Segment>,
-) -> Result<Source, VolumeError> {
-    if let Some(s) = segments.iter().find(|s| s.layer >= layers.len()) {
-        return Err(VolumeError::format(
-            path,
-            format!(
-                "{} is on layer {}, but the file holds {} layers",
-                s.name,
-                s.layer,
-                layers.len()
-            ),
-        ));
-    }
+/// Every segment's layer is one of `layers`.
+fn combine_layers(mut layers: Vec<Volume>, segments: Vec<Segment>) -> Source {
     let per_layer: Vec<Vec<u32>> = layers.iter().map(label_values).collect();
     let clash = |s: &Segment| {
         segments
@@ -579,11 +567,11 @@ fn combine_layers(
         .iter()
         .map(|&(k, v)| (v, (segments[k].name.clone(), segments[k].colour)))
         .collect();
-    Ok(Source {
+    Source {
         geometry: layers.swap_remove(0),
         values,
         named,
-    })
+    }
 }
 
 /// The `SegmentN_Name`, `SegmentN_Color`, `SegmentN_LabelValue` and `SegmentN_Layer` fields of
