@@ -652,6 +652,20 @@ fn private_python(package: &str, imports: &str, require: &str) -> Option<PathBuf
     .then_some(py)
 }
 
+/// Runs `tests/data/SCRIPT DIR` with `py`; its standard output (what the script read back).
+fn run_data_script(py: &Path, script: &str, dir: &Path) -> Vec<u8> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(script);
+    let out = Command::new(py).arg(script).arg(dir).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out.stdout
+}
+
 /// highdicom, for DICOM SEG.
 fn highdicom_python() -> Option<PathBuf> {
     private_python(
@@ -667,16 +681,9 @@ fn overlapping_slicer_segments_written_by_pynrrd_read_as_pynrrd_reads_them() {
         return;
     };
     let dir = tmp("seg-layers");
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/write_seg_nrrd.py");
-    let out = Command::new(&py).arg(script).arg(&dir).output().unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let stdout = run_data_script(&py, "write_seg_nrrd.py", &dir);
     // pynrrd's reading, under the rule that the smaller segment wins where segments overlap.
-    let want: std::collections::BTreeMap<String, usize> =
-        serde_json::from_slice(&out.stdout).unwrap();
+    let want: std::collections::BTreeMap<String, usize> = serde_json::from_slice(&stdout).unwrap();
     let (vol, seg) = (dir.join("volume.nrrd"), dir.join("overlap.seg.nrrd"));
     let rows = info_structures(&[
         "info",
@@ -705,14 +712,8 @@ fn overlapping_slicer_segments_written_by_pynrrd_read_as_pynrrd_reads_them() {
 fn dicom_segmentations_written_by_highdicom_resample_by_position_as_highdicom_reads_them() {
     let Some(py) = highdicom_python() else { return };
     let dir = tmp("dicom-seg");
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/write_dicom_seg.py");
-    let out = Command::new(&py).arg(script).arg(&dir).output().unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let want: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let stdout = run_data_script(&py, "write_dicom_seg.py", &dir);
+    let want: serde_json::Value = serde_json::from_slice(&stdout).unwrap();
     let voxels = |name: &str| -> Vec<usize> {
         want[name]
             .as_array()
