@@ -522,6 +522,11 @@ struct VolumeArgs {
     /// and lines, LPS or RAS); the rulers' lengths are printed.
     #[arg(long)]
     markups: Option<PathBuf>,
+    /// Where the window, the headset and replay write the session's markups (those loaded and
+    /// those placed with a measuring tool) when it ends. Without it a session that placed any
+    /// writes them to cao-xr-markups-<time>.mrk.json in the current folder (replay: into --out).
+    #[arg(long)]
+    save_markups: Option<PathBuf>,
     /// A structure's safety margin, NAME=MM (repeatable or comma-separated): a tool within MM
     /// of it is warned (a haptic pulse, the tool drawn in the warning colour, a stats line).
     #[arg(long, value_delimiter = ',', requires = "labels")]
@@ -828,6 +833,7 @@ fn session_spec(vol: &VolumeArgs, lao: &LaoArgs, light: &LightArgs) -> Result<Se
             Some(p) => cao_xr::volume::markups::Markups::read(p)?,
             None => Default::default(),
         },
+        save_markups: vol.save_markups.clone(),
     })
 }
 

@@ -13,6 +13,8 @@ pub enum ToolMode {
     Carve,
     /// Only the inside of the tool is kept.
     Probe,
+    /// The tool cuts nothing: its centre places points and rulers ([`Scene::marks`]).
+    Measure,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -25,6 +27,30 @@ pub struct Tool {
     pub mode: ToolMode,
     /// Whether the tool cuts this frame (carving on/off); an inactive tool is only drawn.
     pub active: bool,
+}
+
+impl Tool {
+    /// Whether the tool clips this frame: switched on, and not a measuring tool.
+    pub fn cuts(&self) -> bool {
+        self.active && self.mode != ToolMode::Measure
+    }
+}
+
+/// A point (both ends equal) or a ruler placed with a measuring tool, in the volume's own
+/// millimetres ([`Placement::local_mm`]), so it moves with the volume when the volume is
+/// grabbed and converts to patient space exactly ([`crate::space::lps_from_local_mm`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Mark {
+    pub ends: [glam::Vec3; 2],
+}
+
+impl Mark {
+    /// A mark shorter than this (mm) is a point: a click without a drag.
+    pub const POINT_MM: f32 = 1.0;
+
+    pub fn is_point(&self) -> bool {
+        self.ends[0].distance(self.ends[1]) < Mark::POINT_MM
+    }
 }
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -48,4 +74,8 @@ pub struct Scene {
     /// The structure the menu acts on (an index into `structures`).
     #[serde(default)]
     pub structure_selected: usize,
+    /// Points and rulers placed in this session with a measuring tool, oldest first (the
+    /// last one may still be drawn: its trigger held).
+    #[serde(default)]
+    pub marks: Vec<Mark>,
 }

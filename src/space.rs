@@ -94,6 +94,16 @@ pub fn symmetric_fov(half_angle: f32) -> Fov {
     }
 }
 
+/// The head between two eyes: their midpoint, turned halfway between them (the eyes of a
+/// headset look the same way, or nearly).
+pub fn head_of(views: &[View; 2]) -> Pose {
+    let [a, b] = views.map(|v| v.pose);
+    Pose {
+        position: a.position.lerp(b.position, 0.5),
+        orientation: a.orientation.slerp(b.orientation, 0.5),
+    }
+}
+
 /// Patient LPS axes in the world: patient left -> +X, posterior -> -Z, superior -> +Y, so a
 /// head stands upright facing a viewer who looks down -Z.
 pub fn world_from_lps() -> Mat3 {
@@ -106,6 +116,20 @@ pub struct Placement {
     pub center: Vec3,
     pub rotation: Quat,
     pub scale: f32,
+}
+
+impl Placement {
+    /// World point `world` in the volume's own millimetres: relative to its centre, along the
+    /// world's axes as they were before the volume was turned ([`world_from_lps`] of the
+    /// patient axes), unscaled.
+    pub fn local_mm(&self, world: Vec3) -> Vec3 {
+        self.rotation.inverse() * (world - self.center) / (self.scale * 1e-3)
+    }
+
+    /// The world point of volume-local millimetres `local` (the inverse of [`Self::local_mm`]).
+    pub fn world_of_local_mm(&self, local: Vec3) -> Vec3 {
+        self.center + self.rotation * (local * (self.scale * 1e-3))
+    }
 }
 
 impl Default for Placement {
@@ -141,6 +165,15 @@ pub fn world_from_lps_point(vol: &Volume, placement: &Placement, lps: DVec3) -> 
     let dims = DVec3::new(vol.dims[0] as f64, vol.dims[1] as f64, vol.dims[2] as f64);
     let tex = (index + 0.5) / dims;
     world_from_tex(vol, placement).transform_point3(tex.as_vec3())
+}
+
+/// Patient (LPS, mm) point of volume-local millimetres `local` ([`Placement::local_mm`]): the
+/// volume's box centre (the point [`world_from_tex`] places at the placement's centre) plus the
+/// offset turned from world axes back to patient axes (a rotation: lengths are kept).
+pub fn lps_from_local_mm(vol: &Volume, local: Vec3) -> DVec3 {
+    let half = DVec3::from_array(vol.dims.map(|d| d as f64 * 0.5 - 0.5));
+    let centre = vol.origin + vol.directions * (half * DVec3::from_array(vol.spacing));
+    centre + world_from_lps().transpose().as_dmat3() * local.as_dvec3()
 }
 
 /// Radius (m) of the sphere around the placed volume.
@@ -201,6 +234,37 @@ mod tests {
             (m.determinant() - 1.0).abs() < 1e-6,
             "a rotation, not a mirror"
         );
+    }
+
+    #[test]
+    fn volume_local_mm_is_patient_space_turned_and_placed() {
+        // An oblique, anisotropic volume, turned, moved and scaled in the world.
+        let mut vol = crate::volume::phantom::head(8);
+        vol.dims = [8, 6, 5];
+        vol.spacing = [0.7, 0.9, 2.5];
+        vol.origin = DVec3::new(-12.0, 30.0, 7.0);
+        vol.directions = glam::DMat3::from_rotation_z(0.4) * glam::DMat3::from_rotation_x(-0.3);
+        let placement = Placement {
+            center: Vec3::new(0.1, 1.2, -0.5),
+            rotation: Quat::from_rotation_y(0.7),
+            scale: 2.0,
+        };
+        for lps in [
+            DVec3::new(-10.0, 31.0, 9.0),
+            DVec3::new(3.0, 27.5, 12.25),
+            vol.origin,
+        ] {
+            let world = world_from_lps_point(&vol, &placement, lps);
+            let local = placement.local_mm(world);
+            assert!((placement.world_of_local_mm(local) - world).length() < 1e-6);
+            let back = lps_from_local_mm(&vol, local);
+            assert!((back - lps).length() < 1e-3, "{lps} -> {local} -> {back}");
+        }
+        // Lengths in local mm are patient mm, whatever the placement's scale.
+        let (a, b) = (DVec3::new(-10.0, 31.0, 9.0), DVec3::new(3.0, 27.5, 12.25));
+        let [la, lb] =
+            [a, b].map(|p| placement.local_mm(world_from_lps_point(&vol, &placement, p)));
+        assert!((la.distance(lb) as f64 - a.distance(b)).abs() < 1e-3);
     }
 
     #[test]

@@ -609,7 +609,7 @@ impl Cao {
     /// does.
     pub fn prepare_maps(&mut self, tools: &[Tool], placement: &Placement) -> Result<()> {
         let radii = [Some(self.dilation_radius_mm()), self.sh_radius_mm];
-        for tool in tools.iter().filter(|t| t.active).take(MAX_TOOLS) {
+        for tool in tools.iter().filter(|t| t.cuts()).take(MAX_TOOLS) {
             for r in radii.iter().flatten() {
                 self.map_for(tool, placement, true, *r)?;
             }
@@ -623,7 +623,7 @@ impl Cao {
         tools: &[Tool],
         placement: &Placement,
     ) -> Result<(u32, Vec<VoxelBox>)> {
-        let active: Vec<&Tool> = tools.iter().filter(|t| t.active).take(MAX_TOOLS).collect();
+        let active: Vec<&Tool> = tools.iter().filter(|t| t.cuts()).take(MAX_TOOLS).collect();
         let world_from_index = self.world_from_index(placement);
         let mut gpu_tools = Vec::new();
         let mut texels: Vec<[f32; 4]> = Vec::new();
@@ -650,7 +650,10 @@ impl Cao {
                     texels.extend_from_slice(&sh.dilated);
                     sh_boxes.push(match tool.mode {
                         ToolMode::Probe => self.whole(),
-                        ToolMode::Carve => self.box_of(&sh, local_from_index.inverse()),
+                        // (a measuring tool never cuts: `Tool::cuts`)
+                        ToolMode::Carve | ToolMode::Measure => {
+                            self.box_of(&sh, local_from_index.inverse())
+                        }
                     });
                     (off, map_params(&sh))
                 }
@@ -677,7 +680,7 @@ impl Cao {
             let b = self.box_of(&map, local_from_index.inverse());
             reach.push(match tool.mode {
                 ToolMode::Probe => self.whole(),
-                ToolMode::Carve => b,
+                ToolMode::Carve | ToolMode::Measure => b,
             });
             boxes.push(b);
         }
@@ -785,7 +788,7 @@ impl Cao {
         // boxes go back to it.
         let clipped = tools
             .iter()
-            .filter(|t| t.active)
+            .filter(|t| t.cuts())
             .take(MAX_TOOLS)
             .any(|t| t.mode == ToolMode::Probe);
         let mut restore: Vec<VoxelBox> = std::mem::take(&mut self.prev_boxes);

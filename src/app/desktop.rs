@@ -74,7 +74,7 @@ fn key_of(code: KeyCode) -> Option<Key> {
         KeyCode::KeyE => Key::Up,
         KeyCode::Space => Key::Trigger,
         KeyCode::Tab => Key::CycleShape,
-        KeyCode::KeyP => Key::ToggleProbe,
+        KeyCode::KeyP => Key::CycleMode,
         KeyCode::Equal | KeyCode::NumpadAdd => Key::Grow,
         KeyCode::Minus | KeyCode::NumpadSubtract => Key::Shrink,
         KeyCode::KeyM => Key::Menu,
@@ -151,7 +151,7 @@ impl App {
         self.fps = 0.9 * self.fps + 0.1 / dt.max(1e-3) as f64;
         if let (Some(w), Some(stats)) = (&self.window, retired.map(|r| r.stats)) {
             let m = &stats.metrics;
-            let carving = self.fl.scene.tools.first().is_some_and(|t| t.active);
+            let carving = self.fl.scene.tools.first().is_some_and(|t| t.cuts());
             // The TF shown, or the one being computed and how far ("TF ct-skin 40%").
             let tf = match &stats.tf_progress {
                 Some(p) => p.to_string(),
@@ -344,6 +344,7 @@ pub fn run(spec: &SessionSpec, opts: ViewOptions) -> Result<usize> {
     };
     app.presenter = None;
     app.window = None;
+    spec.save_markups(&app.fl, &super::session::default_markups_path())?;
     if let Some(e) = app.error.take() {
         return Err(e);
     }

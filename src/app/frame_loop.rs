@@ -20,7 +20,8 @@ use crate::ao::{AoConfig, AoMethod, LaoGpu};
 use crate::clip::margin::MarginHit;
 use crate::gpu::{Buffer, Gpu, GpuError, GpuTimer};
 use crate::input::{FrameInput, Interaction, InteractionSettings};
-use crate::render::{joint_overlay, markup_overlay, scene_overlay, OverlayRenderer};
+use crate::render::text::{text_items, TEXT_HEIGHT};
+use crate::render::{colors, joint_overlay, markup_overlay, scene_overlay, OverlayRenderer};
 use crate::render::{
     ClipBinding, FrameViews, RenderSettings, Renderer, StereoImage, StereoTarget, VolumeTextures,
     MAX_FRAMES_IN_FLIGHT,
@@ -189,6 +190,31 @@ enum Start {
 
 /// Downsampling factors tried, from the estimate up, for the one that fits.
 const FIT_TRIES: usize = 4;
+
+/// `loaded` and after them the marks a session placed ([`crate::scene::Scene::marks`]) as
+/// markups in patient space, named as 3D Slicer names new ones: points "F-1", "F-2", ...,
+/// rulers "L-1", "L-2", ... (numbered on from the loaded ones).
+pub fn with_marks(loaded: &Markups, vol: &Volume, marks: &[crate::scene::Mark]) -> Markups {
+    use crate::volume::markups::{MarkupLine, MarkupPoint};
+    let lps = |p| crate::space::lps_from_local_mm(vol, p);
+    let mut m = loaded.clone();
+    for mark in marks {
+        if mark.is_point() {
+            let label = format!("F-{}", m.points.len() + 1);
+            m.points.push(MarkupPoint {
+                label,
+                lps: lps(mark.ends[0]),
+            });
+        } else {
+            let label = format!("L-{}", m.lines.len() + 1);
+            m.lines.push(MarkupLine {
+                label,
+                ends: mark.ends.map(lps),
+            });
+        }
+    }
+    m
+}
 
 impl FrameLoop {
     /// Classifies the volume with the first of `tfs`, precomputes V_PAO (with a progress bar
@@ -422,17 +448,31 @@ impl FrameLoop {
     /// The structure menu's line: the selected structure and how the scene asks to show it,
     /// "structure 2/5 liver: hidden"; None without labels.
     pub fn structure_menu(&self) -> Option<String> {
+        let (k, n) = self.menu_position()?;
+        Some(format!(
+            "structure {}/{n} {}",
+            k + 1,
+            self.selected_structure()?
+        ))
+    }
+
+    /// "liver: translucent": the structure the menu selects and how it is shown (the headset
+    /// writes it above the left hand).
+    pub fn selected_structure(&self) -> Option<String> {
+        let (k, _) = self.menu_position()?;
+        let labels = self.volume.labels.as_ref()?;
+        Some(format!(
+            "{}: {}",
+            labels.structures[k].name,
+            crate::volume::labels::shown_as(self.scene.structures[k])
+        ))
+    }
+
+    /// The selected structure's index and the number of structures, with a label map.
+    fn menu_position(&self) -> Option<(usize, usize)> {
         let labels = self.volume.labels.as_ref()?;
         let n = self.scene.structures.len().min(labels.structures.len());
-        let k = self.scene.structure_selected % n.max(1);
-        (n > 0).then(|| {
-            format!(
-                "structure {}/{n} {}: {}",
-                k + 1,
-                labels.structures[k].name,
-                crate::volume::labels::shown_as(self.scene.structures[k])
-            )
-        })
+        (n > 0).then(|| (self.scene.structure_selected % n, n))
     }
 
     /// "margin aorta 3.2 mm < 5 mm (tool 0)" for each of `hits`, joined; None without hits.
@@ -685,6 +725,7 @@ impl FrameLoop {
         if read_back && self.slots.slots[index].readback.is_none() {
             self.slots.slots[index].readback = Some(self.target.readback_buffers(&self.gpu)?);
         }
+        let menu = self.selected_structure();
         let FrameLoop {
             gpu,
             volume,
@@ -705,10 +746,11 @@ impl FrameLoop {
             ..
         } = self;
         let model = world_from_tex(volume, &scene.volume);
+        let head = crate::space::head_of(&input.views);
         if let Some(l) = lighting.as_mut() {
             l.update_light(volume, &scene.volume, scene.light_yaw);
         }
-        let count = scene.tools.iter().filter(|t| t.active).count() as u32;
+        let count = scene.tools.iter().filter(|t| t.cuts()).count() as u32;
         tex.prepare(settings)?;
         // Whether the frame before is still in flight (submitted, not waited for) while this
         // one is recorded. (Whether the GPU is still busy with it is the driver's business:
@@ -786,8 +828,15 @@ impl FrameLoop {
                 let offset = interaction.settings().tool_offset;
                 items = scene_overlay(scene, &hands, offset, &warned);
                 joint_overlay(&input.joints, &mut items);
+                if let (Some(menu), Some(left)) = (&menu, hands[crate::input::LEFT]) {
+                    // The structure menu above the hand that works it.
+                    let at = left.position + head.orientation * glam::Vec3::new(0.0, 0.05, 0.0);
+                    let h = 0.75 * TEXT_HEIGHT;
+                    items.extend(text_items(menu, at, &head, h, colors::TEXT));
+                }
             }
-            markup_overlay(markups, volume, &scene.volume, &mut items);
+            let markups = with_marks(markups, volume, &scene.marks);
+            markup_overlay(&markups, volume, &scene.volume, &head, &mut items);
             overlay.record(cmd, target, &input.views, &items)?;
             timer.mark(cmd, PASS_OVERLAY);
             target.cmd_finish(cmd);

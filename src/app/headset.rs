@@ -46,6 +46,8 @@ pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
         let result = frames(&mut xs, &mut fl, &mut mirror, &mut recorder, &opts);
         // The last frame's stats are not needed; waiting for it is.
         let result = result.and_then(|()| fl.flush().map(|_| ()));
+        let saved = spec.save_markups(&fl, &super::session::default_markups_path());
+        let result = result.and(saved.map(|_| ()));
         unsafe {
             let _ = gpu.device.device_wait_idle();
         }

@@ -301,6 +301,7 @@ pub fn replay(
     }
     csv.flush().map_err(|e| out_err(&csv_path, e))?;
     drop(csv);
+    spec.save_markups(&fl, &out.join("markups.mrk.json"))?;
     std::fs::rename(&csv_path, &csv_final).map_err(|e| out_err(&csv_final, e))?;
     if let Some(p) = &opts.preview {
         let fps = frames.len() as f64 / (frames.last().unwrap().time - frames[0].time).max(1e-3);

@@ -2,7 +2,7 @@
 //! up the same way: the GPU from the command line's options and its banner, the frame loop with
 //! its transfer-function cycle and lighting, and the pose-stream recorder.
 
-use super::frame_loop::FrameLoop;
+use super::frame_loop::{with_marks, FrameLoop};
 use super::lighting::LightingOptions;
 use super::tf_switch::tf_cycle;
 use super::{AppError, Result};
@@ -13,7 +13,7 @@ use crate::input::{InteractionSettings, PoseStreamWriter, StreamHeader};
 use crate::volume::markups::Markups;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// GPU options from the command line: `--validation` turns the Khronos layer on (it is also on
@@ -54,6 +54,8 @@ pub struct SessionSpec {
     pub variance: Option<VarianceModulation>,
     /// Points and rulers drawn over the volume (`--markups`).
     pub markups: Markups,
+    /// Where the session's markups are written when it ends (`--save-markups`).
+    pub save_markups: Option<std::path::PathBuf>,
 }
 
 impl SessionSpec {
@@ -83,6 +85,43 @@ impl SessionSpec {
         fl.markups = self.markups.clone();
         Ok(fl)
     }
+}
+
+impl SessionSpec {
+    /// Writes the markups, with the points and rulers the session placed
+    /// ([`crate::scene::Scene::marks`]), to `--save-markups`; without it, to `default` when the
+    /// session placed any (what a surgeon measured is never lost). Call it however the session
+    /// ended. Returns the path written.
+    pub fn save_markups(&self, fl: &FrameLoop, default: &Path) -> Result<Option<PathBuf>> {
+        let path = match &self.save_markups {
+            Some(p) => p.clone(),
+            None if fl.scene.marks.is_empty() => return Ok(None),
+            None => default.to_path_buf(),
+        };
+        let all = with_marks(&self.markups, &self.volume, &fl.scene.marks);
+        all.write(&path)?;
+        eprintln!(
+            "markups: {} points and {} rulers written to {}{}",
+            all.points.len(),
+            all.lines.len(),
+            path.display(),
+            if all.lines.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", all.lengths())
+            }
+        );
+        Ok(Some(path))
+    }
+}
+
+/// `cao-xr-markups-<seconds since 1970>.mrk.json` in the current folder: where a window or a
+/// headset session writes the markups it placed without `--save-markups`.
+pub fn default_markups_path() -> PathBuf {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    PathBuf::from(format!("cao-xr-markups-{secs}.mrk.json"))
 }
 
 /// A session's input as it is being recorded.

@@ -22,7 +22,7 @@ pub enum Key {
     Up,
     Trigger,
     CycleShape,
-    ToggleProbe,
+    CycleMode,
     Grow,
     Shrink,
     Menu,
@@ -131,7 +131,7 @@ impl DesktopInput {
             buttons: Buttons {
                 trigger: if pressed(Key::Trigger) { 1.0 } else { 0.0 },
                 primary: pressed(Key::CycleShape),
-                secondary: pressed(Key::ToggleProbe),
+                secondary: pressed(Key::CycleMode),
                 menu: pressed(Key::Menu),
                 stick_click: pressed(Key::NextAo),
                 thumbstick: Vec2::new(

@@ -11,8 +11,9 @@
 //! | right hand              | holds tool 0, [`InteractionSettings::tool_offset`] ahead      |
 //! | trigger                 | toggles carving of that hand's tool (on/off)                  |
 //! | thumbstick up/down      | grows/shrinks that hand's tool                                |
-//! | primary (A/X)           | cycles that hand's tool shape                                 |
-//! | secondary (B/Y)         | toggles that hand's tool between carve and probe              |
+//! | primary (A/X)           | cycles that hand's tool shape (measuring: removes the last mark) |
+//! | secondary (B/Y)         | cycles that hand's tool: carve, probe, measure                |
+//! | trigger (measuring)     | press, drag, release: a ruler; a click: a point               |
 //! | left grip               | grabs the volume: it moves and turns with the hand            |
 //! | both grips              | scale (hand distance), move (midpoint), turn (hand axis)      |
 //! | menu (either hand)      | next transfer-function preset                                 |
@@ -25,6 +26,11 @@
 //! are the structure menu rather than its tool's shape and mode: a surgeon hides the ribs or
 //! sees through the liver with the hand that does not carve.
 //!
+//! A measuring tool cuts nothing. Its centre places marks ([`Scene::marks`], in the volume's own
+//! millimetres, so they move with it): the trigger pressed starts one there, its far end follows
+//! the tool while the trigger is held, and the release leaves it; a mark under
+//! [`Mark::POINT_MM`] long is a point. The overlay writes each ruler's length beside it.
+//!
 //! The left hand gets a tool of its own (tool 1) the first time its trigger is pulled, so a
 //! two-handed carve (the `two-tools` script) works while a surgeon who only grabs with the left
 //! never sees a second tool. Tools from index 2 on (placed by something else) are left alone.
@@ -34,7 +40,7 @@
 
 use super::{FrameInput, HandInput, LEFT, RIGHT};
 use crate::clip::{Shape, BUILTIN_SHAPES};
-use crate::scene::{Scene, Tool, ToolMode};
+use crate::scene::{Mark, Scene, Tool, ToolMode};
 use crate::space::{Placement, Pose};
 use glam::{Quat, Vec3};
 use serde::{Deserialize, Serialize};
@@ -390,6 +396,8 @@ struct Hand {
     buttons: HandButtons,
     /// The grip was pressed while tracked and has been held and tracked ever since.
     holding: bool,
+    /// The mark (an index into [`Scene::marks`]) this hand's measuring tool is drawing.
+    drawing: Option<usize>,
 }
 
 /// The interaction state machine: feed it every frame's input with [`Interaction::update`].
@@ -612,17 +620,23 @@ impl Interaction {
                 continue;
             };
             let p = &pressed[side];
-            if p.trigger {
+            let measuring = tool.mode == ToolMode::Measure;
+            if p.trigger && !measuring {
                 tool.active = !tool.active;
             }
-            if p.primary {
+            if p.primary && measuring {
+                scene.marks.pop();
+            } else if p.primary {
                 tool.shape = self.next_shape(tool.shape);
             }
             if p.secondary {
                 tool.mode = match tool.mode {
                     ToolMode::Carve => ToolMode::Probe,
-                    ToolMode::Probe => ToolMode::Carve,
+                    ToolMode::Probe => ToolMode::Measure,
+                    ToolMode::Measure => ToolMode::Carve,
                 };
+                // A measuring tool never cuts; back to carving it starts switched off.
+                tool.active = false;
             }
             tool.size = self.resized(tool.size, input.hands[side].buttons.thumbstick.y, dt);
             // Follow the hand while it is tracked; freeze otherwise.
@@ -632,7 +646,28 @@ impl Interaction {
                     tool.pose = self.tool_pose(grip);
                 }
             }
+            self.measure(side, &tool, p.trigger, scene);
             scene.tools[index] = tool;
+        }
+    }
+
+    /// A measuring tool's marks: the trigger's press starts one at the tool's centre, the far
+    /// end follows while it is held, the release leaves it. Any other mode ends a mark in hand.
+    fn measure(&mut self, side: usize, tool: &Tool, pressed: bool, scene: &mut Scene) {
+        let hand = &mut self.hands[side];
+        if tool.mode != ToolMode::Measure {
+            hand.drawing = None;
+            return;
+        }
+        let at = scene.volume.local_mm(tool.pose.position);
+        if let Some(mark) = hand.drawing.and_then(|k| scene.marks.get_mut(k)) {
+            mark.ends[1] = at;
+        } else if pressed {
+            scene.marks.push(Mark { ends: [at, at] });
+            hand.drawing = Some(scene.marks.len() - 1);
+        }
+        if !hand.buttons.trigger.pressed {
+            hand.drawing = None;
         }
     }
 

@@ -7,6 +7,7 @@ pub mod empty_space;
 pub mod overlay;
 pub mod png_out;
 pub mod preintegration;
+pub mod text;
 
 use crate::gpu::{pipeline, BoxRegion, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
 use crate::shader_constants::MAX_TOOLS;

@@ -42,6 +42,10 @@ pub mod colors {
     pub const OFFSET: [f32; 4] = [1.0, 0.85, 0.3, 0.6];
     /// Markups (points and rulers, `--markups`).
     pub const MARKUP: [f32; 4] = [0.25, 0.85, 1.0, 0.85];
+    /// A measuring tool: the markups' colour, faint, so its centre point stands out.
+    pub const MEASURING: [f32; 4] = [0.25, 0.85, 1.0, 0.12];
+    /// Text (rulers' lengths, the structure menu): near white, opaque.
+    pub const TEXT: [f32; 4] = [1.0, 1.0, 0.92, 1.0];
     /// A tool inside a structure's safety margin: amber, brighter than any other tool.
     pub const WARNING: [f32; 4] = [1.0, 0.7, 0.0, 0.55];
 }
@@ -61,6 +65,9 @@ pub enum OverlayMesh {
     Marker,
     /// A rod from local (0, 0, -1) to (0, 0, 1) of radius 1 (the unit cylinder), for segments.
     Rod,
+    /// A character of text ([`super::text`], by glyph index): flat, facing local +Z, drawn over
+    /// everything rather than depth-tested, so it stays readable.
+    Glyph(u8),
 }
 
 /// One mesh to draw over the volume.
@@ -82,6 +89,7 @@ pub fn tool_color(tool: &Tool) -> [f32; 4] {
         (ToolMode::Carve, false) => colors::IDLE,
         (ToolMode::Probe, true) => colors::PROBING,
         (ToolMode::Probe, false) => colors::PROBE_IDLE,
+        (ToolMode::Measure, _) => colors::MEASURING,
     }
 }
 
@@ -109,6 +117,10 @@ pub fn scene_overlay(
             },
         })
         .collect();
+    // A measuring tool marks at its centre: show the point it would place.
+    for t in scene.tools.iter().filter(|t| t.mode == ToolMode::Measure) {
+        items.push(markup_point(t.pose.position, 1.0));
+    }
     for side in [LEFT, RIGHT] {
         let Some(grip) = hands[side] else { continue };
         items.push(OverlayItem {
@@ -137,32 +149,58 @@ pub fn scene_overlay(
 const MARKUP_POINT: f32 = 0.0025;
 const MARKUP_ROD: f32 = 0.0008;
 
-/// The markups of `vol` placed at `placement`: a small sphere per point and per ruler end, a
-/// thin rod along each ruler; appended to `items`.
-pub fn markup_overlay(
-    markups: &crate::volume::markups::Markups,
-    vol: &crate::volume::Volume,
-    placement: &crate::space::Placement,
-    items: &mut Vec<OverlayItem>,
-) {
-    let at = |lps| crate::space::world_from_lps_point(vol, placement, lps);
-    let s = placement.scale;
-    let sphere = |p: Vec3| OverlayItem {
+/// A markup point's sphere at world point `p`, for a volume at `scale`.
+fn markup_point(p: Vec3, scale: f32) -> OverlayItem {
+    OverlayItem {
         mesh: OverlayMesh::Tool(Shape::Sphere),
         model: Mat4::from_scale_rotation_translation(
-            Vec3::splat(MARKUP_POINT * s),
+            Vec3::splat(MARKUP_POINT * scale),
             Quat::IDENTITY,
             p,
         ),
         color: colors::MARKUP,
-    };
+    }
+}
+
+/// The markups of `vol` placed at `placement`: a small sphere per point and per ruler end, a
+/// thin rod along each ruler, and text facing `head`: each point's label beside it, each
+/// ruler's length in mm above its middle; appended to `items`.
+pub fn markup_overlay(
+    markups: &crate::volume::markups::Markups,
+    vol: &crate::volume::Volume,
+    placement: &crate::space::Placement,
+    head: &Pose,
+    items: &mut Vec<OverlayItem>,
+) {
+    use super::text::{text_items, TEXT_HEIGHT};
+    let at = |lps| crate::space::world_from_lps_point(vol, placement, lps);
+    let s = placement.scale;
+    let up = head.orientation * Vec3::Y;
+    // Text clears the sphere or the rod it belongs to.
+    let above = up * (MARKUP_POINT * s + TEXT_HEIGHT);
     for p in &markups.points {
-        items.push(sphere(at(p.lps)));
+        let at = at(p.lps);
+        items.push(markup_point(at, s));
+        items.extend(text_items(
+            &p.label,
+            at + above,
+            head,
+            TEXT_HEIGHT,
+            colors::TEXT,
+        ));
     }
     for l in &markups.lines {
         let (a, b) = (at(l.ends[0]), at(l.ends[1]));
-        items.push(sphere(a));
-        items.push(sphere(b));
+        items.push(markup_point(a, s));
+        items.push(markup_point(b, s));
+        let length = format!("{:.1} mm", l.length_mm());
+        items.extend(text_items(
+            &length,
+            a.lerp(b, 0.5) + above,
+            head,
+            TEXT_HEIGHT,
+            colors::TEXT,
+        ));
         let half = 0.5 * a.distance(b);
         if half > 1e-6 {
             items.push(OverlayItem {
@@ -293,9 +331,13 @@ struct GpuMesh {
 impl GpuMesh {
     fn new(gpu: &Gpu, mesh: &TriMesh, name: &str) -> Result<GpuMesh> {
         let (v, i) = shaded_vertices(mesh);
+        GpuMesh::upload(gpu, &v, &i, name)
+    }
+
+    fn upload(gpu: &Gpu, v: &[[f32; 6]], i: &[u32], name: &str) -> Result<GpuMesh> {
         Ok(GpuMesh {
-            vertices: Buffer::device_local(gpu, &v, vk::BufferUsageFlags::VERTEX_BUFFER, name)?,
-            indices: Buffer::device_local(gpu, &i, vk::BufferUsageFlags::INDEX_BUFFER, name)?,
+            vertices: Buffer::device_local(gpu, v, vk::BufferUsageFlags::VERTEX_BUFFER, name)?,
+            indices: Buffer::device_local(gpu, i, vk::BufferUsageFlags::INDEX_BUFFER, name)?,
             index_count: i.len() as u32,
         })
     }
@@ -318,11 +360,16 @@ pub struct OverlayRenderer {
     /// the near side, whatever order the mesh lists its triangles in.
     back: vk::Pipeline,
     front: vk::Pipeline,
+    /// Front faces with no depth test, for text.
+    on_top: vk::Pipeline,
     layout: vk::PipelineLayout,
     /// Sphere, box, cylinder (also the rod), torus, marker.
     builtin: Vec<GpuMesh>,
     /// The loaded meshes, by [`Shape::Mesh`] index.
     loaded: Vec<GpuMesh>,
+    /// Every glyph in one mesh, and each glyph's `(first index, index count)` in it.
+    glyphs: GpuMesh,
+    glyph_ranges: Vec<(u32, u32)>,
 }
 
 impl OverlayRenderer {
@@ -337,6 +384,8 @@ impl OverlayRenderer {
         .iter()
         .map(|(m, name)| GpuMesh::new(gpu, m, name))
         .collect::<Result<Vec<_>>>()?;
+        let (v, i, glyph_ranges) = super::text::glyph_meshes();
+        let glyphs = GpuMesh::upload(gpu, &v, &i, "overlay-glyphs")?;
         unsafe {
             let d = &gpu.device;
             let push = [vk::PushConstantRange::default()
@@ -387,10 +436,14 @@ impl OverlayRenderer {
                 fs_constants: &[],
             };
             let depth = pipeline::depth(vk::CompareOp::LESS, false);
-            // Back faces first, then front faces.
+            // Back faces first, then front faces; text over everything.
             let variants = [
                 (pipeline::raster(vk::CullModeFlags::FRONT), depth),
                 (pipeline::raster(vk::CullModeFlags::BACK), depth),
+                (
+                    pipeline::raster(vk::CullModeFlags::BACK),
+                    pipeline::depth(vk::CompareOp::ALWAYS, false),
+                ),
             ];
             let res = pipeline::graphics_pipelines(gpu, &desc, &variants);
             let pipelines = match res {
@@ -404,9 +457,12 @@ impl OverlayRenderer {
                 gpu: gpu.clone(),
                 back: pipelines[0],
                 front: pipelines[1],
+                on_top: pipelines[2],
                 layout,
                 builtin,
                 loaded: Vec::new(),
+                glyphs,
+                glyph_ranges,
             })
         }
     }
@@ -422,8 +478,19 @@ impl OverlayRenderer {
         Ok(())
     }
 
+    /// The mesh that draws `mesh`, its index range, and the pipelines that draw it in order.
+    fn draw_of(&self, mesh: OverlayMesh) -> Option<(&GpuMesh, (u32, u32), Vec<vk::Pipeline>)> {
+        if let OverlayMesh::Glyph(g) = mesh {
+            let range = *self.glyph_ranges.get(g as usize)?;
+            return Some((&self.glyphs, range, vec![self.on_top]));
+        }
+        let m = self.mesh(mesh)?;
+        Some((m, (0, m.index_count), vec![self.back, self.front]))
+    }
+
     fn mesh(&self, mesh: OverlayMesh) -> Option<&GpuMesh> {
         match mesh {
+            OverlayMesh::Glyph(_) => None,
             OverlayMesh::Tool(Shape::Sphere) => self.builtin.first(),
             OverlayMesh::Tool(Shape::Box) => self.builtin.get(1),
             OverlayMesh::Tool(Shape::Cylinder) | OverlayMesh::Rod => self.builtin.get(2),
@@ -435,7 +502,8 @@ impl OverlayRenderer {
 
     /// Records `items` over what [`super::Renderer::record`] left in `target` (both images
     /// still attachments), both eyes. Items are drawn far to near from each eye (by the
-    /// distance to their local origin), so overlapping translucent items blend in order. Call
+    /// distance to their local origin), so overlapping translucent items blend in order, and
+    /// text after them all. Call
     /// [`StereoTarget::cmd_finish`] afterwards. With no items nothing is recorded.
     pub fn record(
         &mut self,
@@ -463,8 +531,10 @@ impl OverlayRenderer {
                 .iter()
                 .map(|it| (it.model.w_axis.truncate().distance(eye_pos), it))
                 .collect();
-            // Stable, and total on floats: the same items always draw in the same order.
-            order.sort_by(|a, b| b.0.total_cmp(&a.0));
+            // Stable, and total on floats: the same items always draw in the same order. Text
+            // comes last, so no translucent item tints it.
+            let text = |it: &OverlayItem| matches!(it.mesh, OverlayMesh::Glyph(_));
+            order.sort_by(|a, b| text(a.1).cmp(&text(b.1)).then(b.0.total_cmp(&a.0)));
             let view_proj = view.view_proj();
             let color_att = [vk::RenderingAttachmentInfo::default()
                 .image_view(target.color.layer_views[eye])
@@ -497,7 +567,7 @@ impl OverlayRenderer {
                 );
                 d.cmd_set_scissor(cmd, 0, &[area]);
                 for (_, item) in order {
-                    let Some(mesh) = self.mesh(item.mesh) else {
+                    let Some((mesh, (first, count), pipelines)) = self.draw_of(item.mesh) else {
                         continue;
                     };
                     let push = ItemPush {
@@ -512,7 +582,7 @@ impl OverlayRenderer {
                     };
                     d.cmd_bind_vertex_buffers(cmd, 0, &[mesh.vertices.raw], &[0]);
                     d.cmd_bind_index_buffer(cmd, mesh.indices.raw, 0, vk::IndexType::UINT32);
-                    for pipeline in [self.back, self.front] {
+                    for pipeline in pipelines {
                         d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
                         d.cmd_push_constants(
                             cmd,
@@ -521,7 +591,7 @@ impl OverlayRenderer {
                             0,
                             bytemuck::bytes_of(&push),
                         );
-                        d.cmd_draw_indexed(cmd, mesh.index_count, 1, 0, 0, 0);
+                        d.cmd_draw_indexed(cmd, count, 1, first, 0, 0);
                     }
                 }
                 d.cmd_end_rendering(cmd);
@@ -538,6 +608,7 @@ impl Drop for OverlayRenderer {
             let _ = d.device_wait_idle();
             d.destroy_pipeline(self.back, None);
             d.destroy_pipeline(self.front, None);
+            d.destroy_pipeline(self.on_top, None);
             d.destroy_pipeline_layout(self.layout, None);
         }
     }

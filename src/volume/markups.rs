@@ -154,7 +154,11 @@ impl Markups {
         }
         let doc = json!({ "@schema": SCHEMA, "markups": list });
         let text = serde_json::to_string_pretty(&doc).expect("JSON values serialise");
-        std::fs::write(path, text).map_err(|e| VolumeError::io(path, e))
+        // Beside its name, renamed once complete: an interrupted write leaves the file before.
+        let partial = path.with_extension("json.partial");
+        std::fs::write(&partial, text)
+            .and_then(|()| std::fs::rename(&partial, path))
+            .map_err(|e| VolumeError::io(path, e))
     }
 }
 

@@ -952,3 +952,80 @@ fn the_structure_menu_hides_a_structure_progressively_then_equals_a_fresh_start(
     }
     common::assert_no_validation_messages(&gpu);
 }
+
+/// In the headset the structure menu is written above the left hand ("vessel: shown"), facing
+/// the head, only while that hand is tracked; a press of Y rewrites it ("vessel: 0.30", translucent).
+#[test]
+fn the_structure_menu_is_written_above_the_left_hand() {
+    use cao_xr::app::frame_loop::FrameLoop;
+    use cao_xr::input::{pose, FrameInput, HandInput, InteractionSettings, LEFT};
+    use cao_xr::space::default_stereo_views;
+    const SIZE: usize = 160;
+    let gpu = common::gpu();
+    let vol = Arc::new(labelled_head(24, false));
+    let mut fl = FrameLoop::new(
+        &gpu,
+        Arc::clone(&vol),
+        vec![TransferFunction::preset("ct-bone").unwrap()],
+        cao_xr::ao::LaoParams {
+            rays: 6,
+            steps: 2,
+            step_mm: 4.0,
+        },
+        (SIZE as u32, SIZE as u32),
+        InteractionSettings::default(),
+        false,
+    )
+    .unwrap();
+    fl.settings.jitter = false;
+    let views = default_stereo_views(&vol, &Placement::default(), 0.064);
+    // The left hand 10 cm in front of the volume's centre and 4 cm below it: the text is 5 cm
+    // above the grip.
+    let grip = Placement::default().center + Vec3::new(0.0, -0.04, 0.1);
+    let hand = |tracked: bool, secondary: bool| {
+        let g = pose(grip, Quat::IDENTITY);
+        let mut h = HandInput {
+            tracked,
+            grip: g,
+            aim: g,
+            ..HandInput::default()
+        };
+        h.buttons.secondary = secondary;
+        h
+    };
+    let mut frame = |i: usize, tracked: bool, secondary: bool| {
+        let mut input = FrameInput::without_hands(i as f64 / 60.0, views);
+        input.hands[LEFT] = hand(tracked, secondary);
+        fl.frame(&input).unwrap().image.rgba[0].clone()
+    };
+    let untracked = frame(0, false, false);
+    let shown = frame(1, true, false);
+    // Pixels that changed, within the text's rows (2.5 cm either side of its middle) and
+    // outside them (the hand's marker).
+    let vp = views[0].view_proj();
+    let row_of = |p: Vec3| {
+        let c = vp * p.extend(1.0);
+        ((c.y / c.w + 1.0) * 0.5 * SIZE as f32) as usize
+    };
+    let middle = grip + Vec3::new(0.0, 0.05, 0.0);
+    let (top, bottom) = (
+        row_of(middle + Vec3::Y * 0.006),
+        row_of(middle - Vec3::Y * 0.006),
+    );
+    let changed = |a: &[u8], b: &[u8], rows: std::ops::Range<usize>| {
+        (rows.start * SIZE..rows.end * SIZE)
+            .filter(|&p| a[4 * p..4 * p + 4] != b[4 * p..4 * p + 4])
+            .count()
+    };
+    let text_rows = top..bottom + 1;
+    let in_text = changed(&untracked, &shown, text_rows.clone());
+    assert!(
+        in_text > 40,
+        "{in_text} pixels of text in rows {text_rows:?}"
+    );
+    // Y rewrites it: another word, other pixels in the same rows.
+    let translucent = frame(2, true, true);
+    assert_eq!(fl.selected_structure().as_deref(), Some("vessel: 0.30"));
+    assert!(changed(&shown, &translucent, text_rows.clone()) > 10);
+    common::assert_no_validation_messages(&gpu);
+}

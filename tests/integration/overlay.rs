@@ -490,3 +490,119 @@ fn markups_from_slicer_are_drawn_where_they_are_and_rulers_read_their_length_in_
     common::assert_no_validation_messages(&gpu);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A ruler drawn in a replayed session with a measuring tool: the replay writes it to
+/// `--save-markups` with its length in mm, and the picture writes that length beside it.
+#[test]
+fn a_ruler_drawn_with_the_measuring_tool_is_saved_for_slicer_and_its_length_is_written_beside_it() {
+    use cao_xr::input::{pose, Buttons, FrameInput, HandInput, PoseStreamWriter, StreamHeader};
+    use cao_xr::volume::markups::Markups;
+    let dir = common::scratch("overlay", "measure");
+    // An empty (clear) anisotropic volume: only the overlay is drawn over the background.
+    let raw = dir.join("v.raw");
+    std::fs::write(&raw, vec![0u8; 2 * 20 * 16 * 12]).unwrap();
+    // Frames: the right hand (a script's grip is its tool's centre) cycles carve -> probe ->
+    // measure, presses the trigger at a, drags to b and lets go there.
+    let (a, b) = (Vec3::new(-0.03, 1.39, -0.5), Vec3::new(0.03, 1.40, -0.5));
+    let head = pose(Vec3::new(0.0, 1.4, 0.0), Quat::IDENTITY);
+    let views = FrameInput::head_views(head, IPD, cao_xr::space::symmetric_fov(0.25));
+    let hand = |p: Vec3, trigger: f32, secondary: bool| {
+        let grip = pose(p, Quat::IDENTITY);
+        HandInput {
+            tracked: true,
+            grip,
+            aim: grip,
+            buttons: Buttons {
+                trigger,
+                secondary,
+                ..Buttons::default()
+            },
+        }
+    };
+    let mut steps = vec![(a, 0.0, false)];
+    steps.extend([
+        (a, 0.0, true),
+        (a, 0.0, false),
+        (a, 0.0, true),
+        (a, 0.0, false),
+    ]);
+    steps.extend((0..=6).map(|k| (a.lerp(b, k as f32 / 6.0), 1.0, false)));
+    steps.extend([(b, 0.0, false), (b, 0.0, false)]);
+    let stream = dir.join("measure.jsonl");
+    let header = StreamHeader::new("script:measure", "a ruler from a to b");
+    let mut w = PoseStreamWriter::create(&stream, &header).unwrap();
+    for (i, &(p, trigger, secondary)) in steps.iter().enumerate() {
+        let mut f = FrameInput::without_hands(i as f64 / 30.0, views);
+        f.hands[cao_xr::input::RIGHT] = hand(p, trigger, secondary);
+        w.write_frame(&f).unwrap();
+    }
+    w.finish().unwrap();
+    let (out, saved) = (dir.join("out"), dir.join("ruler.mrk.json"));
+    let last = steps.len() - 1;
+    let replay = |extra: &[&str]| {
+        let mut args = vec![
+            "replay",
+            stream.to_str().unwrap(),
+            raw.to_str().unwrap(),
+            "--raw-dims",
+            "20,16,12",
+            "--raw-type",
+            "i16",
+            "--raw-spacing",
+            "0.7,0.9,2.5",
+            "--rays",
+            "6",
+            "--steps",
+            "2",
+            "--size",
+            "192x192",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let o = common::run_cao_ok(&args);
+        String::from_utf8_lossy(&o.stderr).to_string()
+    };
+    let log = replay(&["--save-markups", saved.to_str().unwrap()]);
+    // 6.08 cm in the world at true size.
+    let want = a.distance(b) as f64 * 1e3;
+    let m = Markups::read(&saved).unwrap();
+    assert_eq!((m.points.len(), m.lines.len()), (0, 1), "{log}");
+    assert!(
+        (m.lines[0].length_mm() - want).abs() < 0.01,
+        "{m:?}, {want} mm"
+    );
+    assert_eq!(m.lines[0].label, "L-1");
+    assert!(log.contains(&format!("L-1 {want:.1} mm")), "{log}");
+    // The last frame writes "60.8 mm" in near-white above the ruler's middle; the clear volume
+    // leaves the rest the background.
+    let pic = cao_xr::render::compare::read_png(&out.join(format!("frame-{last:05}.png"))).unwrap();
+    let white: Vec<(usize, usize)> = (0..pic.width * pic.height)
+        .filter(|&p| pic.rgba[4 * p..4 * p + 3].iter().all(|&c| c > 225))
+        .map(|p| (p % pic.width, p / pic.width))
+        .collect();
+    let left: Vec<_> = white.iter().filter(|(x, _)| *x < 192).collect();
+    assert!(
+        left.len() > 100,
+        "{} text pixels in the left eye",
+        left.len()
+    );
+    // Above the middle (at the eye's height: y < 96), centred on it: the middle is half the
+    // eyes' distance to the right of the left eye's axis, 0.5 m ahead.
+    let px_per_tan = 96.0 / 0.25f64.tan();
+    let middle = 96.0 + (IPD as f64 / 2.0 / 0.5) * px_per_tan;
+    let x0 = left.iter().map(|p| p.0).min().unwrap() as f64;
+    let x1 = left.iter().map(|p| p.0).max().unwrap() as f64 + 1.0;
+    assert!(left.iter().all(|p| p.1 < 96), "{left:?}");
+    assert!(
+        ((x0 + x1) / 2.0 - middle).abs() < 6.0,
+        "{x0}..{x1}, middle {middle}"
+    );
+    // 7 cells of 12 mm, the last ("m") lit to its 7th column.
+    let width = (x1 - x0) / px_per_tan * 0.5;
+    assert!((0.075..0.085).contains(&width), "{width} m wide");
+    // No --save-markups: the replay writes them into its --out.
+    replay(&[]);
+    assert_eq!(Markups::read(&out.join("markups.mrk.json")).unwrap(), m);
+    let _ = std::fs::remove_dir_all(&dir);
+}

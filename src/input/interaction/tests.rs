@@ -579,7 +579,7 @@ fn frame_time_is_clamped() {
 }
 
 #[test]
-fn primary_cycles_shapes_and_secondary_toggles_the_mode() {
+fn primary_cycles_shapes_and_secondary_cycles_the_mode() {
     let settings = InteractionSettings {
         mesh_count: 2,
         ..InteractionSettings::default()
@@ -611,6 +611,9 @@ fn primary_cycles_shapes_and_secondary_toggles_the_mode() {
     i = run(&mut ix, &mut scene, i, [press(false, true); 2]);
     assert_eq!(scene.tools[RIGHT_TOOL].mode, ToolMode::Probe);
     i = run(&mut ix, &mut scene, i, [press(false, false)]);
+    i = run(&mut ix, &mut scene, i, [press(false, true)]);
+    assert_eq!(scene.tools[RIGHT_TOOL].mode, ToolMode::Measure);
+    i = run(&mut ix, &mut scene, i, [press(false, false)]);
     run(&mut ix, &mut scene, i, [press(false, true)]);
     assert_eq!(scene.tools[RIGHT_TOOL].mode, ToolMode::Carve);
 
@@ -618,6 +621,69 @@ fn primary_cycles_shapes_and_secondary_toggles_the_mode() {
     let ix = Interaction::default();
     assert_eq!(ix.next_shape(Torus), Sphere);
     assert_eq!(ix.next_shape(Mesh(7)), Sphere);
+}
+
+#[test]
+fn a_measuring_tool_draws_rulers_and_points_in_the_volumes_millimetres_and_cuts_nothing() {
+    let mut ix = Interaction::default();
+    let mut scene = Scene::default();
+    // A turned, half-size volume: marks are in its own mm, not in world metres.
+    scene.volume.rotation = Quat::from_rotation_y(0.5);
+    scene.volume.scale = 0.5;
+    let (a, b) = (Vec3::new(0.1, 1.3, -0.4), Vec3::new(0.14, 1.33, -0.4));
+    let offset = InteractionSettings::default().tool_offset;
+    let placement = scene.volume;
+    let local = |grip: Vec3| placement.local_mm(grip + offset);
+    let with = |p: Vec3, trigger: f32, secondary: bool, primary: bool| {
+        let mut h = triggering(at(p), trigger);
+        h.buttons.secondary = secondary;
+        h.buttons.primary = primary;
+        (idle_left(), h)
+    };
+    let mut i = run(&mut ix, &mut scene, 0, [with(a, 0.0, false, false)]);
+    // Carve -> probe -> measure.
+    for _ in 0..2 {
+        i = run(&mut ix, &mut scene, i, [with(a, 0.0, true, false)]);
+        i = run(&mut ix, &mut scene, i, [with(a, 0.0, false, false)]);
+    }
+    assert_eq!(scene.tools[RIGHT_TOOL].mode, ToolMode::Measure);
+    // Press at a, drag to b (the far end follows while held), release there.
+    i = run(&mut ix, &mut scene, i, [with(a, 1.0, false, false)]);
+    assert_eq!(scene.marks.len(), 1);
+    let mid = a.lerp(b, 0.5);
+    i = run(&mut ix, &mut scene, i, [with(mid, 1.0, false, false)]);
+    assert!(close(scene.marks[0].ends[1], local(mid), 1e-3));
+    i = run(&mut ix, &mut scene, i, [with(b, 1.0, false, false)]);
+    i = run(&mut ix, &mut scene, i, [with(b, 0.0, false, false)]);
+    // Moving on after the release leaves the ruler where it was.
+    i = run(&mut ix, &mut scene, i, [with(a, 0.0, false, false)]);
+    assert_eq!(scene.marks.len(), 1);
+    let m = scene.marks[0];
+    assert!(close(m.ends[0], local(a), 1e-3) && close(m.ends[1], local(b), 1e-3));
+    // 5 cm in the world at half size is 100 mm of the volume.
+    assert!(
+        (m.ends[0].distance(m.ends[1]) - 100.0).abs() < 1e-2,
+        "{m:?}"
+    );
+    assert!(!m.is_point());
+    assert!(
+        !scene.tools[RIGHT_TOOL].cuts(),
+        "a measuring tool never cuts"
+    );
+    // A click is a point.
+    i = run(&mut ix, &mut scene, i, [with(b, 1.0, false, false)]);
+    i = run(&mut ix, &mut scene, i, [with(b, 0.0, false, false)]);
+    assert_eq!(scene.marks.len(), 2);
+    assert!(scene.marks[1].is_point());
+    // Primary removes the last mark; back to carving, the trigger cuts again.
+    i = run(&mut ix, &mut scene, i, [with(b, 0.0, false, true)]);
+    assert_eq!(scene.marks, [m]);
+    i = run(&mut ix, &mut scene, i, [with(b, 0.0, true, false)]);
+    i = run(&mut ix, &mut scene, i, [with(b, 1.0, false, false)]);
+    run(&mut ix, &mut scene, i, [with(a, 1.0, false, false)]);
+    assert_eq!(scene.tools[RIGHT_TOOL].mode, ToolMode::Carve);
+    assert!(scene.tools[RIGHT_TOOL].cuts());
+    assert_eq!(scene.marks, [m], "carving places no marks");
 }
 
 #[test]
