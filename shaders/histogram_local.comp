@@ -9,6 +9,7 @@ layout(local_size_x = 64) in;
 
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
+// Bins: the bin in the low 16 bits (the structure id above it: src/ao/histogram_gpu.rs).
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Bins { uint bins[]; };
 layout(std430, binding = 1) readonly buffer Neighbours { vec4 neighbours[]; };
 layout(std430, binding = 2) readonly buffer List { uint list[]; };
@@ -39,14 +40,14 @@ void main() {
         for (int n = 0; n < pc.dims.w; n++) {
             vec4 nb = neighbours[n];
             ivec3 o = ivec3(nb.xyz);
-            lh[bins[i0 + o.x + row * o.y + slice * o.z]] += nb.w;
+            lh[bins[i0 + o.x + row * o.y + slice * o.z] & 0xffffu] += nb.w;
         }
     } else {
         for (int n = 0; n < pc.dims.w; n++) {
             vec4 nb = neighbours[n];
             ivec3 u = v + ivec3(nb.xyz);
             if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
-            lh[bins[u.x + row * u.y + slice * u.z]] += nb.w;
+            lh[bins[u.x + row * u.y + slice * u.z] & 0xffffu] += nb.w;
         }
     }
     for (uint k = 0u; k < pc.job.y; k++) rows[r * pc.job.y + k] = lh[k];

@@ -8,6 +8,7 @@
 //! heavy parts (the histograms, the assignment, the direct sums of the clip update).
 
 use crate::rng::SplitMix64;
+use crate::volume::labels::LabelMap;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use rayon::prelude::*;
@@ -102,9 +103,57 @@ pub fn bin_table(tf: &TransferFunction, range: (f32, f32), b: usize) -> Vec<[f32
         .collect()
 }
 
-/// q of the unclipped volume: each voxel's bin opacity.
-pub fn q_volume(bins: &[u32], table: &[[f32; 4]]) -> Vec<f32> {
-    bins.par_iter().map(|&k| table[k as usize][3]).collect()
+/// Entries of the shade table after the B bins: one per structure id 1..=255.
+pub const STRUCTURE_SHADES: usize = 255;
+
+/// Per voxel, the index of its colour in the shade table ([`shade_table`]): its bin, or for a
+/// labelled voxel B - 1 + its structure id (docs/design.md: a labelled voxel's colour is its
+/// structure's).
+pub fn shades(bins: &[u32], b: usize, labels: Option<&LabelMap>) -> Vec<u32> {
+    match labels {
+        None => bins.to_vec(),
+        Some(l) => bins
+            .par_iter()
+            .zip(&l.ids)
+            .map(|(&k, &id)| {
+                if id == 0 {
+                    k
+                } else {
+                    (b - 1) as u32 + id as u32
+                }
+            })
+            .collect(),
+    }
+}
+
+/// The shade table: the bins' TF colour and opacity ([`bin_table`]), then each structure's
+/// colour and opacity a_l by id (unused ids black): B + [`STRUCTURE_SHADES`] entries.
+pub fn shade_table(bins: &[[f32; 4]], labels: Option<&LabelMap>) -> Vec<[f32; 4]> {
+    let mut t = bins.to_vec();
+    t.resize(bins.len() + STRUCTURE_SHADES, [0.0; 4]);
+    for (k, s) in labels.iter().flat_map(|l| l.structures.iter()).enumerate() {
+        let [r, g, b] = s.colour;
+        t[bins.len() + k] = [r, g, b, s.opacity];
+    }
+    t
+}
+
+/// q of the unclipped volume: each voxel's bin opacity, times its structure's opacity a_l where
+/// the volume has labels (0 hidden; `structures` as shown, by structure index, else the label
+/// map's own): the histogram method's O of docs/design.md.
+pub fn q_volume(
+    bins: &[u32],
+    table: &[[f32; 4]],
+    labels: Option<&LabelMap>,
+    structures: &[f32],
+) -> Vec<f32> {
+    bins.par_iter()
+        .enumerate()
+        .map(|(i, &k)| {
+            let a = table[k as usize][3];
+            labels.map_or(a, |l| a * l.factor_showing(i, structures))
+        })
+        .collect()
 }
 
 /// S_r with its weights: every integer offset o != 0 with |o * s| <= r (mm), in z, y, x order,
@@ -174,19 +223,38 @@ impl Neighbourhood {
     }
 }
 
+/// What the direct definition needs of `vol` under `tf` with B = `b` bins and the structures as
+/// shown by `structures` (empty: the label map's own): q of the unclipped volume, each voxel's
+/// shade and the shade table.
+#[allow(clippy::type_complexity)]
+pub fn direct_inputs(
+    vol: &Volume,
+    tf: &TransferFunction,
+    b: usize,
+    structures: &[f32],
+) -> (Vec<f32>, Vec<u32>, Vec<[f32; 4]>) {
+    let bins = bins(vol, b);
+    let table = bin_table(tf, vol.value_range(), b);
+    let labels = vol.labels.as_deref();
+    let q = q_volume(&bins, &table, labels, structures);
+    (q, shades(&bins, b, labels), shade_table(&table, labels))
+}
+
 /// The direct definition on q (clip coverage already applied): openness A = 1 - O_env and the
-/// bleeding colour E (0 where no neighbour is opaque), in f64, voxel by voxel.
+/// bleeding colour E (0 where no neighbour is opaque), in f64, voxel by voxel. A member's colour
+/// is `table[shades[j]]` ([`shades`] and [`shade_table`]; without labels the bins and
+/// [`bin_table`]).
 pub fn direct_reference(
     dims: [usize; 3],
     q: &[f32],
-    bins: &[u32],
+    shades: &[u32],
     table: &[[f32; 4]],
     nb: &Neighbourhood,
 ) -> (Vec<f32>, Vec<[f32; 3]>) {
     let n = dims[0] * dims[1] * dims[2];
     (0..n)
         .into_par_iter()
-        .map(|i| direct_at(dims, q, bins, table, nb, i))
+        .map(|i| direct_at(dims, q, shades, table, nb, i))
         .unzip()
 }
 
@@ -194,7 +262,7 @@ pub fn direct_reference(
 pub fn direct_at(
     dims: [usize; 3],
     q: &[f32],
-    bins: &[u32],
+    shades: &[u32],
     table: &[[f32; 4]],
     nb: &Neighbourhood,
     i: usize,
@@ -213,7 +281,7 @@ pub fn direct_at(
         let j = u[0] as usize + dims[0] * (u[1] as usize + dims[1] * u[2] as usize);
         let wq = w * q[j] as f64;
         occ += wq;
-        let c = &table[bins[j] as usize];
+        let c = &table[shades[j] as usize];
         for ch in 0..3 {
             rgb[ch] += wq * c[ch] as f64;
         }

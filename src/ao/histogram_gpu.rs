@@ -8,11 +8,13 @@
 use super::cao::{dispatch_box, VoxelBox};
 use super::histogram::{self as hist, Clusters, HistParams, Neighbourhood, Packing};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, Reach, Result};
+use crate::volume::labels::LabelMap;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use ash::vk;
 use gpu_allocator::MemoryLocation;
 use std::path::Path;
+use std::sync::Arc;
 
 /// How [`HistogramGpu::record`] treats each voxel of its boxes (histogram_sums.comp's modes).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -78,20 +80,38 @@ pub struct HistogramGpu {
     range: (f32, f32),
     nb: Neighbourhood,
     neighbours: Buffer,
-    /// Each voxel's bin (host copy for q under a new TF, and on the GPU).
+    /// Each voxel's bin (host copy for q under a new TF).
     bin_ids: Vec<u32>,
+    /// The volume's label map: q and the colours follow its structures.
+    labels: Option<Arc<LabelMap>>,
+    /// Each voxel's bin in the low 16 bits and its structure id (0: none) in the high 16, as
+    /// the shaders read them.
     bins: Buffer,
+    /// The shade table ([`hist::shade_table`]): B bins, then the structures.
     bin_table: Buffer,
     /// Cluster ids and the representatives (host), with N > 0.
     clusters: Option<Clusters>,
     ids: Buffer,
     cluster_table: Buffer,
-    /// The bins' table of the last TF (host copy).
+    /// The shade table of the last TF (host copy).
     last_table: Vec<[f32; 4]>,
     /// E of the unclipped volume, and this frame's E (RGBA8 per voxel).
     pub pre_e: Buffer,
     pub e: Buffer,
     pub timing: ClusterTiming,
+}
+
+/// The bins as the shaders read them: the bin in the low 16 bits, the voxel's structure id (0:
+/// none) in the high 16 (B is at most [`hist::HIST_MAX_BINS`], far below 2^16).
+fn packed_bins(bins: &[u32], labels: Option<&LabelMap>) -> Vec<u32> {
+    match labels {
+        None => bins.to_vec(),
+        Some(l) => bins
+            .iter()
+            .zip(&l.ids)
+            .map(|(&k, &id)| k | (id as u32) << 16)
+            .collect(),
+    }
 }
 
 fn spv(name: &str) -> &'static [u8] {
@@ -118,7 +138,11 @@ impl HistogramGpu {
         let bin_ids = hist::bins(vol, params.bins);
         let nb = Neighbourhood::new(params.radius_mm, vol.spacing);
         let geometry = (vol.dims, vol.spacing, vol.value_range());
-        let mut h = HistogramGpu::with_state(gpu, geometry, params, bin_ids, nb, None)?;
+        // The clusters' representatives are histograms of values, blind to the structures: with
+        // N > 0 the clip update's direct sums ignore them too, so that both agree at a cut's
+        // border (docs/design.md, "Local-histogram AO").
+        let labels = vol.labels.clone().filter(|_| params.clusters == 0);
+        let mut h = HistogramGpu::with_state(gpu, geometry, params, (bin_ids, labels), nb, None)?;
         if params.clusters > 0 {
             let key = hist::cache_key(vol.dims, vol.spacing, &h.bin_ids, &params);
             let path = cache_dir.map(|d| hist::cache_path(d, key));
@@ -151,7 +175,7 @@ impl HistogramGpu {
         gpu: &Gpu,
         (dims, spacing, range): ([usize; 3], [f64; 3], (f32, f32)),
         params: HistParams,
-        bin_ids: Vec<u32>,
+        (bin_ids, labels): (Vec<u32>, Option<Arc<LabelMap>>),
         nb: Neighbourhood,
         clusters: Option<Clusters>,
     ) -> Result<HistogramGpu> {
@@ -191,10 +215,15 @@ impl HistogramGpu {
             spacing,
             range,
             neighbours: Buffer::from_slice(gpu, &nb.gpu_table(), storage, "hist-neighbours")?,
-            bins: Buffer::device_local(gpu, &bin_ids, storage, "hist-bins")?,
+            bins: Buffer::device_local(
+                gpu,
+                &packed_bins(&bin_ids, labels.as_deref()),
+                storage,
+                "hist-bins",
+            )?,
             bin_table: Buffer::new(
                 gpu,
-                (params.bins * 16) as u64,
+                ((params.bins + hist::STRUCTURE_SHADES) * 16) as u64,
                 storage,
                 MemoryLocation::CpuToGpu,
                 "hist-bin-table",
@@ -209,6 +238,7 @@ impl HistogramGpu {
             timing: ClusterTiming::default(),
             nb,
             bin_ids,
+            labels,
         };
         if let Some(c) = clusters {
             h.set_clusters(c)?;
@@ -238,7 +268,7 @@ impl HistogramGpu {
             &self.gpu,
             geometry,
             self.params,
-            self.bin_ids.clone(),
+            (self.bin_ids.clone(), self.labels.clone()),
             self.nb.clone(),
             self.clusters.clone(),
         )?;
@@ -463,13 +493,16 @@ impl HistogramGpu {
         Ok(Clusters { bins: b, ids, reps })
     }
 
-    /// Takes `tf`: the bins' colours and opacities, and with clusters each cluster's A and E
-    /// (one small table). Returns q of the unclipped volume (each voxel's bin opacity), the
-    /// "opacity" CAO clips for this method.
-    pub fn set_tf(&mut self, tf: &TransferFunction) -> Result<Vec<f32>> {
-        let table = hist::bin_table(tf, self.range, self.params.bins);
-        let q = hist::q_volume(&self.bin_ids, &table);
-        self.write_tables(table)?;
+    /// Takes `tf` with the structures shown as `structures` (by structure index; empty: as the
+    /// label map has them): the shade table (the bins' and structures' colours and opacities),
+    /// and with clusters each cluster's A and E (one small table). Returns q of the unclipped
+    /// volume (each voxel's bin opacity times its structure's a_l), the "opacity" CAO clips for
+    /// this method.
+    pub fn set_tf(&mut self, tf: &TransferFunction, structures: &[f32]) -> Result<Vec<f32>> {
+        let bins = hist::bin_table(tf, self.range, self.params.bins);
+        let labels = self.labels.as_deref();
+        let q = hist::q_volume(&self.bin_ids, &bins, labels, structures);
+        self.write_tables(hist::shade_table(&bins, labels))?;
         Ok(q)
     }
 
@@ -479,8 +512,9 @@ impl HistogramGpu {
         }
         self.bin_table.write(0, bytemuck::cast_slice(&table))?;
         if let Some(c) = &self.clusters {
+            let bins = &table[..self.params.bins];
             self.cluster_table
-                .write(0, bytemuck::cast_slice(&c.tf_table(&table)))?;
+                .write(0, bytemuck::cast_slice(&c.tf_table(bins)))?;
         }
         self.last_table = table;
         Ok(())
@@ -538,7 +572,7 @@ impl HistogramGpu {
             let push = SumsPush {
                 dims: self.dims4(self.nb.offsets.len() as i32),
                 box_min: [bx.min[0], bx.min[1], bx.min[2], mode as i32],
-                box_max: [bx.max[0], bx.max[1], bx.max[2], 0],
+                box_max: [bx.max[0], bx.max[1], bx.max[2], self.params.bins as i32],
                 reach: self.reach4(),
             };
             let bufs = [

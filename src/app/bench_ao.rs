@@ -306,9 +306,7 @@ pub fn bench_histogram(
     );
     let mut rows = Vec::new();
     for vol in volumes {
-        let bins = histogram::bins(vol, params.bins);
-        let table = histogram::bin_table(tf, vol.value_range(), params.bins);
-        let q = histogram::q_volume(&bins, &table);
+        let (q, shades, table) = histogram::direct_inputs(vol, tf, params.bins, &[]);
         let nb = histogram::Neighbourhood::new(params.radius_mm, vol.spacing);
         // The error sample: voxels with q > 0.001, spread deterministically.
         let candidates: Vec<usize> = (0..q.len()).filter(|&i| q[i] > 0.001).collect();
@@ -316,7 +314,7 @@ pub fn bench_histogram(
         let sample: Vec<usize> = candidates.iter().step_by(step).copied().collect();
         let direct: Vec<f32> = sample
             .par_iter()
-            .map(|&i| histogram::direct_at(vol.dims, &q, &bins, &table, &nb, i).0)
+            .map(|&i| histogram::direct_at(vol.dims, &q, &shades, &table, &nb, i).0)
             .collect();
         let sweep = sweep_tools(vol, 25.0, frames);
         for &n in clusters {
@@ -353,7 +351,13 @@ pub fn bench_histogram(
             let h = cao
                 .histogram_mut()
                 .expect("the method is the local histograms");
-            drop(super::histogram_tables(gpu, &lao, vol.dims, h, tf_after)?);
+            drop(super::histogram_tables(
+                gpu,
+                &lao,
+                vol.dims,
+                h,
+                (tf_after, &[]),
+            )?);
             let tf_change_ms = t1.elapsed().as_secs_f64() * 1e3;
             let row = HistBenchRow {
                 volume: vol.name.clone(),

@@ -508,16 +508,17 @@ pub struct HistogramTables {
     pub gpu_ms: f64,
 }
 
-/// The local-histogram method `h` under `tf` (its first TF, or a TF change): its tables, then
-/// q (the opacity CAO clips) and V_PAO with the bleeding volume in one pass.
+/// The local-histogram method `h` under `tf` and the structures as `structures` shows them (its
+/// first TF, a TF change or a structure shown or hidden): its tables, then q (the opacity CAO
+/// clips) and V_PAO with the bleeding volume in one pass.
 pub fn histogram_tables(
     gpu: &Gpu,
     lao: &LaoGpu,
     dims: [usize; 3],
     h: &mut HistogramGpu,
-    tf: &TransferFunction,
+    (tf, structures): (&TransferFunction, &[f32]),
 ) -> Result<HistogramTables> {
-    let q = h.set_tf(tf)?;
+    let q = h.set_tf(tf, structures)?;
     let opacity = Buffer::device_local(gpu, &q, vk::BufferUsageFlags::STORAGE_BUFFER, "opacity")?;
     let pao = lao.output_buffer(dims)?;
     let mut timer = crate::gpu::GpuTimer::new(gpu, 2)?;
@@ -547,7 +548,7 @@ pub fn precompute_histogram(
 ) -> Result<AoVolume> {
     params.validate().map_err(AppError::Usage)?;
     let t0 = std::time::Instant::now();
-    let t = histogram_tables(gpu, lao, vol.dims, &mut h, tf)?;
+    let t = histogram_tables(gpu, lao, vol.dims, &mut h, (tf, &[]))?;
     let timing = LaoTiming {
         gpu_ms: t.gpu_ms,
         wall_ms: t0.elapsed().as_secs_f64() * 1e3,
@@ -903,11 +904,9 @@ pub fn write_ao(
                                 .into(),
                         ));
                     }
-                    let bins = histogram::bins(vol, h.bins);
-                    let table = histogram::bin_table(tf, vol.value_range(), h.bins);
-                    let q = histogram::q_volume(&bins, &table);
+                    let (q, shades, table) = histogram::direct_inputs(vol, tf, h.bins, &[]);
                     let nb = histogram::Neighbourhood::new(h.radius_mm, vol.spacing);
-                    let (a, e) = histogram::direct_reference(vol.dims, &q, &bins, &table, &nb);
+                    let (a, e) = histogram::direct_reference(vol.dims, &q, &shades, &table, &nb);
                     bleeding = Some(e);
                     (a, q)
                 }

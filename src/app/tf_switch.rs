@@ -405,7 +405,8 @@ impl TfSwitcher {
     ) -> Result<()> {
         let tf = &self.tfs[want.tf];
         let (gpu, lao) = (&self.gpu, &self.lao);
-        let build = |h: &mut HistogramGpu| super::histogram_tables(gpu, lao, vol.dims, h, tf);
+        let shown = (tf, &want.structures[..]);
+        let build = |h: &mut HistogramGpu| super::histogram_tables(gpu, lao, vol.dims, h, shown);
         let shown_here = match cao.histogram_mut() {
             Some(h) => Some(build(h)?),
             None => None,

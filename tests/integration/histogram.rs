@@ -83,11 +83,10 @@ fn the_gpu_direct_sums_agree_with_the_cpu_reference() {
     };
     let (cao, q) = setup(&gpu, &vol, &tf, p, "reference");
     let h = cao.histogram().unwrap();
-    let bins = histogram::bins(&vol, p.bins);
-    let table = histogram::bin_table(&tf, vol.value_range(), p.bins);
-    assert_eq!(q, histogram::q_volume(&bins, &table));
+    let (want_q, shades, table) = histogram::direct_inputs(&vol, &tf, p.bins, &[]);
+    assert_eq!(q, want_q);
     let nb = histogram::Neighbourhood::new(p.radius_mm, vol.spacing);
-    let (want_a, want_e) = histogram::direct_reference(vol.dims, &q, &bins, &table, &nb);
+    let (want_a, want_e) = histogram::direct_reference(vol.dims, &q, &shades, &table, &nb);
     let got_a = read_ao(&cao.ao);
     common::assert_agrees(&got_a, &want_a, "the direct sums");
     assert!(
@@ -445,6 +444,167 @@ fn the_stick_click_leaves_the_local_histograms_and_comes_back_to_them() {
     assert!(
         back == first_frame,
         "and the same picture, bleeding included"
+    );
+    common::assert_no_validation_messages(&gpu);
+}
+
+/// docs/design.md's direct local-histogram AO with labels, written here from the definition
+/// alone: q(u) = alpha(bin centre) times the structure's a_l (`shown`, by structure index), a
+/// labelled member's colour its structure's, W over every member of S_r. Returns A and E (f64).
+#[allow(clippy::type_complexity)]
+fn direct_with_labels(
+    vol: &Volume,
+    tf: &TransferFunction,
+    b: usize,
+    r: f64,
+    shown: &[f32],
+) -> (Vec<f64>, Vec<[f64; 3]>) {
+    let (lo, hi) = vol.value_range();
+    let (lo, span) = (lo as f64, hi as f64 - lo as f64);
+    let labels = vol.labels.as_deref().unwrap();
+    let dims = vol.dims.map(|d| d as i64);
+    let s = vol.spacing;
+    let s_min = s.iter().copied().fold(f64::INFINITY, f64::min);
+    let shade = |u: usize| -> (f64, [f64; 3]) {
+        let k = ((b as f64 * (vol.voxels.get(u) as f64 - lo) / span).floor() as usize).min(b - 1);
+        let c = tf.eval(
+            (lo + (k as f64 + 0.5) * span / b as f64) as f32,
+            vol.value_range(),
+        );
+        let alpha = c[3] as f64;
+        match labels.ids[u] as usize {
+            0 => (alpha, [c[0], c[1], c[2]].map(|x| x as f64)),
+            id => (
+                alpha * shown[id - 1] as f64,
+                labels.structures[id - 1].colour.map(|x| x as f64),
+            ),
+        }
+    };
+    let reach = s.map(|x| (r / x).floor() as i64);
+    let mut members = Vec::new();
+    for z in -reach[2]..=reach[2] {
+        for y in -reach[1]..=reach[1] {
+            for x in -reach[0]..=reach[0] {
+                let d = ((x as f64 * s[0]).powi(2)
+                    + (y as f64 * s[1]).powi(2)
+                    + (z as f64 * s[2]).powi(2))
+                .sqrt();
+                if d > 0.0 && d <= r {
+                    members.push(([x, y, z], (s_min / d).powi(2)));
+                }
+            }
+        }
+    }
+    let total: f64 = members.iter().map(|m| m.1).sum();
+    let n = vol.voxel_count();
+    (0..n)
+        .map(|i| {
+            let v = [
+                i as i64 % dims[0],
+                (i as i64 / dims[0]) % dims[1],
+                i as i64 / (dims[0] * dims[1]),
+            ];
+            let (mut occ, mut rgb) = (0.0, [0.0; 3]);
+            for (o, w) in &members {
+                let u = [v[0] + o[0], v[1] + o[1], v[2] + o[2]];
+                if (0..3).any(|a| u[a] < 0 || u[a] >= dims[a]) {
+                    continue;
+                }
+                let (q, c) = shade((u[0] + dims[0] * (u[1] + dims[1] * u[2])) as usize);
+                occ += w * q;
+                for ch in 0..3 {
+                    rgb[ch] += w * q * c[ch];
+                }
+            }
+            let e = if occ > 0.0 {
+                rgb.map(|x| x / occ)
+            } else {
+                [0.0; 3]
+            };
+            (1.0 - occ / total, e)
+        })
+        .unzip()
+}
+
+/// With a label map the histogram method's AO is that of what is shown (docs/design.md, O =
+/// a_l · tf_alpha, a labelled voxel's colour its structure's): the GPU's direct sums equal an
+/// implementation of the definition written in this test, as the label map shows the
+/// structures and after the structure menu hides one and shows another translucent.
+#[test]
+fn the_direct_sums_follow_the_structures_shown_and_their_colours() {
+    use cao_xr::volume::labels::{LabelMap, Structure};
+    let gpu = common::gpu();
+    let n = 20;
+    let mut vol = phantom::head(n);
+    // A green structure in the lower half, a blue one in a column through the middle.
+    let ids: Vec<u8> = (0..vol.voxel_count())
+        .map(|i| {
+            let (x, y, z) = (i % n, (i / n) % n, i / (n * n));
+            if (x as i32 - 10).abs() < 3 && (y as i32 - 10).abs() < 3 {
+                2
+            } else if z < n / 2 {
+                1
+            } else {
+                0
+            }
+        })
+        .collect();
+    let structure = |name: &str, colour| Structure {
+        value: 1,
+        name: name.into(),
+        colour,
+        opacity: 1.0,
+        protected: false,
+        margin_mm: None,
+        voxels: 0,
+    };
+    vol.labels = Some(std::sync::Arc::new(LabelMap {
+        source: "test".into(),
+        ids,
+        structures: vec![
+            structure("green", [0.1, 0.9, 0.2]),
+            structure("blue", [0.1, 0.2, 0.9]),
+        ],
+    }));
+    let tf = TransferFunction::preset("ct-skin").unwrap();
+    let p = HistParams {
+        radius_mm: 30.0,
+        bins: 16,
+        clusters: 0,
+    };
+    let (mut cao, _) = setup(&gpu, &vol, &tf, p, "labels");
+    let check = |cao: &Cao, shown: &[f32], what: &str| {
+        let (want_a, want_e) = direct_with_labels(&vol, &tf, p.bins, p.radius_mm, shown);
+        let want_a: Vec<f32> = want_a.iter().map(|&a| a as f32).collect();
+        common::assert_agrees(&read_ao(&cao.ao), &want_a, what);
+        let got_e = e_of(&cao.histogram().unwrap().pre_e);
+        for (i, (g, w)) in got_e.iter().zip(&want_e).enumerate() {
+            for c in 0..3 {
+                assert!(
+                    (g[c] as f64 - w[c]).abs() <= 0.5 / 255.0 + 1e-4,
+                    "{what}: voxel {i}: E {g:?} vs {w:?}"
+                );
+            }
+        }
+        (want_a, want_e)
+    };
+    let (a_shown, e_shown) = check(&cao, &[1.0, 1.0], "structures shown");
+    assert!(
+        e_shown.iter().any(|e| e[1] > 0.5) && e_shown.iter().any(|e| e[2] > 0.5),
+        "the structures' colours bleed"
+    );
+    // The menu hides the green one and shows the blue one translucent: one table update.
+    let shown = [0.0, 0.3];
+    let lao = LaoGpu::new(&gpu).unwrap();
+    let h = cao.histogram_mut().unwrap();
+    let t = cao_xr::app::histogram_tables(&gpu, &lao, vol.dims, h, (&tf, &shown)).unwrap();
+    cao.replace_precomputed(t.opacity, t.pao, None).unwrap();
+    cao.run_frame(&[], &Placement::default(), Mode::Contextual)
+        .unwrap();
+    let (a_hidden, _) = check(&cao, &shown, "green hidden, blue translucent");
+    assert!(
+        a_hidden.iter().zip(&a_shown).any(|(h, s)| h - s > 0.05),
+        "hiding a structure opens its surroundings"
     );
     common::assert_no_validation_messages(&gpu);
 }
