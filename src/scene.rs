@@ -74,6 +74,10 @@ pub struct Scene {
     /// The structure the menu acts on (an index into `structures`).
     #[serde(default)]
     pub structure_selected: usize,
+    /// Whether the tools leave each structure standing (by structure index); starts as
+    /// `--protect` set it, and the structure menu toggles the selected one.
+    #[serde(default)]
+    pub protected: Vec<bool>,
     /// Points and rulers placed in this session with a measuring tool, oldest first (the
     /// last one may still be drawn: its trigger held).
     #[serde(default)]

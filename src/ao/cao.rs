@@ -246,6 +246,10 @@ pub struct Cao {
     labels: Buffer,
     protect: Buffer,
     any_protected: bool,
+    /// The protected set the next recorded frame writes into `protect` (the structure menu
+    /// changed it), in its own command buffer so that frames still in flight keep theirs.
+    protect_pending: Option<[u32; 8]>,
+    protect_bits: [u32; 8],
 }
 
 /// The label map's structure ids packed four to a word, as clip_mask.comp reads them (one
@@ -265,7 +269,12 @@ fn label_buffers(gpu: &Gpu, vol: &Volume) -> Result<(Buffer, Buffer, bool)> {
     };
     Ok((
         Buffer::device_local(gpu, &words, storage, "cao-labels")?,
-        Buffer::from_slice(gpu, &bits, storage, "cao-protect")?,
+        Buffer::from_slice(
+            gpu,
+            &bits,
+            storage | vk::BufferUsageFlags::TRANSFER_DST,
+            "cao-protect",
+        )?,
         any,
     ))
 }
@@ -388,6 +397,8 @@ impl Cao {
             labels,
             protect,
             any_protected,
+            protect_pending: None,
+            protect_bits: vol.labels.as_deref().map_or([0; 8], |l| l.protected_bits()),
         };
         let all = cao.whole();
         if matches!(cao.method, MethodGpu::Open) {
@@ -763,6 +774,17 @@ impl Cao {
         }
     }
 
+    /// Which structures the tools leave standing (by structure index), from the next recorded
+    /// frame on: a change goes into that frame's command buffer, before its clip pass.
+    pub fn set_protected(&mut self, protected: &[bool]) {
+        let bits = crate::volume::labels::protected_bits(protected);
+        if bits != self.protect_bits {
+            self.protect_bits = bits;
+            self.any_protected = bits.iter().any(|&w| w != 0);
+            self.protect_pending = Some(bits);
+        }
+    }
+
     /// Records one frame's AO update (restore, clip + mask, update) into `cmd`; read the
     /// metrics with [`Cao::read_metrics`] once it has executed. V_AO is then in [`Cao::ao`].
     /// Call [`Cao::prepare_maps`] first for GPU-built clip maps of new tool shapes or sizes.
@@ -805,6 +827,14 @@ impl Cao {
             self.gpu
                 .device
                 .cmd_fill_buffer(cmd, slot.counts.raw, 0, 16, 0);
+            if let Some(bits) = self.protect_pending.take() {
+                self.gpu.device.cmd_update_buffer(
+                    cmd,
+                    self.protect.raw,
+                    0,
+                    bytemuck::cast_slice(&bits),
+                );
+            }
         }
         slot.timer.begin(cmd);
         self.record_restore(cmd, &restore, clipped);

@@ -81,6 +81,7 @@ fn key_of(code: KeyCode) -> Option<Key> {
         KeyCode::KeyO => Key::NextAo,
         KeyCode::KeyN => Key::NextStructure,
         KeyCode::KeyH => Key::ShowStructure,
+        KeyCode::KeyK => Key::ProtectStructure,
         KeyCode::BracketLeft => Key::LightLeft,
         KeyCode::BracketRight => Key::LightRight,
         _ => return None,

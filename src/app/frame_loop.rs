@@ -350,6 +350,7 @@ impl FrameLoop {
             interaction: Interaction::new(interaction),
             scene: Scene {
                 structures: vol.labels.as_ref().map_or_else(Vec::new, |l| l.opacities()),
+                protected: vol.labels.as_ref().map_or_else(Vec::new, |l| l.protected()),
                 ..Default::default()
             },
             mode: Mode::Contextual,
@@ -461,10 +462,12 @@ impl FrameLoop {
     pub fn selected_structure(&self) -> Option<String> {
         let (k, _) = self.menu_position()?;
         let labels = self.volume.labels.as_ref()?;
+        let protected = self.scene.protected.get(k).copied().unwrap_or(false);
         Some(format!(
-            "{}: {}",
+            "{}: {}{}",
             labels.structures[k].name,
-            crate::volume::labels::shown_as(self.scene.structures[k])
+            crate::volume::labels::shown_as(self.scene.structures[k]),
+            if protected { ", protected" } else { "" }
         ))
     }
 
@@ -751,6 +754,11 @@ impl FrameLoop {
             l.update_light(volume, &scene.volume, scene.light_yaw);
         }
         let count = scene.tools.iter().filter(|t| t.cuts()).count() as u32;
+        // The structure menu's protection, for the clip and the ray caster alike.
+        if volume.labels.is_some() {
+            cao.set_protected(&scene.protected);
+            tex.set_protected(&scene.protected);
+        }
         tex.prepare(settings)?;
         // Whether the frame before is still in flight (submitted, not waited for) while this
         // one is recorded. (Whether the GPU is still busy with it is the driver's business:

@@ -31,10 +31,11 @@ pub enum Key {
     /// Sideways stick: turn the environment light.
     LightLeft,
     LightRight,
-    /// The structure menu (the left hand's primary and secondary buttons): select the next
-    /// structure; show it translucent, hidden, shown.
+    /// The structure menu (the left hand's primary and secondary buttons and stick click):
+    /// select the next structure; show it translucent, hidden, shown; protect it or not.
     NextStructure,
     ShowStructure,
+    ProtectStructure,
 }
 
 /// The emulated head and right hand.
@@ -147,6 +148,7 @@ impl DesktopInput {
         hands[LEFT].tracked = false;
         hands[LEFT].buttons.primary = pressed(Key::NextStructure);
         hands[LEFT].buttons.secondary = pressed(Key::ShowStructure);
+        hands[LEFT].buttons.stick_click = pressed(Key::ProtectStructure);
         FrameInput {
             time,
             views,

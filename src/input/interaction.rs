@@ -21,10 +21,12 @@
 //! | thumbstick left/right   | turns the environment light about the up axis (SH lighting)   |
 //! | left primary (labels)   | the structure menu: selects the next labelled structure       |
 //! | left secondary (labels) | shows the selected structure translucent, hidden, shown       |
+//! | left stick click (labels) | protects the selected structure from the tools, or not      |
 //!
 //! With a label map (`scene.structures` not empty) the left hand's primary and secondary buttons
-//! are the structure menu rather than its tool's shape and mode: a surgeon hides the ribs or
-//! sees through the liver with the hand that does not carve.
+//! and its stick click are the structure menu rather than its tool's shape and mode and the AO
+//! cycle: a surgeon hides the ribs, sees through the liver or spares the portal vein with the
+//! hand that does not carve.
 //!
 //! A measuring tool cuts nothing. Its centre places marks ([`Scene::marks`], in the volume's own
 //! millimetres, so they move with it): the trigger pressed starts one there, its far end follows
@@ -56,11 +58,16 @@ pub const TRANSLUCENT: f32 = 0.3;
 
 /// The structure menu: `next` selects the next structure, `cycle` shows the selected one
 /// translucent (from shown), hidden (from translucent or any opacity between) or shown (from
-/// hidden).
-fn structure_menu(scene: &mut Scene, next: bool, cycle: bool) {
+/// hidden), `protect` toggles whether the tools leave it standing.
+fn structure_menu(scene: &mut Scene, next: bool, cycle: bool, protect: bool) {
     let n = scene.structures.len();
     if next {
         scene.structure_selected = (scene.structure_selected + 1) % n;
+    }
+    if protect {
+        scene.protected.resize(n, false);
+        let p = &mut scene.protected[scene.structure_selected % n];
+        *p = !*p;
     }
     if cycle {
         let a = &mut scene.structures[scene.structure_selected % n];
@@ -573,6 +580,7 @@ impl Interaction {
                 scene,
                 std::mem::take(&mut menu.primary),
                 std::mem::take(&mut menu.secondary),
+                std::mem::take(&mut menu.stick_click),
             );
         }
         self.update_tools(input, &pressed, dt, scene);

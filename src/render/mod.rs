@@ -663,6 +663,15 @@ impl VolumeTextures {
     }
 
     /// Shows each structure (by index) with opacity a_l from the next frame on.
+    /// Which structures the tools leave standing (by structure index), from the next frame on.
+    pub fn set_protected(&mut self, protected: &[bool]) {
+        let bits = crate::volume::labels::protected_bits(protected);
+        self.protect = [
+            [bits[0], bits[1], bits[2], bits[3]],
+            [bits[4], bits[5], bits[6], bits[7]],
+        ];
+    }
+
     pub fn set_structure_opacities(&mut self, opacities: &[f32]) {
         for (entry, &a) in self.structure_table[1..].iter_mut().zip(opacities) {
             entry[3] = a;

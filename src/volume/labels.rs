@@ -44,6 +44,22 @@ pub struct LabelMap {
     pub structures: Vec<Structure>,
 }
 
+/// The 256-bit set of ids (bit id = structure index + 1) of the structures `protected` marks, as
+/// the clip shaders and the ray caster read it.
+pub fn protected_bits(protected: &[bool]) -> [u32; 8] {
+    let mut bits = [0u32; 8];
+    for (k, _) in protected
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| **p)
+        .take(MAX_STRUCTURES)
+    {
+        let id = k + 1;
+        bits[id / 32] |= 1 << (id % 32);
+    }
+    bits
+}
+
 impl LabelMap {
     /// The opacity factor of voxel `i`: 1 unlabelled, else its structure's a_l.
     pub fn factor(&self, i: usize) -> f32 {
@@ -74,14 +90,12 @@ impl LabelMap {
 
     /// The 256-bit set of protected ids (bit id), as the clip shaders read it.
     pub fn protected_bits(&self) -> [u32; 8] {
-        let mut bits = [0u32; 8];
-        for (k, s) in self.structures.iter().enumerate() {
-            if s.protected {
-                let id = k + 1;
-                bits[id / 32] |= 1 << (id % 32);
-            }
-        }
-        bits
+        protected_bits(&self.protected())
+    }
+
+    /// Whether each structure is protected, by structure index.
+    pub fn protected(&self) -> Vec<bool> {
+        self.structures.iter().map(|s| s.protected).collect()
     }
 
     /// The structure called `name` (case and `-`/`_`/space insensitive), or an error listing them.

@@ -470,6 +470,49 @@ fn carving_around_a_protected_structure_equals_the_full_recompute_and_leaves_it_
     common::assert_no_validation_messages(&gpu);
 }
 
+/// The structure menu protects and unprotects a structure mid-carve (`Cao::set_protected`):
+/// from that frame on the carve takes it or leaves it standing, and CAO still equals the full
+/// recompute bit for bit on every frame.
+#[test]
+fn protecting_a_structure_mid_carve_stays_exact() {
+    let gpu = common::gpu();
+    let vol = labelled_head(32, false);
+    let (mut cao, o, _) = crate::cao::setup(&gpu, &vol);
+    let (mut naive, _, _) = crate::cao::setup(&gpu, &vol);
+    let placement = Placement::default();
+    let c = placement.center;
+    let ids = &vol.labels.as_ref().unwrap().ids;
+    // The vessel (structure 0) open, protected, protected, open again; the tool moving on.
+    let protect = [false, true, true, false];
+    for (f, &p) in protect.iter().enumerate() {
+        let tools = [Tool {
+            shape: cao_xr::clip::Shape::Sphere,
+            pose: Pose {
+                position: c + Vec3::new(0.005 * f as f32, 0.01, 0.0),
+                orientation: Quat::IDENTITY,
+            },
+            size: 0.05,
+            mode: ToolMode::Carve,
+            active: true,
+        }];
+        for state in [&mut cao, &mut naive] {
+            state.set_protected(&[p, false]);
+        }
+        cao.run_frame(&tools, &placement, Mode::Contextual).unwrap();
+        naive.run_frame(&tools, &placement, Mode::Naive).unwrap();
+        let (a, b) = (crate::cao::read_ao(&cao.ao), crate::cao::read_ao(&naive.ao));
+        let diff = common::first_bit_difference(&a, &b);
+        assert!(diff.is_none(), "frame {f}: CAO differs at {diff:?}");
+        let oc = crate::cao::read(&cao.clipped);
+        let vessel_kept = (0..o.len()).all(|i| ids[i] != 1 || oc[i] == o[i]);
+        assert_eq!(
+            vessel_kept, p,
+            "frame {f}: protected {p}, kept {vessel_kept}"
+        );
+    }
+    common::assert_no_validation_messages(&gpu);
+}
+
 #[test]
 fn hidden_structures_leave_o_and_translucent_ones_scale_it() {
     let mut vol = labelled_head(24, false);

@@ -687,6 +687,49 @@ fn a_measuring_tool_draws_rulers_and_points_in_the_volumes_millimetres_and_cuts_
 }
 
 #[test]
+fn with_labels_the_left_stick_click_protects_the_selected_structure_not_the_ao_method() {
+    let mut ix = Interaction::new(InteractionSettings {
+        ao_methods: 3,
+        ..InteractionSettings::default()
+    });
+    let mut scene = Scene {
+        structures: vec![1.0, 1.0],
+        protected: vec![false, false],
+        ..Scene::default()
+    };
+    let buttons = |click_left: bool, next: bool, click_right: bool| {
+        let (mut l, mut r) = (idle_left(), idle_right());
+        l.buttons.stick_click = click_left;
+        l.buttons.primary = next;
+        r.buttons.stick_click = click_right;
+        (l, r)
+    };
+    let mut i = run(&mut ix, &mut scene, 0, [buttons(true, false, false)]);
+    assert_eq!(scene.protected, [true, false]);
+    assert_eq!(scene.ao_index, 0, "the left click is the menu's");
+    i = run(&mut ix, &mut scene, i, [buttons(false, true, false)]);
+    i = run(&mut ix, &mut scene, i, [buttons(true, false, false)]);
+    assert_eq!(scene.protected, [true, true]);
+    i = run(&mut ix, &mut scene, i, [buttons(false, false, false)]);
+    i = run(&mut ix, &mut scene, i, [buttons(true, false, false)]);
+    assert_eq!(scene.protected, [true, false], "a second click unprotects");
+    run(&mut ix, &mut scene, i, [buttons(false, false, true)]);
+    assert_eq!(
+        scene.ao_index, 1,
+        "the right click still cycles the AO method"
+    );
+    // Without labels the left click cycles the AO method as before.
+    let mut plain = Scene::default();
+    let mut ix = Interaction::new(InteractionSettings {
+        ao_methods: 3,
+        ..InteractionSettings::default()
+    });
+    run(&mut ix, &mut plain, 0, [buttons(true, false, false)]);
+    assert_eq!(plain.ao_index, 1);
+    assert!(plain.protected.is_empty());
+}
+
+#[test]
 fn menu_cycles_the_transfer_function_presets() {
     let mut ix = Interaction::new(InteractionSettings {
         tf_presets: 3,
