@@ -647,7 +647,7 @@ struct LaoArgs {
     clusters: usize,
     /// Colour bleeding weight W of --ao histogram: the TF colour moves towards the
     /// neighbourhood's colour by W times its occlusion (0: off).
-    #[arg(long, default_value_t = cao_xr::render::DEFAULT_BLEEDING)]
+    #[arg(long, default_value_t = cao_xr::ao::DEFAULT_BLEEDING)]
     bleeding: f32,
     /// The filters' radius R in mm (the tangent box's half-size).
     #[arg(long, default_value_t = FilterParams::default().radius_mm)]

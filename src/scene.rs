@@ -5,6 +5,12 @@ use crate::clip::Shape;
 use crate::space::{Placement, Pose};
 use serde::{Deserialize, Serialize};
 
+/// Index of the left hand in a pair of hands (`FrameInput::hands`, the overlay's hand poses),
+/// and of the left eye in a pair of views.
+pub const LEFT: usize = 0;
+/// Index of the right hand (and of the right eye).
+pub const RIGHT: usize = 1;
+
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum ToolMode {

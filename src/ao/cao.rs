@@ -10,6 +10,7 @@
 use super::filter_gpu::{FilterGpu, FilterMode};
 use super::histogram_gpu::{HistMode, HistogramGpu};
 use super::lao::{LaoLayout, LaoParams, SkipBuffers, LAO_GROUP};
+use super::voxel_box::{dispatch_box, dispatch_box_in, merge_boxes, VoxelBox};
 use crate::clip::margin::{self, MarginHit};
 use crate::clip::Shape;
 use crate::clip::{shape_mesh, ClipMap, ClipMapGpu, TriMesh};
@@ -73,72 +74,6 @@ pub struct ClipToolGpu {
 }
 crate::gpu::glsl_layout!(ClipToolGpu, 176,
     local_from_index: 0, local_from_world: 64, map: 128, offsets: 144, sh_map: 160);
-
-/// A voxel box [min, max).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct VoxelBox {
-    pub min: [i32; 3],
-    pub max: [i32; 3],
-}
-
-impl VoxelBox {
-    pub fn voxels(&self) -> u64 {
-        (0..3)
-            .map(|a| (self.max[a] - self.min[a]).max(0) as u64)
-            .product()
-    }
-    fn overlaps(&self, o: &VoxelBox) -> bool {
-        (0..3).all(|a| self.min[a] < o.max[a] && o.min[a] < self.max[a])
-    }
-    fn union(&self, o: &VoxelBox) -> VoxelBox {
-        VoxelBox {
-            min: [0, 1, 2].map(|a| self.min[a].min(o.min[a])),
-            max: [0, 1, 2].map(|a| self.max[a].max(o.max[a])),
-        }
-    }
-}
-
-/// Merges overlapping boxes so that no voxel is visited (or counted) twice.
-fn merge_boxes(mut boxes: Vec<VoxelBox>) -> Vec<VoxelBox> {
-    let mut merged = true;
-    while merged {
-        merged = false;
-        'outer: for i in 0..boxes.len() {
-            for j in i + 1..boxes.len() {
-                if boxes[i].overlaps(&boxes[j]) {
-                    boxes[i] = boxes[i].union(&boxes[j]);
-                    boxes.swap_remove(j);
-                    merged = true;
-                    break 'outer;
-                }
-            }
-        }
-    }
-    boxes
-}
-
-/// Dispatches a 4^3-workgroup compute pass over the voxels of `b`.
-pub(super) fn dispatch_box(pipe: &ComputePipeline, cmd: vk::CommandBuffer, b: &VoxelBox) {
-    dispatch_box_in(pipe, cmd, b, [4; 3]);
-}
-
-/// Dispatches a compute pass of workgroup size `group` over the voxels of `b`.
-fn dispatch_box_in(pipe: &ComputePipeline, cmd: vk::CommandBuffer, b: &VoxelBox, group: [u32; 3]) {
-    pipe.dispatch(
-        cmd,
-        [0, 1, 2].map(|a| ((b.max[a] - b.min[a]).max(0) as u32).div_ceil(group[a])),
-    );
-}
-
-/// Push constants of the passes over a voxel box (the w components are each pass's own).
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-pub(super) struct BoxPush {
-    pub dims: [i32; 4],
-    pub box_min: [i32; 4],
-    pub box_max: [i32; 4],
-}
-crate::gpu::glsl_layout!(BoxPush, 48, dims: 0, box_min: 16, box_max: 32);
 
 /// Push constants of cao_restore.comp and clip_mask.comp: a box, and where its voxels lie in
 /// the padded O_c the LAO kernel reads.
@@ -400,7 +335,7 @@ impl Cao {
             protect_pending: None,
             protect_bits: vol.labels.as_deref().map_or([0; 8], |l| l.protected_bits()),
         };
-        let all = cao.whole();
+        let all = VoxelBox::whole(cao.dims);
         if matches!(cao.method, MethodGpu::Open) {
             // No method yet: V_AO = V_PAO = 1, copied; O_c and the mask are first read after
             // the first switch, whose whole restore writes them (a restore of a large volume
@@ -459,7 +394,7 @@ impl Cao {
             }
             self.skip = skip;
         }
-        self.prev_boxes = vec![self.whole()];
+        self.prev_boxes = vec![VoxelBox::whole(self.dims)];
         Ok(())
     }
 
@@ -473,19 +408,12 @@ impl Cao {
         }
     }
 
-    fn whole(&self) -> VoxelBox {
-        VoxelBox {
-            min: [0; 3],
-            max: self.dims.map(|d| d as i32),
-        }
-    }
-
     /// Sets the AO method and returns the one it replaces. V_PAO must already hold the new
     /// method's AO of the unclipped volume ([`Cao::replace_precomputed`]).
     pub fn set_method(&mut self, method: MethodGpu) -> MethodGpu {
         // The next frame restores the whole volume from the new method's values (its bleeding
         // volume included).
-        self.prev_boxes = vec![self.whole()];
+        self.prev_boxes = vec![VoxelBox::whole(self.dims)];
         std::mem::replace(&mut self.method, method)
     }
 
@@ -660,7 +588,7 @@ impl Cao {
                     let off = texels.len() as u32;
                     texels.extend_from_slice(&sh.dilated);
                     sh_boxes.push(match tool.mode {
-                        ToolMode::Probe => self.whole(),
+                        ToolMode::Probe => VoxelBox::whole(self.dims),
                         // (a measuring tool never cuts: `Tool::cuts`)
                         ToolMode::Carve | ToolMode::Measure => {
                             self.box_of(&sh, local_from_index.inverse())
@@ -690,7 +618,7 @@ impl Cao {
             // voxel beyond is clipped away (the background, see `record_frame`).
             let b = self.box_of(&map, local_from_index.inverse());
             reach.push(match tool.mode {
-                ToolMode::Probe => self.whole(),
+                ToolMode::Probe => VoxelBox::whole(self.dims),
                 ToolMode::Carve | ToolMode::Measure => b,
             });
             boxes.push(b);
@@ -803,7 +731,7 @@ impl Cao {
         let (count, mut boxes) = self.prepare_tools(tools, placement)?;
         self.tool_count = count;
         if mode == Mode::Naive {
-            boxes = vec![self.whole()];
+            boxes = vec![VoxelBox::whole(self.dims)];
         }
         // With a probe active every voxel outside the tools' boxes is outside the probe: clipped
         // away. A change of background restores the whole volume once; otherwise last frame's
@@ -815,7 +743,7 @@ impl Cao {
             .any(|t| t.mode == ToolMode::Probe);
         let mut restore: Vec<VoxelBox> = std::mem::take(&mut self.prev_boxes);
         if clipped != self.background_clipped {
-            restore = vec![self.whole()];
+            restore = vec![VoxelBox::whole(self.dims)];
         }
         self.background_clipped = clipped;
         // The naive pass rewrites every voxel, so it needs no restore.
@@ -948,7 +876,7 @@ impl Cao {
         let visited = boxes.iter().map(|b| b.voxels()).sum();
         let touched = restore.into_iter().chain(boxes.iter().copied());
         self.changed = if std::mem::take(&mut self.unshown) {
-            vec![self.whole()]
+            vec![VoxelBox::whole(self.dims)]
         } else {
             merge_boxes(touched.filter(|b| b.voxels() > 0).collect())
         };

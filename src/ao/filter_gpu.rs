@@ -4,8 +4,8 @@
 //! the whole volume's bit for bit; that is what makes the filters a clip-aware AO method of CAO
 //! (docs/design.md, "AO methods"). [`super::filtered::filtered_ao`] is the CPU reference.
 
-use super::cao::{dispatch_box, BoxPush, VoxelBox};
 use super::filtered::FilterParams;
+use super::voxel_box::{dispatch_box, BoxPush, VoxelBox};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Reach, Result, SlabBuffer};
 use ash::vk;
 
@@ -74,13 +74,6 @@ impl FilterGpu {
     /// GPU memory the filters hold beyond the volumes every method has (the two stat volumes).
     pub fn resident_bytes(&self) -> u64 {
         self.pass_a.size() + self.pass_b.size()
-    }
-
-    fn whole(&self) -> VoxelBox {
-        VoxelBox {
-            min: [0; 3],
-            max: self.dims.map(|d| d as i32),
-        }
     }
 
     /// `b` grown by `grow` voxels per axis, clamped into the grid.
@@ -169,7 +162,7 @@ impl FilterGpu {
     pub fn compute(&self, density: &Buffer) -> Result<(Buffer, f64)> {
         let out = super::stored::buffer(&self.gpu, self.dims, "filtered-ao")?;
         let mut timer = GpuTimer::new(&self.gpu, 2)?;
-        let whole = [self.whole()];
+        let whole = [VoxelBox::whole(self.dims)];
         self.gpu.submit_and_wait(|cmd| {
             timer.begin(cmd);
             self.record(

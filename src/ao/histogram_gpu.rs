@@ -5,8 +5,8 @@
 //! the clip update over any set of voxel boxes. [`super::histogram`] holds the CPU side and the
 //! reference.
 
-use super::cao::{dispatch_box, VoxelBox};
 use super::histogram::{self as hist, Clusters, HistParams, Neighbourhood, Packing};
+use super::voxel_box::{dispatch_box, VoxelBox};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, Reach, Result};
 use crate::volume::labels::LabelMap;
 use crate::volume::transfer::TransferFunction;
@@ -520,13 +520,6 @@ impl HistogramGpu {
         Ok(())
     }
 
-    fn whole(&self) -> VoxelBox {
-        VoxelBox {
-            min: [0; 3],
-            max: self.dims.map(|d| d as i32),
-        }
-    }
-
     /// Records V_PAO (`pre_a`) and [`HistogramGpu::pre_e`] of the unclipped volume for the TF
     /// last given to [`HistogramGpu::set_tf`]: the clusters' values, or with N = 0 the direct
     /// sums over `q`.
@@ -536,7 +529,16 @@ impl HistogramGpu {
         } else {
             HistMode::Direct
         };
-        self.dispatch(cmd, q, q, pre_a, pre_a, &self.pre_e, &[self.whole()], mode);
+        self.dispatch(
+            cmd,
+            q,
+            q,
+            pre_a,
+            pre_a,
+            &self.pre_e,
+            &[VoxelBox::whole(self.dims)],
+            mode,
+        );
     }
 
     /// Records this method's values for the voxels of `boxes` into `out_a` and

@@ -10,6 +10,10 @@ pub mod lao;
 pub mod progressive;
 pub mod sh;
 pub mod stored;
+pub mod voxel_box;
+
+/// `--bleeding`'s default: half way to the neighbourhood's colour where it is fully occluded.
+pub const DEFAULT_BLEEDING: f32 = 0.5;
 
 pub use lao::{directions, LaoGpu, LaoParams};
 
@@ -89,7 +93,7 @@ impl AoConfig {
             method,
             lao,
             filter,
-            bleeding: crate::render::DEFAULT_BLEEDING,
+            bleeding: DEFAULT_BLEEDING,
         }
     }
 

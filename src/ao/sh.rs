@@ -22,7 +22,8 @@
 //! - Directions w live in the volume's mm frame (along its i, j, k axes); the renderer projects
 //!   the environment into that frame ([`crate::light`]).
 
-use super::cao::{Cao, VoxelBox};
+use super::cao::Cao;
+use super::voxel_box::VoxelBox;
 use crate::gpu::{
     Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Image, ImageDesc, Reach, Result,
     MAX_FRAMES_IN_FLIGHT,
@@ -567,13 +568,6 @@ impl ShVolume {
         Ok(sh)
     }
 
-    fn whole(&self) -> VoxelBox {
-        VoxelBox {
-            min: [0; 3],
-            max: self.grid.dims.map(|d| d as i32),
-        }
-    }
-
     /// Records the whole pyramid of `opacity` (O or O_c, f32 at full resolution).
     pub fn record_pyramid(&self, cmd: vk::CommandBuffer, opacity: &Buffer) {
         let offsets = self.grid.offsets();
@@ -750,7 +744,7 @@ impl ShVolume {
         let boxes: Vec<VoxelBox> = if count == 0 {
             Vec::new()
         } else if naive {
-            vec![self.whole()]
+            vec![VoxelBox::whole(self.grid.dims)]
         } else {
             cao.sh_boxes
                 .iter()

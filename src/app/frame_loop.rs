@@ -835,7 +835,10 @@ impl FrameLoop {
                 let warned: Vec<usize> = margins.iter().map(|h| h.tool).collect();
                 let offset = interaction.settings().tool_offset;
                 items = scene_overlay(scene, &hands, offset, &warned);
-                joint_overlay(&input.joints, &mut items);
+                let joints = input.joints.iter().flatten();
+                let joints =
+                    joints.flat_map(|j| j.poses.iter().copied().zip(j.radii.iter().copied()));
+                joint_overlay(joints, &mut items);
                 if let (Some(menu), Some(left)) = (&menu, hands[crate::input::LEFT]) {
                     // The structure menu above the hand that works it.
                     let at = left.position + head.orientation * glam::Vec3::new(0.0, 0.05, 0.0);

@@ -10,13 +10,14 @@
 
 use super::lighting::ShLighting;
 use super::{AppError, Result};
-use crate::ao::cao::{Cao, MethodGpu, VoxelBox};
+use crate::ao::cao::{Cao, MethodGpu};
 use crate::ao::filter_gpu::{FilterGpu, FilterMode};
 use crate::ao::filtered;
 use crate::ao::histogram_gpu::HistogramGpu;
 use crate::ao::lao::{SkipBuffers, SkipData};
 use crate::ao::progressive::{HostTask, SlabScheduler};
 use crate::ao::sh::ShVolume;
+use crate::ao::voxel_box::VoxelBox;
 use crate::ao::{AoMethod, LaoGpu};
 use crate::gpu::{Buffer, Gpu, GpuTimer};
 use crate::render::VolumeTextures;
@@ -486,10 +487,7 @@ impl TfSwitcher {
             self.timer.begin(cmd);
             match filter {
                 Some(f) => {
-                    let whole = [VoxelBox {
-                        min: [0; 3],
-                        max: vol.dims.map(|d| d as i32),
-                    }];
+                    let whole = [VoxelBox::whole(vol.dims)];
                     f.record(cmd, opacity, pao, opacity, opacity, &whole, FilterMode::All);
                 }
                 None => {

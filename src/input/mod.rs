@@ -28,10 +28,7 @@ use crate::space::{Fov, Pose, View};
 use glam::{Quat, Vec2, Vec3};
 use serde::{Deserialize, Serialize};
 
-/// Index of the left hand in [`FrameInput::hands`] (and of the left eye in `views`).
-pub const LEFT: usize = 0;
-/// Index of the right hand in [`FrameInput::hands`] (and of the right eye in `views`).
-pub const RIGHT: usize = 1;
+pub use crate::scene::{LEFT, RIGHT};
 
 /// Everything one frame's input says: when, where the eyes are, where the hands are and what
 /// they press.

@@ -151,7 +151,7 @@ impl Default for RenderSettings {
             sh_weight: 1.0,
             sh_times_ao: false,
             variance_max: 0.0,
-            bleeding: DEFAULT_BLEEDING,
+            bleeding: crate::ao::DEFAULT_BLEEDING,
             transparent: false,
             glow: DEFAULT_GLOW,
         };
@@ -181,9 +181,6 @@ impl RenderSettings {
         }
     }
 }
-
-/// `--bleeding`'s default: half way to the neighbourhood's colour where it is fully occluded.
-pub const DEFAULT_BLEEDING: f32 = 0.5;
 
 /// The volume as the ray caster samples it: scalars (full precision, R32F), the AO volume and the
 /// transfer function's lookup table.
@@ -990,7 +987,7 @@ pub struct ClipBinding<'a> {
     pub count: u32,
     /// Per tool, an index-space box holding every point it hides (the whole volume for a
     /// probe): no empty-space skipping inside ([`crate::ao::cao::Cao::reach_boxes`]).
-    pub reach: &'a [crate::ao::cao::VoxelBox],
+    pub reach: &'a [crate::ao::voxel_box::VoxelBox],
 }
 
 impl Renderer {

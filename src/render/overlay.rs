@@ -16,8 +16,7 @@ use super::{StereoTarget, View, COLOR_FORMAT, DEPTH_FORMAT};
 use crate::clip::Shape;
 use crate::clip::TriMesh;
 use crate::gpu::{pipeline, Buffer, Gpu, Result};
-use crate::input::{LEFT, RIGHT};
-use crate::scene::{Scene, Tool, ToolMode};
+use crate::scene::{Scene, Tool, ToolMode, LEFT, RIGHT};
 use crate::space::Pose;
 use ash::vk;
 use glam::{Mat4, Quat, Vec3};
@@ -216,23 +215,15 @@ pub fn markup_overlay(
     }
 }
 
-/// Small spheres at the tracked hands' joints (their radii), appended to `items`.
-pub fn joint_overlay(
-    joints: &[Option<crate::input::hands::HandJoints>; 2],
-    items: &mut Vec<OverlayItem>,
-) {
-    for j in joints.iter().flatten() {
-        for (p, r) in j.poses.iter().zip(&j.radii) {
-            items.push(OverlayItem {
-                mesh: OverlayMesh::Tool(crate::clip::Shape::Sphere),
-                model: Mat4::from_scale_rotation_translation(
-                    Vec3::splat(*r),
-                    p.orientation,
-                    p.position,
-                ),
-                color: colors::JOINT,
-            });
-        }
+/// Small spheres at the tracked hands' joints, each (pose, radius) of `joints`, appended to
+/// `items`.
+pub fn joint_overlay(joints: impl IntoIterator<Item = (Pose, f32)>, items: &mut Vec<OverlayItem>) {
+    for (p, r) in joints {
+        items.push(OverlayItem {
+            mesh: OverlayMesh::Tool(crate::clip::Shape::Sphere),
+            model: Mat4::from_scale_rotation_translation(Vec3::splat(r), p.orientation, p.position),
+            color: colors::JOINT,
+        });
     }
 }
 
