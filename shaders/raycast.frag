@@ -48,16 +48,6 @@ layout(set = 0, binding = 17) uniform sampler3D glow;
 #define CLIP_TOOL_COUNT frame.viewport.z
 #include "clip.glsl"
 
-// The first tool that hides world point w (the ray caster's shadow test), or -1; the same rule
-// as clip_test_index for a `spared` point.
-int hiding_tool(vec3 w, bool spared) {
-    for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
-        bool inside = (tool_test(t, (tools[t].local_from_world * vec4(w, 1.0)).xyz) & 1u) != 0u;
-        if (tools[t].map.w > 0.5 ? !inside : inside && !spared) return int(t);
-    }
-    return -1;
-}
-
 // Which eye (layer of the stereo target) this draw renders.
 layout(push_constant) uniform Eye { uint index; } eye;
 
@@ -155,6 +145,24 @@ bool spared_at(vec3 t) {
     if (!flag(LABELS)) return false;
     uint id = structure_at(t);
     return ((frame.protect[id >> 7][(id >> 5) & 3u] >> (id & 31u)) & 1u) != 0u;
+}
+
+// The first tool that hides world point w (texture point p, index-space point v = p * dims: the
+// ray caster's shadow test), or -1; the same rule as clip_test_index for a spared point (its
+// structure protected). A carving tool hides nothing outside its reach box (frame.tool_reach,
+// conservative: the box CAO's update covers, which skipping relies on too), so there neither its
+// map nor the point's structure is read; a probe hides all outside it and is always tested.
+int hiding_tool(vec3 w, vec3 p, vec3 v) {
+    for (uint t = 0u; t < uint(CLIP_TOOL_COUNT); t++) {
+        bool probe = tools[t].map.w > 0.5;
+        if (!probe && (any(lessThan(v, vec3(frame.tool_reach[2 * t].xyz)))
+                       || any(greaterThanEqual(v, vec3(frame.tool_reach[2 * t + 1].xyz))))) {
+            continue;
+        }
+        bool inside = (tool_test(t, (tools[t].local_from_world * vec4(w, 1.0)).xyz) & 1u) != 0u;
+        if (probe ? !inside : inside && !spared_at(p)) return int(t);
+    }
+    return -1;
 }
 
 // The structures around texture point t, interpolated per structure rather than by id, so that
@@ -387,7 +395,7 @@ void main() {
             // Shadow-test clipping: the same maps the AO update used.
             if (clipping) {
                 vec3 w = a_w + t * (b_w - a_w);
-                int hider = hiding_tool(w, spared_at(p));
+                int hider = hiding_tool(w, p, p * dims);
                 if (hider >= 0) {
                     prev_tool = hider;
                     have_prev = false;
@@ -401,7 +409,8 @@ void main() {
                     float lo = t - dt;
                     for (int n = 0; n < CUT_BISECTIONS; n++) {
                         float mid = 0.5 * (lo + t);
-                        if (hiding_tool(a_w + mid * (b_w - a_w), spared_at(o + mid * d)) >= 0) lo = mid; else t = mid;
+                        vec3 pm = o + mid * d;
+                        if (hiding_tool(a_w + mid * (b_w - a_w), pm, pm * dims) >= 0) lo = mid; else t = mid;
                     }
                     p = o + t * d;
                     w = a_w + t * (b_w - a_w);
