@@ -384,6 +384,7 @@ mod tests {
             e.contains("nan.ply") && e.contains("vertex 1 has a non-finite"),
             "{e}"
         );
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

@@ -510,5 +510,6 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("ct-bone"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -8,10 +8,8 @@ fn cao(args: &[&str]) -> Output {
     crate::common::run_cao(args, &[])
 }
 
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("cao-cli-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
+fn tmp(name: &str) -> crate::common::Scratch {
+    crate::common::scratch("cli", name)
 }
 
 /// Writes the scripted pose stream KIND of `frames` frames to DIR/NAME (`cao-xr script`).

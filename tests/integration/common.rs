@@ -133,11 +133,56 @@ pub fn run_cao(args: &[&str], env: &[(&str, &str)]) -> std::process::Output {
     out
 }
 
-/// A fresh scratch folder for test module `module`'s `name` (the caller removes it).
-pub fn scratch(module: &str, name: &str) -> std::path::PathBuf {
+/// A test's scratch folder: removed when it goes out of scope, unless the test is failing (then
+/// it is kept, and named on stderr, for a look at what the test wrote).
+pub struct Scratch(std::path::PathBuf);
+
+impl std::ops::Deref for Scratch {
+    type Target = std::path::PathBuf;
+    fn deref(&self) -> &std::path::PathBuf {
+        &self.0
+    }
+}
+
+impl AsRef<std::path::Path> for Scratch {
+    fn as_ref(&self) -> &std::path::Path {
+        &self.0
+    }
+}
+
+impl AsRef<std::ffi::OsStr> for Scratch {
+    fn as_ref(&self) -> &std::ffi::OsStr {
+        self.0.as_os_str()
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            eprintln!("kept for a look: {}", self.0.display());
+        } else {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+/// A fresh, empty scratch folder for test module `module`'s `name`, removed when the test ends.
+pub fn scratch(module: &str, name: &str) -> Scratch {
     let d = std::env::temp_dir().join(format!("cao-{module}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
-    d
+    Scratch(d)
+}
+
+#[test]
+fn a_scratch_folder_is_removed_when_its_test_ends() {
+    let kept = {
+        let d = scratch("common", "removed");
+        std::fs::create_dir_all(d.join("a/b")).unwrap();
+        std::fs::write(d.join("a/b/c.txt"), "x").unwrap();
+        d.to_path_buf()
+    };
+    assert!(!kept.exists(), "{} is still there", kept.display());
 }
 
 /// [`run_cao`], which must succeed: a failure fails the test with the arguments and stderr.

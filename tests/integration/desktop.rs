@@ -35,8 +35,7 @@ fn window_session_replays_into_the_images_it_showed() {
     if !have_xvfb() {
         return;
     }
-    let dir = std::env::temp_dir().join(format!("cao-desktop-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = crate::common::scratch("desktop", "session");
     let (rec, shot, shown, replayed) = (
         dir.join("rec.jsonl"),
         dir.join("shot.png"),
@@ -133,9 +132,7 @@ fn a_signal_ends_a_recording_session_cleanly() {
     }
     let bin = env!("CARGO_BIN_EXE_cao-xr");
     for sig in [libc::SIGTERM, libc::SIGINT] {
-        let dir = std::env::temp_dir().join(format!("cao-desktop-sig{sig}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::common::scratch("desktop", &format!("sig{sig}"));
         let (rec, shown, pid_file) = (dir.join("rec.jsonl"), dir.join("shown"), dir.join("pid"));
         // xvfb-run starts the viewer as its child: the shell notes its pid, then becomes it.
         let child = Command::new("xvfb-run")

@@ -25,11 +25,8 @@ fn have_dcmtk() -> bool {
     )
 }
 
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("cao-dicom-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+fn tmp(name: &str) -> crate::common::Scratch {
+    crate::common::scratch("dicom", name)
 }
 
 fn run(cmd: &mut Command) {

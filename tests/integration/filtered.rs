@@ -194,7 +194,7 @@ fn ink(dir: &std::path::Path) -> f64 {
 
 #[test]
 fn variance_modulation_fades_homogeneous_tissue_and_keeps_boundaries() {
-    let dir = std::env::temp_dir().join(format!("cao-variance-{}", std::process::id()));
+    let dir = crate::common::scratch("filtered", "variance");
     let run = |name: &str, extra: &[&str]| {
         let out_dir = dir.join(name);
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_cao-xr"))

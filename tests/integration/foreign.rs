@@ -318,9 +318,7 @@ fn a_pydicom_ct_series_matches_dcm2niix_and_teem_in_patient_space() {
     if !has_tool("dcm2niix", "dcm2niix") || !has_tool("teem-unu", "teem-apps") {
         return;
     }
-    let root = std::env::temp_dir().join(format!("cao-xr-foreign-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&root);
-    std::fs::create_dir_all(&root).unwrap();
+    let root = crate::common::scratch("foreign", "tools");
     let dcm = dicom::load_series(&series, None).unwrap();
     assert_eq!(dcm.dims, [16, 16, 5]);
     // it renders: soft tissue (its values span -888..85 HU) is drawn

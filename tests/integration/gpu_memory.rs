@@ -4,7 +4,7 @@
 //! does; with that N the same command renders under the same budget. No abort, no panic, no
 //! validation message. And a GPU that stops answering is an error, not a freeze.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Output;
 
 /// `cao-xr render phantom:128` (2 Mi voxels: about 56 MiB on the GPU) under `budget`.
@@ -18,11 +18,8 @@ fn render(budget: &str, extra: &[&str], out: &Path) -> Output {
     crate::common::run_cao(&args, &[("CAO_XR_GPU_BUDGET_MB", budget)])
 }
 
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("cao-gpu-memory-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+fn tmp(name: &str) -> crate::common::Scratch {
+    crate::common::scratch("gpu-memory", name)
 }
 
 /// The N of "try --downsample N" in a refusal.

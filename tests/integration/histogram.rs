@@ -24,11 +24,9 @@ fn e_of(b: &Buffer) -> Vec<[f32; 3]> {
         .collect()
 }
 
-/// A cache folder of this test's own.
-fn cache(tag: &str) -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("cao-lh-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
+/// A cache folder of this test's own (made when the method writes its cache).
+fn cache(tag: &str) -> common::Scratch {
+    common::scratch("lh", tag)
 }
 
 /// The CAO state of the method on `vol` under `tf`, and its q (host).

@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Arc;
 
-fn tmp(name: &str) -> PathBuf {
+fn tmp(name: &str) -> crate::common::Scratch {
     crate::common::scratch("labels", name)
 }
 

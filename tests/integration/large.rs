@@ -5,9 +5,9 @@
 //! first 128 MiB of every buffer. Rays of more than 8192 samples reach what lies behind, with and
 //! without empty-space skipping, bit for bit.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-fn tmp(name: &str) -> PathBuf {
+fn tmp(name: &str) -> crate::common::Scratch {
     crate::common::scratch("large", name)
 }
 

@@ -85,8 +85,7 @@ fn median(v: &[f64]) -> f64 {
 
 #[test]
 fn a_2000_frame_carving_replay_holds_its_memory_and_its_pace() {
-    let dir = std::env::temp_dir().join(format!("cao-soak-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = crate::common::scratch("soak", "replay");
     let script = dir.join("carve-loop.jsonl");
     let out = dir.join("replay");
     let cao = || {
