@@ -65,6 +65,9 @@ const uint SKIP_EMPTY = 8u;
 const uint LABELS = 16u;
 const uint CLIPPING = 32u;
 const uint GLOW = 64u;
+const uint ISO = 128u;
+// Bisections that place an isosurface within 1/256 of a step.
+const int ISO_BISECTIONS = 8;
 
 // The features this pipeline is specialised for (src/render/mod.rs Renderer::pipeline): the
 // code of a feature that is off is not compiled in.
@@ -431,7 +434,28 @@ void main() {
             vec3 premult;
             bool pre_mid = flag(PREINTEGRATED) && have_prev;
             vec2 pre_uv = vec2(0.0);
-            if (flag(PREINTEGRATED)) {
+            if (flag(ISO)) {
+                // The first-hit isosurface (frame.surface.w, in texel units): below it nothing
+                // is seen; the first sample at or past it ends the ray, moved back onto the
+                // surface by bisection on the scalar between it and the sample before (at the
+                // ray's entry or a cut face there is no sample before: the surface is there),
+                // and shaded opaque in the TF's colour at the isovalue.
+                float iso = frame.surface.w;
+                if (s < iso) {
+                    have_prev = true;
+                    continue;
+                }
+                if (have_prev) {
+                    float lo = t - dt;
+                    for (int n = 0; n < ISO_BISECTIONS; n++) {
+                        float mid = 0.5 * (lo + t);
+                        if (scalar_at(o + mid * d) >= iso) t = mid; else lo = mid;
+                    }
+                    p = o + t * d;
+                }
+                a = 1.0;
+                premult = classify_value(iso).rgb;
+            } else if (flag(PREINTEGRATED)) {
                 float sf = have_prev ? s_prev : s;
                 pre_uv = vec2(sf, s) * frame.value_map.w + frame.value_map.z;
                 vec4 pre = texture(preint, pre_uv);
@@ -503,7 +527,7 @@ void main() {
                     vec4 clip = frame.view_proj[v] * vec4(a_w + t * (b_w - a_w), 1.0);
                     depth = clamp(clip.z / clip.w, 0.0, 1.0);
                 }
-                if (alpha >= OPAQUE) break;
+                if (alpha >= OPAQUE || flag(ISO)) break;
             }
         }
     }

@@ -589,6 +589,11 @@ struct LightArgs {
     /// Ray-casting step in mm (default: half the smallest voxel spacing).
     #[arg(long, default_value_t = 0.0)]
     ray_step_mm: f32,
+    /// Show the first-hit isosurface of this data value (HU for CT) instead of the volume: opaque,
+    /// in the TF's colour there, lit by the AO of the surface's solid (what lies above the
+    /// value); the left thumbstick moves it in the headset.
+    #[arg(long, value_parser = parse_finite)]
+    iso: Option<f32>,
 }
 
 impl LightArgs {
@@ -614,6 +619,7 @@ impl LightArgs {
                 tricubic: self.tricubic,
                 skip_empty: !self.no_empty_skip,
                 step_mm: self.ray_step_mm,
+                iso: self.iso,
                 ..Default::default()
             },
         }
@@ -851,6 +857,15 @@ fn parse_background(s: &str) -> std::result::Result<Background, String> {
     parse_rgb(s)
         .map(Background::Colour)
         .map_err(|e| format!("{e} (or transparent)"))
+}
+
+/// A finite number (`--iso`).
+fn parse_finite(s: &str) -> std::result::Result<f32, String> {
+    s.trim()
+        .parse::<f32>()
+        .ok()
+        .filter(|v| v.is_finite())
+        .ok_or_else(|| format!("'{s}': expected a finite number"))
 }
 
 /// R,G,B with each in 0..1.

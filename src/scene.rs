@@ -84,6 +84,10 @@ pub struct Scene {
     /// `--protect` set it, and the structure menu toggles the selected one.
     #[serde(default)]
     pub protected: Vec<bool>,
+    /// The isovalue of the isosurface shown (`--iso`, data units), when one is: the left
+    /// thumbstick moves it, and the AO follows as after a TF change.
+    #[serde(default)]
+    pub iso: Option<f32>,
     /// Points and rulers placed in this session with a measuring tool, oldest first (the
     /// last one may still be drawn: its trigger held).
     #[serde(default)]

@@ -252,7 +252,8 @@ impl FrameLoop {
         show_progress: bool,
     ) -> Result<FrameLoop> {
         let setup = |vol: Arc<Volume>, progress: bool| {
-            let mut fl = Self::build(gpu, vol, tfs.clone(), built, progress)?;
+            let iso = lighting.and_then(|l| l.shading.iso);
+            let mut fl = Self::build(gpu, vol, tfs.clone(), (built, iso), progress)?;
             if let Some(l) = lighting {
                 fl.light(l, progress)?;
             }
@@ -281,7 +282,7 @@ impl FrameLoop {
         gpu: &Gpu,
         vol: Arc<Volume>,
         tfs: Vec<TransferFunction>,
-        built: Built,
+        (built, iso): (Built, Option<f32>),
         show_progress: bool,
     ) -> Result<FrameLoop> {
         let Built {
@@ -291,12 +292,19 @@ impl FrameLoop {
             fast_start_after_s,
         } = built;
         let params = config.lao;
-        let tf = tfs.first().ok_or_else(|| {
+        let first = tfs.first().ok_or_else(|| {
             AppError::Usage(format!("{}: no transfer function to show", vol.name))
         })?;
+        // With an isosurface the AO is its solid's, and the surface takes the TF's colour there.
+        let tf = &match iso {
+            Some(v) => first.iso_solid(v, vol.value_range()),
+            None => first.clone(),
+        };
         interaction.tf_presets = tfs.len();
         let methods = config.cycle();
         interaction.ao_methods = methods.len();
+        let (lo, hi) = vol.value_range();
+        interaction.iso_rate = 0.25 * (hi - lo);
         // The scene asks for the configured method (ao_index 0). A fast start (the configured
         // method takes long) shows the fast one first when that is quick itself, so the first
         // frame starts the switch to the configured one; else it shows no AO at once (open:
@@ -338,6 +346,7 @@ impl FrameLoop {
         tex.set_bleeding(gpu, histogram)?;
         let settings = RenderSettings {
             bleeding: config.bleeding,
+            iso,
             ..Default::default()
         };
         Ok(FrameLoop {
@@ -351,6 +360,7 @@ impl FrameLoop {
             scene: Scene {
                 structures: vol.labels.as_ref().map_or_else(Vec::new, |l| l.opacities()),
                 protected: vol.labels.as_ref().map_or_else(Vec::new, |l| l.protected()),
+                iso,
                 ..Default::default()
             },
             mode: Mode::Contextual,
@@ -362,7 +372,7 @@ impl FrameLoop {
                 gpu,
                 tfs,
                 (methods, shown, start == Start::Open),
-                vol.labels.as_deref(),
+                (vol.labels.as_deref(), vol.value_range(), iso),
                 (lao, lao_dirs),
             )?,
             tf_samples_per_frame: default_tf_samples_per_frame(gpu),
@@ -607,6 +617,8 @@ impl FrameLoop {
         signal: Option<vk::Semaphore>,
     ) -> Result<Option<Retired>> {
         let t0 = std::time::Instant::now();
+        // The isovalue the settings start with becomes the scene's, which the hands then move.
+        self.scene.iso = self.scene.iso.or(self.settings.iso);
         self.interaction.update(input, &mut self.scene);
         let margins = self
             .cao
@@ -811,6 +823,7 @@ impl FrameLoop {
             };
             // The bleeding volume is the local histograms' alone.
             let mut settings = *settings;
+            settings.iso = scene.iso;
             if cao.histogram().is_none() {
                 settings.bleeding = 0.0;
             }

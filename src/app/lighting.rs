@@ -68,6 +68,8 @@ pub struct ShadingOptions {
     pub skip_empty: bool,
     /// Ray step in mm; 0 = a fraction of the smallest spacing.
     pub step_mm: f32,
+    /// The isosurface's data value (`--iso`), if one is shown instead of the volume.
+    pub iso: Option<f32>,
 }
 
 impl Default for ShadingOptions {
@@ -84,6 +86,7 @@ impl Default for ShadingOptions {
             tricubic: s.tricubic,
             skip_empty: s.skip_empty,
             step_mm: s.step_mm,
+            iso: s.iso,
         }
     }
 }
@@ -117,6 +120,7 @@ impl ShadingOptions {
         s.tricubic = self.tricubic;
         s.skip_empty = self.skip_empty;
         s.step_mm = self.step_mm;
+        s.iso = self.iso;
     }
 }
 

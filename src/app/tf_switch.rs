@@ -83,12 +83,24 @@ struct Choice {
     tf: usize,
     method: usize,
     structures: Vec<f32>,
+    /// The isovalue shown (its bits), if an isosurface is: then O is its solid's opacity.
+    iso: Option<u32>,
 }
 
 impl Choice {
-    /// Whether `other` classifies to the same opacity O (the same TF and structures).
+    /// Whether `other` classifies to the same opacity O (the same TF, structures and iso).
     fn same_opacity(&self, other: &Choice) -> bool {
-        self.tf == other.tf && self.structures == other.structures
+        self.tf == other.tf && self.structures == other.structures && self.iso == other.iso
+    }
+}
+
+/// The TF choice `c` classifies O with and colours by: its TF of `tfs`, or with an isovalue
+/// that TF's iso solid ([`TransferFunction::iso_solid`]) over the volume's `range`.
+fn tf_of(tfs: &[TransferFunction], range: (f32, f32), c: &Choice) -> TransferFunction {
+    let tf = &tfs[c.tf];
+    match c.iso {
+        Some(bits) => tf.iso_solid(f32::from_bits(bits), range),
+        None => tf.clone(),
     }
 }
 
@@ -137,6 +149,8 @@ impl Switch {
 pub struct TfSwitcher {
     gpu: Gpu,
     tfs: Vec<TransferFunction>,
+    /// The volume's value range (an iso solid's colour is its TF's there).
+    value_range: (f32, f32),
     methods: Vec<AoMethod>,
     shown: Choice,
     /// Nothing is computed yet (the CAO state's method is [`MethodGpu::Open`], AO 1): the
@@ -166,7 +180,7 @@ impl TfSwitcher {
         gpu: &Gpu,
         tfs: Vec<TransferFunction>,
         (methods, shown_method, open): (Vec<AoMethod>, usize, bool),
-        labels: Option<&LabelMap>,
+        (labels, value_range, iso): (Option<&LabelMap>, (f32, f32), Option<f32>),
         (lao, lao_dirs): (LaoGpu, Buffer),
     ) -> Result<Self> {
         Ok(TfSwitcher {
@@ -177,7 +191,9 @@ impl TfSwitcher {
                 tf: 0,
                 method: shown_method,
                 structures: labels.map_or_else(Vec::new, LabelMap::opacities),
+                iso: iso.map(f32::to_bits),
             },
+            value_range,
             open,
             first_picture_pending: open,
             names: labels.map_or_else(Vec::new, |l| {
@@ -200,6 +216,11 @@ impl TfSwitcher {
         &self.tfs[self.shown.tf]
     }
 
+    /// The TF a choice classifies O with and colours by ([`tf_of`]).
+    fn tf_of(&self, c: &Choice) -> TransferFunction {
+        tf_of(&self.tfs, self.value_range, c)
+    }
+
     /// What `scene` asks for. A scene whose structure list does not match (none set) asks
     /// for the structures as shown.
     fn wanted(&self, scene: &Scene) -> Choice {
@@ -216,6 +237,7 @@ impl TfSwitcher {
                 scene.ao_index % self.methods.len()
             },
             structures,
+            iso: scene.iso.map(f32::to_bits),
         }
     }
 
@@ -249,6 +271,11 @@ impl TfSwitcher {
             let (want, shown) = (&sw.choice, &self.shown);
             let (what, name) = if want.tf != shown.tf && !self.open {
                 ("TF", self.tfs[want.tf].name.clone())
+            } else if want.iso != shown.iso && !self.open {
+                let iso = want
+                    .iso
+                    .map_or(String::new(), |b| f32::from_bits(b).to_string());
+                ("iso", iso)
             } else if want.method != shown.method || self.open {
                 ("AO", self.methods[want.method].name())
             } else {
@@ -315,7 +342,7 @@ impl TfSwitcher {
             let Some(done) = task.poll() else {
                 return Ok(());
             };
-            let name = &self.tfs[sw.choice.tf].name;
+            let name = &tf_of(&self.tfs, self.value_range, &sw.choice).name;
             let (opacity, skip) = done.map_err(|msg| {
                 AppError::Usage(format!(
                     "{}: classifying with transfer function '{name}' failed: {msg}",
@@ -375,7 +402,7 @@ impl TfSwitcher {
             else {
                 unreachable!("finished implies computing")
             };
-            tex.set_transfer_function(&self.tfs[sw.choice.tf])?;
+            tex.set_transfer_function(&self.tf_of(&sw.choice))?;
             tex.set_structure_opacities(&sw.choice.structures);
             cao.replace_precomputed(opacity, pao, skip)?;
             let method = match sw.filter {
@@ -404,7 +431,7 @@ impl TfSwitcher {
         cao: &mut Cao,
         tex: &mut VolumeTextures,
     ) -> Result<()> {
-        let tf = &self.tfs[want.tf];
+        let tf = &self.tf_of(&want);
         let (gpu, lao) = (&self.gpu, &self.lao);
         let shown = (tf, &want.structures[..]);
         let build = |h: &mut HistogramGpu| super::histogram_tables(gpu, lao, vol.dims, h, shown);
@@ -430,13 +457,13 @@ impl TfSwitcher {
     }
 
     fn start(&self, choice: Choice, vol: &Arc<Volume>, cao: &Cao) -> Result<Switch> {
-        let index = choice.tf;
         let filter = match self.methods[choice.method] {
             AoMethod::Filter(p) => Some(FilterGpu::new(&self.gpu, vol.dims, vol.spacing, p)?),
             _ => None,
         };
         let vol = Arc::clone(vol);
-        let tf = self.tfs[index].clone();
+        let tf = self.tf_of(&choice);
+        let tf_name = tf.name.clone();
         let structures = choice.structures.clone();
         let params = cao.params;
         let input = filter.as_ref().map(|f| f.params.input);
@@ -453,8 +480,7 @@ impl TfSwitcher {
         })
         .map_err(|e| {
             AppError::Usage(format!(
-                "{name}: cannot start a thread to classify with transfer function '{}': {e}",
-                self.tfs[index].name
+                "{name}: cannot start a thread to classify with transfer function '{tf_name}': {e}"
             ))
         })?;
         Ok(Switch {

@@ -11,6 +11,7 @@
 //! | right hand              | holds tool 0, [`InteractionSettings::tool_offset`] ahead      |
 //! | trigger                 | toggles carving of that hand's tool (on/off)                  |
 //! | thumbstick up/down      | grows/shrinks that hand's tool                                |
+//! | left stick up/down (iso) | raises/lowers the isovalue (`--iso`) instead                 |
 //! | primary (A/X)           | cycles that hand's tool shape (measuring: removes the last mark) |
 //! | secondary (B/Y)         | cycles that hand's tool: carve, probe, measure                |
 //! | trigger (measuring)     | press, drag, release: a ruler; a click: a point               |
@@ -151,6 +152,9 @@ pub struct InteractionSettings {
     /// Number of loaded meshes ([`Shape::Mesh`]) that the primary button cycles through after
     /// the built-in shapes.
     pub mesh_count: usize,
+    /// How fast the left thumbstick moves an isovalue ([`Scene::iso`]): data units per second
+    /// at full stick (a quarter of the volume's value range, set by the frame loop).
+    pub iso_rate: f32,
     /// Smallest volume scale two hands can reach (1 = true size).
     pub min_scale: f32,
     /// Largest volume scale two hands can reach.
@@ -173,6 +177,7 @@ impl Default for InteractionSettings {
             tf_presets: crate::volume::transfer::PRESETS.len(),
             ao_methods: 0,
             mesh_count: 0,
+            iso_rate: 0.0,
             min_scale: 0.1,
             max_scale: 10.0,
         }
@@ -585,6 +590,13 @@ impl Interaction {
         }
         self.update_tools(input, &pressed, dt, scene);
         self.update_grab(scene);
+        if let Some(iso) = &mut scene.iso {
+            let stick = self.deflection(input.hands[LEFT].buttons.thumbstick.y);
+            let moved = *iso + self.settings.iso_rate * stick * dt;
+            if moved.is_finite() {
+                *iso = moved;
+            }
+        }
 
         // Sideways stick turns the environment light (both hands add up).
         for hand in &input.hands {
@@ -646,7 +658,10 @@ impl Interaction {
                 // A measuring tool never cuts; back to carving it starts switched off.
                 tool.active = false;
             }
-            tool.size = self.resized(tool.size, input.hands[side].buttons.thumbstick.y, dt);
+            // With an isosurface the left stick moves the isovalue rather than resizing.
+            if side == RIGHT || scene.iso.is_none() {
+                tool.size = self.resized(tool.size, input.hands[side].buttons.thumbstick.y, dt);
+            }
             // Follow the hand while it is tracked; freeze otherwise.
             let hand = &self.hands[side];
             if hand.tracked {

@@ -125,6 +125,9 @@ pub struct RenderSettings {
     /// The safety margins' glow, emitted per mm at full intensity ([`GLOW_COLOUR`]); takes
     /// effect where the textures hold a glow volume ([`VolumeTextures::set_glow`]); 0 = off.
     pub glow: f32,
+    /// Render the first-hit isosurface of this data value (`--iso`) instead of compositing:
+    /// opaque, in the TF's colour there, shaded and lit by the AO like any sample.
+    pub iso: Option<f32>,
 }
 
 /// The colour a safety margin glows in: the amber a tool inside a margin is drawn in.
@@ -154,6 +157,7 @@ impl Default for RenderSettings {
             bleeding: crate::ao::DEFAULT_BLEEDING,
             transparent: false,
             glow: DEFAULT_GLOW,
+            iso: None,
         };
         Shading::default().apply(&mut s);
         s
@@ -941,6 +945,7 @@ const FLAG_SKIP_EMPTY: u32 = 8;
 const FLAG_LABELS: u32 = 16;
 const FLAG_CLIPPING: u32 = 32;
 const FLAG_GLOW: u32 = 64;
+const FLAG_ISO: u32 = 128;
 
 pub struct Renderer {
     gpu: Gpu,
@@ -1178,15 +1183,18 @@ impl Renderer {
         let max_spacing = tex.spacing.iter().cloned().fold(0.0, f64::max) as f32;
         let (lo, hi) = tex.value_range;
         let glow = tex.glow.is_some() && settings.glow > 0.0;
+        let iso = settings.iso.is_some();
         let flags = [
-            (preintegrated, FLAG_PREINTEGRATED),
+            // An isosurface is found on point samples, and skipping knows the TF, not the iso.
+            (preintegrated && !iso, FLAG_PREINTEGRATED),
             (settings.jitter, FLAG_JITTER),
             (settings.tricubic, FLAG_TRICUBIC),
             // The glow lies in empty space: no skipping where it shines.
             (
-                settings.skip_empty && tex.skip_ready(settings) && !glow,
+                settings.skip_empty && tex.skip_ready(settings) && !glow && !iso,
                 FLAG_SKIP_EMPTY,
             ),
+            (iso, FLAG_ISO),
             (tex.labelled, FLAG_LABELS),
             (clip.is_some_and(|c| c.count > 0), FLAG_CLIPPING),
             (glow, FLAG_GLOW),
@@ -1234,7 +1242,10 @@ impl Renderer {
                 } else {
                     0.0
                 },
-                0.0,
+                // The isovalue as the scalar image stores it.
+                settings
+                    .iso
+                    .map_or(0.0, |v| (v - tex.scalar_map.0) / tex.scalar_map.1),
             ],
             cut_tint: match settings.cut_tint {
                 Some([r, g, b]) => [r, g, b, CUT_TINT_WEIGHT],

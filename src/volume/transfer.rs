@@ -356,6 +356,24 @@ impl TransferFunction {
             .collect()
     }
 
+    /// The solid of the isosurface at data value `iso`: clear below it, opaque (1 per mm) from
+    /// it up, in this TF's colour at `iso` throughout. Its opacity is what the AO of an
+    /// isosurface is computed on (`--iso`), and its colour what the surface is drawn in.
+    pub fn iso_solid(&self, iso: f32, range: (f32, f32)) -> TransferFunction {
+        let [r, g, b, _] = self.eval(iso, range);
+        let below = iso - 1e-4 * (range.1 - range.0).abs().max(1.0);
+        let point = |value, alpha| ControlPoint {
+            value,
+            color: [r, g, b],
+            alpha,
+        };
+        TransferFunction {
+            name: format!("{} iso {iso}", self.name),
+            domain: Domain::Data,
+            points: vec![point(below, 0.0), point(iso, 1.0)],
+        }
+    }
+
     /// `n` RGBA entries sampled uniformly over `range` (for the ray caster's 1D texture).
     pub fn lut(&self, range: (f32, f32), n: usize) -> Vec<[f32; 4]> {
         (0..n)

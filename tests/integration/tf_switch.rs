@@ -594,3 +594,77 @@ fn a_frame_budget_lengthens_the_step_and_leaves_the_ao_alone() {
     assert_eq!(held.settings.step_mm, free.settings.step_mm);
     common::assert_no_validation_messages(&gpu);
 }
+
+/// An isosurface (`--iso`) is lit by the AO of its solid, and the left thumbstick moves the
+/// isovalue: the very next frame shows the new surface and its AO, which equal a loop started
+/// at the new isovalue bit for bit (the local histograms: one table update, no precompute).
+#[test]
+fn the_left_stick_moves_the_isovalue_and_the_next_frame_shows_its_surface_and_ao() {
+    use cao_xr::ao::histogram::HistParams;
+    use cao_xr::app::lighting::LightingOptions;
+    use cao_xr::input::LEFT;
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(24));
+    let tfs = vec![TransferFunction::preset("ct-bone").unwrap()];
+    let method = AoMethod::Histogram(HistParams {
+        radius_mm: 20.0,
+        bins: 16,
+        clusters: 0,
+    });
+    let new = |iso: f32| {
+        let mut lighting = LightingOptions::default();
+        lighting.shading.iso = Some(iso);
+        lighting.shading.jitter = false;
+        let built = Built {
+            config: AoConfig {
+                method,
+                ..PARAMS.into()
+            },
+            size: (48, 48),
+            interaction: InteractionSettings::default(),
+            fast_start_after_s: None,
+        };
+        FrameLoop::new_lit(
+            &gpu,
+            Arc::clone(&vol),
+            tfs.clone(),
+            built,
+            Some(&lighting),
+            false,
+        )
+        .unwrap()
+    };
+    let views = default_stereo_views(&vol, &Placement::default(), 0.064);
+    let frame = |fl: &mut FrameLoop, i: usize, stick: f32| {
+        let mut input = FrameInput::without_hands(i as f64 / 10.0, views);
+        input.hands[LEFT].buttons.thumbstick.y = stick;
+        fl.frame(&input).unwrap()
+    };
+    let (lo, hi) = vol.value_range();
+    let start = lo + 0.5 * (hi - lo);
+    let mut fl = new(start);
+    let a = frame(&mut fl, 0, 0.0);
+    assert_eq!(fl.scene.iso, Some(start));
+    // Full stick up for 0.1 s: a quarter of the range per second, past the dead zone.
+    let b = frame(&mut fl, 1, 1.0);
+    let moved = fl.scene.iso.unwrap();
+    assert!(moved > start + 0.02 * (hi - lo), "{start} -> {moved}");
+    assert!(
+        a.image != b.image,
+        "the new surface is not shown in the next frame"
+    );
+    assert!(
+        b.stats.tf_progress.is_none(),
+        "a table update, nothing in flight"
+    );
+    // The same as a loop started at the new isovalue.
+    let mut fresh = new(moved);
+    let c = frame(&mut fresh, 1, 0.0);
+    assert!(
+        b.image == c.image,
+        "the moved surface differs from a fresh start there"
+    );
+    let d = common::first_bit_difference(&read_ao(&fl.cao.ao), &read_ao(&fresh.cao.ao));
+    assert!(d.is_none(), "V_AO differs from a fresh start at {d:?}");
+    common::assert_no_validation_messages(&gpu);
+}
