@@ -226,6 +226,8 @@ impl Cao {
         params: LaoParams,
         method: MethodGpu,
     ) -> Result<Cao> {
+        // Before anything else is allocated: the precompute's padded O goes.
+        let skip = skip.for_update(gpu)?;
         let (dims, spacing) = (vol.dims, vol.spacing);
         let geometry = vol.clone_geometry();
         let (labels, protect, any_protected) = label_buffers(gpu, vol)?;
@@ -384,6 +386,7 @@ impl Cao {
         if let Some(skip) = &skip {
             check_layout(&self.geometry.name, skip, self.stride)?;
         }
+        let skip = skip.map(|s| s.for_update(&self.gpu)).transpose()?;
         self.opacity = opacity;
         self.pao = pao;
         if let Some(skip) = skip {

@@ -299,6 +299,24 @@ pub struct SkipBuffers {
     pub stride: [i32; 4],
 }
 
+impl SkipBuffers {
+    /// What the CAO update keeps of a precompute's skipping data: the clear bits and the sample
+    /// table. The padded O (4 bytes per voxel and its border) and the bricks, read only by the
+    /// precompute kernels, become 4-byte stand-ins, and their memory is free. Call it once no
+    /// submitted work reads them.
+    pub fn for_update(self, gpu: &Gpu) -> Result<SkipBuffers> {
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        drop((self.padded, self.bricks));
+        Ok(SkipBuffers {
+            bricks: Buffer::device_local(gpu, &[0u32], usage, "lao-bricks")?,
+            padded: Buffer::device_local(gpu, &[0f32], usage, "lao-padded")?,
+            clear: self.clear,
+            samples: self.samples,
+            stride: self.stride,
+        })
+    }
+}
+
 /// The host side of [`SkipBuffers`]: pure host work, so it can run on a worker thread.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SkipData {
