@@ -387,14 +387,35 @@ fn a_tracked_hand_pinches_carves_and_its_joints_are_drawn_and_replay_identically
     common::assert_no_validation_messages(&gpu);
 }
 
+/// An empty (clear) anisotropic raw volume written into `dir`, 20 x 16 x 12 int16 voxels of
+/// 0.7 x 0.9 x 2.5 mm (identity directions, origin 0: LPS = index * spacing), and the arguments
+/// that load it, with a cheap LAO: only what is drawn over it shows.
+fn clear_volume(dir: &std::path::Path) -> Vec<String> {
+    let raw = dir.join("v.raw");
+    std::fs::write(&raw, vec![0u8; 2 * 20 * 16 * 12]).unwrap();
+    let raw = raw.to_str().unwrap();
+    [
+        raw,
+        "--raw-dims",
+        "20,16,12",
+        "--raw-type",
+        "i16",
+        "--raw-spacing",
+        "0.7,0.9,2.5",
+    ]
+    .into_iter()
+    .chain(["--rays", "6", "--steps", "2"])
+    .map(String::from)
+    .collect()
+}
+
 #[test]
 fn markups_from_slicer_are_drawn_where_they_are_and_rulers_read_their_length_in_mm() {
     use cao_xr::volume::markups::{MarkupLine, MarkupPoint, Markups};
     use glam::DVec3;
     // An anisotropic volume: a ruler between two voxel centres reads the length in mm.
     let dir = common::scratch("overlay", "markups");
-    let raw = dir.join("v.raw");
-    std::fs::write(&raw, vec![0u8; 2 * 20 * 16 * 12]).unwrap();
+    let volume = clear_volume(&dir);
     let (spacing, a, b) = ([0.7, 0.9, 2.5], [2.0, 3.0, 1.0], [14.0, 11.0, 9.0]);
     // raw volumes have identity directions and the origin at 0: LPS = index * spacing
     let lps = |i: [f64; 3]| DVec3::new(i[0] * spacing[0], i[1] * spacing[1], i[2] * spacing[2]);
@@ -410,24 +431,9 @@ fn markups_from_slicer_are_drawn_where_they_are_and_rulers_read_their_length_in_
     ruler.write(&file).unwrap();
     // The raw volume rendered into `out`, with `extra` arguments; its stdout.
     let render = |out: &std::path::Path, extra: &[&str]| {
-        let mut args = vec![
-            "render",
-            raw.to_str().unwrap(),
-            "--raw-dims",
-            "20,16,12",
-            "--raw-type",
-            "i16",
-            "--raw-spacing",
-            "0.7,0.9,2.5",
-            "--rays",
-            "6",
-            "--steps",
-            "2",
-            "--size",
-            "16x16",
-            "--out",
-            out.to_str().unwrap(),
-        ];
+        let mut args = vec!["render"];
+        args.extend(volume.iter().map(String::as_str));
+        args.extend(["--size", "16x16", "--out", out.to_str().unwrap()]);
         args.extend_from_slice(extra);
         String::from_utf8_lossy(&common::run_cao_ok(&args).stdout).to_string()
     };
@@ -498,9 +504,7 @@ fn a_ruler_drawn_with_the_measuring_tool_is_saved_for_slicer_and_its_length_is_w
     use cao_xr::input::{pose, Buttons, FrameInput, HandInput, PoseStreamWriter, StreamHeader};
     use cao_xr::volume::markups::Markups;
     let dir = common::scratch("overlay", "measure");
-    // An empty (clear) anisotropic volume: only the overlay is drawn over the background.
-    let raw = dir.join("v.raw");
-    std::fs::write(&raw, vec![0u8; 2 * 20 * 16 * 12]).unwrap();
+    let volume = clear_volume(&dir);
     // Frames: the right hand (a script's grip is its tool's centre) cycles carve -> probe ->
     // measure, presses the trigger at a, drags to b and lets go there.
     let (a, b) = (Vec3::new(-0.03, 1.39, -0.5), Vec3::new(0.03, 1.40, -0.5));
@@ -540,25 +544,9 @@ fn a_ruler_drawn_with_the_measuring_tool_is_saved_for_slicer_and_its_length_is_w
     let (out, saved) = (dir.join("out"), dir.join("ruler.mrk.json"));
     let last = steps.len() - 1;
     let replay = |extra: &[&str]| {
-        let mut args = vec![
-            "replay",
-            stream.to_str().unwrap(),
-            raw.to_str().unwrap(),
-            "--raw-dims",
-            "20,16,12",
-            "--raw-type",
-            "i16",
-            "--raw-spacing",
-            "0.7,0.9,2.5",
-            "--rays",
-            "6",
-            "--steps",
-            "2",
-            "--size",
-            "192x192",
-            "--out",
-            out.to_str().unwrap(),
-        ];
+        let mut args = vec!["replay", stream.to_str().unwrap()];
+        args.extend(volume.iter().map(String::as_str));
+        args.extend(["--size", "192x192", "--out", out.to_str().unwrap()]);
         args.extend_from_slice(extra);
         let o = common::run_cao_ok(&args);
         String::from_utf8_lossy(&o.stderr).to_string()
