@@ -729,12 +729,91 @@ pub fn info_report(v: &Volume, tf: &TransferFunction) -> String {
         format!("size        {:.1} x {:.1} x {:.1} mm", ext.x, ext.y, ext.z),
         format!("tf          {}", tf.name),
         format!("presets     {presets}"),
+        format!("GPU         {}", gpu_report(v)),
     ]
     .map(|l| l + "\n")
     .concat()
         + &v.labels
             .as_ref()
             .map_or(String::new(), |l| l.report(v.spacing))
+}
+
+/// "lao 22.6, filters 49.0, histogram 37.0 bytes per voxel (2.5, 5.7, 4.3 GiB) ...": what the GPU
+/// holds of `vol` under each method with its default parameters ([`gpu_volumes`]).
+fn gpu_report(vol: &Volume) -> String {
+    let lao = LaoParams::default();
+    let methods = [
+        ("lao", AoMethod::Lao),
+        ("filters", AoMethod::Filter(Default::default())),
+        ("histogram", AoMethod::Histogram(HistParams::default())),
+    ];
+    let per_voxel: Vec<(&str, f64)> = methods
+        .iter()
+        .map(|(name, m)| (*name, gpu_volumes(vol, m, &lao).iter().map(|x| x.1).sum()))
+        .collect();
+    let n = vol.voxel_count() as f64;
+    let each = |f: &dyn Fn(f64) -> String| {
+        per_voxel
+            .iter()
+            .map(|&(_, b)| f(b))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    format!(
+        "{} bytes per voxel ({} GiB) held once set up (loading's staging, the clustering's \
+         batches and a frame's images come on top)",
+        per_voxel
+            .iter()
+            .map(|(name, b)| format!("{name} {b:.1}"))
+            .collect::<Vec<_>>()
+            .join(", "),
+        each(&|b| format!("{:.1}", b * n / (1u64 << 30) as f64)),
+    )
+}
+
+/// The volumes the GPU holds for `vol` under `method` (LAO with `lao`'s reach), in bytes per
+/// voxel by name: what every method holds (the scalar and AO images, O, O_c, CAO's mask, V_PAO,
+/// V_AO, and with labels their ids and the margins' glow) and the method's own. A frame's images
+/// and tables and the staging copies while loading come on top (the peak `render` prints).
+pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'static str, f64)> {
+    let scalar = match vol.voxels {
+        crate::volume::Voxels::U8(_) => 1.0,
+        crate::volume::Voxels::U16(_) | crate::volume::Voxels::I16(_) => 2.0,
+        crate::volume::Voxels::F32(_) => 4.0,
+    };
+    let ao = crate::ao::stored::BYTES_PER_VOXEL as f64;
+    let mut v = vec![
+        ("scalars", scalar),
+        ("AO image", ao),
+        ("O", 4.0),
+        ("O_c", 4.0),
+        ("mask", 1.0),
+        ("V_PAO", ao),
+        ("V_AO", ao),
+    ];
+    if let Some(l) = vol.labels.as_deref() {
+        v.push(("structure ids (ray caster, CAO)", 2.0));
+        if l.structures.iter().any(|s| s.margin_mm.is_some()) {
+            v.push(("margin glow", 1.0));
+        }
+    }
+    let n = vol.voxel_count().max(1) as f64;
+    match method {
+        AoMethod::Lao => {
+            let layout = crate::ao::lao::LaoLayout::new(lao, vol.spacing, vol.dims);
+            v.push(("padded O_c", 4.0 * layout.padded_len() as f64 / n));
+            v.push(("clear bits", 1.0 / 8.0));
+        }
+        AoMethod::Filter(_) => v.push(("box statistics", 32.0)),
+        AoMethod::Histogram(h) => {
+            v.push(("bins", 4.0));
+            v.push(("E (precomputed, current, image)", 12.0));
+            if h.clusters > 0 {
+                v.push(("cluster ids", 4.0));
+            }
+        }
+    }
+    v
 }
 
 /// Parses `SHAPE[:SIZE_MM[:X,Y,Z]]` (offset in mm from the volume centre: x right, y up, z

@@ -157,3 +157,77 @@ fn a_gpu_that_stops_answering_is_an_error_not_a_freeze() {
     assert!(gpu.timeout() >= std::time::Duration::from_secs(60));
     crate::common::assert_no_validation_messages(&gpu);
 }
+
+/// `info`'s bytes per voxel of each method ([`cao_xr::app::gpu_volumes`]) are what the GPU
+/// then holds: at most the peak `render` measures, and within 2 bytes per voxel of it (a frame's
+/// images and tables and the staging copies come on top) on a 2 Mi-voxel volume, for LAO, a
+/// filter and the local histograms' direct definition (their clustering's batches of
+/// histograms are transient, on top of the peak).
+#[test]
+fn info_tells_the_gpu_bytes_per_voxel_each_method_holds() {
+    use cao_xr::ao::histogram::HistParams;
+    use cao_xr::ao::{AoMethod, LaoParams};
+    let dir = tmp("info");
+    let vol = cao_xr::volume::phantom::head(128);
+    let predicted = |m: AoMethod| -> f64 {
+        let v = cao_xr::app::gpu_volumes(&vol, &m, &LaoParams::default());
+        v.iter().map(|x| x.1).sum()
+    };
+    let info = crate::common::run_cao_ok(&["info", "phantom:128"]);
+    let info = String::from_utf8_lossy(&info.stdout).to_string();
+    assert!(
+        info.contains(&format!(
+            "GPU         lao {:.1}, filters",
+            predicted(AoMethod::Lao)
+        )),
+        "{info}"
+    );
+    let direct = HistParams {
+        clusters: 0,
+        radius_mm: 6.0,
+        ..HistParams::default()
+    };
+    let cases: [(AoMethod, &[&str]); 3] = [
+        (AoMethod::Lao, &["--ao", "lao"]),
+        (
+            AoMethod::Filter(Default::default()),
+            &["--ao", "filter-gauss"],
+        ),
+        (
+            AoMethod::Histogram(direct),
+            &[
+                "--ao",
+                "histogram",
+                "--clusters",
+                "0",
+                "--hist-radius-mm",
+                "6",
+            ],
+        ),
+    ];
+    for (method, extra) in cases {
+        let mut args = vec![
+            "render",
+            "phantom:128",
+            "--size",
+            "32x32",
+            "--tool",
+            "sphere:40",
+        ];
+        args.extend(extra);
+        args.extend(["--out", dir.to_str().unwrap()]);
+        let out = crate::common::run_cao_ok(&args);
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        let measured: f64 = stdout
+            .split("MiB, ")
+            .nth(1)
+            .and_then(|s| s.split(' ').next())
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_else(|| panic!("{extra:?}: no peak in {stdout}"));
+        let p = predicted(method);
+        assert!(
+            p <= measured && measured <= p + 2.0,
+            "{extra:?}: {p:.1} bytes per voxel told, {measured} measured"
+        );
+    }
+}
