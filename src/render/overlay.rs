@@ -347,12 +347,10 @@ crate::gpu::glsl_layout!(ItemPush, 96, mvp: 0, color: 64, eye_local: 80);
 /// Draws [`OverlayItem`]s into a [`StereoTarget`] the volume was just rendered into.
 pub struct OverlayRenderer {
     gpu: Gpu,
-    /// Back faces first, then front faces: for each (convex) item, the far side blends under
-    /// the near side, whatever order the mesh lists its triangles in.
-    back: vk::Pipeline,
-    front: vk::Pipeline,
-    /// Front faces with no depth test, for text.
-    on_top: vk::Pipeline,
+    /// Back faces, then front faces: for each (convex) item, the far side blends under the near
+    /// side, whatever order the mesh lists its triangles in. Then front faces with no depth
+    /// test, for text.
+    pipelines: [vk::Pipeline; 3],
     layout: vk::PipelineLayout,
     /// Sphere, box, cylinder (also the rod), torus, marker.
     builtin: Vec<GpuMesh>,
@@ -446,9 +444,7 @@ impl OverlayRenderer {
             };
             Ok(OverlayRenderer {
                 gpu: gpu.clone(),
-                back: pipelines[0],
-                front: pipelines[1],
-                on_top: pipelines[2],
+                pipelines: [pipelines[0], pipelines[1], pipelines[2]],
                 layout,
                 builtin,
                 loaded: Vec::new(),
@@ -470,13 +466,13 @@ impl OverlayRenderer {
     }
 
     /// The mesh that draws `mesh`, its index range, and the pipelines that draw it in order.
-    fn draw_of(&self, mesh: OverlayMesh) -> Option<(&GpuMesh, (u32, u32), Vec<vk::Pipeline>)> {
+    fn draw_of(&self, mesh: OverlayMesh) -> Option<(&GpuMesh, (u32, u32), &[vk::Pipeline])> {
         if let OverlayMesh::Glyph(g) = mesh {
             let range = *self.glyph_ranges.get(g as usize)?;
-            return Some((&self.glyphs, range, vec![self.on_top]));
+            return Some((&self.glyphs, range, &self.pipelines[2..]));
         }
         let m = self.mesh(mesh)?;
-        Some((m, (0, m.index_count), vec![self.back, self.front]))
+        Some((m, (0, m.index_count), &self.pipelines[..2]))
     }
 
     fn mesh(&self, mesh: OverlayMesh) -> Option<&GpuMesh> {
@@ -573,7 +569,7 @@ impl OverlayRenderer {
                     };
                     d.cmd_bind_vertex_buffers(cmd, 0, &[mesh.vertices.raw], &[0]);
                     d.cmd_bind_index_buffer(cmd, mesh.indices.raw, 0, vk::IndexType::UINT32);
-                    for pipeline in pipelines {
+                    for &pipeline in pipelines {
                         d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
                         d.cmd_push_constants(
                             cmd,
@@ -597,9 +593,9 @@ impl Drop for OverlayRenderer {
         unsafe {
             let d = &self.gpu.device;
             let _ = d.device_wait_idle();
-            d.destroy_pipeline(self.back, None);
-            d.destroy_pipeline(self.front, None);
-            d.destroy_pipeline(self.on_top, None);
+            for p in self.pipelines {
+                d.destroy_pipeline(p, None);
+            }
             d.destroy_pipeline_layout(self.layout, None);
         }
     }
