@@ -1,6 +1,8 @@
 //! Soak: a long replay with a tool carving without a pause (`cao-xr script carve-loop`), on a
 //! small phantom with validation on. Memory must stay flat and frame time must not creep up
 //! (issue 19; the README gives the figures of a 10,000-frame run of the same check).
+//! scripts/test.sh runs it alone, after every other test: its CPU-time trend is read on a quiet
+//! machine.
 
 use std::process::Command;
 
