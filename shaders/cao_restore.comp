@@ -14,8 +14,6 @@ layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Cl
 layout(buffer_reference, std430, buffer_reference_align = 4) buffer Mask { uint mask[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pao { uint16_t pao[]; };
 layout(buffer_reference, std430, buffer_reference_align = 2) writeonly buffer Ao { uint16_t ao[]; };
-// O_c again, inside the zero border the LAO kernel reads (src/ao/lao.rs LaoLayout).
-layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer ClippedPadded { float clipped_padded[]; };
 
 layout(push_constant) uniform Push {
     Opacity opacity_buf;
@@ -23,11 +21,11 @@ layout(push_constant) uniform Push {
     Mask mask_buf;
     Pao pao_buf;
     Ao ao_buf;
-    ClippedPadded clipped_padded_buf;
+    uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;
     ivec4 box_min;   // w: 1 = clipped away
     ivec4 box_max;   // exclusive
-    ivec4 stride;    // the padded grid's (origin, row, slice); 0 where there is none
+    ivec4 stride;    // where voxel v of O_c lies: x + v.x + y v.y + z v.z (LAO's zero border)
 } pc;
 #define opacity pc.opacity_buf.opacity
 #define clipped pc.clipped_buf.clipped
@@ -36,7 +34,6 @@ layout(push_constant) uniform Push {
 #include "mask.glsl"
 #define pao pc.pao_buf.pao
 #define ao pc.ao_buf.ao
-#define clipped_padded pc.clipped_padded_buf.clipped_padded
 
 void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
@@ -44,9 +41,7 @@ void main() {
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
     bool away = pc.box_min.w != 0;
     float o = away ? 0.0 : opacity[i];
-    clipped[i] = o;
-    // Stride 0: the method is not LAO, and there is no padded copy.
-    if (pc.stride.y != 0) clipped_padded[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = o;
+    clipped[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = o;
     mask_set(i, away ? 0u : 2u);
     ao[i] = away ? uint16_t(AO_OPEN) : pao[i];
 }

@@ -11,32 +11,27 @@ layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Clipped { float clipped[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) buffer Mask { uint mask[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer ClippedPadded { float clipped_padded[]; };
 // The structure of every voxel (src/volume/labels.rs: one byte each, 0 unlabelled), and the
 // 256-bit set of protected structures, read where dims.w says some structure is protected.
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Labels { uint label_words[]; };
-layout(std430, binding = 8) readonly buffer Protect { uint protect_bits[8]; };
+layout(std430, binding = 7) readonly buffer Protect { uint protect_bits[8]; };
 layout(std430, binding = 5) buffer Counts { uint counts[]; };
-// O_c again, inside the zero border the LAO kernel reads (src/ao/lao.rs LaoLayout).
 
 layout(push_constant) uniform Push {
     Opacity opacity_buf;
     Clipped clipped_buf;
     Mask mask_buf;
-    ClippedPadded clipped_padded_buf;
     Labels label_words_buf;
-    uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;      // w: 1 = some structure is protected
     ivec4 box_min;   // w: tool count
     ivec4 box_max;   // exclusive
-    ivec4 stride;    // the padded grid's (origin, row, slice); 0 where there is none
+    ivec4 stride;    // where voxel v of O_c lies: x + v.x + y v.y + z v.z (LAO's zero border)
 } pc;
 #define opacity pc.opacity_buf.opacity
 #define clipped pc.clipped_buf.clipped
 #define mask pc.mask_buf.mask
 #define MASK_WRITE
 #include "mask.glsl"
-#define clipped_padded pc.clipped_padded_buf.clipped_padded
 #define label_words pc.label_words_buf.label_words
 
 #define CLIP_SET 0
@@ -92,9 +87,7 @@ void main() {
         }
         oc = o * (float(visible) / 41.0);
     }
-    clipped[i] = oc;
-    // Stride 0: the method is not LAO, and there is no padded copy.
-    if (pc.stride.y != 0) clipped_padded[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = oc;
+    clipped[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = oc;
     uint category = affected == 0u ? 2u : (visible > 0u ? 1u : 0u);
     mask_set(i, category);
     atomicAdd(counts[category], 1u);

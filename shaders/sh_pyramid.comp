@@ -19,6 +19,7 @@ layout(push_constant) uniform Push {
     ivec4 dst_dims;   // xyz: dims of the level written, w: its offset in pyr
     float exponent;   // level 0: h0 / 1 mm
     uint level0;      // 1: write level 0 from O
+    ivec4 stride;     // level 0: voxel v of O lies at x + v.x + y v.y + z v.z (LAO's zero border)
 } pc;
 #define opacity pc.opacity_buf.opacity
 #define pyr pc.pyr_buf.pyr
@@ -33,7 +34,7 @@ void main() {
     if (any(greaterThanEqual(v, pc.dst_dims.xyz))) return;
     int dst = pc.dst_dims.w + v.x + pc.dst_dims.x * (v.y + pc.dst_dims.y * v.z);
     if (pc.level0 != 0u) {
-        float o = opacity[v.x + pc.dst_dims.x * (v.y + pc.dst_dims.y * v.z)];
+        float o = opacity[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z];
         pyr[dst] = o <= 0.0 ? 0.0 : (o >= 1.0 ? 1.0 : 1.0 - pow(1.0 - o, pc.exponent));
         return;
     }

@@ -76,7 +76,7 @@ crate::gpu::glsl_layout!(ClipToolGpu, 176,
     local_from_index: 0, local_from_world: 64, map: 128, offsets: 144, sh_map: 160);
 
 /// Push constants of cao_restore.comp and clip_mask.comp: a box, and where its voxels lie in
-/// the padded O_c the LAO kernel reads.
+/// O_c ([`Cao::clipped_stride`]).
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct ClipPush {
@@ -130,12 +130,11 @@ pub struct Cao {
     pub params: LaoParams,
     max_spacing_mm: f64,
     opacity: Buffer,
-    /// O_c: the anti-aliased clipped opacity.
-    pub clipped: Buffer,
-    /// O_c again inside the zero border the LAO kernel reads ([`LaoLayout`]); the border stays 0.
-    /// Only while the method is LAO (real skipping data): a 4-byte stand-in for the others.
-    clipped_padded: Buffer,
-    /// [`LaoLayout::stride`] of `clipped_padded`.
+    /// O_c: the anti-aliased clipped opacity. While the method is LAO it lies inside the zero
+    /// border the LAO kernel reads ([`LaoLayout`]; the border stays 0), else without one: one
+    /// copy either way ([`Cao::clipped_stride`]).
+    clipped: Buffer,
+    /// [`LaoLayout::stride`] of LAO's padded grid.
     stride: [i32; 4],
     mask: Buffer,
     pao: Buffer,
@@ -238,7 +237,7 @@ impl Cao {
                 env!("OUT_DIR"),
                 "/cao_restore.comp.spv"
             ))),
-            &[Reach::Address; 6],
+            &[Reach::Address; 5],
             std::mem::size_of::<ClipPush>() as u32,
         )?;
         let clip = ComputePipeline::with_addresses(
@@ -254,7 +253,6 @@ impl Cao {
                 Reach::Descriptor,
                 Reach::Descriptor,
                 Reach::Descriptor,
-                Reach::Address,
                 Reach::Address,
                 Reach::Descriptor,
             ],
@@ -280,8 +278,6 @@ impl Cao {
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER
             | vk::BufferUsageFlags::TRANSFER_SRC
             | vk::BufferUsageFlags::TRANSFER_DST;
-        let dev = |name| Buffer::new(gpu, n * 4, storage, MemoryLocation::GpuOnly, name);
-        let clipped = dev("cao-clipped")?;
         let ao = super::stored::buffer(gpu, dims, "cao-ao")?;
         // One byte per voxel (shaders/include/mask.glsl), in whole words.
         let mask = Buffer::new(
@@ -294,7 +290,7 @@ impl Cao {
         let layout = LaoLayout::new(&params, spacing, dims);
         let stride = layout.stride();
         check_layout(&vol.name, &skip, stride)?;
-        let clipped_padded = padded_copy(gpu, &layout, lao_reads(&skip))?;
+        let clipped = clipped_buffer(gpu, &layout, matches!(method, MethodGpu::Lao))?;
         let slots = (0..MAX_FRAMES_IN_FLIGHT)
             .map(|_| FrameSlot::new(gpu))
             .collect::<Result<Vec<_>>>()?;
@@ -310,7 +306,6 @@ impl Cao {
             max_spacing_mm: spacing.iter().cloned().fold(0.0, f64::max),
             opacity,
             clipped,
-            clipped_padded,
             stride,
             mask,
             pao,
@@ -390,34 +385,56 @@ impl Cao {
         self.opacity = opacity;
         self.pao = pao;
         if let Some(skip) = skip {
-            if lao_reads(&skip) && !lao_reads(&self.skip) {
-                // A switch to LAO: its padded O_c, filled by the whole restore below.
-                let layout = LaoLayout::new(&self.params, self.spacing, self.dims);
-                self.clipped_padded = padded_copy(&self.gpu, &layout, true)?;
-            }
             self.skip = skip;
         }
         self.prev_boxes = vec![VoxelBox::whole(self.dims)];
         Ok(())
     }
 
-    /// The strides the restore and clip passes write the padded O_c with; 0 (no copy) when the
-    /// method is not LAO.
-    fn padded_stride(&self) -> [i32; 4] {
-        if lao_reads(&self.skip) {
+    /// Where voxel v of O_c lies: [`Cao::clipped`][0] + v.x + [1] v.y + [2] v.z, inside LAO's
+    /// zero border while the method is LAO.
+    pub fn clipped_stride(&self) -> [i32; 4] {
+        if matches!(self.method, MethodGpu::Lao) {
             self.stride
         } else {
-            [0; 4]
+            LaoLayout::unpadded_stride(self.dims)
         }
     }
 
+    /// O_c, laid out by [`Cao::clipped_stride`].
+    pub fn clipped(&self) -> &Buffer {
+        &self.clipped
+    }
+
+    /// O_c read back, x fastest, without a border.
+    pub fn read_clipped(&self) -> Result<Vec<f32>> {
+        let bytes = self.clipped.read_back()?;
+        let all: Vec<f32> = bytes
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        let [o, sy, sz, _] = self.clipped_stride().map(|s| s as usize);
+        let [nx, ny, nz] = self.dims;
+        Ok((0..nz)
+            .flat_map(|z| (0..ny).map(move |y| o + sy * y + sz * z))
+            .flat_map(|row| all[row..row + nx].iter().copied())
+            .collect())
+    }
+
     /// Sets the AO method and returns the one it replaces. V_PAO must already hold the new
-    /// method's AO of the unclipped volume ([`Cao::replace_precomputed`]).
-    pub fn set_method(&mut self, method: MethodGpu) -> MethodGpu {
+    /// method's AO of the unclipped volume ([`Cao::replace_precomputed`]). Call it only when no
+    /// submitted command buffer still uses O_c: a switch to or from LAO lays it out anew.
+    pub fn set_method(&mut self, method: MethodGpu) -> Result<MethodGpu> {
+        let lao = matches!(method, MethodGpu::Lao);
+        if lao != matches!(self.method, MethodGpu::Lao) {
+            // The next frame's whole restore fills it.
+            let layout = LaoLayout::new(&self.params, self.spacing, self.dims);
+            self.clipped = clipped_buffer(&self.gpu, &layout, lao)?;
+        }
         // The next frame restores the whole volume from the new method's values (its bleeding
         // volume included).
         self.prev_boxes = vec![VoxelBox::whole(self.dims)];
-        std::mem::replace(&mut self.method, method)
+        Ok(std::mem::replace(&mut self.method, method))
     }
 
     /// The AO method's name, as `--ao` spells it (lao, filter-gauss, histogram, ...), or
@@ -690,7 +707,7 @@ impl Cao {
                 dims: self.dims4(),
                 box_min: [b.min[0], b.min[1], b.min[2], clipped as i32],
                 box_max: [b.max[0], b.max[1], b.max[2], 0],
-                stride: self.padded_stride(),
+                stride: self.clipped_stride(),
             };
             let bufs = [
                 &self.opacity,
@@ -698,7 +715,6 @@ impl Cao {
                 &self.mask,
                 &self.pao,
                 &self.ao,
-                &self.clipped_padded,
             ];
             self.restore.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.restore, cmd, b);
@@ -800,7 +816,7 @@ impl Cao {
                 dims: [x, y, z, self.any_protected as i32],
                 box_min: [b.min[0], b.min[1], b.min[2], count as i32],
                 box_max: [b.max[0], b.max[1], b.max[2], 0],
-                stride: self.padded_stride(),
+                stride: self.clipped_stride(),
             };
             let bufs = [
                 &self.opacity,
@@ -809,7 +825,6 @@ impl Cao {
                 tools,
                 maps,
                 &slot.counts,
-                &self.clipped_padded,
                 &self.labels,
                 &self.protect,
             ];
@@ -864,7 +879,7 @@ impl Cao {
                 box_max: [b.max[0], b.max[1], b.max[2], 0],
             };
             let bufs = [
-                &self.clipped_padded,
+                &self.clipped,
                 &self.skip.samples,
                 &self.ao,
                 &self.skip.clear,
@@ -996,30 +1011,19 @@ impl FrameSlot {
     }
 }
 
-/// Whether `skip` is LAO's own skipping data, not a stand-in: LAO, and only LAO, reads the
-/// padded O_c.
-fn lao_reads(skip: &SkipBuffers) -> bool {
-    skip.stride != [0; 4]
-}
-
-/// The padded O_c, zero throughout (the border stays so), or a 4-byte stand-in where `needed`
-/// is false.
-fn padded_copy(gpu: &Gpu, layout: &LaoLayout, needed: bool) -> Result<Buffer> {
-    let bytes = if needed {
-        layout.padded_len() as u64 * 4
+/// O_c, zero throughout: inside LAO's zero border (which stays so) where `padded`, else
+/// without a border.
+fn clipped_buffer(gpu: &Gpu, layout: &LaoLayout, padded: bool) -> Result<Buffer> {
+    let voxels = if padded {
+        layout.padded_len()
     } else {
-        4
+        layout.dims.iter().product()
     };
+    let bytes = voxels as u64 * 4;
     let usage = vk::BufferUsageFlags::STORAGE_BUFFER
         | vk::BufferUsageFlags::TRANSFER_SRC
         | vk::BufferUsageFlags::TRANSFER_DST;
-    let b = Buffer::new(
-        gpu,
-        bytes,
-        usage,
-        MemoryLocation::GpuOnly,
-        "cao-clipped-padded",
-    )?;
+    let b = Buffer::new(gpu, bytes, usage, MemoryLocation::GpuOnly, "cao-clipped")?;
     gpu.submit_and_wait(|cmd| unsafe {
         gpu.device.cmd_fill_buffer(cmd, b.raw, 0, vk::WHOLE_SIZE, 0);
     })?;

@@ -238,6 +238,11 @@ impl LaoLayout {
         ]
     }
 
+    /// The strides of a grid without a border, in [`LaoLayout::stride`]'s form.
+    pub fn unpadded_stride(dims: [usize; 3]) -> [i32; 4] {
+        [0, dims[0] as i32, (dims[0] * dims[1]) as i32, 0]
+    }
+
     /// `opacity` (x fastest) inside its zero border.
     pub fn padded(&self, opacity: &[f32]) -> Vec<f32> {
         let (d, p) = (self.dims, self.padded_dims());

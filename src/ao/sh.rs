@@ -23,6 +23,7 @@
 //!   the environment into that frame ([`crate::light`]).
 
 use super::cao::Cao;
+use super::lao::LaoLayout;
 use super::voxel_box::VoxelBox;
 use crate::gpu::{
     Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Image, ImageDesc, Reach, Result,
@@ -388,8 +389,11 @@ struct PyramidPush {
     dst_dims: [i32; 4],
     exponent: f32,
     level0: u32,
+    pad: [u32; 2],
+    stride: [i32; 4],
 }
-crate::gpu::glsl_layout!(PyramidPush, 40, src_dims: 0, dst_dims: 16, exponent: 32, level0: 36);
+crate::gpu::glsl_layout!(PyramidPush, 64,
+    src_dims: 0, dst_dims: 16, exponent: 32, level0: 36, stride: 48);
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -568,8 +572,9 @@ impl ShVolume {
         Ok(sh)
     }
 
-    /// Records the whole pyramid of `opacity` (O or O_c, f32 at full resolution).
-    pub fn record_pyramid(&self, cmd: vk::CommandBuffer, opacity: &Buffer) {
+    /// Records the whole pyramid of `opacity` (O or O_c, f32 at full resolution), whose voxel v
+    /// lies at `stride`[0] + v.x + `stride`[1] v.y + `stride`[2] v.z.
+    pub fn record_pyramid(&self, cmd: vk::CommandBuffer, opacity: &Buffer, stride: [i32; 4]) {
         let offsets = self.grid.offsets();
         let dims4 = |l: usize| {
             let d = self.grid.levels[l];
@@ -581,6 +586,8 @@ impl ShVolume {
                 dst_dims: dims4(l),
                 exponent: self.grid.h0 as f32,
                 level0: (l == 0) as u32,
+                pad: [0; 2],
+                stride,
             };
             self.pyramid_pass
                 .bind(cmd, &[opacity, &self.pyramid], bytemuck::bytes_of(&push));
@@ -704,8 +711,9 @@ impl ShVolume {
         let t0 = std::time::Instant::now();
         let mut timing = ShTiming::default();
         let mut timer = GpuTimer::new(&self.gpu, 2)?;
-        self.gpu
-            .submit_and_wait(|cmd| self.record_pyramid(cmd, opacity))?;
+        self.gpu.submit_and_wait(|cmd| {
+            self.record_pyramid(cmd, opacity, LaoLayout::unpadded_stride(self.grid.full))
+        })?;
         let budget = if self.gpu.is_cpu() { 5e7 } else { 2e9 };
         let total = self.grid.dims[2];
         let mut slabs = crate::ao::progressive::SlabScheduler::with_budget(
@@ -760,7 +768,7 @@ impl ShVolume {
         self.timer = (self.timer + 1) % self.timers.len();
         self.timers[self.timer].begin(cmd);
         if !boxes.is_empty() {
-            self.record_pyramid(cmd, &cao.clipped);
+            self.record_pyramid(cmd, cao.clipped(), cao.clipped_stride());
         }
         for b in &restore {
             self.record_pass(cmd, b, Pass::Restore, (tools, maps, 0), &self.cur);

@@ -786,7 +786,6 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
         ("scalars", scalar),
         ("AO image", ao),
         ("O", 4.0),
-        ("O_c", 4.0),
         ("mask", 1.0),
         ("V_PAO", ao),
         ("V_AO", ao),
@@ -801,11 +800,13 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
     match method {
         AoMethod::Lao => {
             let layout = crate::ao::lao::LaoLayout::new(lao, vol.spacing, vol.dims);
-            v.push(("padded O_c", 4.0 * layout.padded_len() as f64 / n));
+            // O_c inside LAO's zero border; the other methods hold it without one.
+            v.push(("O_c (padded)", 4.0 * layout.padded_len() as f64 / n));
             v.push(("clear bits", 1.0 / 8.0));
         }
-        AoMethod::Filter(_) => v.push(("box statistics", 32.0)),
+        AoMethod::Filter(_) => v.extend([("O_c", 4.0), ("box statistics", 32.0)]),
         AoMethod::Histogram(h) => {
+            v.push(("O_c", 4.0));
             v.push(("bins", 4.0));
             v.push(("E (precomputed, current, image)", 12.0));
             if h.clusters > 0 {

@@ -14,7 +14,7 @@ use crate::ao::cao::{Cao, MethodGpu};
 use crate::ao::filter_gpu::{FilterGpu, FilterMode};
 use crate::ao::filtered;
 use crate::ao::histogram_gpu::HistogramGpu;
-use crate::ao::lao::{SkipBuffers, SkipData};
+use crate::ao::lao::{LaoLayout, SkipBuffers, SkipData};
 use crate::ao::progressive::{HostTask, SlabScheduler};
 use crate::ao::sh::ShVolume;
 use crate::ao::voxel_box::VoxelBox;
@@ -409,7 +409,7 @@ impl TfSwitcher {
                 Some(f) => MethodGpu::Filter(f),
                 None => MethodGpu::Lao,
             };
-            if let MethodGpu::Histogram(h) = cao.set_method(method) {
+            if let MethodGpu::Histogram(h) = cao.set_method(method)? {
                 self.parked = Some(h);
             }
             if let (Some((mut v, _)), Some(l)) = (sh, lighting) {
@@ -447,7 +447,7 @@ impl TfSwitcher {
                 })?;
                 let t = build(&mut h)?;
                 cao.replace_precomputed(t.opacity, t.pao, None)?;
-                cao.set_method(MethodGpu::Histogram(h));
+                cao.set_method(MethodGpu::Histogram(h))?;
             }
         }
         tex.set_transfer_function(tf)?;
@@ -529,7 +529,7 @@ impl TfSwitcher {
         }
         if let Some((v, sh_slabs)) = sh.as_mut() {
             if sh_slabs.done() == 0 {
-                v.record_pyramid(cmd, opacity);
+                v.record_pyramid(cmd, opacity, LaoLayout::unpadded_stride(vol.dims));
             }
             if let Some(z) = sh_slabs.next_slab() {
                 self.timer.begin(cmd);

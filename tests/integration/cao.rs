@@ -78,10 +78,6 @@ fn render(
     .unwrap()
 }
 
-pub(crate) fn read(b: &Buffer) -> Vec<f32> {
-    bytemuck::cast_slice(&b.read_back().unwrap()).to_vec()
-}
-
 /// A stored AO volume (V_AO, V_PAO: 16-bit unorm) as values.
 pub(crate) fn read_ao(b: &Buffer) -> Vec<f32> {
     cao_xr::ao::stored::read(b, b.size as usize / 2).unwrap()
@@ -188,8 +184,8 @@ fn cao_equals_naive_lao_bit_for_bit_every_frame() {
             "frame {i}: CAO differs from naive LAO at voxel {diff:?}"
         );
         assert_eq!(
-            read(&cao.clipped),
-            read(&naive.clipped),
+            cao.read_clipped().unwrap(),
+            naive.read_clipped().unwrap(),
             "frame {i}: clipped opacity"
         );
         assert_eq!(m.clipped, n.clipped, "frame {i}");
@@ -244,7 +240,7 @@ fn the_cut_is_where_the_tools_are() {
         ToolMode::Carve,
     )];
     cao.run_frame(&tools, &placement, Mode::Contextual).unwrap();
-    let (ao, oc) = (read_ao(&cao.ao), read(&cao.clipped));
+    let (ao, oc) = (read_ao(&cao.ao), cao.read_clipped().unwrap());
     let deep = voxel_at(centre + Vec3::new(0.0, 0.0, 0.012));
     assert!(o[deep] > 0.0, "the test voxel holds tissue before the cut");
     assert_eq!(
@@ -285,7 +281,7 @@ fn the_cut_is_where_the_tools_are() {
         ToolMode::Carve,
     )];
     cao.run_frame(&tools, &placement, Mode::Contextual).unwrap();
-    let oc = read(&cao.clipped);
+    let oc = cao.read_clipped().unwrap();
     let hole = voxel_at(t);
     let tube = voxel_at(t + Vec3::new(0.045, 0.0, 0.0));
     assert!(
@@ -346,7 +342,11 @@ fn probes_cost_what_they_cover_and_stay_exact() {
             diff.is_none(),
             "frame {i}: CAO differs from naive LAO at voxel {diff:?}"
         );
-        assert_eq!(read(&cao.clipped), read(&naive.clipped), "frame {i}: O_c");
+        assert_eq!(
+            cao.read_clipped().unwrap(),
+            naive.read_clipped().unwrap(),
+            "frame {i}: O_c"
+        );
         assert_eq!(m.clipped, n.clipped, "frame {i}: clipped count");
         if i < 6 {
             recomputed.push(m.recomputed);

@@ -443,8 +443,8 @@ fn carving_around_a_protected_structure_equals_the_full_recompute_and_leaves_it_
             diff.is_none(),
             "frame {f}: CAO differs from the full recompute at {diff:?}"
         );
-        let oc = crate::cao::read(&cao.clipped);
-        assert_eq!(oc, crate::cao::read(&naive.clipped), "frame {f}");
+        let oc = cao.read_clipped().unwrap();
+        assert_eq!(oc, naive.read_clipped().unwrap(), "frame {f}");
         // Inside the cut the vessel keeps O, the tissue around it is carved.
         let vessel_kept = (0..o.len()).all(|i| ids[i] != 1 || oc[i] == o[i]);
         assert!(vessel_kept, "frame {f}: a protected voxel lost opacity");
@@ -461,7 +461,7 @@ fn carving_around_a_protected_structure_equals_the_full_recompute_and_leaves_it_
     plain
         .run_frame(&frames[0], &placement, Mode::Contextual)
         .unwrap();
-    let oc = crate::cao::read(&plain.clipped);
+    let oc = plain.read_clipped().unwrap();
     let ids = &open.labels.as_ref().unwrap().ids;
     assert!(
         (0..o.len()).any(|i| ids[i] == 1 && o[i] > 0.0 && oc[i] == 0.0),
@@ -503,7 +503,7 @@ fn protecting_a_structure_mid_carve_stays_exact() {
         let (a, b) = (crate::cao::read_ao(&cao.ao), crate::cao::read_ao(&naive.ao));
         let diff = common::first_bit_difference(&a, &b);
         assert!(diff.is_none(), "frame {f}: CAO differs at {diff:?}");
-        let oc = crate::cao::read(&cao.clipped);
+        let oc = cao.read_clipped().unwrap();
         let vessel_kept = (0..o.len()).all(|i| ids[i] != 1 || oc[i] == o[i]);
         assert_eq!(
             vessel_kept, p,
