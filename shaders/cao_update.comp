@@ -4,7 +4,7 @@
 // c (unaffected) -> the precomputed V_PAO, b -> LAO recomputed on the clipped opacity O_c.
 // With `naive` set, c voxels are recomputed too (the full-LAO baseline).
 #extension GL_GOOGLE_include_directive : require
-#include "ao_store.glsl"
+#include "unorm16.glsl"
 
 #include "constants.glsl"
 #include "lao_sample.glsl"
@@ -14,7 +14,7 @@ layout(local_size_x = LAO_GROUP_X, local_size_y = LAO_GROUP_Y, local_size_z = LA
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
 // O_c with its zero border (src/ao/lao.rs LaoLayout), as clip_mask.comp writes it.
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer Opacity { uint16_t opacity[]; };
 layout(buffer_reference, std430, buffer_reference_align = 2) writeonly buffer Ao { uint16_t ao[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Clear { uint clear_bits[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Mask { uint mask[]; };
@@ -60,6 +60,6 @@ void main() {
         // The clear mask comes from the unclipped O; clipping only lowers opacity, so it stays
         // exact for O_c.
         bool clear = ((clear_bits[i >> 5] >> (i & 31)) & 1u) != 0u;
-        ao[i] = uint16_t(clear ? AO_OPEN : ao_word(lao_voxel(lao_base(v))));
+        ao[i] = uint16_t(clear ? AO_OPEN : unorm16_word(lao_voxel(lao_base(v))));
     }
 }

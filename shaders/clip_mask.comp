@@ -4,28 +4,36 @@
 // corners), 32 more where they disagree. Writes the anti-aliased opacity O_c, the category mask
 // (0 = a: clipped away, 1 = b: AO affected by the cut, 2 = c: unaffected) and category counts.
 #extension GL_GOOGLE_include_directive : require
+#include "unorm16.glsl"
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer Clipped { float clipped[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer Opacity { uint16_t opacity[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) writeonly buffer Clipped { uint16_t clipped[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) buffer Mask { uint mask[]; };
 // The structure of every voxel (src/volume/labels.rs: one byte each, 0 unlabelled), and the
 // 256-bit set of protected structures, read where dims.w says some structure is protected.
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Labels { uint label_words[]; };
 layout(std430, binding = 7) readonly buffer Protect { uint protect_bits[8]; };
 layout(std430, binding = 5) buffer Counts { uint counts[]; };
+// O and O_c in their two formats (src/ao/cao.rs Cao::clipped_stride): stride.w 1, f32 (the
+// filters' density), else 16-bit unorm (unorm16.glsl); the same buffers are bound to both.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer OpacityF { float opacity_f[]; };
+layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer ClippedF { float clipped_f[]; };
 
 layout(push_constant) uniform Push {
     Opacity opacity_buf;
     Clipped clipped_buf;
     Mask mask_buf;
     Labels label_words_buf;
+    OpacityF opacity_f_buf;
+    ClippedF clipped_f_buf;
     ivec4 dims;      // w: 1 = some structure is protected
     ivec4 box_min;   // w: tool count
     ivec4 box_max;   // exclusive
-    ivec4 stride;    // where voxel v of O_c lies: x + v.x + y v.y + z v.z (LAO's zero border)
+    ivec4 stride;    // where voxel v of O_c lies: x + v.x + y v.y + z v.z (LAO's zero border);
+                     // w: 1 = f32
 } pc;
 #define opacity pc.opacity_buf.opacity
 #define clipped pc.clipped_buf.clipped
@@ -33,6 +41,8 @@ layout(push_constant) uniform Push {
 #define MASK_WRITE
 #include "mask.glsl"
 #define label_words pc.label_words_buf.label_words
+#define opacity_f pc.opacity_f_buf.opacity_f
+#define clipped_f pc.clipped_f_buf.clipped_f
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 3
@@ -77,9 +87,11 @@ void main() {
         visible += r & 1u;
         affected += (r >> 1) & 1u;
     }
-    float o = opacity[i];
-    float oc = visible == 9u ? o : 0.0;
-    if (visible != 0u && visible != 9u) {
+    bool f32 = pc.stride.w != 0;
+    float o = f32 ? opacity_f[i] : unorm16_value(uint(opacity[i]));
+    bool whole = visible == 9u;
+    float oc = whole ? o : 0.0;
+    if (visible != 0u && !whole) {
         for (int s = 0; s < 32; s++) {
             uint r = clip_test_index(c + AA[s], spare);
             visible += r & 1u;
@@ -87,7 +99,13 @@ void main() {
         }
         oc = o * (float(visible) / 41.0);
     }
-    clipped[pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z] = oc;
+    int at = pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z;
+    if (f32) {
+        clipped_f[at] = oc;
+    } else {
+        // Unclipped, O's own word; else O times the coverage, rounded.
+        clipped[at] = whole ? opacity[i] : uint16_t(unorm16_word(oc));
+    }
     uint category = affected == 0u ? 2u : (visible > 0u ? 1u : 0u);
     mask_set(i, category);
     atomicAdd(counts[category], 1u);

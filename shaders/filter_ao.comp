@@ -1,7 +1,7 @@
 #version 460
 #extension GL_EXT_buffer_reference : require
 #extension GL_GOOGLE_include_directive : require
-#include "ao_store.glsl"
+#include "unorm16.glsl"
 // Filtered AO (Ruiz et al.), the openness of every voxel of a box, exactly as docs/design.md
 // defines it: the tangent box's centre from the density gradient, then the cdf (t^beta), gauss
 // (Winitzki's erf) or penner estimator from that box's statistics (filter_box.comp), or the
@@ -108,6 +108,6 @@ void main() {
     } else if (category == 2u && mode == 1) {
         ao[i] = pre[i];
     } else {
-        ao[i] = uint16_t(ao_word(openness(v, density[i])));
+        ao[i] = uint16_t(unorm16_word(openness(v, density[i])));
     }
 }

@@ -6,12 +6,12 @@
 // clustered values of the voxel's cluster. As an AO method of CAO it writes, per category,
 // a (clipped) -> A = 1 and no colour, c (unaffected) -> the precomputed values, b -> the sums.
 #extension GL_GOOGLE_include_directive : require
-#include "ao_store.glsl"
+#include "unorm16.glsl"
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Q { float q[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer Q { uint16_t q[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Bins { uint bins[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Mask { uint mask[]; };
 layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer PreA { uint16_t pre_a[]; };
@@ -68,7 +68,7 @@ void direct(ivec3 v, out float a, out vec3 e) {
             if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
         }
         int j = i0 + o.x + row * o.y + slice * o.z;
-        float wq = nb.w * q[j];
+        float wq = nb.w * unorm16_value(uint(q[j]));
         occ += wq;
         // The bin in the low 16 bits, the structure id in the high 16: a labelled voxel's
         // colour is its structure's (src/ao/histogram.rs shades).
@@ -87,7 +87,7 @@ void main() {
     int mode = pc.box_min.w;
     if (mode == 4) {
         vec4 c = clusters[ids[i]];
-        out_a[i] = uint16_t(ao_word(c.a));
+        out_a[i] = uint16_t(unorm16_word(c.a));
         out_e[i] = packUnorm4x8(vec4(c.rgb, 1.0));
         return;
     }
@@ -102,7 +102,7 @@ void main() {
         float a;
         vec3 e;
         direct(v, a, e);
-        out_a[i] = uint16_t(ao_word(a));
+        out_a[i] = uint16_t(unorm16_word(a));
         out_e[i] = packUnorm4x8(vec4(e, 1.0));
     }
 }

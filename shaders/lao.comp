@@ -2,7 +2,7 @@
 #extension GL_EXT_buffer_reference : require
 // Full LAO precompute over a slab of z-slices [z0, z1) of the volume.
 #extension GL_GOOGLE_include_directive : require
-#include "ao_store.glsl"
+#include "unorm16.glsl"
 
 #include "constants.glsl"
 #include "lao_sample.glsl"
@@ -12,7 +12,7 @@ layout(local_size_x = LAO_GROUP_X, local_size_y = LAO_GROUP_Y, local_size_z = LA
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
 // O with its zero border (src/ao/lao.rs LaoLayout).
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer Opacity { uint16_t opacity[]; };
 layout(buffer_reference, std430, buffer_reference_align = 2) writeonly buffer Ao { uint16_t ao[]; };
 // Bit v set: no voxel within reach of v's rays (plus the trilinear footprint) has O > 0, so every
 // transmittance is 1 and A(v) = KM / KM = 1 exactly.
@@ -44,5 +44,5 @@ void main() {
     if (any(greaterThanEqual(v, pc.dims.xyz)) || v.z >= int(pc.z1)) return;
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
     bool clear = ((clear_bits[i >> 5] >> (i & 31)) & 1u) != 0u;
-    ao[i] = uint16_t(clear ? AO_OPEN : ao_word(lao_voxel(lao_base(v))));
+    ao[i] = uint16_t(clear ? AO_OPEN : unorm16_word(lao_voxel(lao_base(v))));
 }

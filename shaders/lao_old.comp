@@ -3,13 +3,13 @@
 // The LAO kernel before issue 18 (per-sample brick and border tests, pow per sample), kept only
 // so that `cao-xr bench lao --kernel both` measures the current one against it in one run.
 #extension GL_GOOGLE_include_directive : require
-#include "ao_store.glsl"
+#include "unorm16.glsl"
 
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Opacity { float opacity[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer Opacity { uint16_t opacity[]; };
 layout(buffer_reference, std430, buffer_reference_align = 2) writeonly buffer Ao { uint16_t ao[]; };
 // Bit v set: no voxel within reach of v's rays (plus the trilinear footprint) has O > 0, so every
 // transmittance is 1 and A(v) = KM / KM = 1 exactly.
@@ -41,5 +41,5 @@ void main() {
     if (any(greaterThanEqual(v, pc.dims.xyz)) || v.z >= int(pc.z1)) return;
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
     bool clear = ((clear_bits[i >> 5] >> (i & 31)) & 1u) != 0u;
-    ao[i] = uint16_t(clear ? AO_OPEN : ao_word(lao_voxel(v)));
+    ao[i] = uint16_t(clear ? AO_OPEN : unorm16_word(lao_voxel(v)));
 }

@@ -2,9 +2,9 @@
 //! writes each one into the generated GLSL include `constants.glsl`; the Rust modules re-export
 //! them where they belong. Plain `const` items only: build.rs compiles this file on its own.
 
-/// V_AO and V_PAO hold AO in [0, 1] as 16-bit unorm: stored q = round(a * AO_UNORM_MAX), read
-/// a = q / AO_UNORM_MAX (within 0.5 / 65535 = 7.6e-6 of the f32 value; 2 bytes a voxel).
-pub const AO_UNORM_MAX: f32 = 65535.0;
+/// V_AO and V_PAO hold AO in [0, 1] as 16-bit unorm: stored q = round(a * UNORM16_MAX), read
+/// a = q / UNORM16_MAX (within 0.5 / 65535 = 7.6e-6 of the f32 value; 2 bytes a voxel).
+pub const UNORM16_MAX: f32 = 65535.0;
 /// Bricks of 2^BRICK_SHIFT voxels per axis for LAO's exact empty-space skipping.
 pub const BRICK_SHIFT: u32 = 2;
 /// Workgroup size of the LAO kernel (lao.comp, cao_update.comp): rows of voxels along x. On

@@ -15,9 +15,9 @@
 float padded_opacity(int b, vec3 f) {
     int sy = pc.stride.y;
     int sz = pc.stride.z;
-    return opacity_lerp(opacity[b], opacity[b + 1], opacity[b + sy], opacity[b + sy + 1],
-                        opacity[b + sz], opacity[b + sz + 1], opacity[b + sz + sy],
-                        opacity[b + sz + sy + 1], f);
+    return opacity_lerp(opacity_load(b), opacity_load(b + 1), opacity_load(b + sy), opacity_load(b + sy + 1),
+                        opacity_load(b + sz), opacity_load(b + sz + 1), opacity_load(b + sz + sy),
+                        opacity_load(b + sz + sy + 1), f);
 }
 
 // (1 - o)^D for D != 1 mm (o is in [0, 1], up to rounding).

@@ -1,12 +1,17 @@
-// The opacity volume O of docs/design.md, read from a storage buffer (x fastest) and interpolated in
-// the shader, so the GPU matches the CPU reference instead of a sampler's fixed-point weights.
-// Voxel q has its centre at index-space point q + 0.5; outside the grid O = 0 (zero padding).
+// The opacity volume O of docs/design.md, read from a storage buffer (x fastest, 16-bit unorm
+// words: unorm16.glsl) and interpolated in the shader, so the GPU matches the CPU reference
+// instead of a sampler's fixed-point weights. Voxel q has its centre at index-space point q + 0.5;
+// outside the grid O = 0 (zero padding).
+
+float opacity_load(int i) {
+    return unorm16_value(uint(opacity[i]));
+}
 
 float opacity_voxel(ivec3 q) {
     if (any(lessThan(q, ivec3(0))) || any(greaterThanEqual(q, pc.dims.xyz))) {
         return 0.0;
     }
-    return opacity[q.x + pc.dims.x * (q.y + pc.dims.y * q.z)];
+    return opacity_load(q.x + pc.dims.x * (q.y + pc.dims.y * q.z));
 }
 
 float opacity_lerp(float c000, float c100, float c010, float c110,
@@ -29,9 +34,9 @@ float opacity_at(vec3 p) {
         int sy = pc.dims.x;
         int sz = pc.dims.x * pc.dims.y;
         int b = q.x + sy * q.y + sz * q.z;
-        return opacity_lerp(opacity[b], opacity[b + 1], opacity[b + sy], opacity[b + sy + 1],
-                            opacity[b + sz], opacity[b + sz + 1], opacity[b + sz + sy],
-                            opacity[b + sz + sy + 1], f);
+        return opacity_lerp(opacity_load(b), opacity_load(b + 1), opacity_load(b + sy), opacity_load(b + sy + 1),
+                            opacity_load(b + sz), opacity_load(b + sz + 1), opacity_load(b + sz + sy),
+                            opacity_load(b + sz + sy + 1), f);
     }
     return opacity_lerp(opacity_voxel(q), opacity_voxel(q + ivec3(1, 0, 0)),
                         opacity_voxel(q + ivec3(0, 1, 0)), opacity_voxel(q + ivec3(1, 1, 0)),

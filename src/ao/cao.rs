@@ -132,7 +132,8 @@ pub struct Cao {
     opacity: Buffer,
     /// O_c: the anti-aliased clipped opacity. While the method is LAO it lies inside the zero
     /// border the LAO kernel reads ([`LaoLayout`]; the border stays 0), else without one: one
-    /// copy either way ([`Cao::clipped_stride`]).
+    /// copy either way. Stored in 16 bits ([`super::stored`]), but for the filters' f32 density
+    /// ([`Cao::clipped_stride`]).
     clipped: Buffer,
     /// [`LaoLayout::stride`] of LAO's padded grid.
     stride: [i32; 4],
@@ -237,7 +238,7 @@ impl Cao {
                 env!("OUT_DIR"),
                 "/cao_restore.comp.spv"
             ))),
-            &[Reach::Address; 5],
+            &[Reach::Address; 7],
             std::mem::size_of::<ClipPush>() as u32,
         )?;
         let clip = ComputePipeline::with_addresses(
@@ -255,6 +256,8 @@ impl Cao {
                 Reach::Descriptor,
                 Reach::Address,
                 Reach::Descriptor,
+                Reach::Address,
+                Reach::Address,
             ],
             std::mem::size_of::<ClipPush>() as u32,
         )?;
@@ -290,7 +293,7 @@ impl Cao {
         let layout = LaoLayout::new(&params, spacing, dims);
         let stride = layout.stride();
         check_layout(&vol.name, &skip, stride)?;
-        let clipped = clipped_buffer(gpu, &layout, matches!(method, MethodGpu::Lao))?;
+        let clipped = clipped_buffer(gpu, &layout, &method)?;
         let slots = (0..MAX_FRAMES_IN_FLIGHT)
             .map(|_| FrameSlot::new(gpu))
             .collect::<Result<Vec<_>>>()?;
@@ -370,10 +373,11 @@ impl Cao {
         skip: Option<SkipBuffers>,
     ) -> Result<()> {
         let n = (self.dims[0] * self.dims[1] * self.dims[2]) as u64;
-        let (bytes, pao_bytes) = (n * 4, super::stored::bytes(n));
-        if opacity.size != bytes || pao.size != pao_bytes {
+        // O is 16-bit or f32 (by the method set next), and may be rounded up to whole words.
+        let bytes = super::stored::bytes(n);
+        if opacity.size < bytes || pao.size != bytes {
             return Err(GpuError::Other(format!(
-                "{}: new opacity ({} bytes, not {bytes}) or V_PAO ({} bytes, not {pao_bytes}) \
+                "{}: new opacity ({} bytes) or V_PAO ({} bytes, not {bytes}) \
                  does not match the {:?} volume",
                 self.geometry.name, opacity.size, pao.size, self.dims
             )));
@@ -392,13 +396,14 @@ impl Cao {
     }
 
     /// Where voxel v of O_c lies: [`Cao::clipped`][0] + v.x + [1] v.y + [2] v.z, inside LAO's
-    /// zero border while the method is LAO.
+    /// zero border while the method is LAO; [3] is 1 where O and O_c are f32 (the filters'
+    /// density, whose gradients 16 bits would coarsen), 0 where they are 16-bit.
     pub fn clipped_stride(&self) -> [i32; 4] {
-        if matches!(self.method, MethodGpu::Lao) {
-            self.stride
-        } else {
-            LaoLayout::unpadded_stride(self.dims)
-        }
+        let [x, y, z, _] = match self.method {
+            MethodGpu::Lao => self.stride,
+            _ => LaoLayout::unpadded_stride(self.dims),
+        };
+        [x, y, z, float_o(&self.method) as i32]
     }
 
     /// O_c, laid out by [`Cao::clipped_stride`].
@@ -408,12 +413,16 @@ impl Cao {
 
     /// O_c read back, x fastest, without a border.
     pub fn read_clipped(&self) -> Result<Vec<f32>> {
-        let bytes = self.clipped.read_back()?;
-        let all: Vec<f32> = bytes
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
-        let [o, sy, sz, _] = self.clipped_stride().map(|s| s as usize);
+        let [o, sy, sz, f32] = self.clipped_stride().map(|s| s as usize);
+        let all = if f32 == 1 {
+            let bytes = self.clipped.read_back()?;
+            bytes
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect()
+        } else {
+            super::stored::read(&self.clipped, self.clipped.size as usize / 2)?
+        };
         let [nx, ny, nz] = self.dims;
         Ok((0..nz)
             .flat_map(|z| (0..ny).map(move |y| o + sy * y + sz * z))
@@ -425,11 +434,11 @@ impl Cao {
     /// method's AO of the unclipped volume ([`Cao::replace_precomputed`]). Call it only when no
     /// submitted command buffer still uses O_c: a switch to or from LAO lays it out anew.
     pub fn set_method(&mut self, method: MethodGpu) -> Result<MethodGpu> {
-        let lao = matches!(method, MethodGpu::Lao);
-        if lao != matches!(self.method, MethodGpu::Lao) {
+        let lao = |m: &MethodGpu| matches!(m, MethodGpu::Lao);
+        if (lao(&method), float_o(&method)) != (lao(&self.method), float_o(&self.method)) {
             // The next frame's whole restore fills it.
             let layout = LaoLayout::new(&self.params, self.spacing, self.dims);
-            self.clipped = clipped_buffer(&self.gpu, &layout, lao)?;
+            self.clipped = clipped_buffer(&self.gpu, &layout, &method)?;
         }
         // The next frame restores the whole volume from the new method's values (its bleeding
         // volume included).
@@ -715,6 +724,8 @@ impl Cao {
                 &self.mask,
                 &self.pao,
                 &self.ao,
+                &self.opacity,
+                &self.clipped,
             ];
             self.restore.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.restore, cmd, b);
@@ -827,6 +838,8 @@ impl Cao {
                 &slot.counts,
                 &self.labels,
                 &self.protect,
+                &self.opacity,
+                &self.clipped,
             ];
             self.clip.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.clip, cmd, b);
@@ -956,9 +969,11 @@ impl Cao {
     }
 
     /// The tools (as uploaded for the last frame) and their maps, for the ray caster's clipping.
-    /// O, the unclipped opacity the precomputed volumes were computed from.
-    pub fn opacity(&self) -> &Buffer {
-        &self.opacity
+    /// O, the unclipped opacity the precomputed volumes were computed from, and where its
+    /// voxels lie (in [`Cao::clipped_stride`]'s form: no border).
+    pub fn opacity(&self) -> (&Buffer, [i32; 4]) {
+        let [x, y, z, _] = LaoLayout::unpadded_stride(self.dims);
+        (&self.opacity, [x, y, z, float_o(&self.method) as i32])
     }
 
     /// The last frame's voxel categories, one byte per voxel (0: clipped, 1: affected,
@@ -1011,15 +1026,23 @@ impl FrameSlot {
     }
 }
 
-/// O_c, zero throughout: inside LAO's zero border (which stays so) where `padded`, else
-/// without a border.
-fn clipped_buffer(gpu: &Gpu, layout: &LaoLayout, padded: bool) -> Result<Buffer> {
-    let voxels = if padded {
-        layout.padded_len()
-    } else {
-        layout.dims.iter().product()
+/// Whether O and O_c are f32 under `method` (the filters' density), not 16-bit.
+fn float_o(method: &MethodGpu) -> bool {
+    matches!(method, MethodGpu::Filter(_))
+}
+
+/// O_c for `method`, zero throughout: inside LAO's zero border (which stays so) under LAO,
+/// else without a border.
+fn clipped_buffer(gpu: &Gpu, layout: &LaoLayout, method: &MethodGpu) -> Result<Buffer> {
+    let voxels = match method {
+        MethodGpu::Lao => layout.padded_len(),
+        _ => layout.dims.iter().product(),
+    } as u64;
+    // Whole 4-byte words: the fill below writes whole words.
+    let bytes = match float_o(method) {
+        true => voxels * 4,
+        false => super::stored::bytes(voxels).next_multiple_of(4),
     };
-    let bytes = voxels as u64 * 4;
     let usage = vk::BufferUsageFlags::STORAGE_BUFFER
         | vk::BufferUsageFlags::TRANSFER_SRC
         | vk::BufferUsageFlags::TRANSFER_DST;

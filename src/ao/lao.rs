@@ -244,9 +244,9 @@ impl LaoLayout {
     }
 
     /// `opacity` (x fastest) inside its zero border.
-    pub fn padded(&self, opacity: &[f32]) -> Vec<f32> {
+    pub fn padded<T: Copy + Default + Send + Sync>(&self, opacity: &[T]) -> Vec<T> {
         let (d, p) = (self.dims, self.padded_dims());
-        let mut out = vec![0f32; self.padded_len()];
+        let mut out = vec![T::default(); self.padded_len()];
         out.par_chunks_mut(p[0] * p[1])
             .enumerate()
             .skip(self.pad[2])
@@ -314,7 +314,7 @@ impl SkipBuffers {
         drop((self.padded, self.bricks));
         Ok(SkipBuffers {
             bricks: Buffer::device_local(gpu, &[0u32], usage, "lao-bricks")?,
-            padded: Buffer::device_local(gpu, &[0f32], usage, "lao-padded")?,
+            padded: Buffer::device_local(gpu, &[0u32], usage, "lao-padded")?,
             clear: self.clear,
             samples: self.samples,
             stride: self.stride,
@@ -327,7 +327,8 @@ impl SkipBuffers {
 pub struct SkipData {
     pub clear: Vec<u32>,
     pub bricks: Vec<u32>,
-    pub padded: Vec<f32>,
+    /// O inside its zero border, stored ([`super::stored`]).
+    pub padded: Vec<u16>,
     pub samples: Vec<LaoSample>,
     pub stride: [i32; 4],
 }
@@ -343,7 +344,7 @@ impl SkipData {
         SkipData {
             clear: clear_mask(opacity, dims, reach_voxels(params, spacing)),
             bricks: brick_occupancy(opacity, dims),
-            padded: layout.padded(opacity),
+            padded: layout.padded(&super::stored::words(opacity)),
             stride: layout.stride(),
             samples: layout.samples,
         }
@@ -421,7 +422,7 @@ impl LaoGpu {
         Ok(SkipBuffers {
             clear: Buffer::device_local(&self.gpu, &[0u32], usage, "lao-clear")?,
             bricks: Buffer::device_local(&self.gpu, &[0u32], usage, "lao-bricks")?,
-            padded: Buffer::device_local(&self.gpu, &[0f32], usage, "lao-padded")?,
+            padded: Buffer::device_local(&self.gpu, &[0u32], usage, "lao-padded")?,
             samples: Buffer::device_local(&self.gpu, &[LaoSample::zeroed()], usage, "lao-samples")?,
             stride: [0; 4],
         })

@@ -23,7 +23,6 @@
 //!   the environment into that frame ([`crate::light`]).
 
 use super::cao::Cao;
-use super::lao::LaoLayout;
 use super::voxel_box::VoxelBox;
 use crate::gpu::{
     Buffer, ComputePipeline, Gpu, GpuError, GpuTimer, Image, ImageDesc, Reach, Result,
@@ -463,7 +462,7 @@ impl ShVolume {
         let pyramid_pass = ComputePipeline::with_addresses(
             gpu,
             include_bytes!(concat!(env!("OUT_DIR"), "/sh_pyramid.comp.spv")),
-            &[Reach::Address; 2],
+            &[Reach::Address; 3],
             std::mem::size_of::<PyramidPush>() as u32,
         )?;
         let sh_pass = ComputePipeline::with_addresses(
@@ -572,8 +571,9 @@ impl ShVolume {
         Ok(sh)
     }
 
-    /// Records the whole pyramid of `opacity` (O or O_c, f32 at full resolution), whose voxel v
-    /// lies at `stride`[0] + v.x + `stride`[1] v.y + `stride`[2] v.z.
+    /// Records the whole pyramid of `opacity` (O or O_c at full resolution), whose voxel v lies
+    /// at `stride`[0] + v.x + `stride`[1] v.y + `stride`[2] v.z; `stride`[3] 1: f32, 0: 16-bit
+    /// ([`Cao::clipped_stride`]).
     pub fn record_pyramid(&self, cmd: vk::CommandBuffer, opacity: &Buffer, stride: [i32; 4]) {
         let offsets = self.grid.offsets();
         let dims4 = |l: usize| {
@@ -589,8 +589,11 @@ impl ShVolume {
                 pad: [0; 2],
                 stride,
             };
-            self.pyramid_pass
-                .bind(cmd, &[opacity, &self.pyramid], bytemuck::bytes_of(&push));
+            self.pyramid_pass.bind(
+                cmd,
+                &[opacity, &self.pyramid, opacity],
+                bytemuck::bytes_of(&push),
+            );
             let d = self.grid.levels[l];
             self.pyramid_pass
                 .dispatch(cmd, d.map(|n| n.div_ceil(4) as u32));
@@ -703,17 +706,17 @@ impl ShVolume {
 
     /// Computes V_PSH of the unclipped opacity O in z-slabs (progress in SH slices) and makes it
     /// the current volume.
+    /// `opacity` as [`ShVolume::record_pyramid`] takes it.
     pub fn precompute(
         &mut self,
-        opacity: &Buffer,
+        (opacity, stride): (&Buffer, [i32; 4]),
         progress: &mut dyn FnMut(usize, usize),
     ) -> Result<ShTiming> {
         let t0 = std::time::Instant::now();
         let mut timing = ShTiming::default();
         let mut timer = GpuTimer::new(&self.gpu, 2)?;
-        self.gpu.submit_and_wait(|cmd| {
-            self.record_pyramid(cmd, opacity, LaoLayout::unpadded_stride(self.grid.full))
-        })?;
+        self.gpu
+            .submit_and_wait(|cmd| self.record_pyramid(cmd, opacity, stride))?;
         let budget = if self.gpu.is_cpu() { 5e7 } else { 2e9 };
         let total = self.grid.dims[2];
         let mut slabs = crate::ao::progressive::SlabScheduler::with_budget(

@@ -1,30 +1,47 @@
-//! How V_AO and V_PAO are stored on the GPU: AO in [0, 1] as 16-bit unorm, 2 bytes a voxel
-//! (docs/design.md, "Stored sizes"). The shaders store through `shaders/include/ao_store.glsl`;
-//! the host reads through [`read`].
+//! How values in [0, 1] are stored on the GPU: as 16-bit unorm, 2 bytes a voxel (docs/design.md,
+//! "Stored sizes"). AO (V_AO, V_PAO), the opacity O and O_c, and the filters' density are. The
+//! shaders read and store through `shaders/include/unorm16.glsl`; the host uploads through
+//! [`upload`] and reads through [`read`].
 
 use crate::gpu::{Buffer, Gpu, Result};
-use crate::shader_constants::AO_UNORM_MAX;
+use crate::shader_constants::UNORM16_MAX;
 use ash::vk;
 
 /// Bytes per voxel of V_AO and V_PAO.
 pub const BYTES_PER_VOXEL: u64 = 2;
 
 /// The largest difference between a value in [0, 1] and its stored value (half a step).
-pub const ROUNDING: f32 = 0.5 / AO_UNORM_MAX;
+pub const ROUNDING: f32 = 0.5 / UNORM16_MAX;
 
-/// The stored word of AO value `a`: round(clamp(a) · 65535), as `ao_store` in the shaders.
+/// The stored word of AO value `a`: round(clamp(a) · 65535), as `unorm16` in the shaders.
 pub fn pack(a: f32) -> u16 {
-    (a.clamp(0.0, 1.0) * AO_UNORM_MAX + 0.5) as u16
+    (a.clamp(0.0, 1.0) * UNORM16_MAX + 0.5) as u16
 }
 
 /// The AO value of stored word `q`: q / 65535 (what the ray caster's R16_UNORM image reads).
 pub fn unpack(q: u16) -> f32 {
-    q as f32 / AO_UNORM_MAX
+    q as f32 / UNORM16_MAX
 }
 
 /// `values` as they would be stored (for CPU references and exports).
 pub fn quantised(values: &[f32]) -> Vec<f32> {
     values.iter().map(|&a| unpack(pack(a))).collect()
+}
+
+/// The stored words of `values`.
+pub fn words(values: &[f32]) -> Vec<u16> {
+    use rayon::prelude::*;
+    values.par_iter().map(|&a| pack(a)).collect()
+}
+
+/// `values` stored on the GPU (device-local, `usage` and a transfer destination).
+pub fn upload(
+    gpu: &Gpu,
+    values: &[f32],
+    usage: vk::BufferUsageFlags,
+    name: &str,
+) -> Result<Buffer> {
+    Buffer::device_local(gpu, &words(values), usage, name)
 }
 
 /// The size of an AO volume of `voxels` voxels (no padding: [`read`] of the whole buffer is
@@ -46,7 +63,7 @@ pub fn buffer(gpu: &Gpu, dims: [usize; 3], name: &str) -> Result<Buffer> {
     )
 }
 
-/// An AO volume of `voxels` voxels read back to the host, as values in [0, 1].
+/// A stored volume of `voxels` voxels read back to the host, as values in [0, 1].
 pub fn read(buf: &Buffer, voxels: usize) -> Result<Vec<f32>> {
     let bytes = buf.read_back()?;
     Ok(

@@ -90,7 +90,7 @@ pub fn bench_lao(
     for vol in volumes {
         crate::render::check_volume_fits_gpu(gpu, vol)?;
         let opacity = tf.opacity_volume(vol);
-        let obuf = crate::gpu::Buffer::device_local(
+        let obuf = crate::ao::stored::upload(
             gpu,
             &opacity,
             vk::BufferUsageFlags::STORAGE_BUFFER,
@@ -476,7 +476,7 @@ pub fn bench_sh(
     let mut rows = Vec::new();
     for vol in volumes {
         let opacity = tf.opacity_volume(vol);
-        let obuf = crate::gpu::Buffer::device_local(
+        let obuf = crate::ao::stored::upload(
             gpu,
             &opacity,
             vk::BufferUsageFlags::STORAGE_BUFFER,
@@ -501,8 +501,10 @@ pub fn bench_sh(
                             // a run can take minutes on lavapipe: show it, then clear it
                             let label = if hierarchy { "hierarchy" } else { "full march" };
                             let bar = super::progress_bar(shv.grid.dims[2] as u64, label);
-                            let t =
-                                shv.precompute(&obuf, &mut |done, _| bar.set_position(done as u64));
+                            let t = shv.precompute(
+                                (&obuf, crate::ao::lao::LaoLayout::unpadded_stride(vol.dims)),
+                                &mut |done, _| bar.set_position(done as u64),
+                            );
                             bar.finish_and_clear();
                             ms.push(t?.gpu_ms);
                             packed = shv.read_back()?;

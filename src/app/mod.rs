@@ -303,7 +303,7 @@ fn upload_opacity(
     params: &LaoParams,
 ) -> Result<(Buffer, SkipBuffers)> {
     let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
-    let buf = Buffer::device_local(gpu, opacity, usage, "opacity")?;
+    let buf = crate::ao::stored::upload(gpu, opacity, usage, "opacity")?;
     let skip = lao.skip_buffers(opacity, vol.dims, vol.spacing, params)?;
     Ok((buf, skip))
 }
@@ -381,7 +381,7 @@ pub(crate) fn open_ao(gpu: &Gpu, lao: &LaoGpu, vol: &Volume) -> Result<AoVolume>
     let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST;
     let opacity_buf = Buffer::new(
         gpu,
-        n.max(1) * 4,
+        crate::ao::stored::bytes(n).next_multiple_of(4),
         usage,
         gpu_allocator::MemoryLocation::GpuOnly,
         "opacity",
@@ -443,6 +443,7 @@ pub(crate) fn precompute_method(
     crate::render::check_volume_fits_gpu(gpu, vol)?;
     let density = filtered::density(fp.input, &tf.opacity_volume(vol), vol);
     let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+    // f32: the filters' gradients of it need more than 16 bits (`Cao::clipped_stride`).
     let opacity_buf = Buffer::device_local(gpu, &density, usage, "opacity")?;
     let skip = lao.skip_stand_in()?;
     let filter = FilterGpu::new(gpu, vol.dims, vol.spacing, fp)?;
@@ -519,7 +520,8 @@ pub fn histogram_tables(
     (tf, structures): (&TransferFunction, &[f32]),
 ) -> Result<HistogramTables> {
     let q = h.set_tf(tf, structures)?;
-    let opacity = Buffer::device_local(gpu, &q, vk::BufferUsageFlags::STORAGE_BUFFER, "opacity")?;
+    let opacity =
+        crate::ao::stored::upload(gpu, &q, vk::BufferUsageFlags::STORAGE_BUFFER, "opacity")?;
     let pao = lao.output_buffer(dims)?;
     let mut timer = crate::gpu::GpuTimer::new(gpu, 2)?;
     gpu.submit_and_wait(|cmd| {
@@ -785,7 +787,6 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
     let mut v = vec![
         ("scalars", scalar),
         ("AO image", ao),
-        ("O", 4.0),
         ("mask", 1.0),
         ("V_PAO", ao),
         ("V_AO", ao),
@@ -801,12 +802,13 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
         AoMethod::Lao => {
             let layout = crate::ao::lao::LaoLayout::new(lao, vol.spacing, vol.dims);
             // O_c inside LAO's zero border; the other methods hold it without one.
-            v.push(("O_c (padded)", 4.0 * layout.padded_len() as f64 / n));
+            v.push(("O", 2.0));
+            v.push(("O_c (padded)", 2.0 * layout.padded_len() as f64 / n));
             v.push(("clear bits", 1.0 / 8.0));
         }
-        AoMethod::Filter(_) => v.extend([("O_c", 4.0), ("box statistics", 32.0)]),
+        AoMethod::Filter(_) => v.extend([("O", 4.0), ("O_c", 4.0), ("box statistics", 32.0)]),
         AoMethod::Histogram(h) => {
-            v.push(("O_c", 4.0));
+            v.extend([("O", 2.0), ("O_c", 2.0)]);
             v.push(("bins", 4.0));
             v.push(("E (precomputed, current, image)", 12.0));
             if h.clusters > 0 {

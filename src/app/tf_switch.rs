@@ -360,14 +360,15 @@ impl TfSwitcher {
                 }
                 _ => None,
             };
+            // O in its method's format: f32 for the filters, else 16-bit (`Cao::clipped_stride`).
+            let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+            let opacity = match sw.filter {
+                Some(_) => Buffer::device_local(&self.gpu, &opacity, usage, "opacity")?,
+                None => crate::ao::stored::upload(&self.gpu, &opacity, usage, "opacity")?,
+            };
             sw.stage = Stage::Computing {
                 sh,
-                opacity: Buffer::device_local(
-                    &self.gpu,
-                    &opacity,
-                    vk::BufferUsageFlags::STORAGE_BUFFER,
-                    "opacity",
-                )?,
+                opacity,
                 skip: skip.map(|s| self.lao.upload_skip(&s)).transpose()?,
                 pao: self.lao.output_buffer(vol.dims)?,
                 // The filters refilter the whole volume in one go (they are cheap); LAO goes a
@@ -529,7 +530,9 @@ impl TfSwitcher {
         }
         if let Some((v, sh_slabs)) = sh.as_mut() {
             if sh_slabs.done() == 0 {
-                v.record_pyramid(cmd, opacity, LaoLayout::unpadded_stride(vol.dims));
+                let [x, y, z, _] = LaoLayout::unpadded_stride(vol.dims);
+                let stride = [x, y, z, filter.is_some() as i32];
+                v.record_pyramid(cmd, opacity, stride);
             }
             if let Some(z) = sh_slabs.next_slab() {
                 self.timer.begin(cmd);

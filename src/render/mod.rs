@@ -311,9 +311,9 @@ impl VolumeLimits {
 }
 
 /// GPU bytes per voxel, at least: the scalar image (4 bytes for f32 data; an integer scalar
-/// takes 2 or 1), O and O_c (4 each), and the AO image, V_PAO and V_AO (2 each, `ao::stored`),
-/// before the method's own volumes.
-pub const GPU_BYTES_PER_VOXEL: u64 = 3 * 4 + 3 * crate::ao::stored::BYTES_PER_VOXEL;
+/// takes 2 or 1), and O, O_c, the AO image, V_PAO and V_AO (2 each, `ao::stored`; the filters
+/// hold O and O_c in f32), before the method's own volumes.
+pub const GPU_BYTES_PER_VOXEL: u64 = 4 + 5 * crate::ao::stored::BYTES_PER_VOXEL;
 
 /// The shaders index a volume's voxels with 32-bit signed integers.
 pub const MAX_VOXELS: u64 = (1 << 31) - 1;
@@ -1500,7 +1500,7 @@ mod tests {
 
     #[test]
     fn too_many_bytes_are_refused_with_a_downsample_hint() {
-        // 1024^3 voxels x 18 bytes = 18 GiB > 8 GiB; / 2 per axis = 2.25 GiB fits.
+        // 1024^3 voxels x 14 bytes = 14 GiB > 8 GiB; / 2 per axis = 1.75 GiB fits.
         let limits = VolumeLimits {
             max_buffer_bytes: u64::MAX,
             ..LIMITS

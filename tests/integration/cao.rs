@@ -27,7 +27,7 @@ pub(crate) fn setup(gpu: &Gpu, vol: &Volume) -> (Cao, Vec<f32>, Vec<f32>) {
     let o = tf.opacity_volume(vol);
     let lao = LaoGpu::new(gpu).unwrap();
     let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
-    let obuf = Buffer::device_local(gpu, &o, usage, "o").unwrap();
+    let obuf = cao_xr::ao::stored::upload(gpu, &o, usage, "o").unwrap();
     let skip = lao
         .skip_buffers(&o, vol.dims, vol.spacing, &PARAMS)
         .unwrap();
@@ -35,6 +35,8 @@ pub(crate) fn setup(gpu: &Gpu, vol: &Volume) -> (Cao, Vec<f32>, Vec<f32>) {
         .compute(&obuf, &skip, vol.dims, vol.spacing, &PARAMS, &mut |_, _| {})
         .unwrap();
     let pao_host = read_ao(&pao);
+    // O as the GPU holds it.
+    let o = cao_xr::ao::stored::quantised(&o);
     (
         Cao::new(gpu, vol, obuf, pao, skip, PARAMS, MethodGpu::Lao).unwrap(),
         o,

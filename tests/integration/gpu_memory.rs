@@ -48,7 +48,7 @@ fn a_volume_beyond_the_gpu_memory_budget_is_refused_with_the_downsample_that_fit
     let cases: [(&str, &[&str]); 5] = [
         ("4", &[]),
         ("12", &[]),
-        ("30", &[]),
+        ("20", &[]),
         ("12", &["--ao", "filter-gauss"]),
         ("5", &["--lighting", "sh"]),
     ];

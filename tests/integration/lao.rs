@@ -4,7 +4,7 @@ use crate::common;
 
 use ash::vk;
 use cao_xr::ao::{cpu, LaoGpu, LaoParams};
-use cao_xr::gpu::{Buffer, Gpu};
+use cao_xr::gpu::Gpu;
 use cao_xr::volume::phantom;
 use cao_xr::volume::transfer::TransferFunction;
 
@@ -16,8 +16,8 @@ fn gpu_lao(
     p: &LaoParams,
 ) -> Vec<f32> {
     let lao = LaoGpu::new(gpu).unwrap();
-    let buf =
-        Buffer::device_local(gpu, opacity, vk::BufferUsageFlags::STORAGE_BUFFER, "o").unwrap();
+    let buf = cao_xr::ao::stored::upload(gpu, opacity, vk::BufferUsageFlags::STORAGE_BUFFER, "o")
+        .unwrap();
     let skip = lao.skip_buffers(opacity, dims, spacing, p).unwrap();
     let (out, timing) = lao
         .compute(&buf, &skip, dims, spacing, p, &mut |_, _| {})

@@ -6,6 +6,7 @@ use crate::common;
 
 use ash::vk;
 use cao_xr::ao::cao::{Cao, MethodGpu, Mode};
+use cao_xr::ao::lao::LaoLayout;
 use cao_xr::ao::sh::{self, packed_coeff, ShParams, ShVolume, Y0};
 use cao_xr::ao::{LaoGpu, LaoParams};
 use cao_xr::clip::Shape;
@@ -43,10 +44,11 @@ fn opacity_volume(dims: [usize; 3], o: impl Fn(usize, usize, usize) -> f32) -> (
 }
 
 fn gpu_sh(gpu: &Gpu, vol: &Volume, opacity: &[f32], p: ShParams) -> (ShVolume, Vec<u32>) {
-    let buf =
-        Buffer::device_local(gpu, opacity, vk::BufferUsageFlags::STORAGE_BUFFER, "o").unwrap();
+    let buf = cao_xr::ao::stored::upload(gpu, opacity, vk::BufferUsageFlags::STORAGE_BUFFER, "o")
+        .unwrap();
     let mut shv = ShVolume::new(gpu, vol, p).unwrap();
-    shv.precompute(&buf, &mut |_, _| {}).unwrap();
+    shv.precompute((&buf, LaoLayout::unpadded_stride(vol.dims)), &mut |_, _| {})
+        .unwrap();
     let packed = shv.read_back().unwrap();
     (shv, packed)
 }
@@ -190,8 +192,8 @@ fn cao_for(gpu: &Gpu, vol: &Volume, params: LaoParams) -> (Cao, Buffer) {
     let o = tf.opacity_volume(vol);
     let lao = LaoGpu::new(gpu).unwrap();
     let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
-    let obuf = Buffer::device_local(gpu, &o, usage, "o").unwrap();
-    let o2 = Buffer::device_local(gpu, &o, usage, "o2").unwrap();
+    let obuf = cao_xr::ao::stored::upload(gpu, &o, usage, "o").unwrap();
+    let o2 = cao_xr::ao::stored::upload(gpu, &o, usage, "o2").unwrap();
     let skip = lao
         .skip_buffers(&o, vol.dims, vol.spacing, &params)
         .unwrap();
@@ -239,7 +241,8 @@ fn clip_aware_update_equals_a_full_recompute_every_frame() {
     let run = |naive: bool| -> Vec<(Vec<u32>, u64)> {
         let (mut cao, o) = cao_for(&gpu, &vol, lao);
         let mut shv = ShVolume::new(&gpu, &vol, p).unwrap();
-        shv.precompute(&o, &mut |_, _| {}).unwrap();
+        shv.precompute((&o, LaoLayout::unpadded_stride(vol.dims)), &mut |_, _| {})
+            .unwrap();
         cao.sh_radius_mm = Some(shv.grid.radius_mm(&p));
         let frames = [
             vec![sphere(
@@ -281,7 +284,8 @@ fn clip_aware_update_equals_a_full_recompute_every_frame() {
         let (_, o) = cao_for(&gpu, &vol, lao);
         let (_, packed) = {
             let mut shv = ShVolume::new(&gpu, &vol, p).unwrap();
-            shv.precompute(&o, &mut |_, _| {}).unwrap();
+            shv.precompute((&o, LaoLayout::unpadded_stride(vol.dims)), &mut |_, _| {})
+                .unwrap();
             let r = shv.read_back().unwrap();
             (shv, r)
         };
