@@ -1508,7 +1508,7 @@ mod tests {
         let e = check_volume_fits("big", [1024, 1024, 1024], &limits, "gpu").unwrap_err();
         assert!(
             e.contains("volume big (1024 x 1024 x 1024)")
-                && e.contains("18432 MiB")
+                && e.contains("14336 MiB")
                 && e.contains("8192 MiB device-local heap")
                 && e.contains("--downsample 2"),
             "{e}"
