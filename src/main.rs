@@ -592,7 +592,7 @@ struct LightArgs {
     /// Show the first-hit isosurface of this data value (HU for CT) instead of the volume: opaque,
     /// in the TF's colour there, lit by the AO of the surface's solid (what lies above the
     /// value); the left thumbstick moves it in the headset.
-    #[arg(long, value_parser = parse_finite)]
+    #[arg(long, value_parser = parse_finite, allow_hyphen_values = true)]
     iso: Option<f32>,
 }
 

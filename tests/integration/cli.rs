@@ -654,6 +654,24 @@ fn a_transparent_render_composites_over_a_background_as_the_opaque_render_with_i
 }
 
 #[test]
+fn a_negative_isovalue_is_taken_with_or_without_an_equals_sign() {
+    let dir = tmp("iso-negative");
+    let render = |iso: &[&str], name: &str| {
+        let out_dir = dir.join(name);
+        let mut args = vec!["render", "phantom:24", "--size", "24x24", "--rays", "6"];
+        args.extend_from_slice(iso);
+        args.extend_from_slice(&["--out", out_dir.to_str().unwrap()]);
+        let out = cao(&args);
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(out.status.success(), "{iso:?}: {stderr}");
+        std::fs::read(out_dir.join("stereo.png")).unwrap()
+    };
+    let spaced = render(&["--iso", "-500"], "spaced");
+    assert_eq!(spaced, render(&["--iso=-500"], "equals"));
+    assert_ne!(spaced, render(&["--iso", "300"], "positive"));
+}
+
+#[test]
 fn render_writes_three_pngs() {
     let dir = tmp("render");
     let out = cao(&[
