@@ -48,8 +48,15 @@ layout(set = 0, binding = 17) uniform sampler3D glow;
 #define CLIP_TOOL_COUNT frame.viewport.z
 #include "clip.glsl"
 
-// Which eye (layer of the stereo target) this draw renders.
-layout(push_constant) uniform Eye { uint index; } eye;
+// Which eye (layer of the stereo target) this draw renders, and its pass (src/render/mod.rs
+// Foveation): 0, every pixel cast; 1, the coarse pass of a foveated eye, each pixel standing for
+// a block of `scale` x `scale` pixels of the eye, whose ray it casts through the block's centre;
+// 2, the full pass of a foveated eye: pixels within `radius` (pixels) of the eye's centre cast
+// as in pass 0, the others take the coarse pass's colour and depth, interpolated.
+layout(push_constant) uniform Eye { uint index; uint pass; float scale; float radius; } eye;
+// The coarse pass's colour and depth, layer = eye; read in pass 2 (else stand-ins, unread).
+layout(set = 0, binding = 18) uniform sampler2DArray coarse_color;
+layout(set = 0, binding = 19) uniform sampler2DArray coarse_depth;
 
 layout(location = 0) out vec4 out_color;
 
@@ -302,7 +309,26 @@ vec3 cut_normal_mm(uint t, vec3 w) {
 
 void main() {
     uint v = eye.index;
-    vec2 ndc = gl_FragCoord.xy / frame.viewport.xy * 2.0 - 1.0;
+    // The pixel of the eye's image this ray goes through.
+    vec2 pixel = eye.pass == 1u ? gl_FragCoord.xy * eye.scale : gl_FragCoord.xy;
+    if (eye.pass != 0u) {
+        float r = length(pixel - 0.5 * frame.viewport.xy);
+        if (eye.pass == 2u && r > eye.radius) {
+            vec2 texel = pixel / eye.scale / vec2(textureSize(coarse_color, 0).xy);
+            vec3 uvw = vec3(texel, float(v));
+            out_color = textureLod(coarse_color, uvw, 0.0);
+            gl_FragDepth = textureLod(coarse_depth, uvw, 0.0).r;
+            return;
+        }
+        // A coarse pixel that no interpolated pixel reads (it and its neighbours lie well
+        // within the centre) casts nothing.
+        if (eye.pass == 1u && r + 2.0 * eye.scale < eye.radius) {
+            out_color = vec4(0.0);
+            gl_FragDepth = 1.0;
+            return;
+        }
+    }
+    vec2 ndc = pixel / frame.viewport.xy * 2.0 - 1.0;
     vec4 near_w = frame.inv_view_proj[v] * vec4(ndc, 0.0, 1.0);
     vec4 far_w = frame.inv_view_proj[v] * vec4(ndc, 1.0, 1.0);
     vec3 a_w = near_w.xyz / near_w.w;
@@ -327,7 +353,7 @@ void main() {
         float dt = step_mm / len_mm;
         // The headlight: from the eye along the ray, so l = v = h.
         vec3 light = -d_mm / len_mm;
-        float t = tn + dt * pixel_jitter(gl_FragCoord.xy, v);
+        float t = tn + dt * pixel_jitter(pixel, v);
         bool clipping = flag(CLIPPING);
         // The previous sample's value (pre-integration), or none after a gap in the material.
         float s_prev = 0.0;

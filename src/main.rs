@@ -594,6 +594,11 @@ struct LightArgs {
     /// value); the left thumbstick moves it in the headset.
     #[arg(long, value_parser = parse_finite, allow_hyphen_values = true)]
     iso: Option<f32>,
+    /// Foveated ray casting, RADIUS[,FACTOR]: every pixel within RADIUS (a fraction of the
+    /// image's half-diagonal) of each eye's centre casts its ray, beyond it one ray per FACTOR x
+    /// FACTOR block, interpolated. Without a value 0.33,2.
+    #[arg(long, num_args = 0..=1, default_missing_value = "0.33,2")]
+    foveate: Option<cao_xr::render::Foveation>,
 }
 
 impl LightArgs {
@@ -620,6 +625,7 @@ impl LightArgs {
                 skip_empty: !self.no_empty_skip,
                 step_mm: self.ray_step_mm,
                 iso: self.iso,
+                foveation: self.foveate,
                 ..Default::default()
             },
         }

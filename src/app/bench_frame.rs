@@ -10,6 +10,7 @@ use crate::ao::cao::{Cao, Mode};
 use crate::ao::{LaoGpu, LaoParams};
 use crate::gpu::Gpu;
 use crate::input::{FrameInput, InteractionSettings};
+use crate::render::Foveation;
 use crate::scene::Tool;
 use crate::space::{default_stereo_views, Placement, DEFAULT_IPD};
 use crate::volume::transfer::TransferFunction;
@@ -81,6 +82,9 @@ pub struct FrameBench {
     pub fps: [f64; 2],
     /// Median ms of both eyes' ray cast with and without empty-space skipping.
     pub skip_ms: [f64; 2],
+    /// Both eyes' ray cast unfoveated and with the default foveation (ms), and the foveated
+    /// left eye's PSNR against the unfoveated (dB).
+    pub foveated: [f64; 3],
 }
 
 /// `vol` in the middle of a grid twice as large per axis at the same spacing, the rest filled
@@ -264,6 +268,8 @@ pub fn bench_frame(
         skip_ms[0],
         skip_ms[1] / skip_ms[0]
     );
+    let foveated = foveation_rows(&mut fl, &sweep, runs)?;
+    fl.settings.foveation = None;
 
     let lao = LaoGpu::new(gpu)?;
     let mut by_radius = Vec::new();
@@ -329,7 +335,47 @@ pub fn bench_frame(
         padded_dims: big.dims,
         fps,
         skip_ms,
+        foveated,
     })
+}
+
+/// The sweep's ray cast of both eyes with and without the default [`Foveation`], interleaved
+/// `runs` times (medians over all their frames), and the PSNR of the last frame's left eye
+/// against the same frame unfoveated. Returns [unfoveated ms, foveated ms, PSNR dB].
+fn foveation_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Result<[f64; 3]> {
+    let (mut ms, mut pictures) = ([Vec::new(), Vec::new()], [None, None]);
+    for _ in 0..runs.max(1) {
+        for (k, f) in [None, Some(Foveation::default())].into_iter().enumerate() {
+            fl.settings.foveation = f;
+            let (stats, _) = loop_sweep(fl, sweep, false)?;
+            ms[k].extend(
+                stats
+                    .iter()
+                    .map(|s| s.passes.eye_ms[0] + s.passes.eye_ms[1]),
+            );
+            // The last frame again, read back.
+            let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
+            let input = FrameInput::without_hands(0.0, views);
+            fl.submit(&input, true, |_, _| {})?;
+            pictures[k] = fl.flush()?.and_then(|r| r.image);
+        }
+    }
+    let [a, b] = pictures.map(|p| p.map(|p| crate::render::compare::luma(&p.rgba[0])));
+    let psnr = match (a, b) {
+        (Some(a), Some(b)) => crate::render::compare::psnr(&a, &b),
+        _ => f64::NAN,
+    };
+    let [plain, fov] = ms.map(|mut m| median(&mut m));
+    println!(
+        "ray cast, both eyes, foveated  {fov:>9.2} ms  {:>5.2}x faster than {plain:.2} ms \
+         (radius {} of the half-diagonal, 1 ray per {f}x{f} beyond; left eye {psnr:.1} dB \
+         against unfoveated; medians of {} interleaved run(s))",
+        plain / fov,
+        Foveation::default().radius,
+        runs.max(1),
+        f = Foveation::default().factor,
+    );
+    Ok([plain, fov, psnr])
 }
 
 #[cfg(test)]

@@ -70,6 +70,8 @@ pub struct ShadingOptions {
     pub step_mm: f32,
     /// The isosurface's data value (`--iso`), if one is shown instead of the volume.
     pub iso: Option<f32>,
+    /// Foveated ray casting (`--foveate`).
+    pub foveation: Option<crate::render::Foveation>,
 }
 
 impl Default for ShadingOptions {
@@ -87,6 +89,7 @@ impl Default for ShadingOptions {
             skip_empty: s.skip_empty,
             step_mm: s.step_mm,
             iso: s.iso,
+            foveation: s.foveation,
         }
     }
 }
@@ -121,6 +124,7 @@ impl ShadingOptions {
         s.skip_empty = self.skip_empty;
         s.step_mm = self.step_mm;
         s.iso = self.iso;
+        s.foveation = self.foveation;
     }
 }
 

@@ -128,6 +128,55 @@ pub struct RenderSettings {
     /// Render the first-hit isosurface of this data value (`--iso`) instead of compositing:
     /// opaque, in the TF's colour there, shaded and lit by the AO like any sample.
     pub iso: Option<f32>,
+    /// Fewer rays away from each eye's centre ([`Foveation`]); None casts every pixel.
+    pub foveation: Option<Foveation>,
+}
+
+/// Foveated ray casting: within `radius` (a fraction of the eye image's half-diagonal) of its
+/// centre every pixel casts its ray, as without foveation, bit for bit; beyond it one ray per
+/// block of `factor` x `factor` pixels, cast first into a coarse image, and the pixels there
+/// interpolate it (colour and depth, bilinear).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Foveation {
+    pub radius: f32,
+    pub factor: u32,
+}
+
+impl Default for Foveation {
+    /// A third of the half-diagonal at full rate (a tenth of a square image's pixels), a
+    /// quarter of the rays beyond.
+    fn default() -> Self {
+        Foveation {
+            radius: 0.33,
+            factor: 2,
+        }
+    }
+}
+
+impl std::str::FromStr for Foveation {
+    type Err = String;
+    /// `RADIUS[,FACTOR]`: RADIUS in (0, 1], FACTOR 2 to 8.
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        let mut parts = s.split(',');
+        let radius: f32 = parts
+            .next()
+            .and_then(|r| r.trim().parse().ok())
+            .filter(|r| *r > 0.0 && *r <= 1.0)
+            .ok_or_else(|| format!("'{s}': the radius must be a fraction in (0, 1]"))?;
+        let factor = match parts.next() {
+            Some(f) => f
+                .trim()
+                .parse()
+                .ok()
+                .filter(|f| (2..=8).contains(f))
+                .ok_or_else(|| format!("'{s}': the factor must be 2 to 8"))?,
+            None => Foveation::default().factor,
+        };
+        if parts.next().is_some() {
+            return Err(format!("'{s}': expected RADIUS[,FACTOR]"));
+        }
+        Ok(Foveation { radius, factor })
+    }
 }
 
 /// The colour a safety margin glows in: the amber a tool inside a margin is drawn in.
@@ -158,6 +207,7 @@ impl Default for RenderSettings {
             transparent: false,
             glow: DEFAULT_GLOW,
             iso: None,
+            foveation: None,
         };
         Shading::default().apply(&mut s);
         s
@@ -794,7 +844,8 @@ impl StereoTarget {
                 depth: 1,
             },
             layers: 2,
-            usage: usage | vk::ImageUsageFlags::TRANSFER_SRC,
+            // Sampled: a foveated frame's coarse target is read by its full pass.
+            usage: usage | vk::ImageUsageFlags::TRANSFER_SRC | vk::ImageUsageFlags::SAMPLED,
             aspect,
         };
         Ok(StereoTarget {
@@ -947,6 +998,46 @@ const FLAG_CLIPPING: u32 = 32;
 const FLAG_GLOW: u32 = 64;
 const FLAG_ISO: u32 = 128;
 
+/// The ray caster's descriptor writes: the uniforms and the clip tools and maps (bindings 0,
+/// 4, 5), then the sampled images by binding.
+fn descriptor_writes<'a>(
+    [ubo, tools, maps]: [&'a [vk::DescriptorBufferInfo]; 3],
+    views: &[(u32, vk::ImageView)],
+    infos: &'a [[vk::DescriptorImageInfo; 1]],
+) -> Vec<vk::WriteDescriptorSet<'a>> {
+    let buffer = |binding: u32, kind, info| {
+        vk::WriteDescriptorSet::default()
+            .dst_binding(binding)
+            .descriptor_type(kind)
+            .buffer_info(info)
+    };
+    let mut w = vec![
+        buffer(0, vk::DescriptorType::UNIFORM_BUFFER, ubo),
+        buffer(4, vk::DescriptorType::STORAGE_BUFFER, tools),
+        buffer(5, vk::DescriptorType::STORAGE_BUFFER, maps),
+    ];
+    w.extend(views.iter().zip(infos).map(|((binding, _), info)| {
+        vk::WriteDescriptorSet::default()
+            .dst_binding(*binding)
+            .descriptor_type(vk::DescriptorType::COMBINED_IMAGE_SAMPLER)
+            .image_info(info)
+    }));
+    w
+}
+
+/// raycast.frag's push constants: the eye and its pass (see [`Foveation`]).
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct EyePush {
+    index: u32,
+    /// 0: every pixel; 1: a foveated eye's coarse pass; 2: its full pass.
+    pass: u32,
+    /// Pixels of the eye per coarse pixel.
+    scale: f32,
+    /// Where the full rate ends, in pixels from the eye's centre.
+    radius: f32,
+}
+
 pub struct Renderer {
     gpu: Gpu,
     /// The ray caster specialised per combination of flags (FLAG_*; the shader's constant_id
@@ -957,11 +1048,18 @@ pub struct Renderer {
     layout: vk::PipelineLayout,
     set_layout: vk::DescriptorSetLayout,
     sampler: vk::Sampler,
+    /// Nearest texel: for the coarse depth (D32 has no linear filtering, and a silhouette's
+    /// depth must not be blended).
+    nearest: vk::Sampler,
     /// One uniform buffer per frame slot ([`Renderer::record_eyes`]), so that a frame can be
     /// recorded while the previous slot's frame still reads its own.
     uniforms: Vec<Buffer>,
     no_clip: Buffer,
     blue_noise: Image,
+    /// Per frame slot, a foveated frame's coarse target (made for the size it was last used at).
+    coarse: Vec<Option<StereoTarget>>,
+    /// Bound in place of the coarse images where a pass does not read them.
+    no_coarse: Image,
 }
 
 /// What one stereo frame looks at: both views, the volume's model matrix ([`world_from_tex`])
@@ -1068,6 +1166,24 @@ impl Renderer {
             bytemuck::cast_slice(blue_noise::tile()),
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         )?;
+        let no_coarse = Image::new(
+            gpu,
+            ImageDesc {
+                image_type: vk::ImageType::TYPE_2D,
+                view_type: vk::ImageViewType::TYPE_2D_ARRAY,
+                format: COLOR_FORMAT,
+                extent: vk::Extent3D {
+                    width: 1,
+                    height: 1,
+                    depth: 1,
+                },
+                layers: 2,
+                usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
+                aspect: vk::ImageAspectFlags::COLOR,
+            },
+            "no-coarse",
+        )?;
+        no_coarse.upload(&[0u8; 8], vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
         unsafe {
             let d = &gpu.device;
             let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
@@ -1092,12 +1208,14 @@ impl Renderer {
                     sampled,
                     sampled,
                     sampled,
+                    sampled,
+                    sampled,
                 ],
                 vk::ShaderStageFlags::FRAGMENT,
             )?;
             let eye_push = [vk::PushConstantRange::default()
                 .stage_flags(vk::ShaderStageFlags::FRAGMENT)
-                .size(4)];
+                .size(std::mem::size_of::<EyePush>() as u32)];
             let layout = d.create_pipeline_layout(
                 &vk::PipelineLayoutCreateInfo::default()
                     .set_layouts(&[set_layout])
@@ -1119,15 +1237,29 @@ impl Renderer {
                     .max_lod(0.0),
                 None,
             )?;
+            let nearest = d.create_sampler(
+                &vk::SamplerCreateInfo::default()
+                    .mag_filter(vk::Filter::NEAREST)
+                    .min_filter(vk::Filter::NEAREST)
+                    .mipmap_mode(vk::SamplerMipmapMode::NEAREST)
+                    .address_mode_u(vk::SamplerAddressMode::CLAMP_TO_EDGE)
+                    .address_mode_v(vk::SamplerAddressMode::CLAMP_TO_EDGE)
+                    .address_mode_w(vk::SamplerAddressMode::CLAMP_TO_EDGE)
+                    .max_lod(0.0),
+                None,
+            )?;
             Ok(Renderer {
                 gpu: gpu.clone(),
                 pipelines,
                 layout,
                 set_layout,
                 sampler,
+                nearest,
                 uniforms,
                 no_clip,
                 blue_noise,
+                coarse: (0..MAX_FRAMES_IN_FLIGHT).map(|_| None).collect(),
+                no_coarse,
             })
         }
     }
@@ -1313,19 +1445,16 @@ impl Renderer {
             vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
         );
         let bg = settings.background;
-        let area = vk::Rect2D {
-            offset: vk::Offset2D::default(),
-            extent: vk::Extent2D {
-                width: target.width,
-                height: target.height,
-            },
-        };
         let ubo = [uniforms
             .descriptor()
             .range(std::mem::size_of::<FrameUniforms>() as u64)];
-        let img = |view| {
+        let img = |(binding, view)| {
             [vk::DescriptorImageInfo::default()
-                .sampler(self.sampler)
+                .sampler(if binding == 19 {
+                    self.nearest
+                } else {
+                    self.sampler
+                })
                 .image_view(view)
                 .image_layout(vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)]
         };
@@ -1335,109 +1464,167 @@ impl Renderer {
                 sh.images.get(g).unwrap_or(&sh.images[0]).view
             })
         });
+        // A foveated frame's coarse target, this slot's own (its last frame has finished).
+        let coarse_size = settings.foveation.map(|f| {
+            let c = |n: u32| n.div_ceil(f.factor);
+            (c(target.width), c(target.height), f)
+        });
+        let slot_coarse = &mut self.coarse[slot];
+        let coarse = match coarse_size {
+            Some((w, h, f)) => {
+                if slot_coarse
+                    .as_ref()
+                    .is_none_or(|c| (c.width, c.height) != (w, h))
+                {
+                    *slot_coarse = Some(StereoTarget::new(&self.gpu, w, h)?);
+                }
+                slot_coarse.as_ref().map(|c| (c, f))
+            }
+            None => None,
+        };
+        let coarse_views = coarse.map_or((self.no_coarse.view, self.no_coarse.view), |(c, _)| {
+            (c.color.view, c.depth.view)
+        });
         // The sampled images by binding (raycast.frag): var_s and E, where absent, are a bound
-        // image standing in, unread (lighting.w = 0, bleeding.x = 0).
-        let sampled_views = [
-            (1, tex.scalars.view),
-            (2, tex.ambient.view),
-            (3, tex.lut.view),
-            (6, sh_views[0]),
-            (7, sh_views[1]),
-            (8, sh_views[2]),
-            (9, sh_views[3]),
-            (10, tex.variance.as_ref().unwrap_or(&tex.ambient).view),
-            (11, tex.bleeding.as_ref().unwrap_or(&tex.ambient).view),
-            (12, tex.preint.view),
-            (13, self.blue_noise.view),
-            (14, tex.skip.view),
-            (15, tex.preint_at.view),
-            (16, tex.structures.view),
-            (17, tex.glow.as_ref().unwrap_or(&tex.ambient).view),
-        ];
-        let infos = sampled_views.map(|(_, view)| img(view));
+        // image standing in, unread (lighting.w = 0, bleeding.x = 0); so are the coarse images
+        // but in a foveated eye's full pass.
+        let sampled_views = |coarse: (vk::ImageView, vk::ImageView)| {
+            [
+                (1, tex.scalars.view),
+                (2, tex.ambient.view),
+                (3, tex.lut.view),
+                (6, sh_views[0]),
+                (7, sh_views[1]),
+                (8, sh_views[2]),
+                (9, sh_views[3]),
+                (10, tex.variance.as_ref().unwrap_or(&tex.ambient).view),
+                (11, tex.bleeding.as_ref().unwrap_or(&tex.ambient).view),
+                (12, tex.preint.view),
+                (13, self.blue_noise.view),
+                (14, tex.skip.view),
+                (15, tex.preint_at.view),
+                (16, tex.structures.view),
+                (17, tex.glow.as_ref().unwrap_or(&tex.ambient).view),
+                (18, coarse.0),
+                (19, coarse.1),
+            ]
+        };
+        let plain = sampled_views((self.no_coarse.view, self.no_coarse.view));
+        let full = sampled_views(coarse_views);
+        let (plain_infos, full_infos) = (plain.map(img), full.map(img));
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
         let clip_maps = [clip.map_or(&self.no_clip, |c| c.maps).descriptor()];
-        let buffer = |binding: u32, kind, info| {
-            vk::WriteDescriptorSet::default()
-                .dst_binding(binding)
-                .descriptor_type(kind)
-                .buffer_info(info)
+        let buffers = [&ubo[..], &clip_tools[..], &clip_maps[..]];
+        let plain_writes = descriptor_writes(buffers, &plain, &plain_infos);
+        let full_writes = descriptor_writes(buffers, &full, &full_infos);
+        // One eye's pass into layer `eye` of `into`.
+        let draw =
+            |into: &StereoTarget, eye: u32, push: EyePush, writes: &[vk::WriteDescriptorSet]| {
+                let area = vk::Rect2D {
+                    offset: vk::Offset2D::default(),
+                    extent: vk::Extent2D {
+                        width: into.width,
+                        height: into.height,
+                    },
+                };
+                let color_att = [vk::RenderingAttachmentInfo::default()
+                    .image_view(into.color.layer_views[eye as usize])
+                    .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+                    .load_op(vk::AttachmentLoadOp::CLEAR)
+                    .store_op(vk::AttachmentStoreOp::STORE)
+                    .clear_value(vk::ClearValue {
+                        color: vk::ClearColorValue {
+                            float32: [bg[0], bg[1], bg[2], 0.0],
+                        },
+                    })];
+                let depth_att = vk::RenderingAttachmentInfo::default()
+                    .image_view(into.depth.layer_views[eye as usize])
+                    .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
+                    .load_op(vk::AttachmentLoadOp::CLEAR)
+                    .store_op(vk::AttachmentStoreOp::STORE)
+                    .clear_value(vk::ClearValue {
+                        depth_stencil: vk::ClearDepthStencilValue {
+                            depth: 1.0,
+                            stencil: 0,
+                        },
+                    });
+                let info = vk::RenderingInfo::default()
+                    .render_area(area)
+                    .layer_count(1)
+                    .color_attachments(&color_att)
+                    .depth_attachment(&depth_att);
+                // SAFETY: `cmd` is recording; the pipeline, layout and every bound resource live
+                // until the frame's slot is reused, which the caller orders after this frame.
+                unsafe {
+                    d.cmd_begin_rendering(cmd, &info);
+                    d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
+                    self.gpu.push_descriptor.cmd_push_descriptor_set(
+                        cmd,
+                        vk::PipelineBindPoint::GRAPHICS,
+                        self.layout,
+                        0,
+                        writes,
+                    );
+                    d.cmd_push_constants(
+                        cmd,
+                        self.layout,
+                        vk::ShaderStageFlags::FRAGMENT,
+                        0,
+                        bytemuck::bytes_of(&push),
+                    );
+                    d.cmd_set_viewport(
+                        cmd,
+                        0,
+                        &[vk::Viewport {
+                            x: 0.0,
+                            y: 0.0,
+                            width: into.width as f32,
+                            height: into.height as f32,
+                            min_depth: 0.0,
+                            max_depth: 1.0,
+                        }],
+                    );
+                    d.cmd_set_scissor(cmd, 0, &[area]);
+                    d.cmd_draw(cmd, 3, 1, 0, 0);
+                    d.cmd_end_rendering(cmd);
+                }
+            };
+        let half_diagonal = 0.5 * (target.width as f32).hypot(target.height as f32);
+        let push = |index: u32, pass: u32| EyePush {
+            index,
+            pass,
+            scale: coarse.map_or(1.0, |(_, f)| f.factor as f32),
+            radius: coarse.map_or(0.0, |(_, f)| f.radius * half_diagonal),
         };
-        let mut writes = vec![
-            buffer(0, vk::DescriptorType::UNIFORM_BUFFER, &ubo[..]),
-            buffer(4, vk::DescriptorType::STORAGE_BUFFER, &clip_tools[..]),
-            buffer(5, vk::DescriptorType::STORAGE_BUFFER, &clip_maps[..]),
-        ];
-        writes.extend(
-            sampled_views
-                .iter()
-                .zip(&infos)
-                .map(|((binding, _), info)| {
-                    vk::WriteDescriptorSet::default()
-                        .dst_binding(*binding)
-                        .descriptor_type(vk::DescriptorType::COMBINED_IMAGE_SAMPLER)
-                        .image_info(info)
-                }),
-        );
+        if let Some((c, _)) = coarse {
+            c.color.transition(
+                cmd,
+                vk::ImageLayout::UNDEFINED,
+                vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+            );
+            c.depth.transition(
+                cmd,
+                vk::ImageLayout::UNDEFINED,
+                vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
+            );
+            for eye in 0..2u32 {
+                draw(c, eye, push(eye, 1), &plain_writes);
+            }
+            c.color.transition(
+                cmd,
+                vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+                vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+            );
+            c.depth.transition(
+                cmd,
+                vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
+                vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+            );
+        }
         for eye in 0..2u32 {
-            let color_att = [vk::RenderingAttachmentInfo::default()
-                .image_view(target.color.layer_views[eye as usize])
-                .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
-                .load_op(vk::AttachmentLoadOp::CLEAR)
-                .store_op(vk::AttachmentStoreOp::STORE)
-                .clear_value(vk::ClearValue {
-                    color: vk::ClearColorValue {
-                        float32: [bg[0], bg[1], bg[2], 0.0],
-                    },
-                })];
-            let depth_att = vk::RenderingAttachmentInfo::default()
-                .image_view(target.depth.layer_views[eye as usize])
-                .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
-                .load_op(vk::AttachmentLoadOp::CLEAR)
-                .store_op(vk::AttachmentStoreOp::STORE)
-                .clear_value(vk::ClearValue {
-                    depth_stencil: vk::ClearDepthStencilValue {
-                        depth: 1.0,
-                        stencil: 0,
-                    },
-                });
-            let info = vk::RenderingInfo::default()
-                .render_area(area)
-                .layer_count(1)
-                .color_attachments(&color_att)
-                .depth_attachment(&depth_att);
-            unsafe {
-                d.cmd_begin_rendering(cmd, &info);
-                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
-                self.gpu.push_descriptor.cmd_push_descriptor_set(
-                    cmd,
-                    vk::PipelineBindPoint::GRAPHICS,
-                    self.layout,
-                    0,
-                    &writes,
-                );
-                d.cmd_push_constants(
-                    cmd,
-                    self.layout,
-                    vk::ShaderStageFlags::FRAGMENT,
-                    0,
-                    &eye.to_ne_bytes(),
-                );
-                d.cmd_set_viewport(
-                    cmd,
-                    0,
-                    &[vk::Viewport {
-                        x: 0.0,
-                        y: 0.0,
-                        width: target.width as f32,
-                        height: target.height as f32,
-                        min_depth: 0.0,
-                        max_depth: 1.0,
-                    }],
-                );
-                d.cmd_set_scissor(cmd, 0, &[area]);
-                d.cmd_draw(cmd, 3, 1, 0, 0);
-                d.cmd_end_rendering(cmd);
+            match coarse {
+                Some(_) => draw(target, eye, push(eye, 2), &full_writes),
+                None => draw(target, eye, push(eye, 0), &plain_writes),
             }
             after_eye(cmd, eye as usize);
         }
@@ -1451,6 +1638,7 @@ impl Drop for Renderer {
             let d = &self.gpu.device;
             let _ = d.device_wait_idle();
             d.destroy_sampler(self.sampler, None);
+            d.destroy_sampler(self.nearest, None);
             for (_, p) in self.pipelines.borrow_mut().drain() {
                 d.destroy_pipeline(p, None);
             }
@@ -1496,6 +1684,28 @@ mod tests {
                 && e.contains("--downsample 3"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn foveation_parses_a_radius_and_a_factor_and_refuses_the_rest() {
+        let f = |s: &str| s.parse::<Foveation>();
+        assert_eq!(
+            f("0.4"),
+            Ok(Foveation {
+                radius: 0.4,
+                factor: 2
+            })
+        );
+        assert_eq!(
+            f("0.25,3"),
+            Ok(Foveation {
+                radius: 0.25,
+                factor: 3
+            })
+        );
+        for bad in ["0", "1.5", "x", "0.3,1", "0.3,9", "0.3,2,1"] {
+            assert!(f(bad).is_err(), "{bad}");
+        }
     }
 
     #[test]

@@ -671,6 +671,60 @@ fn a_negative_isovalue_is_taken_with_or_without_an_equals_sign() {
     assert_ne!(spaced, render(&["--iso", "300"], "positive"));
 }
 
+/// Foveation (`--foveate RADIUS,FACTOR`): within the radius of each eye's centre the picture is
+/// the unfoveated one bit for bit; beyond it the coarse rays, interpolated, keep the whole
+/// picture within 32 dB, and they are not the full-rate rays (some pixel there differs).
+#[test]
+fn a_foveated_eye_is_exact_in_its_centre_and_close_beyond() {
+    let dir = tmp("foveate");
+    let render = |extra: &[&str], name: &str| {
+        let out_dir = dir.join(name);
+        let mut args = vec!["render", "phantom:48", "--size", "96x80", "--rays", "6"];
+        args.extend_from_slice(&["--tool", "sphere:40", "--out", out_dir.to_str().unwrap()]);
+        args.extend_from_slice(extra);
+        let out = cao(&args);
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(out.status.success(), "{extra:?}: {stderr}");
+        assert!(!stderr.contains("vulkan validation"), "{stderr}");
+        ["left.png", "right.png"].map(|e| read_png(&out_dir.join(e)))
+    };
+    let (full, fov) = (
+        render(&[], "full"),
+        render(&["--foveate", "0.25,3"], "foveated"),
+    );
+    for (eye, (a, b)) in full.iter().zip(&fov).enumerate() {
+        let (w, h, c) = (a.0, a.1, a.2);
+        assert_eq!((w, h, c), (b.0, b.1, b.2));
+        let radius = 0.25 * 0.5 * (w as f64).hypot(h as f64);
+        let (mut centre, mut beyond_differs, mut se) = (0, false, 0.0);
+        for y in 0..h {
+            for x in 0..w {
+                let r = (x as f64 + 0.5 - w as f64 / 2.0).hypot(y as f64 + 0.5 - h as f64 / 2.0);
+                let (pa, pb) = (&a.3[(y * w + x) * c..][..c], &b.3[(y * w + x) * c..][..c]);
+                if r <= radius {
+                    assert_eq!(pa, pb, "eye {eye}, pixel {x},{y} in the centre");
+                    centre += 1;
+                } else {
+                    beyond_differs |= pa != pb;
+                }
+                se += (0..3)
+                    .map(|k| (pa[k] as f64 - pb[k] as f64).powi(2))
+                    .sum::<f64>();
+            }
+        }
+        let psnr = 10.0 * (255.0f64.powi(2) / (se / (3 * w * h) as f64)).log10();
+        assert!(centre > w * h / 20, "eye {eye}: {centre} centre pixels");
+        assert!(
+            beyond_differs,
+            "eye {eye}: the periphery was cast at full rate"
+        );
+        assert!(
+            psnr >= 32.0,
+            "eye {eye}: {psnr:.1} dB against the unfoveated picture"
+        );
+    }
+}
+
 #[test]
 fn render_writes_three_pngs() {
     let dir = tmp("render");
