@@ -1,7 +1,8 @@
 //! A frame budget: the headset (and, when asked, the window) holds a target frame time by
-//! lengthening the ray caster's step, within bounds, from the measured GPU times of the frames
-//! before. The ray cast is nearly all of a frame and costs about 1 / step; the AO is never
-//! touched (its volumes are data-space and shared by every view, so they stay exact).
+//! lengthening the ray caster's step, within bounds, and past the longest step by foveating
+//! ([`crate::render::Foveation`]), from the measured GPU times of the frames before. The ray
+//! cast is nearly all of a frame and costs about 1 / step; the AO is never touched (its
+//! volumes are data-space and shared by every view, so they stay exact).
 
 /// The headset's frame budget by default: 90 Hz.
 pub const HEADSET_FRAME_MS: f64 = 1000.0 / 90.0;
@@ -13,12 +14,17 @@ pub const MAX_STEP_FACTOR: f64 = 3.0;
 const QUANTUM: f64 = 0.125;
 /// Frame times within this share of the target leave the step alone.
 const DEADBAND: f64 = 0.1;
+/// What foveation is taken to save on the ray cast, for turning it off again: the frame must
+/// fit with the ray cast this many times longer (`bench frame` measured 1.5-2x).
+const FOVEATION_GAIN: f64 = 2.0;
 
-/// The controller: a step factor in [1, MAX_STEP_FACTOR] following the frame times.
+/// The controller: a step factor in [1, MAX_STEP_FACTOR] following the frame times, and
+/// foveation once the longest step is not enough.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FrameBudget {
     pub target_ms: f64,
     factor: f64,
+    foveate: bool,
 }
 
 impl FrameBudget {
@@ -26,7 +32,15 @@ impl FrameBudget {
         FrameBudget {
             target_ms,
             factor: 1.0,
+            foveate: false,
         }
+    }
+
+    /// Whether the frames to come are foveated: on once a frame is over budget at the longest
+    /// step, off again once one at the configured step would fit without it (it is taken to
+    /// have saved [`FOVEATION_GAIN`]), so that it does not flicker on and off.
+    pub fn foveate(&self) -> bool {
+        self.foveate
     }
 
     /// The ray step as a multiple of the configured one.
@@ -44,6 +58,14 @@ impl FrameBudget {
         }
         let frame = ray_ms + other_ms;
         let off = frame / self.target_ms;
+        if !self.foveate && self.factor >= MAX_STEP_FACTOR && off > 1.0 + DEADBAND {
+            self.foveate = true;
+        } else if self.foveate
+            && self.factor <= 1.0
+            && (ray_ms * FOVEATION_GAIN + other_ms) < (1.0 - DEADBAND) * self.target_ms
+        {
+            self.foveate = false;
+        }
         if (1.0 - DEADBAND..=1.0 + DEADBAND).contains(&off) {
             return self.factor;
         }
@@ -66,15 +88,42 @@ impl FrameBudget {
 mod tests {
     use super::*;
 
-    /// A simulated GPU: the ray cast costs `ray_at_1 / factor`, the rest `other`; returns the
-    /// factors chosen frame by frame.
+    /// A simulated GPU: the ray cast costs `ray_at_1 / factor`, half that foveated, the rest
+    /// `other`; returns the factors chosen frame by frame.
     fn run(b: &mut FrameBudget, ray_at_1: f64, other: f64, frames: usize) -> Vec<f64> {
         (0..frames)
             .map(|_| {
                 let f = b.step_factor();
-                b.observe(ray_at_1 / f, other)
+                let fov = if b.foveate() { 0.5 } else { 1.0 };
+                b.observe(ray_at_1 / f * fov, other)
             })
             .collect()
+    }
+
+    #[test]
+    fn past_the_longest_step_it_foveates_and_stops_once_the_load_drops() {
+        let mut b = FrameBudget::new(10.0);
+        // 20 ms at the configured step: the step alone fits, no foveation.
+        run(&mut b, 20.0, 1.0, 30);
+        assert!(!b.foveate(), "{b:?}");
+        // 40 ms: 3x is not enough (14.3 ms); foveated, the step shortens again to fit.
+        let f = run(&mut b, 40.0, 1.0, 40);
+        assert!(b.foveate(), "{b:?}");
+        let (last, frame) = (*f.last().unwrap(), 0.5 * 40.0 / f.last().unwrap() + 1.0);
+        assert!(
+            last < MAX_STEP_FACTOR && frame <= 1.15 * b.target_ms,
+            "x{last}: {frame} ms"
+        );
+        assert!(f[30..].iter().all(|&x| x == last), "it keeps moving: {f:?}");
+        // A load it meets at the configured step without foveation: off again, and it stays off.
+        let f = run(&mut b, 6.0, 1.0, 40);
+        assert!(!b.foveate() && *f.last().unwrap() == 1.0, "{b:?} {f:?}");
+        // In between (foveated it fits at x1, without it not even at x1.2): it stays foveated
+        // rather than flickering.
+        let mut b = FrameBudget::new(10.0);
+        run(&mut b, 60.0, 1.0, 30);
+        let f = run(&mut b, 11.0, 1.0, 40);
+        assert!(b.foveate(), "{b:?} {f:?}");
     }
 
     #[test]

@@ -167,7 +167,15 @@ impl App {
                 None => String::new(),
             };
             let step = match self.opts.frame_budget_ms {
-                Some(_) => format!(" | step x{:.2}", stats.step_factor),
+                Some(_) => format!(
+                    " | step x{:.2}{}",
+                    stats.step_factor,
+                    if stats.budget_foveates {
+                        ", foveated"
+                    } else {
+                        ""
+                    }
+                ),
                 None => String::new(),
             };
             let margin = self

@@ -23,8 +23,8 @@ use crate::input::{FrameInput, Interaction, InteractionSettings};
 use crate::render::text::{text_items, TEXT_HEIGHT};
 use crate::render::{colors, joint_overlay, markup_overlay, scene_overlay, OverlayRenderer};
 use crate::render::{
-    ClipBinding, FrameViews, RenderSettings, Renderer, StereoImage, StereoTarget, VolumeTextures,
-    MAX_FRAMES_IN_FLIGHT,
+    ClipBinding, Foveation, FrameViews, RenderSettings, Renderer, StereoImage, StereoTarget,
+    VolumeTextures, MAX_FRAMES_IN_FLIGHT,
 };
 use crate::scene::Scene;
 use crate::space::world_from_tex;
@@ -64,6 +64,8 @@ pub struct FrameStats {
     /// The ray step, as a multiple of the configured one, that the frame budget chose after this
     /// frame ([`FrameLoop::set_frame_budget`]; 1 without one).
     pub step_factor: f64,
+    /// The frames to come are foveated by the frame budget (past its longest step).
+    pub budget_foveates: bool,
     /// The tools inside a structure's safety margin this frame (`--margin`).
     pub margins: Vec<MarginHit>,
 }
@@ -125,8 +127,8 @@ pub struct FrameLoop {
     /// The distance fields of the structures with a safety margin (`--margin`).
     margins: Vec<MarginField>,
     /// A frame budget, the settings' step it replaced (0: automatic) and that step in mm, which
-    /// it scales ([`FrameLoop::set_frame_budget`]).
-    budget: Option<(FrameBudget, f32, f32)>,
+    /// it scales, and the settings' foveation ([`FrameLoop::set_frame_budget`]).
+    budget: Option<(FrameBudget, f32, f32, Option<Foveation>)>,
     /// Points and rulers drawn with the overlay (`--markups`).
     pub markups: Markups,
 }
@@ -513,13 +515,15 @@ impl FrameLoop {
     /// GPU times ([`FrameBudget`]); the AO is never touched. None: the settings' step, always.
     /// Replay and renders run without one: their pictures must not depend on the machine.
     pub fn set_frame_budget(&mut self, target_ms: Option<f64>) {
-        if let Some((_, configured, _)) = self.budget.take() {
+        if let Some((_, configured, _, foveation)) = self.budget.take() {
             self.settings.step_mm = configured;
+            self.settings.foveation = foveation;
         }
         let base = self.settings.step_for(self.volume.spacing);
-        self.budget = target_ms
-            .filter(|t| *t > 0.0)
-            .map(|t| (FrameBudget::new(t), self.settings.step_mm, base));
+        self.budget = target_ms.filter(|t| *t > 0.0).map(|t| {
+            let s = &self.settings;
+            (FrameBudget::new(t), s.step_mm, base, s.foveation)
+        });
     }
 
     /// Frames the GPU may hold at once (1 or 2, [`crate::render::MAX_FRAMES_IN_FLIGHT`]).
@@ -633,14 +637,17 @@ impl FrameLoop {
         }
         // The budget's step: a new one rebuilds the pre-integration table and the empty bricks
         // the frame in flight reads, so that frame is waited for first.
-        if let Some((b, _, base)) = &self.budget {
-            let step = base * b.step_factor() as f32;
+        if let Some((b, _, base, configured)) = &self.budget {
+            let (step, configured, foveate) =
+                (base * b.step_factor() as f32, *configured, b.foveate());
             if step != self.settings.step_for(self.volume.spacing) {
                 if retired.is_none() {
                     retired = self.retire()?;
                 }
                 self.settings.step_mm = step;
             }
+            // Foveation as configured, or the default where the budget wants it.
+            self.settings.foveation = configured.or(foveate.then(Foveation::default));
         }
         self.record_and_submit(input, read_back, after, signal, (t0, margins))?;
         if retired.is_none() && self.slots.flights.len() >= self.depth {
@@ -681,7 +688,7 @@ impl FrameLoop {
         let tf_ms = if f.slab { self.tfs.read_ms()? } else { 0.0 };
         let render_ms = passes.eye_ms[0] + passes.eye_ms[1];
         let step_factor = match self.budget.as_mut() {
-            Some((b, _, _)) => {
+            Some((b, _, _, _)) => {
                 let other = metrics.gpu_ms()
                     + sh.gpu_ms
                     + tf_ms
@@ -715,6 +722,7 @@ impl FrameLoop {
                 overlapped: f.overlapped,
                 margins: f.margins,
                 step_factor,
+                budget_foveates: self.budget.as_ref().is_some_and(|b| b.0.foveate()),
             },
             image,
         }))
