@@ -282,10 +282,10 @@ impl Cao {
             | vk::BufferUsageFlags::TRANSFER_SRC
             | vk::BufferUsageFlags::TRANSFER_DST;
         let ao = super::stored::buffer(gpu, dims, "cao-ao")?;
-        // One byte per voxel (shaders/include/mask.glsl), in whole words.
+        // Two bits per voxel (shaders/include/mask.glsl), in whole words.
         let mask = Buffer::new(
             gpu,
-            n.div_ceil(4) * 4,
+            n.div_ceil(16) * 4,
             storage,
             MemoryLocation::GpuOnly,
             "cao-mask",
@@ -968,7 +968,6 @@ impl Cao {
         self.read_metrics(pending?)
     }
 
-    /// The tools (as uploaded for the last frame) and their maps, for the ray caster's clipping.
     /// O, the unclipped opacity the precomputed volumes were computed from, and where its
     /// voxels lie (in [`Cao::clipped_stride`]'s form: no border).
     pub fn opacity(&self) -> (&Buffer, [i32; 4]) {
@@ -976,10 +975,19 @@ impl Cao {
         (&self.opacity, [x, y, z, float_o(&self.method) as i32])
     }
 
-    /// The last frame's voxel categories, one byte per voxel (0: clipped, 1: affected,
-    /// 2: unaffected; restored boxes read 2, or 0 while a probe is active).
-    pub fn mask(&self) -> &Buffer {
-        &self.mask
+    /// The last frame's voxel categories read back, one per voxel (0: clipped, 1: affected,
+    /// 2: unaffected; restored boxes read 2, or 0 while a probe is active). The GPU holds two
+    /// bits each, sixteen to a word (shaders/include/mask.glsl).
+    pub fn read_mask(&self) -> Result<Vec<u8>> {
+        let bytes = self.mask.read_back()?;
+        let n = self.dims.iter().product::<usize>();
+        Ok((0..n)
+            .map(|i| {
+                let w = &bytes[4 * (i / 16)..][..4];
+                let word = u32::from_le_bytes([w[0], w[1], w[2], w[3]]);
+                ((word >> (2 * (i % 16))) & 3) as u8
+            })
+            .collect())
     }
 
     /// The tool table and clip maps of the frame recorded last, for the passes after CAO's in

@@ -787,7 +787,7 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
     let mut v = vec![
         ("scalars", scalar),
         ("AO image", ao),
-        ("mask", 1.0),
+        ("mask", 0.25),
         ("V_PAO", ao),
         ("V_AO", ao),
     ];

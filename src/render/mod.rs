@@ -1226,28 +1226,21 @@ impl Renderer {
             // layer of a multiview pass with dynamic rendering. The ray caster writes every pixel's
             // depth itself (gl_FragDepth), so the test always passes.
             let pipelines = Default::default();
-            let sampler = d.create_sampler(
-                &vk::SamplerCreateInfo::default()
-                    .mag_filter(vk::Filter::LINEAR)
-                    .min_filter(vk::Filter::LINEAR)
-                    .mipmap_mode(vk::SamplerMipmapMode::NEAREST)
-                    .address_mode_u(vk::SamplerAddressMode::CLAMP_TO_EDGE)
-                    .address_mode_v(vk::SamplerAddressMode::CLAMP_TO_EDGE)
-                    .address_mode_w(vk::SamplerAddressMode::CLAMP_TO_EDGE)
-                    .max_lod(0.0),
-                None,
-            )?;
-            let nearest = d.create_sampler(
-                &vk::SamplerCreateInfo::default()
-                    .mag_filter(vk::Filter::NEAREST)
-                    .min_filter(vk::Filter::NEAREST)
-                    .mipmap_mode(vk::SamplerMipmapMode::NEAREST)
-                    .address_mode_u(vk::SamplerAddressMode::CLAMP_TO_EDGE)
-                    .address_mode_v(vk::SamplerAddressMode::CLAMP_TO_EDGE)
-                    .address_mode_w(vk::SamplerAddressMode::CLAMP_TO_EDGE)
-                    .max_lod(0.0),
-                None,
-            )?;
+            let clamped = |filter| {
+                d.create_sampler(
+                    &vk::SamplerCreateInfo::default()
+                        .mag_filter(filter)
+                        .min_filter(filter)
+                        .mipmap_mode(vk::SamplerMipmapMode::NEAREST)
+                        .address_mode_u(vk::SamplerAddressMode::CLAMP_TO_EDGE)
+                        .address_mode_v(vk::SamplerAddressMode::CLAMP_TO_EDGE)
+                        .address_mode_w(vk::SamplerAddressMode::CLAMP_TO_EDGE)
+                        .max_lod(0.0),
+                    None,
+                )
+            };
+            let sampler = clamped(vk::Filter::LINEAR)?;
+            let nearest = clamped(vk::Filter::NEAREST)?;
             Ok(Renderer {
                 gpu: gpu.clone(),
                 pipelines,

@@ -259,8 +259,7 @@ fn the_clip_update_equals_a_direct_recompute_of_the_affected_voxels_bit_for_bit_
                 bytemuck::cast_slice(&eb),
                 bytemuck::cast_slice(&pre_e),
             );
-            // One byte per voxel.
-            let mask = cao.mask().read_back().unwrap();
+            let mask = cao.read_mask().unwrap();
             for v in 0..a.len() {
                 let ok = match mask[v] {
                     // Affected: the direct sums on the clipped volume, as the naive pass.
