@@ -19,6 +19,7 @@ fn constants_glsl() -> String {
         "#ifndef CAO_XR_CONSTANTS".into(),
         "#define CAO_XR_CONSTANTS".into(),
         format!("const float UNORM16_MAX = {UNORM16_MAX:?};"),
+        format!("const float OPAQUE_ALPHA = {OPAQUE_ALPHA:?};"),
         format!("const int BRICK_SHIFT = {BRICK_SHIFT};"),
         format!("const int BRICK = {BRICK};"),
         format!("const int LAO_GROUP_X = {};", LAO_GROUP[0]),

@@ -60,7 +60,6 @@ layout(set = 0, binding = 19) uniform sampler2DArray coarse_depth;
 
 layout(location = 0) out vec4 out_color;
 
-const float OPAQUE = 0.99;
 // Bisections that place a cut face within 1/64 of a step.
 const int CUT_BISECTIONS = 6;
 const float DEPTH_ALPHA = 0.05;
@@ -553,7 +552,7 @@ void main() {
                     vec4 clip = frame.view_proj[v] * vec4(a_w + t * (b_w - a_w), 1.0);
                     depth = clamp(clip.z / clip.w, 0.0, 1.0);
                 }
-                if (alpha >= OPAQUE || flag(ISO)) break;
+                if (alpha >= OPAQUE_ALPHA || flag(ISO)) break;
             }
         }
     }

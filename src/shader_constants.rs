@@ -5,6 +5,9 @@
 /// V_AO and V_PAO hold AO in [0, 1] as 16-bit unorm: stored q = round(a * UNORM16_MAX), read
 /// a = q / UNORM16_MAX (within 0.5 / 65535 = 7.6e-6 of the f32 value; 2 bytes a voxel).
 pub const UNORM16_MAX: f32 = 65535.0;
+/// The ray caster stops a ray once its opacity reaches this: what lies behind can then change
+/// no channel of an 8-bit pixel by half a level (1 - alpha < 0.5 / 255).
+pub const OPAQUE_ALPHA: f32 = 1.0 - 0.5 / 255.0;
 /// Bricks of 2^BRICK_SHIFT voxels per axis for LAO's exact empty-space skipping.
 pub const BRICK_SHIFT: u32 = 2;
 /// Workgroup size of the LAO kernel (lao.comp, cao_update.comp): rows of voxels along x. On

@@ -10,7 +10,7 @@ use crate::ao::cao::{Cao, Mode};
 use crate::ao::{LaoGpu, LaoParams};
 use crate::gpu::Gpu;
 use crate::input::{FrameInput, InteractionSettings};
-use crate::render::Foveation;
+use crate::render::{Foveation, RenderSettings};
 use crate::scene::Tool;
 use crate::space::{default_stereo_views, Placement, DEFAULT_IPD};
 use crate::volume::transfer::TransferFunction;
@@ -270,6 +270,7 @@ pub fn bench_frame(
     );
     let foveated = foveation_rows(&mut fl, &sweep, runs)?;
     fl.settings.foveation = None;
+    ablation_rows(&mut fl, &sweep, runs)?;
 
     let lao = LaoGpu::new(gpu)?;
     let mut by_radius = Vec::new();
@@ -337,6 +338,68 @@ pub fn bench_frame(
         skip_ms,
         foveated,
     })
+}
+
+/// What each feature of a sample costs: the sweep's ray cast of both eyes with the default
+/// settings and with one feature changed at a time, interleaved `runs` times (medians over all
+/// frames); the share of the default's time that each feature's absence saves (or, for one
+/// that is off by default, costs).
+fn ablation_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Result<()> {
+    type Change = fn(&mut RenderSettings);
+    let rows: [(&str, Change); 7] = [
+        ("the default", |_| {}),
+        ("no AO lookup", |s| s.use_ao = false),
+        ("no gradients (ambient only)", |s| {
+            let ao = s.use_ao;
+            crate::render::Shading::Ao.apply(s);
+            s.use_ao = ao;
+        }),
+        ("no pre-integration", |s| s.preintegrated = false),
+        ("no cut-face lighting", |s| s.cut_lighting = false),
+        ("no empty-space skipping", |s| s.skip_empty = false),
+        ("tricubic scalars (off by default)", |s| s.tricubic = true),
+    ];
+    let no_tools = vec![Vec::new(); sweep.len()];
+    let base = fl.settings;
+    // The rows above, then the sweep without its tool: the clip tests' share.
+    let mut ms = vec![Vec::new(); rows.len() + 1];
+    for _ in 0..runs.max(1) {
+        for (k, out) in ms.iter_mut().enumerate() {
+            let mut s = base;
+            if let Some((_, change)) = rows.get(k) {
+                change(&mut s);
+            }
+            fl.settings = s;
+            let tools = if k < rows.len() { sweep } else { &no_tools[..] };
+            // Two frames untimed first: a change of settings rebuilds tables on the host
+            // (pre-integration, empty bricks), which on a CPU device competes with the GPU's
+            // threads for the cores.
+            loop_sweep(fl, &tools[..2.min(tools.len())], false)?;
+            let (stats, _) = loop_sweep(fl, tools, false)?;
+            out.extend(
+                stats
+                    .iter()
+                    .map(|s| s.passes.eye_ms[0] + s.passes.eye_ms[1]),
+            );
+        }
+    }
+    fl.settings = base;
+    let ms: Vec<f64> = ms.into_iter().map(|mut m| median(&mut m)).collect();
+    println!(
+        "per-feature ablation, ray cast of both eyes (medians of {} interleaved run(s)):",
+        runs.max(1)
+    );
+    let names = rows
+        .iter()
+        .map(|r| r.0)
+        .chain(["no carving tool (no clip tests)"]);
+    for (name, &m) in names.zip(&ms) {
+        println!(
+            "  {name:<34} {m:>9.2} ms  {:>+6.1} % of the default",
+            100.0 * (m - ms[0]) / ms[0]
+        );
+    }
+    Ok(())
 }
 
 /// The sweep's ray cast of both eyes with and without the default [`Foveation`], interleaved
