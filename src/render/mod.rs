@@ -872,6 +872,20 @@ impl StereoTarget {
         })
     }
 
+    /// Records the start of a frame's drawing: both images, whatever they held, to attachments.
+    pub fn cmd_begin(&self, cmd: vk::CommandBuffer) {
+        self.color.transition(
+            cmd,
+            vk::ImageLayout::UNDEFINED,
+            vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
+        );
+        self.depth.transition(
+            cmd,
+            vk::ImageLayout::UNDEFINED,
+            vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
+        );
+    }
+
     /// Records the end of a frame's drawing: both images from attachments (as
     /// [`Renderer::record`] and [`OverlayRenderer::record`] leave them) to TRANSFER_SRC_OPTIMAL,
     /// ready to copy. Separate from the passes so that any number of them can draw in between.
@@ -1427,16 +1441,7 @@ impl Renderer {
         let uniforms = &self.uniforms[slot];
 
         let d = &self.gpu.device;
-        target.color.transition(
-            cmd,
-            vk::ImageLayout::UNDEFINED,
-            vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
-        );
-        target.depth.transition(
-            cmd,
-            vk::ImageLayout::UNDEFINED,
-            vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
-        );
+        target.cmd_begin(cmd);
         let bg = settings.background;
         let ubo = [uniforms
             .descriptor()
@@ -1590,16 +1595,7 @@ impl Renderer {
             radius: coarse.map_or(0.0, |(_, f)| f.radius * half_diagonal),
         };
         if let Some((c, _)) = coarse {
-            c.color.transition(
-                cmd,
-                vk::ImageLayout::UNDEFINED,
-                vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL,
-            );
-            c.depth.transition(
-                cmd,
-                vk::ImageLayout::UNDEFINED,
-                vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL,
-            );
+            c.cmd_begin(cmd);
             for eye in 0..2u32 {
                 draw(c, eye, push(eye, 1), &plain_writes);
             }
