@@ -93,6 +93,16 @@ pub struct ShStats {
     pub gpu_ms: f64,
 }
 
+/// A frame budget ([`FrameLoop::set_frame_budget`]) and the settings it changes, as they were.
+struct BudgetState {
+    control: FrameBudget,
+    /// The settings' step it replaced (0: automatic), and that step in mm, which it scales.
+    configured_step: f32,
+    base_step: f32,
+    /// The settings' foveation: kept where set, else the budget's own past its longest step.
+    configured_foveation: Option<Foveation>,
+}
+
 pub struct FrameLoop {
     pub gpu: Gpu,
     /// The one copy of the volume: its geometry for every frame, its voxels for classifying a
@@ -126,9 +136,8 @@ pub struct FrameLoop {
     depth: usize,
     /// The distance fields of the structures with a safety margin (`--margin`).
     margins: Vec<MarginField>,
-    /// A frame budget, the settings' step it replaced (0: automatic) and that step in mm, which
-    /// it scales, and the settings' foveation ([`FrameLoop::set_frame_budget`]).
-    budget: Option<(FrameBudget, f32, f32, Option<Foveation>)>,
+    /// A frame budget ([`FrameLoop::set_frame_budget`]).
+    budget: Option<BudgetState>,
     /// Points and rulers drawn with the overlay (`--markups`).
     pub markups: Markups,
 }
@@ -515,14 +524,16 @@ impl FrameLoop {
     /// GPU times ([`FrameBudget`]); the AO is never touched. None: the settings' step, always.
     /// Replay and renders run without one: their pictures must not depend on the machine.
     pub fn set_frame_budget(&mut self, target_ms: Option<f64>) {
-        if let Some((_, configured, _, foveation)) = self.budget.take() {
-            self.settings.step_mm = configured;
-            self.settings.foveation = foveation;
+        if let Some(b) = self.budget.take() {
+            self.settings.step_mm = b.configured_step;
+            self.settings.foveation = b.configured_foveation;
         }
         let base = self.settings.step_for(self.volume.spacing);
-        self.budget = target_ms.filter(|t| *t > 0.0).map(|t| {
-            let s = &self.settings;
-            (FrameBudget::new(t), s.step_mm, base, s.foveation)
+        self.budget = target_ms.filter(|t| *t > 0.0).map(|t| BudgetState {
+            control: FrameBudget::new(t),
+            configured_step: self.settings.step_mm,
+            base_step: base,
+            configured_foveation: self.settings.foveation,
         });
     }
 
@@ -637,17 +648,19 @@ impl FrameLoop {
         }
         // The budget's step: a new one rebuilds the pre-integration table and the empty bricks
         // the frame in flight reads, so that frame is waited for first.
-        if let Some((b, _, base, configured)) = &self.budget {
-            let (step, configured, foveate) =
-                (base * b.step_factor() as f32, *configured, b.foveate());
+        if let Some(b) = &self.budget {
+            let step = b.base_step * b.control.step_factor() as f32;
+            // Foveation as configured, or the default where the budget wants it.
+            let foveation = b
+                .configured_foveation
+                .or(b.control.foveate().then(Foveation::default));
             if step != self.settings.step_for(self.volume.spacing) {
                 if retired.is_none() {
                     retired = self.retire()?;
                 }
                 self.settings.step_mm = step;
             }
-            // Foveation as configured, or the default where the budget wants it.
-            self.settings.foveation = configured.or(foveate.then(Foveation::default));
+            self.settings.foveation = foveation;
         }
         self.record_and_submit(input, read_back, after, signal, (t0, margins))?;
         if retired.is_none() && self.slots.flights.len() >= self.depth {
@@ -688,14 +701,14 @@ impl FrameLoop {
         let tf_ms = if f.slab { self.tfs.read_ms()? } else { 0.0 };
         let render_ms = passes.eye_ms[0] + passes.eye_ms[1];
         let step_factor = match self.budget.as_mut() {
-            Some((b, _, _, _)) => {
+            Some(b) => {
                 let other = metrics.gpu_ms()
                     + sh.gpu_ms
                     + tf_ms
                     + passes.texture_ms
                     + passes.overlay_ms
                     + passes.copy_ms;
-                b.observe(render_ms, other)
+                b.control.observe(render_ms, other)
             }
             None => 1.0,
         };
@@ -722,7 +735,7 @@ impl FrameLoop {
                 overlapped: f.overlapped,
                 margins: f.margins,
                 step_factor,
-                budget_foveates: self.budget.as_ref().is_some_and(|b| b.0.foveate()),
+                budget_foveates: self.budget.as_ref().is_some_and(|b| b.control.foveate()),
             },
             image,
         }))
