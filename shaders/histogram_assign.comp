@@ -17,7 +17,7 @@ layout(std430, binding = 5) readonly buffer GroupFirst { uint first[]; };
 layout(std430, binding = 6) readonly buffer GroupMembers { uint members[]; };
 
 layout(push_constant) uniform Push {
-    uvec4 job;     // x: rows, y: bins B, z: packed dimension P, w: clusters N
+    uvec4 job;     // x: rows, y: shades, z: packed dimension P, w: clusters N
     uvec4 groups;  // x: groups G
 } pc;
 
@@ -42,6 +42,8 @@ void main() {
     for (uint d = 0u; d < p; d++) packed[d] = 0.0;
     for (uint k = 0u; k < b; k++) {
         float x = rows[r * b + k];
+        // A neighbourhood holds few of the shades: skipping the zeros changes no sum.
+        if (x == 0.0) continue;
         for (uint d = 0u; d < p; d++) packed[d] += x * packing[k * p + d];
     }
     // The nearest groups (first of equals), kept sorted.

@@ -1,25 +1,26 @@
 #version 460
 #extension GL_EXT_buffer_reference : require
 // Local histograms of the unclipped volume (Ropinski et al., eq. 2), one row per voxel:
-// LH_k(v) = sum of w / W over the in-grid members of S_r whose bin is k. The voxels are a range
-// (base + row) or a list (the clustering's training sample).
+// LH_k(v) = sum of w / W over the in-grid members of S_r whose shade (bin, with the structure
+// folded in: src/ao/histogram.rs Shades) is k. The voxels are a range (base + row) or a list
+// (the clustering's training sample). A row has one entry per shade, however many there are:
+// the sums go straight into it, in the order of S_r.
 #extension GL_GOOGLE_include_directive : require
 #include "constants.glsl"
 layout(local_size_x = 64) in;
 
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
-// Bins: the bin in the low 16 bits (the structure id above it: src/ao/histogram_gpu.rs).
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Bins { uint bins[]; };
 layout(std430, binding = 1) readonly buffer Neighbours { vec4 neighbours[]; };
 layout(std430, binding = 2) readonly buffer List { uint list[]; };
-layout(std430, binding = 3) writeonly buffer Rows { float rows[]; };
+layout(std430, binding = 3) buffer Rows { float rows[]; };
 
 layout(push_constant) uniform Push {
     Bins bins_buf;
     uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;   // w: number of neighbours
-    uvec4 job;    // x: rows, y: bins B, z: first voxel of a range, w: 1 = voxels from the list
+    uvec4 job;    // x: rows, y: shades, z: first voxel of a range, w: 1 = voxels from the list
     ivec4 reach;  // xyz: S_r's largest offset per axis
 } pc;
 #define bins pc.bins_buf.bins
@@ -30,8 +31,8 @@ void main() {
     uint i = pc.job.w == 1u ? list[r] : pc.job.z + r;
     ivec3 v = ivec3(int(i) % pc.dims.x, (int(i) / pc.dims.x) % pc.dims.y,
                     int(i) / (pc.dims.x * pc.dims.y));
-    float lh[HIST_MAX_BINS];
-    for (uint k = 0u; k < pc.job.y; k++) lh[k] = 0.0;
+    uint base = r * pc.job.y;
+    for (uint k = 0u; k < pc.job.y; k++) rows[base + k] = 0.0;
     // Away from the border every member is in the grid: no test per member.
     bool inside = all(greaterThanEqual(v, pc.reach.xyz)) && all(lessThan(v + pc.reach.xyz, pc.dims.xyz));
     int row = pc.dims.x, slice = pc.dims.x * pc.dims.y;
@@ -40,15 +41,14 @@ void main() {
         for (int n = 0; n < pc.dims.w; n++) {
             vec4 nb = neighbours[n];
             ivec3 o = ivec3(nb.xyz);
-            lh[bins[i0 + o.x + row * o.y + slice * o.z] & 0xffffu] += nb.w;
+            rows[base + bins[i0 + o.x + row * o.y + slice * o.z]] += nb.w;
         }
     } else {
         for (int n = 0; n < pc.dims.w; n++) {
             vec4 nb = neighbours[n];
             ivec3 u = v + ivec3(nb.xyz);
             if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
-            lh[bins[u.x + row * u.y + slice * u.z] & 0xffffu] += nb.w;
+            rows[base + bins[u.x + row * u.y + slice * u.z]] += nb.w;
         }
     }
-    for (uint k = 0u; k < pc.job.y; k++) rows[r * pc.job.y + k] = lh[k];
 }

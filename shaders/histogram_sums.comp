@@ -19,8 +19,8 @@ layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Pre
 layout(buffer_reference, std430, buffer_reference_align = 2) writeonly buffer OutA { uint16_t out_a[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer OutE { uint out_e[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Ids { uint ids[]; };
-// The shade table: per bin, then per structure id 1..255, rgb and the opacity a (unused here:
-// q already holds it, times the structure's a_l).
+// The shade table: per shade (a bin with the structure folded in: src/ao/histogram.rs Shades),
+// rgb and the opacity a (unused here: q already holds it).
 layout(std430, binding = 2) readonly buffer BinTable { vec4 bin_table[]; };
 // S_r: offset xyz, and the weight w / W.
 layout(std430, binding = 3) readonly buffer Neighbours { vec4 neighbours[]; };
@@ -39,7 +39,7 @@ layout(push_constant) uniform Push {
     ivec4 dims;     // w: number of neighbours
     ivec4 box_min;  // w: mode (0: direct sums, no mask; 1: CAO by category; 2: naive, a -> 1;
                     //          3: restore the precomputed values; 4: the clustered values)
-    ivec4 box_max;  // exclusive; w: B, the number of bins
+    ivec4 box_max;  // exclusive
     ivec4 reach;    // xyz: S_r's largest offset per axis
 } pc;
 #define q pc.q_buf.q
@@ -70,11 +70,7 @@ void direct(ivec3 v, out float a, out vec3 e) {
         int j = i0 + o.x + row * o.y + slice * o.z;
         float wq = nb.w * unorm16_value(uint(q[j]));
         occ += wq;
-        // The bin in the low 16 bits, the structure id in the high 16: a labelled voxel's
-        // colour is its structure's (src/ao/histogram.rs shades).
-        uint packed = bins[j];
-        uint id = packed >> 16;
-        rgb += wq * bin_table[id == 0u ? packed : uint(pc.box_max.w) + id - 1u].rgb;
+        rgb += wq * bin_table[bins[j]].rgb;
     }
     a = 1.0 - occ;
     e = occ > 0.0 ? rgb / occ : vec3(0.0);

@@ -12,6 +12,7 @@ use crate::volume::labels::LabelMap;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use rayon::prelude::*;
+use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
@@ -62,12 +63,13 @@ impl HistParams {
         }
         Ok(())
     }
+}
 
-    /// The packed dimension the clustering compares histograms in: B / 4 (the paper packs 256
-    /// bins into 64), at least 8 (or B) and at most [`HIST_MAX_PACKED`].
-    pub fn packed(&self) -> usize {
-        (self.bins / 4).clamp(self.bins.min(8), HIST_MAX_PACKED as usize)
-    }
+/// The packed dimension the clustering compares histograms of `shades` entries in
+/// ([`Shades`]): a quarter of them (the paper packs 256 bins into 64), at least 8 (or all) and
+/// at most [`HIST_MAX_PACKED`].
+pub fn packed_dims(shades: usize) -> usize {
+    (shades / 4).clamp(shades.min(8), HIST_MAX_PACKED as usize)
 }
 
 /// Most clusters `--clusters` takes (cluster ids are stored as u16 in the cache).
@@ -103,57 +105,86 @@ pub fn bin_table(tf: &TransferFunction, range: (f32, f32), b: usize) -> Vec<[f32
         .collect()
 }
 
-/// Entries of the shade table after the B bins: one per structure id 1..=255.
-pub const STRUCTURE_SHADES: usize = 255;
+/// The histograms' entries with the structures folded in (docs/design.md, "Local-histogram
+/// AO", labels): an unlabelled voxel's shade is its bin k (0..B); a labelled voxel's is the pair
+/// (its structure id, k), numbered after the B bins in (id, k) order over the pairs the volume
+/// holds. Under a TF and the structures as shown, each shade has one colour and one opacity, so
+/// the local histograms, their clusters, the TF table and the direct sums all follow the
+/// structures as they follow the bins. Without labels the shades are the bins.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Shades {
+    /// Each voxel's shade.
+    pub ids: Vec<u32>,
+    /// Each shade's (structure id, bin); the first B are (0, k).
+    pub pairs: Vec<(u8, u32)>,
+}
 
-/// Per voxel, the index of its colour in the shade table ([`shade_table`]): its bin, or for a
-/// labelled voxel B - 1 + its structure id (docs/design.md: a labelled voxel's colour is its
-/// structure's).
-pub fn shades(bins: &[u32], b: usize, labels: Option<&LabelMap>) -> Vec<u32> {
-    match labels {
-        None => bins.to_vec(),
-        Some(l) => bins
+impl Shades {
+    pub fn new(bins: Vec<u32>, b: usize, labels: Option<&LabelMap>) -> Shades {
+        let mut pairs: Vec<(u8, u32)> = (0..b as u32).map(|k| (0, k)).collect();
+        let Some(l) = labels else {
+            return Shades { ids: bins, pairs };
+        };
+        // index[id * B + k]: the shade of the pair (id, k) where the volume holds it.
+        let mut index = vec![u32::MAX; 256 * b];
+        for (&k, &id) in bins.iter().zip(&l.ids) {
+            if id > 0 {
+                index[id as usize * b + k as usize] = 0;
+            }
+        }
+        for (j, slot) in index.iter_mut().enumerate().filter(|(_, s)| **s == 0) {
+            *slot = pairs.len() as u32;
+            pairs.push(((j / b) as u8, (j % b) as u32));
+        }
+        let ids = bins
             .par_iter()
             .zip(&l.ids)
             .map(|(&k, &id)| {
                 if id == 0 {
                     k
                 } else {
-                    (b - 1) as u32 + id as u32
+                    index[id as usize * b + k as usize]
                 }
             })
-            .collect(),
+            .collect();
+        Shades { ids, pairs }
     }
-}
 
-/// The shade table: the bins' TF colour and opacity ([`bin_table`]), then each structure's
-/// colour and opacity a_l by id (unused ids black): B + [`STRUCTURE_SHADES`] entries.
-pub fn shade_table(bins: &[[f32; 4]], labels: Option<&LabelMap>) -> Vec<[f32; 4]> {
-    let mut t = bins.to_vec();
-    t.resize(bins.len() + STRUCTURE_SHADES, [0.0; 4]);
-    for (k, s) in labels.iter().flat_map(|l| l.structures.iter()).enumerate() {
-        let [r, g, b] = s.colour;
-        t[bins.len() + k] = [r, g, b, s.opacity];
+    pub fn count(&self) -> usize {
+        self.pairs.len()
     }
-    t
-}
 
-/// q of the unclipped volume: each voxel's bin opacity, times its structure's opacity a_l where
-/// the volume has labels (0 hidden; `structures` as shown, by structure index, else the label
-/// map's own): the histogram method's O of docs/design.md.
-pub fn q_volume(
-    bins: &[u32],
-    table: &[[f32; 4]],
-    labels: Option<&LabelMap>,
-    structures: &[f32],
-) -> Vec<f32> {
-    bins.par_iter()
-        .enumerate()
-        .map(|(i, &k)| {
-            let a = table[k as usize][3];
-            labels.map_or(a, |l| a * l.factor_showing(i, structures))
-        })
-        .collect()
+    /// Per shade, its colour and opacity: bin k's TF colour and opacity (`bins`, from
+    /// [`bin_table`]) for an unlabelled shade; for (id, k) the structure's colour and α_k times
+    /// its opacity a_l as `shown` (by structure index, 0 hidden; empty: the label map's own).
+    pub fn table(
+        &self,
+        bins: &[[f32; 4]],
+        labels: Option<&LabelMap>,
+        shown: &[f32],
+    ) -> Vec<[f32; 4]> {
+        self.pairs
+            .iter()
+            .map(|&(id, k)| {
+                let t = bins[k as usize];
+                match (id as usize, labels) {
+                    (0, _) | (_, None) => t,
+                    (id, Some(l)) => {
+                        let s = &l.structures[id - 1];
+                        let a = shown.get(id - 1).copied().unwrap_or(s.opacity);
+                        let [r, g, b] = s.colour;
+                        [r, g, b, t[3] * a]
+                    }
+                }
+            })
+            .collect()
+    }
+
+    /// q of the unclipped volume: each voxel's shade opacity (`table` from [`Shades::table`]),
+    /// the histogram method's O of docs/design.md.
+    pub fn q(&self, table: &[[f32; 4]]) -> Vec<f32> {
+        self.ids.par_iter().map(|&s| table[s as usize][3]).collect()
+    }
 }
 
 /// S_r with its weights: every integer offset o != 0 with |o * s| <= r (mm), in z, y, x order,
@@ -225,7 +256,7 @@ impl Neighbourhood {
 
 /// What the direct definition needs of `vol` under `tf` with B = `b` bins and the structures as
 /// shown by `structures` (empty: the label map's own): q of the unclipped volume, each voxel's
-/// shade and the shade table.
+/// shade and the shade table ([`Shades`]).
 #[allow(clippy::type_complexity)]
 pub fn direct_inputs(
     vol: &Volume,
@@ -233,17 +264,15 @@ pub fn direct_inputs(
     b: usize,
     structures: &[f32],
 ) -> (Vec<f32>, Vec<u32>, Vec<[f32; 4]>) {
-    let bins = bins(vol, b);
-    let table = bin_table(tf, vol.value_range(), b);
     let labels = vol.labels.as_deref();
-    let q = q_volume(&bins, &table, labels, structures);
-    (q, shades(&bins, b, labels), shade_table(&table, labels))
+    let shades = Shades::new(bins(vol, b), b, labels);
+    let table = shades.table(&bin_table(tf, vol.value_range(), b), labels, structures);
+    (shades.q(&table), shades.ids, table)
 }
 
 /// The direct definition on q (clip coverage already applied): openness A = 1 - O_env and the
 /// bleeding colour E (0 where no neighbour is opaque), in f64, voxel by voxel. A member's colour
-/// is `table[shades[j]]` ([`shades`] and [`shade_table`]; without labels the bins and
-/// [`bin_table`]).
+/// is `table[shades[j]]` ([`Shades`]; without labels the bins and [`bin_table`]).
 pub fn direct_reference(
     dims: [usize; 3],
     q: &[f32],
@@ -294,9 +323,9 @@ pub fn direct_at(
     ((1.0 - occ / nb.total) as f32, e)
 }
 
-/// The local histogram LH(v) of the unclipped volume: per bin, the sum of w over the in-grid
-/// members of S_r in that bin, over W (f64; the reference the GPU's histograms are tested
-/// against).
+/// The local histogram LH(v) of the unclipped volume: per bin (or shade, [`Shades`]), the sum
+/// of w over the in-grid members of S_r in that bin, over W (f64; the reference the GPU's
+/// histograms are tested against).
 pub fn local_histogram(
     dims: [usize; 3],
     bins: &[u32],
@@ -338,14 +367,10 @@ impl Packing {
         for &k in bin_ids {
             h[k as usize] += 1.0;
         }
-        // Each current bin: its global mass and its shares of the original bins.
-        let mut cols: Vec<(f64, Vec<f64>)> = (0..b)
-            .map(|k| {
-                let mut share = vec![0.0; b];
-                share[k] = 1.0;
-                (h[k], share)
-            })
-            .collect();
+        // Each current bin: its global mass and its shares of the original bins (sparse: with
+        // labels there can be thousands of shades).
+        let mut cols: Vec<(f64, BTreeMap<usize, f64>)> =
+            (0..b).map(|k| (h[k], BTreeMap::from([(k, 1.0)]))).collect();
         while cols.len() > packed.max(1) {
             let j = (0..cols.len())
                 .min_by(|&x, &y| cols[x].0.total_cmp(&cols[y].0))
@@ -358,16 +383,16 @@ impl Packing {
             let f = 1.0 / parts.len() as f64;
             for p in parts {
                 cols[p].0 += f * mass;
-                for (d, s) in cols[p].1.iter_mut().zip(&share) {
-                    *d += f * s;
+                for (&k, s) in &share {
+                    *cols[p].1.entry(k).or_insert(0.0) += f * s;
                 }
             }
         }
         let packed = cols.len();
         let mut matrix = vec![0.0f32; b * packed];
         for (p, (_, share)) in cols.iter().enumerate() {
-            for k in 0..b {
-                matrix[k * packed + p] = share[k] as f32;
+            for (&k, &x) in share {
+                matrix[k * packed + p] = x as f32;
             }
         }
         Packing {
@@ -379,7 +404,8 @@ impl Packing {
 
     pub fn pack(&self, lh: &[f32]) -> Vec<f32> {
         let mut out = vec![0.0f32; self.packed];
-        for (k, &x) in lh.iter().enumerate() {
+        // Skipping the zeros changes no sum (histogram_assign.comp does the same).
+        for (k, &x) in lh.iter().enumerate().filter(|(_, x)| **x != 0.0) {
             for (p, o) in out.iter_mut().enumerate() {
                 *o += x * self.matrix[k * self.packed + p];
             }
@@ -621,9 +647,10 @@ pub fn training_sample(dims: [usize; 3], bins: &[u32], count: usize) -> Vec<u32>
 }
 
 /// The clustering of one volume: each voxel's cluster and each cluster's representative, the
-/// mean of its members' full histograms (N x B, row-major).
+/// mean of its members' full histograms (N x shades, row-major; [`Shades`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Clusters {
+    /// The histograms' length: the number of shades.
     pub bins: usize,
     pub ids: Vec<u32>,
     pub reps: Vec<f32>,
@@ -634,7 +661,7 @@ impl Clusters {
         self.reps.len() / self.bins.max(1)
     }
 
-    /// Per cluster, for the TF of `table` ([`bin_table`]): rgb = E = sum LH a rgb / sum LH a
+    /// Per cluster, for the TF of `table` ([`Shades::table`]): rgb = E = sum LH a rgb / sum LH a
     /// (0 where nothing is opaque), a = the openness 1 - O_env = 1 - sum LH a.
     pub fn tf_table(&self, table: &[[f32; 4]]) -> Vec<[f32; 4]> {
         self.reps
@@ -674,11 +701,11 @@ impl Fnv {
 }
 
 /// Bumped whenever the clustering would give other ids or representatives.
-const CACHE_VERSION: u32 = 1;
+const CACHE_VERSION: u32 = 2;
 const CACHE_MAGIC: &[u8; 8] = b"CAOXRLH\x01";
 
-/// What a clustering depends on: the volume's bins and geometry, and the parameters.
-pub fn cache_key(dims: [usize; 3], spacing: [f64; 3], bins: &[u32], p: &HistParams) -> u64 {
+/// What a clustering depends on: the volume's shades and geometry, and the parameters.
+pub fn cache_key(dims: [usize; 3], spacing: [f64; 3], shades: &Shades, p: &HistParams) -> u64 {
     let mut h = Fnv::new();
     h.bytes(&CACHE_VERSION.to_le_bytes());
     for d in dims {
@@ -690,7 +717,11 @@ pub fn cache_key(dims: [usize; 3], spacing: [f64; 3], bins: &[u32], p: &HistPara
     h.bytes(&p.radius_mm.to_le_bytes());
     h.bytes(&(p.bins as u64).to_le_bytes());
     h.bytes(&(p.clusters as u64).to_le_bytes());
-    h.bytes(bytemuck::cast_slice(bins));
+    h.bytes(bytemuck::cast_slice(&shades.ids));
+    for &(id, k) in &shades.pairs {
+        h.bytes(&[id]);
+        h.bytes(&k.to_le_bytes());
+    }
     h.0
 }
 
@@ -703,15 +734,21 @@ pub fn cache_path(dir: &Path, key: u64) -> PathBuf {
     dir.join(format!("{key:016x}.lh"))
 }
 
-/// Reads a cached clustering; None (so it is rebuilt) when the file is missing, is for other
-/// data, or is truncated or corrupt in any way.
-pub fn load_cache(path: &Path, key: u64, voxels: usize, p: &HistParams) -> Option<Clusters> {
+/// Reads a cached clustering of histograms of `bins` entries (the shades); None (so it is
+/// rebuilt) when the file is missing, is for other data, or is truncated or corrupt in any way.
+pub fn load_cache(
+    path: &Path,
+    key: u64,
+    voxels: usize,
+    bins: usize,
+    p: &HistParams,
+) -> Option<Clusters> {
     let mut bytes = Vec::new();
     std::fs::File::open(path)
         .ok()?
         .read_to_end(&mut bytes)
         .ok()?;
-    let want = 8 + 8 + 12 + voxels * 2 + p.clusters * p.bins * 4 + 4;
+    let want = 8 + 8 + 12 + voxels * 2 + p.clusters * bins * 4 + 4;
     if bytes.len() != want || &bytes[..8] != CACHE_MAGIC {
         return None;
     }
@@ -723,8 +760,7 @@ pub fn load_cache(path: &Path, key: u64, voxels: usize, p: &HistParams) -> Optio
     }
     let u64_at = |o: usize| u64::from_le_bytes(body[o..o + 8].try_into().unwrap());
     let u32_at = |o: usize| u32::from_le_bytes(body[o..o + 4].try_into().unwrap()) as usize;
-    if u64_at(8) != key || u32_at(16) != voxels || u32_at(20) != p.bins || u32_at(24) != p.clusters
-    {
+    if u64_at(8) != key || u32_at(16) != voxels || u32_at(20) != bins || u32_at(24) != p.clusters {
         return None;
     }
     let ids_at = 28;
@@ -740,11 +776,7 @@ pub fn load_cache(path: &Path, key: u64, voxels: usize, p: &HistParams) -> Optio
         .chunks_exact(4)
         .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
         .collect();
-    Some(Clusters {
-        bins: p.bins,
-        ids,
-        reps,
-    })
+    Some(Clusters { bins, ids, reps })
 }
 
 /// Writes the cache beside its final name, then renames it, so a crash leaves no partial file
@@ -824,6 +856,48 @@ mod tests {
     }
 
     #[test]
+    fn a_labelled_voxel_s_shade_is_its_structure_and_bin_and_takes_the_structure_s_look() {
+        use crate::volume::labels::{LabelMap, Structure};
+        let structure = |colour, opacity| Structure {
+            value: 1,
+            name: "s".into(),
+            colour,
+            opacity,
+            protected: false,
+            margin_mm: None,
+            voxels: 0,
+        };
+        let labels = LabelMap {
+            source: "test".into(),
+            ids: vec![0, 2, 2, 1, 0, 2],
+            structures: vec![
+                structure([0.0, 1.0, 0.0], 0.5),
+                structure([0.0, 0.0, 1.0], 1.0),
+            ],
+        };
+        let bins = vec![1, 1, 2, 1, 2, 1];
+        let s = Shades::new(bins.clone(), 3, Some(&labels));
+        // The three bins, then the pairs the volume holds in (id, bin) order.
+        assert_eq!(s.pairs, [(0, 0), (0, 1), (0, 2), (1, 1), (2, 1), (2, 2)]);
+        assert_eq!(s.ids, [1, 4, 5, 3, 2, 4]);
+        let tf = [
+            [1.0, 0.0, 0.0, 0.1],
+            [1.0, 0.0, 0.0, 0.2],
+            [1.0, 0.0, 0.0, 0.4],
+        ];
+        let t = s.table(&tf, Some(&labels), &[]);
+        assert_eq!(t[..3], tf);
+        assert_eq!(t[3], [0.0, 1.0, 0.0, 0.2 * 0.5]);
+        assert_eq!(t[5], [0.0, 0.0, 1.0, 0.4]);
+        // Hidden: the structure's shades are transparent, the rest as before.
+        let hidden = s.table(&tf, Some(&labels), &[1.0, 0.0]);
+        assert_eq!(s.q(&hidden), [0.2, 0.0, 0.0, 0.2, 0.4, 0.0]);
+        // Without labels the shades are the bins.
+        let plain = Shades::new(bins.clone(), 3, None);
+        assert_eq!((plain.count(), plain.ids), (3, bins));
+    }
+
+    #[test]
     fn lbg_finds_well_separated_clusters_and_gives_n_centroids() {
         // Four tight groups in 2-D.
         let centres = [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]];
@@ -899,16 +973,16 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("cao-lh-cache-{}", std::process::id()));
         let path = cache_path(&dir, 42);
         save_cache(&path, 42, &c).unwrap();
-        assert_eq!(load_cache(&path, 42, 5, &p), Some(c.clone()));
-        assert_eq!(load_cache(&path, 43, 5, &p), None, "another key");
-        assert_eq!(load_cache(&path, 42, 6, &p), None, "another volume");
+        assert_eq!(load_cache(&path, 42, 5, 4, &p), Some(c.clone()));
+        assert_eq!(load_cache(&path, 43, 5, 4, &p), None, "another key");
+        assert_eq!(load_cache(&path, 42, 6, 4, &p), None, "another volume");
         let bytes = std::fs::read(&path).unwrap();
         std::fs::write(&path, &bytes[..bytes.len() - 7]).unwrap();
-        assert_eq!(load_cache(&path, 42, 5, &p), None, "truncated");
+        assert_eq!(load_cache(&path, 42, 5, 4, &p), None, "truncated");
         let mut flipped = bytes.clone();
         flipped[40] ^= 1;
         std::fs::write(&path, &flipped).unwrap();
-        assert_eq!(load_cache(&path, 42, 5, &p), None, "corrupt");
+        assert_eq!(load_cache(&path, 42, 5, 4, &p), None, "corrupt");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -5,7 +5,7 @@
 //! the clip update over any set of voxel boxes. [`super::histogram`] holds the CPU side and the
 //! reference.
 
-use super::histogram::{self as hist, Clusters, HistParams, Neighbourhood, Packing};
+use super::histogram::{self as hist, Clusters, HistParams, Neighbourhood, Packing, Shades};
 use super::voxel_box::{dispatch_box, VoxelBox};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, Reach, Result};
 use crate::volume::labels::LabelMap;
@@ -31,7 +31,7 @@ pub enum HistMode {
     Clustered = 4,
 }
 
-/// Voxels per batch of local histograms: rows x B floats stay within this many bytes.
+/// Voxels per batch of local histograms: rows x shades floats stay within this many bytes.
 const BATCH_BYTES: usize = 64 << 20;
 
 /// The training sample's size: 16 samples per cluster, at least this many.
@@ -80,14 +80,14 @@ pub struct HistogramGpu {
     range: (f32, f32),
     nb: Neighbourhood,
     neighbours: Buffer,
-    /// Each voxel's bin (host copy for q under a new TF).
-    bin_ids: Vec<u32>,
-    /// The volume's label map: q and the colours follow its structures.
+    /// Each voxel's shade, its bin with its structure folded in (host copy for q under a new
+    /// TF).
+    shades: Shades,
+    /// The volume's label map: the shades' colours and opacities follow its structures.
     labels: Option<Arc<LabelMap>>,
-    /// Each voxel's bin in the low 16 bits and its structure id (0: none) in the high 16, as
-    /// the shaders read them.
+    /// Each voxel's shade, as the shaders read it.
     bins: Buffer,
-    /// The shade table ([`hist::shade_table`]): B bins, then the structures.
+    /// The shade table ([`Shades::table`]): colour and opacity per shade.
     bin_table: Buffer,
     /// Cluster ids and the representatives (host), with N > 0.
     clusters: Option<Clusters>,
@@ -99,19 +99,6 @@ pub struct HistogramGpu {
     pub pre_e: Buffer,
     pub e: Buffer,
     pub timing: ClusterTiming,
-}
-
-/// The bins as the shaders read them: the bin in the low 16 bits, the voxel's structure id (0:
-/// none) in the high 16 (B is at most [`hist::HIST_MAX_BINS`], far below 2^16).
-fn packed_bins(bins: &[u32], labels: Option<&LabelMap>) -> Vec<u32> {
-    match labels {
-        None => bins.to_vec(),
-        Some(l) => bins
-            .iter()
-            .zip(&l.ids)
-            .map(|(&k, &id)| k | (id as u32) << 16)
-            .collect(),
-    }
 }
 
 fn spv(name: &str) -> &'static [u8] {
@@ -135,20 +122,18 @@ impl HistogramGpu {
     ) -> Result<HistogramGpu> {
         params.validate().map_err(crate::gpu::GpuError::Other)?;
         let n = vol.voxel_count();
-        let bin_ids = hist::bins(vol, params.bins);
+        let labels = vol.labels.clone();
+        let shades = Shades::new(hist::bins(vol, params.bins), params.bins, labels.as_deref());
         let nb = Neighbourhood::new(params.radius_mm, vol.spacing);
         let geometry = (vol.dims, vol.spacing, vol.value_range());
-        // The clusters' representatives are histograms of values, blind to the structures: with
-        // N > 0 the clip update's direct sums ignore them too, so that both agree at a cut's
-        // border (docs/design.md, "Local-histogram AO").
-        let labels = vol.labels.clone().filter(|_| params.clusters == 0);
-        let mut h = HistogramGpu::with_state(gpu, geometry, params, (bin_ids, labels), nb, None)?;
+        let mut h = HistogramGpu::with_state(gpu, geometry, params, (shades, labels), nb, None)?;
         if params.clusters > 0 {
-            let key = hist::cache_key(vol.dims, vol.spacing, &h.bin_ids, &params);
+            let key = hist::cache_key(vol.dims, vol.spacing, &h.shades, &params);
             let path = cache_dir.map(|d| hist::cache_path(d, key));
+            let count = h.shades.count();
             let cached = path
                 .as_deref()
-                .and_then(|p| hist::load_cache(p, key, n, &params));
+                .and_then(|p| hist::load_cache(p, key, n, count, &params));
             let clusters = match cached {
                 Some(c) => {
                     h.timing.cached = true;
@@ -169,18 +154,18 @@ impl HistogramGpu {
         Ok(h)
     }
 
-    /// The GPU state for the given bins, S_r and clusters (tables empty until
+    /// The GPU state for the given shades, S_r and clusters (tables empty until
     /// [`HistogramGpu::set_tf`]).
     fn with_state(
         gpu: &Gpu,
         (dims, spacing, range): ([usize; 3], [f64; 3], (f32, f32)),
         params: HistParams,
-        (bin_ids, labels): (Vec<u32>, Option<Arc<LabelMap>>),
+        (shades, labels): (Shades, Option<Arc<LabelMap>>),
         nb: Neighbourhood,
         clusters: Option<Clusters>,
     ) -> Result<HistogramGpu> {
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
-        let n = bin_ids.len();
+        let n = shades.ids.len();
         let rgba8 = |name| {
             Buffer::new(
                 gpu,
@@ -215,15 +200,10 @@ impl HistogramGpu {
             spacing,
             range,
             neighbours: Buffer::from_slice(gpu, &nb.gpu_table(), storage, "hist-neighbours")?,
-            bins: Buffer::device_local(
-                gpu,
-                &packed_bins(&bin_ids, labels.as_deref()),
-                storage,
-                "hist-bins",
-            )?,
+            bins: Buffer::device_local(gpu, &shades.ids, storage, "hist-bins")?,
             bin_table: Buffer::new(
                 gpu,
-                ((params.bins + hist::STRUCTURE_SHADES) * 16) as u64,
+                (shades.count() * 16) as u64,
                 storage,
                 MemoryLocation::CpuToGpu,
                 "hist-bin-table",
@@ -237,7 +217,7 @@ impl HistogramGpu {
             e: rgba8("hist-e")?,
             timing: ClusterTiming::default(),
             nb,
-            bin_ids,
+            shades,
             labels,
         };
         if let Some(c) = clusters {
@@ -268,7 +248,7 @@ impl HistogramGpu {
             &self.gpu,
             geometry,
             self.params,
-            (self.bin_ids.clone(), self.labels.clone()),
+            (self.shades.clone(), self.labels.clone()),
             self.nb.clone(),
             self.clusters.clone(),
         )?;
@@ -305,25 +285,27 @@ impl HistogramGpu {
         .sum()
     }
 
-    /// The local histograms of `rows` voxels (from `first`, or the voxels of `list`), read back.
+    /// The local histograms of `rows` voxels (from `first`, or the voxels of `list`) into
+    /// `out` (device memory: the shader adds into it member by member), copied to `readback`.
     fn local_rows(
         &self,
         local: &ComputePipeline,
-        first: usize,
-        rows: usize,
+        (first, rows): (usize, usize),
         list: Option<&Buffer>,
         out: &Buffer,
+        readback: &Buffer,
     ) -> Result<()> {
         let push = JobPush {
             dims: self.dims4(self.nb.offsets.len() as i32),
             job: [
                 rows as u32,
-                self.params.bins as u32,
+                self.shades.count() as u32,
                 first as u32,
                 list.is_some() as u32,
             ],
             reach: self.reach4(),
         };
+        let bytes = (rows * self.shades.count() * 4) as u64;
         self.gpu.submit_and_wait(|cmd| {
             let l = list.unwrap_or(&self.bins);
             local.bind(
@@ -332,6 +314,14 @@ impl HistogramGpu {
                 bytemuck::bytes_of(&push),
             );
             local.dispatch(cmd, [(rows as u32).div_ceil(64), 1, 1]);
+            self.gpu.barrier(cmd);
+            let region = vk::BufferCopy::default().size(bytes.max(4));
+            unsafe {
+                self.gpu
+                    .device
+                    .cmd_copy_buffer(cmd, out.raw, readback.raw, &[region]);
+            }
+            self.gpu.barrier(cmd);
         })?;
         Ok(())
     }
@@ -362,16 +352,25 @@ impl HistogramGpu {
     /// the host, then every voxel's histogram and nearest centroid on the GPU batch by batch,
     /// each cluster's representative the mean of its members' full histograms.
     fn cluster(&mut self, progress: &mut dyn FnMut(u64, u64, &str)) -> Result<Clusters> {
-        let (b, n) = (self.params.bins, self.bin_ids.len());
+        let (b, n) = (self.shades.count(), self.shades.ids.len());
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
-        let packing = Packing::new(&self.bin_ids, b, self.params.packed());
+        let packing = Packing::new(&self.shades.ids, b, hist::packed_dims(b));
         let p = packing.packed;
         let readable = |bytes: usize, name| {
             Buffer::new(
                 &self.gpu,
                 bytes.max(4) as u64,
-                storage,
+                storage | vk::BufferUsageFlags::TRANSFER_DST,
                 MemoryLocation::GpuToCpu,
+                name,
+            )
+        };
+        let device_rows = |bytes: usize, name| {
+            Buffer::new(
+                &self.gpu,
+                bytes.max(4) as u64,
+                storage | vk::BufferUsageFlags::TRANSFER_SRC,
+                MemoryLocation::GpuOnly,
                 name,
             )
         };
@@ -392,12 +391,13 @@ impl HistogramGpu {
         progress(0, 1, "histograms of the training sample");
         let sample = hist::training_sample(
             self.dims,
-            &self.bin_ids,
+            &self.shades.ids,
             MIN_TRAINING.max(16 * self.params.clusters),
         );
         let list = Buffer::from_slice(&self.gpu, &sample, storage, "hist-sample")?;
         let rows = readable(sample.len() * b * 4, "hist-sample-rows")?;
-        self.local_rows(&local, 0, sample.len(), Some(&list), &rows)?;
+        let gpu_rows = device_rows(sample.len() * b * 4, "hist-sample-rows-gpu")?;
+        self.local_rows(&local, (0, sample.len()), Some(&list), &gpu_rows, &rows)?;
         let sample_rows: &[f32] = bytemuck::cast_slice(rows.mapped()?);
         let packed: Vec<f32> = sample_rows
             .chunks_exact(b)
@@ -408,7 +408,7 @@ impl HistogramGpu {
         let t1 = std::time::Instant::now();
         let centroids = hist::lbg(&packed, p, self.params.clusters);
         self.timing.training_ms = t1.elapsed().as_secs_f64() * 1e3;
-        drop(rows);
+        drop((rows, gpu_rows));
 
         // Assignment, batch by batch.
         let assign = ComputePipeline::new(
@@ -428,6 +428,7 @@ impl HistogramGpu {
         let centroid_buf = Buffer::from_slice(&self.gpu, &centroids, storage, "hist-centroids")?;
         let batch = (BATCH_BYTES / (b * 4)).clamp(64, n.max(64));
         let rows = readable(batch * b * 4, "hist-rows")?;
+        let gpu_rows = device_rows(batch * b * 4, "hist-rows-gpu")?;
         let ids_buf = readable(batch * 4, "hist-batch-ids")?;
         let k = self.params.clusters;
         let mut sums = vec![0.0f64; k * b];
@@ -439,7 +440,7 @@ impl HistogramGpu {
             progress(i as u64, batches as u64, "local histograms and assignment");
             let count = batch.min(n - first);
             let t = std::time::Instant::now();
-            self.local_rows(&local, first, count, None, &rows)?;
+            self.local_rows(&local, (first, count), None, &gpu_rows, &rows)?;
             hist_ms += t.elapsed().as_secs_f64() * 1e3;
             let t = std::time::Instant::now();
             let push = [
@@ -456,7 +457,7 @@ impl HistogramGpu {
                 let [gc, gf, gm] = &group_bufs;
                 assign.bind(
                     cmd,
-                    &[&rows, &packing_buf, &centroid_buf, &ids_buf, gc, gf, gm],
+                    &[&gpu_rows, &packing_buf, &centroid_buf, &ids_buf, gc, gf, gm],
                     bytemuck::bytes_of(&push),
                 );
                 assign.dispatch(cmd, [(count as u32).div_ceil(64), 1, 1]);
@@ -466,8 +467,11 @@ impl HistogramGpu {
             for (r, &c) in batch_ids.iter().enumerate() {
                 pop[c as usize] += 1;
                 let dst = &mut sums[c as usize * b..(c as usize + 1) * b];
+                // A neighbourhood holds few of the shades: adding the zeros would change nothing.
                 for (d, x) in dst.iter_mut().zip(&batch_rows[r * b..(r + 1) * b]) {
-                    *d += *x as f64;
+                    if *x != 0.0 {
+                        *d += *x as f64;
+                    }
                 }
             }
             ids.extend_from_slice(batch_ids);
@@ -481,7 +485,8 @@ impl HistogramGpu {
         self.timing.histograms_ms = hist_ms;
         self.timing.assignment_ms = assign_ms;
         self.timing.peak_host_bytes =
-            (batch * b * 4 + k * b * 8 + n * 4 + packed.len() * 4 + sample.len() * b * 4) as u64;
+            (2 * batch * b * 4 + k * b * 8 + n * 4 + packed.len() * 4 + sample.len() * b * 4)
+                as u64;
         let reps = sums
             .chunks_exact(b)
             .zip(&pop)
@@ -494,15 +499,15 @@ impl HistogramGpu {
     }
 
     /// Takes `tf` with the structures shown as `structures` (by structure index; empty: as the
-    /// label map has them): the shade table (the bins' and structures' colours and opacities),
-    /// and with clusters each cluster's A and E (one small table). Returns q of the unclipped
-    /// volume (each voxel's bin opacity times its structure's a_l), the "opacity" CAO clips for
-    /// this method.
+    /// label map has them): the shade table (each shade's colour and opacity), and with
+    /// clusters each cluster's A and E (one small table). Returns q of the unclipped volume
+    /// (each voxel's bin opacity times its structure's a_l), the "opacity" CAO clips for this
+    /// method.
     pub fn set_tf(&mut self, tf: &TransferFunction, structures: &[f32]) -> Result<Vec<f32>> {
         let bins = hist::bin_table(tf, self.range, self.params.bins);
-        let labels = self.labels.as_deref();
-        let q = hist::q_volume(&self.bin_ids, &bins, labels, structures);
-        self.write_tables(hist::shade_table(&bins, labels))?;
+        let table = self.shades.table(&bins, self.labels.as_deref(), structures);
+        let q = self.shades.q(&table);
+        self.write_tables(table)?;
         Ok(q)
     }
 
@@ -512,9 +517,8 @@ impl HistogramGpu {
         }
         self.bin_table.write(0, bytemuck::cast_slice(&table))?;
         if let Some(c) = &self.clusters {
-            let bins = &table[..self.params.bins];
             self.cluster_table
-                .write(0, bytemuck::cast_slice(&c.tf_table(bins)))?;
+                .write(0, bytemuck::cast_slice(&c.tf_table(&table)))?;
         }
         self.last_table = table;
         Ok(())
@@ -574,7 +578,7 @@ impl HistogramGpu {
             let push = SumsPush {
                 dims: self.dims4(self.nb.offsets.len() as i32),
                 box_min: [bx.min[0], bx.min[1], bx.min[2], mode as i32],
-                box_max: [bx.max[0], bx.max[1], bx.max[2], self.params.bins as i32],
+                box_max: [bx.max[0], bx.max[1], bx.max[2], 0],
                 reach: self.reach4(),
             };
             let bufs = [

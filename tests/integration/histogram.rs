@@ -527,10 +527,10 @@ fn direct_with_labels(
 /// a_l · tf_alpha, a labelled voxel's colour its structure's): the GPU's direct sums equal an
 /// implementation of the definition written in this test, as the label map shows the
 /// structures and after the structure menu hides one and shows another translucent.
-#[test]
-fn the_direct_sums_follow_the_structures_shown_and_their_colours() {
+/// The 20³ head phantom with a green structure in its lower half and a blue one in a column
+/// through the middle.
+fn labelled_head() -> Volume {
     use cao_xr::volume::labels::{LabelMap, Structure};
-    let gpu = common::gpu();
     let n = 20;
     let mut vol = phantom::head(n);
     // A green structure in the lower half, a blue one in a column through the middle.
@@ -563,6 +563,13 @@ fn the_direct_sums_follow_the_structures_shown_and_their_colours() {
             structure("blue", [0.1, 0.2, 0.9]),
         ],
     }));
+    vol
+}
+
+#[test]
+fn the_direct_sums_follow_the_structures_shown_and_their_colours() {
+    let gpu = common::gpu();
+    let vol = labelled_head();
     let tf = TransferFunction::preset("ct-skin").unwrap();
     let p = HistParams {
         radius_mm: 30.0,
@@ -602,6 +609,49 @@ fn the_direct_sums_follow_the_structures_shown_and_their_colours() {
     assert!(
         a_hidden.iter().zip(&a_shown).any(|(h, s)| h - s > 0.05),
         "hiding a structure opens its surroundings"
+    );
+    common::assert_no_validation_messages(&gpu);
+}
+
+/// The clustered method (N > 0) follows the structures too: its histograms count each
+/// structure's voxels apart (docs/design.md, shades), so its AO stays within the clustering's
+/// tolerance of the direct definition as the structures are shown, and after the menu hides one
+/// (one table update, no new clustering).
+#[test]
+fn the_clustered_values_follow_the_structures_shown() {
+    let gpu = common::gpu();
+    let vol = labelled_head();
+    let tf = TransferFunction::preset("ct-skin").unwrap();
+    let p = HistParams {
+        radius_mm: 30.0,
+        bins: 16,
+        clusters: 512,
+    };
+    let (mut cao, _) = setup(&gpu, &vol, &tf, p, "labels-clustered");
+    let near = |cao: &Cao, shown: &[f32], what: &str| {
+        let (want, _) = direct_with_labels(&vol, &tf, p.bins, p.radius_mm, shown);
+        let got = read_ao(&cao.ao);
+        let mean = got
+            .iter()
+            .zip(&want)
+            .map(|(g, w)| (*g as f64 - w).abs())
+            .sum::<f64>()
+            / got.len() as f64;
+        assert!(mean <= 0.03, "{what}: mean |clustered - direct| = {mean}");
+        got
+    };
+    let shown_ao = near(&cao, &[1.0, 1.0], "structures shown");
+    let shown = [0.0, 1.0];
+    let lao = LaoGpu::new(&gpu).unwrap();
+    let h = cao.histogram_mut().unwrap();
+    let t = cao_xr::app::histogram_tables(&gpu, &lao, vol.dims, h, (&tf, &shown)).unwrap();
+    cao.replace_precomputed(t.opacity, t.pao, None).unwrap();
+    cao.run_frame(&[], &Placement::default(), Mode::Contextual)
+        .unwrap();
+    let hidden_ao = near(&cao, &shown, "green hidden");
+    assert!(
+        hidden_ao.iter().zip(&shown_ao).any(|(h, s)| h - s > 0.05),
+        "hiding a structure opens its surroundings in the clustered AO"
     );
     common::assert_no_validation_messages(&gpu);
 }
