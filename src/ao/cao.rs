@@ -340,8 +340,10 @@ impl Cao {
             // No method yet: V_AO = V_PAO = 1, copied; O_c and the mask are first read after
             // the first switch, whose whole restore writes them (a restore of a large volume
             // takes seconds on a CPU device, and the first picture waits for it).
+            // SAFETY: `cmd` is recording (submit_and_wait); `ao` and `pao` are stored volumes
+            // of `dims` voxels (stored::buffer: TRANSFER_SRC/DST; `pao` the caller's), so the
+            // copy of `ao.size` bytes stays inside both, and both outlive the waited submission.
             cao.gpu.submit_and_wait(|cmd| unsafe {
-                // SAFETY: both buffers are this state's own, made with TRANSFER_SRC/DST.
                 let region = vk::BufferCopy::default().size(cao.ao.size);
                 cao.gpu
                     .device
@@ -781,6 +783,9 @@ impl Cao {
             restore.clear();
         }
         let slot = &mut self.slots[self.slot];
+        // SAFETY: `cmd` is recording outside a render pass (this method's contract); `counts` (16
+        // bytes, TRANSFER_DST) is this frame slot's, whose last frame has finished; `protect` was
+        // made from the same 8 words with TRANSFER_DST, and 32 bytes is a valid inline update.
         unsafe {
             self.gpu
                 .device
@@ -1055,6 +1060,8 @@ fn clipped_buffer(gpu: &Gpu, layout: &LaoLayout, method: &MethodGpu) -> Result<B
         | vk::BufferUsageFlags::TRANSFER_SRC
         | vk::BufferUsageFlags::TRANSFER_DST;
     let b = Buffer::new(gpu, bytes, usage, MemoryLocation::GpuOnly, "cao-clipped")?;
+    // SAFETY: `cmd` is recording (submit_and_wait); `b` has TRANSFER_DST and a size in whole words,
+    // so a WHOLE_SIZE fill stays inside it; it outlives the waited submission.
     gpu.submit_and_wait(|cmd| unsafe {
         gpu.device.cmd_fill_buffer(cmd, b.raw, 0, vk::WHOLE_SIZE, 0);
     })?;

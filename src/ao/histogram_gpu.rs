@@ -316,6 +316,7 @@ impl HistogramGpu {
             local.dispatch(cmd, [(rows as u32).div_ceil(64), 1, 1]);
             self.gpu.barrier(cmd);
             let region = vk::BufferCopy::default().size(bytes.max(4));
+            // SAFETY: `cmd` records; `out` (SRC), `readback` (DST) hold `bytes`, outlive the wait.
             unsafe {
                 self.gpu
                     .device

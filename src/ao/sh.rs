@@ -694,6 +694,8 @@ impl ShVolume {
     pub fn record_publish(&mut self, cmd: vk::CommandBuffer) {
         self.gpu.barrier(cmd);
         let region = [vk::BufferCopy::default().size(self.pre.size)];
+        // SAFETY: `cmd` is recording outside a render pass (this method's contract); `pre` and
+        // `cur` are this volume's, the same size, made with TRANSFER_SRC and TRANSFER_DST.
         unsafe {
             self.gpu
                 .device

@@ -120,6 +120,8 @@ impl App {
         // acquired first; the frame's own command buffer blits into it and signals its
         // present, so nothing here waits for the GPU but the frame loop's retire.
         let acquired = match &mut self.presenter {
+            // SAFETY: the presenter was made on this window and GPU (`resumed`); a recreate inside
+            // waits for the device to idle, so no frame in flight still uses the old images.
             Some(p) => unsafe { p.acquire()? },
             None => None,
         };
@@ -129,6 +131,9 @@ impl App {
             false,
             |cmd, t| {
                 if let (Some(p), Some(a)) = (presenter, &acquired) {
+                    // SAFETY: `cmd` is the frame's recording command buffer and `after` runs after
+                    // cmd_finish, so `t.color` (two layers, t.width x t.height) is in
+                    // TRANSFER_SRC_OPTIMAL; `a` was acquired from `p` above.
                     unsafe { p.record_blit(cmd, a, t.color.raw, (t.width, t.height), both, None) };
                 }
             },
@@ -137,6 +142,8 @@ impl App {
         // A failure ends the session; its acquired image goes with the swapchain.
         let retired = retired?;
         if let (Some(p), Some(a)) = (&mut self.presenter, acquired) {
+            // SAFETY: submit_signalling returned Ok, so the frame's submission, which signals
+            // `a.rendered`, was made.
             unsafe { p.queue_present(a, true)? };
         }
         if let Some(dir) = &self.opts.dump {
@@ -217,6 +224,9 @@ impl ApplicationHandler for App {
             Ok(w) => w,
             Err(e) => return self.fail(el, AppError::Usage(format!("cannot open a window: {e}"))),
         };
+        // SAFETY: `gpu` was made with `present` (start_gpu(.., true)); the window must outlive the
+        // presenter: `run` clears `presenter` before `window` (an early `?` in `run` does not: App
+        // then drops its `window` field first).
         match unsafe { Presenter::new(&self.fl.gpu, &window) } {
             Ok(p) => self.presenter = Some(p),
             Err(e) => return self.fail(el, e.into()),
@@ -230,6 +240,8 @@ impl ApplicationHandler for App {
             WindowEvent::CloseRequested => el.exit(),
             WindowEvent::Resized(size) => {
                 if let Some(p) = &mut self.presenter {
+                    // SAFETY: Resized comes between redraws, when no image is acquired; recreate
+                    // waits for the device to idle before it retires the old swapchain.
                     if let Err(e) = unsafe { p.recreate(size.width, size.height) } {
                         self.fail(el, e.into());
                     }
@@ -347,6 +359,8 @@ pub fn run(spec: &SessionSpec, opts: ViewOptions) -> Result<usize> {
         (Some(_), Some(p), true) => {
             app.fl.flush()?;
             let t = app.fl.target();
+            // SAFETY: `flush` waited for the last frame, so the target's colour (two layers,
+            // t.width x t.height) is in TRANSFER_SRC_OPTIMAL and nothing else writes it.
             unsafe { p.present(t.color.raw, (t.width, t.height), app.both_eyes, true)? }
         }
         _ => None,

@@ -799,6 +799,10 @@ impl FrameLoop {
         let overlapped = !slots.flights.is_empty();
         let slot = &mut slots.slots[index];
         let (cmd, d) = (slot.cmd, &gpu.device);
+        // SAFETY: `cmd` is this slot's, from a RESET_COMMAND_BUFFER pool only this thread uses; its
+        // last submission has finished: `submit` retires frames so that fewer than `depth` are in
+        // flight when the next slot (round robin over `depth`) is recorded, and `now` starts with
+        // none.
         unsafe {
             // The pool resets the buffer on begin; its last submission has finished.
             d.begin_command_buffer(
@@ -892,9 +896,15 @@ impl FrameLoop {
             timer.mark(cmd, PASS_COPY);
             Ok::<_, crate::gpu::GpuError>((pending, slab, sh))
         })();
+        // SAFETY: `cmd` was begun above, and every pass ends its own rendering before it returns,
+        // also when recording stops at an error.
         let ended = unsafe { d.end_command_buffer(cmd) };
         let (pending, slab, sh) = recorded?;
         ended.map_err(crate::gpu::GpuError::from)?;
+        // SAFETY: `cmd` was ended without error; the slot's fence is reset here and no submission
+        // uses it (its last one finished, see begin above); `signal` is a presenter's semaphore for
+        // the image acquired this frame, unsignalled since its last present waited on it; what the
+        // commands name stays alive until the frame is retired (FrameLoop::drop flushes).
         unsafe {
             let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
             let signals: Vec<_> = signal
@@ -989,6 +999,7 @@ impl Slots {
     fn new(gpu: &Gpu) -> Result<Slots> {
         let d = &gpu.device;
         let err = crate::gpu::GpuError::from;
+        // SAFETY: a plain pool of this device, owned by Slots and destroyed in its Drop.
         let pool = unsafe {
             d.create_command_pool(
                 &vk::CommandPoolCreateInfo::default()
@@ -1006,6 +1017,7 @@ impl Slots {
             next: 0,
         };
         for _ in 0..MAX_FRAMES_IN_FLIGHT {
+            // SAFETY: `pool` was just created and only this thread uses it.
             let cmd = unsafe {
                 d.allocate_command_buffers(
                     &vk::CommandBufferAllocateInfo::default()
@@ -1015,6 +1027,7 @@ impl Slots {
                 )
                 .map_err(err)?[0]
             };
+            // SAFETY: a plain fence of this device, destroyed in Slots' Drop.
             let fence = unsafe {
                 d.create_fence(&vk::FenceCreateInfo::default(), None)
                     .map_err(err)?
@@ -1023,6 +1036,7 @@ impl Slots {
             let timer = match timer {
                 Ok(t) => t,
                 Err(e) => {
+                    // SAFETY: the fence was just created and never submitted.
                     unsafe { d.destroy_fence(fence, None) };
                     return Err(e.into());
                 }
@@ -1041,6 +1055,9 @@ impl Slots {
 impl Drop for Slots {
     fn drop(&mut self) {
         let d = &self.gpu.device;
+        // SAFETY: the fences of the frames in flight are waited for first, so no command buffer of
+        // the pool is pending when it and the fences go; after a failed wait both are leaked
+        // instead.
         unsafe {
             let fences: Vec<vk::Fence> = self
                 .flights

@@ -48,6 +48,7 @@ pub fn run(spec: &SessionSpec, opts: XrOptions) -> Result<XrSummary> {
         let result = result.and_then(|()| fl.flush().map(|_| ()));
         let saved = spec.save_markups(&fl, &super::session::default_markups_path());
         let result = result.and(saved.map(|_| ()));
+        // SAFETY: the device is alive (`gpu` is held here) and no other thread uses its queue.
         unsafe {
             let _ = gpu.device.device_wait_idle();
         }
@@ -129,6 +130,9 @@ fn frames(
         let retired = fl.submit_signalling(
             &frame.input,
             false,
+            // SAFETY: `cmd` is recording and `after` runs once the target is in
+            // TRANSFER_SRC_OPTIMAL; `images` were acquired and waited by `xs.acquire` and are
+            // released only after this submission; the mirror's image was acquired this frame.
             |cmd, src| unsafe {
                 images.record_copy(&d, cmd, src);
                 if let Some((m, image)) = view {

@@ -26,7 +26,9 @@ pub fn catch() {
     for sig in SIGNALS {
         // SA_RESTART: a read or write in flight (the recording's) completes instead of failing.
         // SA_RESETHAND: a second signal ends the process at once, should the session hang.
-        // sigaction only fails for an invalid signal or a bad pointer, neither possible here.
+        // SAFETY: `act` starts all zeroes (a valid sigaction) and `note`, its handler, only
+        // stores to an atomic, which is async-signal-safe; sigaction only fails for an invalid
+        // signal or a bad pointer, neither possible here.
         unsafe {
             let mut act: libc::sigaction = std::mem::zeroed();
             act.sa_sigaction = note as extern "C" fn(libc::c_int) as libc::sighandler_t;
@@ -57,6 +59,8 @@ pub fn name(sig: libc::c_int) -> &'static str {
 /// If a signal was caught, ends the process by it (default action restored); else returns.
 pub fn reraise() {
     if let Some(sig) = caught() {
+        // SAFETY: signal and raise take plain values; SIG_DFL is a valid disposition and `sig` a
+        // signal this process caught.
         unsafe {
             libc::signal(sig, libc::SIG_DFL);
             libc::raise(sig);
@@ -72,16 +76,20 @@ mod tests {
     fn a_caught_signal_is_noted_not_fatal() {
         catch();
         assert_eq!(caught(), None);
+        // SAFETY: the handler catch() installed only stores to an atomic.
         unsafe { libc::raise(libc::SIGTERM) };
         // The handler runs before raise returns (a signal sent to the calling thread).
         assert_eq!(caught(), Some(libc::SIGTERM));
         // The handler is gone after the first signal: a second one would end the process.
+        // SAFETY: libc::sigaction is plain C data, for which all zeroes is a valid value.
         let mut now: libc::sigaction = unsafe { std::mem::zeroed() };
+        // SAFETY: a null new action only reads the current one into `now`, a live local.
         unsafe { libc::sigaction(libc::SIGTERM, std::ptr::null(), &mut now) };
         assert_eq!(now.sa_sigaction, libc::SIG_DFL);
         assert_eq!(name(libc::SIGTERM), "SIGTERM");
         // Back to the default, so this test binary is not left deaf to Ctrl-C.
         for sig in SIGNALS {
+            // SAFETY: restores the default disposition of a valid signal.
             unsafe { libc::signal(sig, libc::SIG_DFL) };
         }
         CAUGHT.store(0, Ordering::SeqCst);

@@ -74,6 +74,8 @@ impl Mirror {
             self.state.close();
         }
         match &mut self.state.presenter {
+            // SAFETY: the presenter was made on this window and GPU (`resumed`); a recreate inside
+            // waits for the device to idle, so no frame in flight still uses the old images.
             Some(p) => Ok(unsafe { p.acquire()? }),
             None => Ok(None),
         }
@@ -89,6 +91,9 @@ impl Mirror {
     ) {
         if let Some(p) = &self.state.presenter {
             let size = (target.width, target.height);
+            // SAFETY: the caller (the headset loop's `after`) records into a recording `cmd` with
+            // the target's colour in TRANSFER_SRC_OPTIMAL there, and `image` was acquired from this
+            // presenter this frame.
             unsafe { p.record_blit(cmd, image, target.color.raw, size, false, None) };
         }
     }
@@ -97,6 +102,8 @@ impl Mirror {
     /// finished.
     pub fn present(&mut self, image: Acquired) -> Result<()> {
         if let Some(p) = &mut self.state.presenter {
+            // SAFETY: the headset loop presents only an image whose frame was submitted, and that
+            // submission signals `image.rendered`.
             unsafe { p.queue_present(image, true)? };
         }
         Ok(())
@@ -126,6 +133,8 @@ impl ApplicationHandler for MirrorWindow {
                 return;
             }
         };
+        // SAFETY: `gpu` was made with `present` (gpu_options(.., mirror)); the presenter is
+        // declared before the window and `close` clears it first, so the window outlives it.
         match unsafe { Presenter::new(&self.gpu, &window) } {
             Ok(p) => self.presenter = Some(p),
             Err(e) => {
@@ -146,6 +155,8 @@ impl ApplicationHandler for MirrorWindow {
             }
             WindowEvent::Resized(size) => {
                 if let Some(p) = &mut self.presenter {
+                    // SAFETY: Resized is pumped in `acquire` before this frame's image is acquired;
+                    // recreate waits for the device to idle before it retires the old swapchain.
                     if let Err(e) = unsafe { p.recreate(size.width, size.height) } {
                         self.error = Some(e.into());
                     }

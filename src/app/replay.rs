@@ -108,6 +108,7 @@ impl std::fmt::Display for ReplayStats {
 pub fn host_rss_bytes() -> Option<u64> {
     let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
     let pages: u64 = statm.split_whitespace().nth(1)?.parse().ok()?;
+    // SAFETY: sysconf reads no memory of ours; _SC_PAGESIZE is a valid name.
     let page = unsafe { libc::sysconf(libc::_SC_PAGESIZE) };
     u64::try_from(page).ok().map(|p| pages * p)
 }
@@ -115,9 +116,11 @@ pub fn host_rss_bytes() -> Option<u64> {
 /// CPU time this process has used so far (user + system, all threads), in seconds.
 fn cpu_seconds() -> f64 {
     let mut u = std::mem::MaybeUninit::<libc::rusage>::zeroed();
+    // SAFETY: `u` is writable storage for one rusage, which is all getrusage writes.
     if unsafe { libc::getrusage(libc::RUSAGE_SELF, u.as_mut_ptr()) } != 0 {
         return f64::NAN;
     }
+    // SAFETY: `u` was zeroed (all zeroes is a valid rusage) and getrusage filled it.
     let u = unsafe { u.assume_init() };
     let secs = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
     secs(u.ru_utime) + secs(u.ru_stime)

@@ -169,6 +169,7 @@ impl ClipMapGpu {
         let ranges = [vk::PushConstantRange::default()
             .stage_flags(stages)
             .size(std::mem::size_of::<PeelPush>() as u32)];
+        // SAFETY: the info borrows `peel_set_layout` and `ranges`, which outlive the call.
         let peel_layout = match unsafe {
             d.create_pipeline_layout(
                 &vk::PipelineLayoutCreateInfo::default()
@@ -179,6 +180,7 @@ impl ClipMapGpu {
         } {
             Ok(l) => l,
             Err(e) => {
+                // SAFETY: the set layout was just made; nothing uses it yet.
                 unsafe { d.destroy_descriptor_set_layout(peel_set_layout, None) };
                 return Err(GpuError::from(e).into());
             }
@@ -187,6 +189,8 @@ impl ClipMapGpu {
         let [front, back] = match pipelines {
             Ok(p) => p,
             Err(e) => {
+                // SAFETY: both layouts were just made, and the failed pipeline creation left
+                // nothing using them.
                 unsafe {
                     d.destroy_pipeline_layout(peel_layout, None);
                     d.destroy_descriptor_set_layout(peel_set_layout, None);
@@ -303,6 +307,11 @@ impl ClipMapGpu {
             "clip-map-readback",
         )?;
 
+        // SAFETY: `cmd` is recording (submit_and_wait); every image and buffer named is a local
+        // that outlives the waited submission; the clear reaches layer 0 in GENERAL after the
+        // transition above; the copies read `texels_bytes` from `clip` and `dilation.out`
+        // (TRANSFER_SRC, that size each) into the two halves of `readback` (TRANSFER_DST, twice
+        // that).
         gpu.submit_and_wait(|cmd| unsafe {
             peels.transition(cmd, vk::ImageLayout::UNDEFINED, vk::ImageLayout::GENERAL);
             depth.transition(
@@ -384,6 +393,8 @@ impl ClipMapGpu {
             MemoryLocation::GpuToCpu,
             "dilation-readback",
         )?;
+        // SAFETY: `cmd` is recording; `dilation.out` (TRANSFER_SRC) and `readback` (TRANSFER_DST)
+        // both hold n * 16 bytes and outlive the waited submission.
         gpu.submit_and_wait(|cmd| unsafe {
             self.record_dilate(cmd, &input, &dilation, res);
             gpu.barrier(cmd);
@@ -476,6 +487,10 @@ impl ClipMapGpu {
                 .image_info(&images),
         ];
         let d = &self.gpu.device;
+        // SAFETY: `cmd` is recording outside a render pass (build's submission); layer `target` of
+        // `peels` (GENERAL) is the colour attachment and layer `previous`, a different one, is read
+        // as a storage image; `depth` is in DEPTH_ATTACHMENT_OPTIMAL; the writes and the PeelPush
+        // match `peel_layout`, this state's own like the pipelines.
         unsafe {
             d.cmd_begin_rendering(
                 cmd,
@@ -540,6 +555,9 @@ impl ClipMapGpu {
             reach: 0,
         };
         let d = &self.gpu.device;
+        // SAFETY: `cmd` is recording (build's submission); the writes match `pair`'s set layout
+        // (storage image, storage buffer) with live resources, and GridPush is the size `pair` was
+        // made with.
         unsafe {
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, self.pair.pipeline);
             self.gpu.push_descriptor.cmd_push_descriptor_set(
@@ -582,6 +600,8 @@ impl ClipMapGpu {
 
 impl Drop for ClipMapGpu {
     fn drop(&mut self) {
+        // SAFETY: the idle wait ends every build that used these; they are this state's own,
+        // destroyed once (the compute pipelines free theirs).
         unsafe {
             let d = &self.gpu.device;
             let _ = d.device_wait_idle();

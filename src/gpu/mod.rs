@@ -329,6 +329,8 @@ impl VulkanFactory for DirectFactory {
 
 impl Gpu {
     pub fn new(opts: &GpuOptions) -> Result<Gpu> {
+        // SAFETY: DirectFactory creates the instance and device from exactly the infos `create`
+        // hands it, which is all `create` asks of a factory.
         unsafe { Self::create(opts, &mut DirectFactory) }
     }
 
@@ -589,6 +591,8 @@ impl Core {
         let mut p2 = vk::PhysicalDeviceProperties2::default()
             .push_next(&mut p11)
             .push_next(&mut p13);
+        // SAFETY: `physical` was enumerated from `instance`, both live as long as `self`; `p11` and
+        // `p13`, chained into `p2`, are locals that outlive the call.
         unsafe {
             self.instance
                 .get_physical_device_properties2(self.physical, &mut p2)
@@ -616,6 +620,7 @@ impl Core {
     /// reports a fixed 2 GiB heap whatever the machine has (later Mesa reports the host's
     /// physical memory, as this does for every CPU device).
     pub fn device_local_heap_bytes(&self) -> u64 {
+        // SAFETY: `physical` was enumerated from `instance`, both live as long as `self`.
         let mem = unsafe {
             self.instance
                 .get_physical_device_memory_properties(self.physical)
@@ -769,6 +774,11 @@ impl Core {
 
     /// Records commands into a fresh command buffer, submits it and waits for completion.
     pub fn submit_and_wait<R>(&self, record: impl FnOnce(vk::CommandBuffer) -> R) -> Result<R> {
+        // SAFETY: the pool lock is held to the end of the block, so no other caller allocates,
+        // records, submits or frees through this pool meanwhile (the frame loop and the presenter
+        // submit from the same thread). `cmd` is begun before `record` gets it and ended after; it
+        // and the fence are freed only once the wait returned (after a stall they stay in use:
+        // leaked). Whatever `record` names outlives this call, which waits.
         unsafe {
             let pool = self.cmd_pool.lock().unwrap();
             let cmd = self.device.allocate_command_buffers(
@@ -812,6 +822,8 @@ impl Core {
             .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
             .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
             .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)];
+        // SAFETY: `cmd` is a command buffer of this device in the recording state (the contract of
+        // every cmd_* helper here); a global memory barrier names no resource.
         unsafe {
             self.device
                 .cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&mb));
@@ -821,6 +833,10 @@ impl Core {
 
 impl Drop for Core {
     fn drop(&mut self) {
+        // SAFETY: every Buffer, Image, pipeline, timer and presenter holds a Gpu clone, so this
+        // runs after all of them are gone; the idle wait ends any submitted work first; then
+        // children go before parents (pool and allocator's memory, device, messenger, instance).
+        // `log`, the messenger's user data, is a field and drops after this body.
         unsafe {
             let _ = self.device.device_wait_idle();
             self.device

@@ -55,6 +55,7 @@ pub fn graphics_pipelines(
     let fs = match shader_module(gpu, desc.fs) {
         Ok(fs) => fs,
         Err(e) => {
+            // SAFETY: `vs` was just created, and nothing uses it yet.
             unsafe { d.destroy_shader_module(vs, None) };
             return Err(e);
         }
@@ -122,13 +123,18 @@ pub fn graphics_pipelines(
                 .push_next(rendering)
         })
         .collect();
+    // SAFETY: every info borrows locals (stages, states, the rendering chain) that outlive the
+    // call; the modules are live and `desc.layout` is a live layout of this device.
     let res = unsafe { d.create_graphics_pipelines(vk::PipelineCache::null(), &infos, None) };
+    // SAFETY: a module may be destroyed once the pipelines were created from it (or creation
+    // failed).
     unsafe {
         d.destroy_shader_module(vs, None);
         d.destroy_shader_module(fs, None);
     }
     res.map_err(|(created, e)| {
         for p in created.into_iter().filter(|p| *p != vk::Pipeline::null()) {
+            // SAFETY: a pipeline the failed call did create; nothing has used it.
             unsafe { d.destroy_pipeline(p, None) };
         }
         e.into()

@@ -359,6 +359,10 @@ impl Presenter {
 
 impl Drop for Presenter {
     fn drop(&mut self) {
+        // SAFETY: the idle wait ends every submission that blits into the swapchain or signals its
+        // semaphores; fence, semaphores, swapchain and surface are this presenter's own, destroyed
+        // once, the swapchain before its surface, while the window still exists (Presenter::new's
+        // contract).
         unsafe {
             let _ = self.gpu.device.device_wait_idle();
             self.gpu.device.destroy_fence(self.fence, None);

@@ -36,6 +36,10 @@ impl Buffer {
         } else {
             usage
         };
+        // SAFETY: `raw` is created here and destroyed on each early return before anything else
+        // sees it; `alloc` was made for `raw`'s own requirements, so binding it at its offset is
+        // valid; from the bind on, `buffer` owns both and its Drop frees them once. The allocator
+        // is behind its mutex.
         unsafe {
             let raw = gpu.device.create_buffer(
                 &vk::BufferCreateInfo::default()
@@ -128,6 +132,9 @@ impl Buffer {
             MemoryLocation::GpuOnly,
             name,
         )?;
+        // SAFETY: `cmd` is recording (submit_and_wait); `staging` (TRANSFER_SRC) and `b`
+        // (TRANSFER_DST) were both created with `bytes.len().max(4)` bytes (Buffer::new rounds up
+        // to 4) and outlive the waited submission.
         gpu.submit_and_wait(|cmd| unsafe {
             let region = [vk::BufferCopy::default().size(bytes.len().max(4) as u64)];
             gpu.device.cmd_copy_buffer(cmd, staging.raw, b.raw, &region);
@@ -144,6 +151,9 @@ impl Buffer {
             MemoryLocation::GpuOnly,
             name,
         )?;
+        // SAFETY: `cmd` is recording; `b` (TRANSFER_DST) was created with `self.size.max(4)` bytes
+        // like `self`, both outlive the waited submission; `self` must have been made with
+        // TRANSFER_SRC, which its owners do (Buffer does not record its usage).
         self.gpu.submit_and_wait(|cmd| unsafe {
             let region = [vk::BufferCopy::default().size(self.size.max(4))];
             self.gpu
@@ -192,6 +202,9 @@ impl Buffer {
             MemoryLocation::GpuToCpu,
             "readback",
         )?;
+        // SAFETY: `cmd` is recording; `staging` (TRANSFER_DST) was created with `self.size.max(4)`
+        // bytes like `self`, both outlive the waited submission; `self` must have been made with
+        // TRANSFER_SRC, which its owners do (Buffer does not record its usage).
         self.gpu.submit_and_wait(|cmd| unsafe {
             let region = [vk::BufferCopy::default().size(self.size.max(4))];
             self.gpu
@@ -211,6 +224,9 @@ impl Buffer {
 
 impl Drop for Buffer {
     fn drop(&mut self) {
+        // SAFETY: the allocation and handle are this buffer's own, freed once (`take`); Buffer does
+        // not wait, so its owner drops it only once no submitted work uses it (the frame loop
+        // retires a frame before what it reads goes; one-shot passes wait in submit_and_wait).
         unsafe {
             if let Some(a) = self.alloc.take() {
                 let _ = self.gpu.allocator.lock().unwrap().free(a);
@@ -246,6 +262,10 @@ pub struct Image {
 
 impl Image {
     pub fn new(gpu: &Gpu, desc: ImageDesc, name: &str) -> Result<Image> {
+        // SAFETY: as in Buffer::new: `raw` is destroyed on every early return before anything else
+        // sees it, `alloc` was made for its requirements, and from the bind on `image` owns memory,
+        // image and views (its Drop destroys what exists; a null view is a no-op). Every view names
+        // `raw` with a range inside `desc`.
         unsafe {
             let raw = gpu.device.create_image(
                 &vk::ImageCreateInfo::default()
@@ -371,6 +391,9 @@ impl Image {
             .buffer_offset(offset)
             .image_subresource(self.layers_all())
             .image_extent(self.desc.extent)];
+        // SAFETY: `cmd` is recording with the image in TRANSFER_DST_OPTIMAL (this method's
+        // contract); `src` holds the whole image, tightly packed, from `offset` on (the callers
+        // size it so).
         unsafe {
             self.gpu.device.cmd_copy_buffer_to_image(
                 cmd,
@@ -413,6 +436,9 @@ impl Image {
         if regions.is_empty() {
             return;
         }
+        // SAFETY: `cmd` is recording with the image in TRANSFER_DST_OPTIMAL (this method's
+        // contract); `src` holds the whole image tightly packed, so each non-empty box inside the
+        // image reads rows inside `src`.
         unsafe {
             self.gpu.device.cmd_copy_buffer_to_image(
                 cmd,
@@ -429,6 +455,8 @@ impl Image {
         let region = [vk::BufferImageCopy::default()
             .image_subresource(self.layers_all())
             .image_extent(self.desc.extent)];
+        // SAFETY: `cmd` is recording with the image in TRANSFER_SRC_OPTIMAL (this method's
+        // contract); `dst` has room for the whole image tightly packed (the callers size it so).
         unsafe {
             self.gpu.device.cmd_copy_image_to_buffer(
                 cmd,
@@ -462,6 +490,9 @@ impl Image {
 
 impl Drop for Image {
     fn drop(&mut self) {
+        // SAFETY: views, allocation and image are this image's own, each destroyed once, the
+        // views before their image; Image does not wait, so its owner drops it only once no
+        // submitted work uses it (as for Buffer).
         unsafe {
             self.gpu.device.destroy_image_view(self.view, None);
             for v in self.layer_views.drain(..) {
@@ -503,6 +534,9 @@ pub fn cmd_blit_color(
         ])
         .dst_subresource(layers(0))
         .dst_offsets([corner(dst_rect[0], 0), corner(dst_rect[1], 1)])];
+    // SAFETY: `cmd` is recording on `device`, `src` and `dst` are live images of it in the
+    // TRANSFER_SRC / TRANSFER_DST layouts with the layers and rectangles named (this function's
+    // contract).
     unsafe {
         device.cmd_blit_image(
             cmd,
@@ -537,6 +571,8 @@ pub fn cmd_image_barrier(
         .dst_queue_family_index(vk::QUEUE_FAMILY_IGNORED)
         .image(image)
         .subresource_range(range)];
+    // SAFETY: `cmd` is recording on `device`; `image` is a live image of it, `range` lies inside it
+    // and `from` is its layout there (or UNDEFINED) (this function's contract).
     unsafe {
         device.cmd_pipeline_barrier2(
             cmd,
@@ -579,6 +615,8 @@ pub fn address_bytes(n: usize) -> u32 {
 pub fn shader_module(gpu: &Gpu, spv: &[u8]) -> Result<vk::ShaderModule> {
     let words = ash::util::read_spv(&mut std::io::Cursor::new(spv))
         .map_err(|e| GpuError::Other(format!("bad SPIR-V: {e}")))?;
+    // SAFETY: `words` is SPIR-V that read_spv checked and aligned (glslc's output, from build.rs);
+    // the info borrows it only for the call.
     Ok(unsafe {
         gpu.device
             .create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None)?
@@ -614,6 +652,8 @@ fn sparse_set_layout(
             })
         })
         .collect();
+    // SAFETY: the info borrows `b`, which outlives the call; VK_KHR_push_descriptor, which
+    // PUSH_DESCRIPTOR_KHR needs, is enabled on every device (Gpu::create).
     Ok(unsafe {
         gpu.device.create_descriptor_set_layout(
             &vk::DescriptorSetLayoutCreateInfo::default()
@@ -670,6 +710,9 @@ impl ComputePipeline {
         push_constant_bytes: u32,
         reach: Vec<Reach>,
     ) -> Result<ComputePipeline> {
+        // SAFETY: each create call borrows locals that outlive it; the module is destroyed only
+        // once the pipeline was created from it (allowed); on success the returned pipeline owns
+        // the layouts and pipeline and its Drop destroys them.
         unsafe {
             let set_layout = sparse_set_layout(gpu, bindings, vk::ShaderStageFlags::COMPUTE)?;
             let ranges = [vk::PushConstantRange::default()
@@ -736,6 +779,10 @@ impl ComputePipeline {
                     .buffer_info(info)
             })
             .collect();
+        // SAFETY: `cmd` is recording (the caller's contract); `writes` give a storage buffer at
+        // exactly the Descriptor bindings of the set layout, live buffers the caller keeps until
+        // the work finished; the push bytes start at 0: the addresses, then `push`, which the
+        // callers give the size of the pass's own block that the layout's range was built with.
         unsafe {
             let d = &self.gpu.device;
             d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::COMPUTE, self.pipeline);
@@ -755,6 +802,7 @@ impl ComputePipeline {
     }
 
     pub fn dispatch(&self, cmd: vk::CommandBuffer, groups: [u32; 3]) {
+        // SAFETY: `cmd` is recording with this pipeline bound by `bind` (the caller's contract).
         unsafe {
             self.gpu
                 .device
@@ -765,6 +813,9 @@ impl ComputePipeline {
 
 impl Drop for ComputePipeline {
     fn drop(&mut self) {
+        // SAFETY: the handles are this pipeline's own, destroyed once; its owners drop it only
+        // after the work recorded with it finished (FrameLoop::drop flushes first, one-shot passes
+        // wait in submit_and_wait).
         unsafe {
             self.gpu.device.destroy_pipeline(self.pipeline, None);
             self.gpu.device.destroy_pipeline_layout(self.layout, None);

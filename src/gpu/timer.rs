@@ -12,6 +12,7 @@ pub struct GpuTimer {
 
 impl GpuTimer {
     pub fn new(gpu: &Gpu, capacity: u32) -> Result<GpuTimer> {
+        // SAFETY: a plain timestamp pool of this device; the timer owns it and destroys it in Drop.
         let pool = unsafe {
             gpu.device.create_query_pool(
                 &vk::QueryPoolCreateInfo::default()
@@ -31,6 +32,8 @@ impl GpuTimer {
     /// Resets the pool and writes the first (start) mark.
     pub fn begin(&mut self, cmd: vk::CommandBuffer) {
         self.names.clear();
+        // SAFETY: `cmd` is recording outside a render pass (the caller's contract); queries
+        // 0..capacity are this pool's.
         unsafe {
             self.gpu
                 .device
@@ -46,6 +49,7 @@ impl GpuTimer {
             return;
         }
         self.names.push(name);
+        // SAFETY: `cmd` is recording (the caller's contract); `idx` < `capacity` was checked above.
         unsafe {
             self.gpu.device.cmd_write_timestamp2(
                 cmd,
@@ -63,6 +67,9 @@ impl GpuTimer {
             return Ok(Vec::new());
         }
         let mut ticks = vec![0u64; n];
+        // SAFETY: queries 0..n were reset and written by the recorded begin/mark calls (the caller
+        // reads after that submission, so WAIT returns); `ticks` holds n u64 values as TYPE_64
+        // asks.
         unsafe {
             self.gpu.device.get_query_pool_results(
                 self.pool,
@@ -83,6 +90,8 @@ impl GpuTimer {
 
 impl Drop for GpuTimer {
     fn drop(&mut self) {
+        // SAFETY: the pool is this timer's own; its owners drop it once the command buffers that
+        // wrote it finished.
         unsafe { self.gpu.device.destroy_query_pool(self.pool, None) }
     }
 }

@@ -436,6 +436,7 @@ pub fn check_volume_fits_gpu(gpu: &Gpu, vol: &Volume) -> Result<()> {
 }
 
 fn check_linear_filter(gpu: &Gpu, format: vk::Format) -> Result<()> {
+    // SAFETY: `physical` was enumerated from `instance`; both live as long as `gpu`.
     let props = unsafe {
         gpu.instance
             .get_physical_device_format_properties(gpu.physical, format)
@@ -942,6 +943,8 @@ impl StereoTarget {
             .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
             .dst_stage_mask(vk::PipelineStageFlags2::HOST)
             .dst_access_mask(vk::AccessFlags2::HOST_READ)];
+        // SAFETY: `cmd` is recording (the caller's contract); a global memory barrier names no
+        // resource.
         unsafe {
             gpu.device
                 .cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&mb));
@@ -1198,6 +1201,9 @@ impl Renderer {
             "no-coarse",
         )?;
         no_coarse.upload(&[0u8; 8], vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
+        // SAFETY: each create call borrows locals (bindings, push range, sampler info) that outlive
+        // it; the set layout, layout and samplers go to the returned Renderer, whose Drop destroys
+        // them.
         unsafe {
             let d = &gpu.device;
             let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
@@ -1623,6 +1629,8 @@ impl Renderer {
 
 impl Drop for Renderer {
     fn drop(&mut self) {
+        // SAFETY: the idle wait ends every frame that used these samplers, pipelines and layouts;
+        // they are this renderer's own, destroyed once.
         unsafe {
             let d = &self.gpu.device;
             let _ = d.device_wait_idle();

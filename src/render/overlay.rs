@@ -375,6 +375,9 @@ impl OverlayRenderer {
         .collect::<Result<Vec<_>>>()?;
         let (v, i, glyph_ranges) = super::text::glyph_meshes();
         let glyphs = GpuMesh::upload(gpu, &v, &i, "overlay-glyphs")?;
+        // SAFETY: the layout info borrows `push`, which outlives the call; if the pipelines fail,
+        // the layout, which nothing uses yet, is destroyed; else the returned renderer owns layout
+        // and pipelines and its Drop destroys them.
         unsafe {
             let d = &gpu.device;
             let push = [vk::PushConstantRange::default()
@@ -538,6 +541,11 @@ impl OverlayRenderer {
                 .layer_count(1)
                 .color_attachments(&color_att)
                 .depth_attachment(&depth_att);
+            // SAFETY: `cmd` is recording with both target images in the attachment layouts
+            // Renderer::record left (this method's contract); the views are layers of the live
+            // target; vertex and index buffers are this renderer's meshes, kept until its Drop
+            // waits for the device, and each index range is its mesh's own count or the glyph table
+            // built with that mesh.
             unsafe {
                 d.cmd_begin_rendering(cmd, &info);
                 d.cmd_set_viewport(
@@ -590,6 +598,8 @@ impl OverlayRenderer {
 
 impl Drop for OverlayRenderer {
     fn drop(&mut self) {
+        // SAFETY: the idle wait ends every frame that drew with these; they are this renderer's
+        // own, destroyed once.
         unsafe {
             let d = &self.gpu.device;
             let _ = d.device_wait_idle();

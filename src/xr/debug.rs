@@ -71,6 +71,9 @@ impl XrMessenger {
         };
         let mut handle = sys::DebugUtilsMessengerEXT::NULL;
         let r =
+            // SAFETY: `info` is a complete create info with no chain; `callback` has the PFN's
+            // signature and reads `user` only as the XrLog boxed in `log`, which the messenger owns
+            // and which stays put and outlives the handle (dropped after Drop destroys it).
             unsafe { (ext.create_debug_utils_messenger)(instance.as_raw(), &info, &mut handle) };
         if r.into_raw() < 0 {
             eprintln!("xr: no debug messenger ({r})");
@@ -90,6 +93,8 @@ impl XrMessenger {
 
 impl Drop for XrMessenger {
     fn drop(&mut self) {
+        // SAFETY: `handle` is this messenger's own, destroyed once, on an instance that outlives it
+        // (XrRuntime declares the messenger first).
         unsafe {
             (self.destroy)(self.handle);
         }

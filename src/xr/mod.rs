@@ -121,6 +121,8 @@ pub fn available() -> bool {
 }
 
 pub(crate) fn open_instance() -> Result<(xr::Entry, xr::Instance, xr::ExtensionSet)> {
+    // SAFETY: the system's OpenXR loader, like its Vulkan loader, is trusted to follow the
+    // specification.
     let entry = unsafe { xr::Entry::load(&()) }.map_err(|e| XrError::NoRuntime(e.to_string()))?;
     let available = entry
         .enumerate_extensions()

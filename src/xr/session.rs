@@ -72,6 +72,9 @@ impl XrRuntime {
             system: self.system,
             gipa: None,
         };
+        // SAFETY: XrVulkanFactory hands the renderer's infos to xrCreateVulkanInstanceKHR /
+        // xrCreateVulkanDeviceKHR as they are (the runtime only adds what it needs), as
+        // with_factory requires; `self.instance` outlives the factory.
         Ok(unsafe { Gpu::with_factory(opts, &mut factory)? })
     }
 
@@ -222,6 +225,9 @@ impl<'a> XrSession<'a> {
         )?;
         let actions = actions::HandActions::new(instance, &profiles)?;
         eprintln!("xr: bindings for {}", actions.accepted.join(", "));
+        // SAFETY: the handles are the live instance, physical device and device of `gpu`, which
+        // XrRuntime::create_gpu made through this runtime with queue 0 of `queue_family`; the
+        // caller keeps `gpu` alive longer than the session (headset::run does).
         let (session, waiter, stream) = unsafe {
             instance.create_session::<xr::Vulkan>(
                 system,

@@ -1460,6 +1460,8 @@ fn a_signal_during_the_ao_precompute_leaves_no_output_under_the_final_name() {
             child.try_wait().unwrap().is_none(),
             "finished before the signal"
         );
+        // SAFETY: kill(2) reads no memory of ours; `child` is not waited for yet, so its pid cannot
+        // have been reused.
         unsafe { libc::kill(child.id() as i32, sig) };
         let status = child.wait().unwrap();
         assert_eq!(status.signal(), Some(sig), "{status:?}");
@@ -1499,6 +1501,8 @@ fn a_signal_during_a_replay_leaves_no_partial_metrics_under_the_final_name() {
         );
         std::thread::sleep(std::time::Duration::from_millis(50));
     }
+    // SAFETY: kill(2) reads no memory of ours; `child` is not waited for yet, so its pid cannot
+    // have been reused.
     unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
     let status = child.wait().unwrap();
     assert_eq!(status.signal(), Some(libc::SIGTERM), "{status:?}");

@@ -161,6 +161,8 @@ fn a_signal_ends_a_recording_session_cleanly() {
             .trim()
             .parse()
             .unwrap();
+        // SAFETY: kill(2) reads no memory of ours; `pid` is the viewer's (the shell exec'd into
+        // it), which runs until signalled.
         unsafe { libc::kill(pid, sig) };
         let out = child.wait_with_output().unwrap();
         let (stdout, stderr) = (
