@@ -26,6 +26,16 @@ layout(std430, binding = 2) readonly buffer BinTable { vec4 bin_table[]; };
 layout(std430, binding = 3) readonly buffer Neighbours { vec4 neighbours[]; };
 // Per cluster, for the current TF: rgb = E, a = A.
 layout(std430, binding = 10) readonly buffer Clusters { vec4 clusters[]; };
+// The two hemispheres (docs/design.md): the scalar per voxel, whether to split, whether the
+// scalars are integers (then the split's dot products are exact in int), 1 / (2 s) per axis
+// and, in w, the square of the flat threshold in scalar units per mm.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Scalars { float s[]; };
+layout(std430, binding = 11) readonly buffer Split {
+    Scalars scalars;
+    uint split_on;
+    uint integer_scalars;
+    vec4 half_inv_spacing;
+};
 
 layout(push_constant) uniform Push {
     Q q_buf;
@@ -52,9 +62,30 @@ layout(push_constant) uniform Push {
 #define out_e pc.out_e_buf.out_e
 #define ids pc.ids_buf.ids
 
+// Δ(v): the scalar's central differences, neighbours clamped into the grid.
+vec3 delta(ivec3 v) {
+    int row = pc.dims.x, slice = pc.dims.x * pc.dims.y;
+    ivec3 hi = min(v + 1, pc.dims.xyz - 1), lo = max(v - 1, ivec3(0));
+    return vec3(scalars.s[hi.x + row * v.y + slice * v.z] - scalars.s[lo.x + row * v.y + slice * v.z],
+                scalars.s[v.x + row * hi.y + slice * v.z] - scalars.s[v.x + row * lo.y + slice * v.z],
+                scalars.s[v.x + row * v.y + slice * hi.z] - scalars.s[v.x + row * v.y + slice * lo.z]);
+}
+
 void direct(ivec3 v, out float a, out vec3 e) {
     float occ = 0.0;
     vec3 rgb = vec3(0.0);
+    // The front hemisphere H_f, members with o . Δ <= 0, where the gradient is steep enough;
+    // total: its share of W (out-of-grid members included).
+    bool split = false;
+    vec3 d = vec3(0.0);
+    ivec3 di = ivec3(0);
+    float total = 0.0;
+    if (split_on != 0u) {
+        d = delta(v);
+        vec3 g = d * half_inv_spacing.xyz;
+        split = dot(g, g) >= half_inv_spacing.w;
+        di = ivec3(d);
+    }
     // Away from the border every member is in the grid: no test per member. The sum runs in
     // the same order either way, so a region's values equal the whole volume's bit for bit.
     bool inside = all(greaterThanEqual(v, pc.reach.xyz)) && all(lessThan(v + pc.reach.xyz, pc.dims.xyz));
@@ -63,6 +94,12 @@ void direct(ivec3 v, out float a, out vec3 e) {
     for (int n = 0; n < pc.dims.w; n++) {
         vec4 nb = neighbours[n];
         ivec3 o = ivec3(nb.xyz);
+        if (split) {
+            bool back = integer_scalars != 0u ? o.x * di.x + o.y * di.y + o.z * di.z > 0
+                                              : dot(vec3(o), d) > 0.0;
+            if (back) continue;
+            total += nb.w;
+        }
         if (!inside) {
             ivec3 u = v + o;
             if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
@@ -72,7 +109,7 @@ void direct(ivec3 v, out float a, out vec3 e) {
         occ += wq;
         rgb += wq * bin_table[bins[j]].rgb;
     }
-    a = 1.0 - occ;
+    a = 1.0 - (split ? (total > 0.0 ? occ / total : 0.0) : occ);
     e = occ > 0.0 ? rgb / occ : vec3(0.0);
 }
 

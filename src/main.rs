@@ -657,6 +657,10 @@ struct LaoArgs {
     /// Clusters N of the local histograms (0: the direct, unclustered sums).
     #[arg(long, default_value_t = HistParams::default().clusters)]
     clusters: usize,
+    /// Two hemispheres per voxel split by the scalar's gradient: the local histograms' AO and
+    /// colour from the one facing down the gradient (with --clusters 0).
+    #[arg(long)]
+    hist_hemispheres: bool,
     /// Colour bleeding weight W of --ao histogram: the TF colour moves towards the
     /// neighbourhood's colour by W times its occlusion (0: off).
     #[arg(long, default_value_t = cao_xr::ao::DEFAULT_BLEEDING)]
@@ -701,6 +705,7 @@ impl LaoArgs {
             radius_mm: self.hist_radius_mm,
             bins: self.hist_bins,
             clusters: self.clusters,
+            hemispheres: self.hist_hemispheres,
         }
     }
 
@@ -1112,6 +1117,7 @@ fn run(cli: Cli) -> Result<()> {
                     radius_mm: hist_radius_mm,
                     bins: hist_bins,
                     clusters: 0,
+                    hemispheres: false,
                 };
                 p.validate().map_err(anyhow::Error::msg)?;
                 println!();

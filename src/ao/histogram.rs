@@ -27,6 +27,8 @@ pub struct HistParams {
     pub bins: usize,
     /// N: clusters (0: the direct, unclustered definition).
     pub clusters: usize,
+    /// Two hemispheres split by the gradient (the front's sums), not one sphere.
+    pub hemispheres: bool,
 }
 
 impl Default for HistParams {
@@ -37,6 +39,7 @@ impl Default for HistParams {
             radius_mm: 12.0,
             bins: 64,
             clusters: 2048,
+            hemispheres: false,
         }
     }
 }
@@ -60,6 +63,9 @@ impl HistParams {
                 "--clusters must be at most {MAX_CLUSTERS} (0: the direct sums), got {}",
                 self.clusters
             ));
+        }
+        if self.hemispheres && self.clusters > 0 {
+            return Err("--hist-hemispheres is built for the direct sums: add --clusters 0".into());
         }
         Ok(())
     }
@@ -270,20 +276,51 @@ pub fn direct_inputs(
     (shades.q(&table), shades.ids, table)
 }
 
+/// The hemispheres' split of every voxel (docs/design.md, "Local-histogram AO", two
+/// hemispheres): Δ(v), the scalar's central differences with the neighbours clamped into the
+/// grid, or None where the gradient Δ_i / (2 s_i) is shorter than the ray caster's lighting
+/// threshold ([`super::MIN_GRADIENT`] of the value range per mm): a flat voxel keeps S_r.
+pub fn splits(vol: &Volume) -> Vec<Option<[f64; 3]>> {
+    let (lo, hi) = vol.value_range();
+    let gmin = super::MIN_GRADIENT as f64 * (hi as f64 - lo as f64);
+    let d = vol.dims;
+    (0..vol.voxel_count())
+        .into_par_iter()
+        .map(|i| {
+            let v = [i % d[0], (i / d[0]) % d[1], i / (d[0] * d[1])];
+            let stride = [1, d[0], d[0] * d[1]];
+            let delta: [f64; 3] = std::array::from_fn(|a| {
+                let up = if v[a] + 1 < d[a] { i + stride[a] } else { i };
+                let down = if v[a] > 0 { i - stride[a] } else { i };
+                vol.voxels.get(up) as f64 - vol.voxels.get(down) as f64
+            });
+            let g2: f64 = (0..3)
+                .map(|a| (delta[a] / (2.0 * vol.spacing[a])).powi(2))
+                .sum();
+            (g2 >= gmin * gmin).then_some(delta)
+        })
+        .collect()
+}
+
 /// The direct definition on q (clip coverage already applied): openness A = 1 - O_env and the
 /// bleeding colour E (0 where no neighbour is opaque), in f64, voxel by voxel. A member's colour
-/// is `table[shades[j]]` ([`Shades`]; without labels the bins and [`bin_table`]).
+/// is `table[shades[j]]` ([`Shades`]; without labels the bins and [`bin_table`]). With `splits`
+/// ([`splits`]; empty: one sphere) the sums run over each voxel's front hemisphere H_f.
 pub fn direct_reference(
     dims: [usize; 3],
     q: &[f32],
     shades: &[u32],
     table: &[[f32; 4]],
     nb: &Neighbourhood,
+    splits: &[Option<[f64; 3]>],
 ) -> (Vec<f32>, Vec<[f32; 3]>) {
     let n = dims[0] * dims[1] * dims[2];
     (0..n)
         .into_par_iter()
-        .map(|i| direct_at(dims, q, shades, table, nb, i))
+        .map(|i| {
+            let split = splits.get(i).copied().flatten();
+            direct_at(dims, q, shades, table, nb, split, i)
+        })
         .unzip()
 }
 
@@ -294,6 +331,7 @@ pub fn direct_at(
     shades: &[u32],
     table: &[[f32; 4]],
     nb: &Neighbourhood,
+    split: Option<[f64; 3]>,
     i: usize,
 ) -> (f32, [f32; 3]) {
     let v = [
@@ -302,7 +340,16 @@ pub fn direct_at(
         (i / (dims[0] * dims[1])) as i32,
     ];
     let (mut occ, mut rgb) = (0.0f64, [0.0f64; 3]);
+    // W of what the sums run over: S_r's, or H_f's (out-of-grid members included).
+    let mut total = if split.is_some() { 0.0 } else { nb.total };
     for (o, w) in nb.offsets.iter().zip(&nb.weights) {
+        if let Some(d) = split {
+            // H_f: (u - v) . Δ <= 0, down the gradient, away from the higher values.
+            if (0..3).map(|a| o[a] as f64 * d[a]).sum::<f64>() > 0.0 {
+                continue;
+            }
+            total += w;
+        }
         let u = [v[0] + o[0], v[1] + o[1], v[2] + o[2]];
         if (0..3).any(|a| u[a] < 0 || u[a] >= dims[a] as i32) {
             continue;
@@ -320,7 +367,8 @@ pub fn direct_at(
     } else {
         [0.0; 3]
     };
-    ((1.0 - occ / nb.total) as f32, e)
+    let o_env = if total > 0.0 { occ / total } else { 0.0 };
+    ((1.0 - o_env) as f32, e)
 }
 
 /// The local histogram LH(v) of the unclipped volume: per bin (or shade, [`Shades`]), the sum
@@ -855,6 +903,60 @@ mod tests {
         );
     }
 
+    /// A 12^3 volume of 1 mm voxels, `material(z)` giving each slice's value (0 or 1000, u16),
+    /// with q = 1 where it is 1000: the hemispheres' openness (H_f) and the sphere's at (6, 6, z).
+    fn hemisphere_case(material: impl Fn(usize) -> bool, z: usize) -> (f32, f32) {
+        use crate::volume::{Modality, Voxels};
+        let d = [12usize; 3];
+        let on = |i: usize| material(i / (d[0] * d[1]));
+        let n = d[0] * d[1] * d[2];
+        let vol = Volume {
+            name: "hemispheres".into(),
+            dims: d,
+            spacing: [1.0; 3],
+            directions: glam::DMat3::IDENTITY,
+            origin: glam::DVec3::ZERO,
+            modality: Modality::Unknown,
+            voxels: Voxels::U16((0..n).map(|i| if on(i) { 1000 } else { 0 }).collect()),
+            labels: None,
+        };
+        let q: Vec<f32> = (0..n).map(|i| on(i) as u8 as f32).collect();
+        let (shades, table) = (vec![0; n], [[1.0; 4]]);
+        let nb = Neighbourhood::new(3.0, vol.spacing);
+        let splits = splits(&vol);
+        let i = 6 + d[0] * (6 + d[1] * z);
+        let front = direct_at(d, &q, &shades, &table, &nb, splits[i], i).0;
+        let sphere = direct_at(d, &q, &shades, &table, &nb, None, i).0;
+        (front, sphere)
+    }
+
+    #[test]
+    fn the_front_hemisphere_faces_away_from_the_material() {
+        // A half-space of material from z = 6: just outside it, H_f holds none of it (open),
+        // though half the sphere is material; on its surface H_f holds the surface's own plane.
+        let (front, sphere) = hemisphere_case(|z| z >= 6, 5);
+        assert_eq!(front, 1.0);
+        assert!(sphere < 0.75, "sphere {sphere}");
+        let (front, sphere) = hemisphere_case(|z| z >= 6, 6);
+        assert!(
+            front > sphere && front < 1.0,
+            "front {front}, sphere {sphere}"
+        );
+        // A plate one voxel thick at z = 6: open on both sides; inside it the gradient is zero
+        // (flat), so the sphere is kept.
+        for z in [5, 7] {
+            let (front, sphere) = hemisphere_case(|z| z == 6, z);
+            assert_eq!(front, 1.0, "z {z}");
+            assert!(sphere < 1.0);
+        }
+        let (front, sphere) = hemisphere_case(|z| z == 6, 6);
+        assert_eq!(front, sphere);
+        assert!(front < 1.0);
+        // A homogeneous block: no split anywhere.
+        let (front, sphere) = hemisphere_case(|_| true, 6);
+        assert_eq!(front, sphere);
+    }
+
     #[test]
     fn a_labelled_voxel_s_shade_is_its_structure_and_bin_and_takes_the_structure_s_look() {
         use crate::volume::labels::{LabelMap, Structure};
@@ -964,6 +1066,7 @@ mod tests {
             radius_mm: 3.0,
             bins: 4,
             clusters: 3,
+            ..Default::default()
         };
         let c = Clusters {
             bins: 4,

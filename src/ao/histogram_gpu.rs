@@ -13,6 +13,7 @@ use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use ash::vk;
 use gpu_allocator::MemoryLocation;
+use rayon::prelude::*;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -95,6 +96,10 @@ pub struct HistogramGpu {
     cluster_table: Buffer,
     /// The shade table of the last TF (host copy).
     last_table: Vec<[f32; 4]>,
+    /// The scalar per voxel in f32 (with hemispheres; a stand-in otherwise), whether it holds
+    /// integers, and the split's parameters as histogram_sums.comp's `Split` reads them.
+    scalars: (Buffer, bool),
+    split: Buffer,
     /// E of the unclipped volume, and this frame's E (RGBA8 per voxel).
     pub pre_e: Buffer,
     pub e: Buffer,
@@ -126,7 +131,23 @@ impl HistogramGpu {
         let shades = Shades::new(hist::bins(vol, params.bins), params.bins, labels.as_deref());
         let nb = Neighbourhood::new(params.radius_mm, vol.spacing);
         let geometry = (vol.dims, vol.spacing, vol.value_range());
-        let mut h = HistogramGpu::with_state(gpu, geometry, params, (shades, labels), nb, None)?;
+        let storage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
+        let scalars = if params.hemispheres {
+            let values: Vec<f32> = (0..n).into_par_iter().map(|i| vol.voxels.get(i)).collect();
+            Buffer::device_local(gpu, &values, storage, "hist-scalars")?
+        } else {
+            Buffer::new(gpu, 4, storage, MemoryLocation::GpuOnly, "hist-scalars")?
+        };
+        let integer = !matches!(vol.voxels, crate::volume::Voxels::F32(_));
+        let mut h = HistogramGpu::with_state(
+            gpu,
+            geometry,
+            params,
+            (shades, labels),
+            nb,
+            None,
+            (scalars, integer),
+        )?;
         if params.clusters > 0 {
             let key = hist::cache_key(vol.dims, vol.spacing, &h.shades, &params);
             let path = cache_dir.map(|d| hist::cache_path(d, key));
@@ -163,8 +184,22 @@ impl HistogramGpu {
         (shades, labels): (Shades, Option<Arc<LabelMap>>),
         nb: Neighbourhood,
         clusters: Option<Clusters>,
+        scalars: (Buffer, bool),
     ) -> Result<HistogramGpu> {
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        let split = {
+            let gmin = super::MIN_GRADIENT as f64 * (range.1 as f64 - range.0 as f64);
+            let mut words = [0u32; 8];
+            words[0] = scalars.0.address as u32;
+            words[1] = (scalars.0.address >> 32) as u32;
+            words[2] = params.hemispheres as u32;
+            words[3] = scalars.1 as u32;
+            for a in 0..3 {
+                words[4 + a] = ((0.5 / spacing[a]) as f32).to_bits();
+            }
+            words[7] = ((gmin * gmin) as f32).to_bits();
+            Buffer::from_slice(gpu, &words, storage, "hist-split")?
+        };
         let n = shades.ids.len();
         let rgba8 = |name| {
             Buffer::new(
@@ -192,6 +227,7 @@ impl HistogramGpu {
                     Reach::Address,
                     Reach::Address,
                     Reach::Descriptor,
+                    Reach::Descriptor,
                 ],
                 64,
             )?,
@@ -215,6 +251,8 @@ impl HistogramGpu {
             last_table: Vec::new(),
             pre_e: rgba8("hist-pre-e")?,
             e: rgba8("hist-e")?,
+            scalars,
+            split,
             timing: ClusterTiming::default(),
             nb,
             shades,
@@ -251,6 +289,13 @@ impl HistogramGpu {
             (self.shades.clone(), self.labels.clone()),
             self.nb.clone(),
             self.clusters.clone(),
+            (
+                self.scalars.0.duplicate(
+                    vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC,
+                    "hist-scalars",
+                )?,
+                self.scalars.1,
+            ),
         )?;
         h.write_tables(self.last_table.clone())?;
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
@@ -279,6 +324,8 @@ impl HistogramGpu {
             &self.cluster_table,
             &self.pre_e,
             &self.e,
+            &self.scalars.0,
+            &self.split,
         ]
         .iter()
         .map(|b| b.size)
@@ -594,6 +641,7 @@ impl HistogramGpu {
                 out_e,
                 &self.ids,
                 &self.cluster_table,
+                &self.split,
             ];
             self.sums.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.sums, cmd, bx);

@@ -14,6 +14,10 @@ pub mod voxel_box;
 
 /// `--bleeding`'s default: half way to the neighbourhood's colour where it is fully occluded.
 pub const DEFAULT_BLEEDING: f32 = 0.5;
+/// Gradients below this fraction of the value range per mm are noise, not surfaces: the ray
+/// caster lights such samples by the ambient term alone (faded in up to twice this), and the
+/// local histograms do not split their neighbourhood there.
+pub const MIN_GRADIENT: f32 = 0.004;
 
 pub use lao::{directions, LaoGpu, LaoParams};
 

@@ -314,7 +314,7 @@ pub fn bench_histogram(
         let sample: Vec<usize> = candidates.iter().step_by(step).copied().collect();
         let direct: Vec<f32> = sample
             .par_iter()
-            .map(|&i| histogram::direct_at(vol.dims, &q, &shades, &table, &nb, i).0)
+            .map(|&i| histogram::direct_at(vol.dims, &q, &shades, &table, &nb, None, i).0)
             .collect();
         let sweep = sweep_tools(vol, 25.0, frames);
         for &n in clusters {

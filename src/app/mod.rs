@@ -814,6 +814,9 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
             if h.clusters > 0 {
                 v.push(("cluster ids", 4.0));
             }
+            if h.hemispheres {
+                v.push(("scalars (the hemispheres' split)", 4.0));
+            }
         }
     }
     v
@@ -875,6 +878,7 @@ pub fn ao_sidecar(vol: &Volume, tf: &TransferFunction, ao: &AoConfig) -> serde_j
             "radius_mm": h.radius_mm,
             "bins": h.bins,
             "clusters": h.clusters,
+            "hemispheres": h.hemispheres,
             "dims": vol.dims,
             "spacing_mm": vol.spacing,
             "transfer_function": tf,
@@ -883,7 +887,10 @@ pub fn ao_sidecar(vol: &Volume, tf: &TransferFunction, ao: &AoConfig) -> serde_j
         / (v_max - v_min))); q = coverage * TF opacity at the bin centre (the written opacity file); \
         S_r = {u != v : |(u - v) s| <= r mm}, w = (s_min / |(u - v) s|)^2, W = sum of w over S_r \
         (out-of-grid members included, with q = 0); A = 1 - sum w q / W; E = sum w q rgb / sum w q \
-        (the bleeding file); clusters > 0: each voxel its cluster's values",
+        (the bleeding file); clusters > 0: each voxel its cluster's values; hemispheres: \
+        Delta(v) = the scalar's central differences (neighbours clamped), flat where \
+        |Delta_i / (2 s_i)| < 0.004 (v_max - v_min) per mm (S_r kept), else the sums and W run \
+        over H_f = {o in S_r : o . Delta <= 0}",
         });
     }
     if let AoMethod::Filter(f) = &ao.method {
@@ -988,7 +995,13 @@ pub fn write_ao(
                     }
                     let (q, shades, table) = histogram::direct_inputs(vol, tf, h.bins, &[]);
                     let nb = histogram::Neighbourhood::new(h.radius_mm, vol.spacing);
-                    let (a, e) = histogram::direct_reference(vol.dims, &q, &shades, &table, &nb);
+                    let splits = if h.hemispheres {
+                        histogram::splits(vol)
+                    } else {
+                        Vec::new()
+                    };
+                    let (a, e) =
+                        histogram::direct_reference(vol.dims, &q, &shades, &table, &nb, &splits);
                     bleeding = Some(e);
                     (a, q)
                 }

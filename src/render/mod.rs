@@ -69,9 +69,6 @@ impl Shading {
 pub const PHONG: [f32; 4] = [0.3, 0.75, 0.2, 24.0];
 /// The share of the diffuse term that the AO multiplies (the rest lights crevices directly).
 pub const AO_DIFFUSE_SHARE: f32 = 0.5;
-/// Gradients below this fraction of the value range per mm are noise, not surfaces: such
-/// samples are lit by the ambient term alone (faded in up to twice this).
-pub const MIN_GRADIENT: f32 = 0.004;
 /// Default ray step as a fraction of the smallest voxel spacing.
 pub const STEP_PER_SPACING: f32 = 0.5;
 /// `render --reference`: the step is this many times finer than the default.
@@ -1376,7 +1373,7 @@ impl Renderer {
             ],
             surface: [
                 // In texel units per mm, as the shader's gradient is.
-                MIN_GRADIENT * (hi - lo) / tex.scalar_map.1,
+                crate::ao::MIN_GRADIENT * (hi - lo) / tex.scalar_map.1,
                 if settings.cut_lighting {
                     CUT_LAYER_VOXELS * max_spacing
                 } else {

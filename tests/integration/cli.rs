@@ -573,6 +573,171 @@ fn ao_command_histogram_agrees_with_an_independent_implementation_and_the_cpu_re
     assert!(String::from_utf8_lossy(&bad.stderr).contains("histogram"));
 }
 
+/// The two hemispheres' front openness written straight from docs/design.md, sharing no code
+/// with cao-xr: Δ from the scalar's clamped central differences; flat where |Δ_i / (2 s_i)| is
+/// below 0.004 of the value range per mm (S_r kept); else H_f = the members o with o . Δ <= 0,
+/// A = 1 - sum over H_f of w q / sum over H_f of w (out-of-grid members in the denominator).
+fn independent_hemisphere_openness(
+    f: &[f64],
+    q: &[f32],
+    dims: &[usize],
+    s: &[f64],
+    r: f64,
+) -> Vec<f64> {
+    let (lo, hi) = f
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(a, b), &x| (a.min(x), b.max(x)));
+    let flat = 0.004 * (hi - lo);
+    let at = |p: [i64; 3]| p[0] as usize + dims[0] * (p[1] as usize + dims[1] * p[2] as usize);
+    let s_min = s.iter().cloned().fold(f64::MAX, f64::min);
+    let mut out = Vec::new();
+    for z in 0..dims[2] as i64 {
+        for y in 0..dims[1] as i64 {
+            for x in 0..dims[0] as i64 {
+                let v = [x, y, z];
+                let delta: Vec<f64> = (0..3)
+                    .map(|a| {
+                        let (mut up, mut down) = (v, v);
+                        up[a] = (v[a] + 1).min(dims[a] as i64 - 1);
+                        down[a] = (v[a] - 1).max(0);
+                        f[at(up)] - f[at(down)]
+                    })
+                    .collect();
+                let g: f64 = (0..3).map(|a| (delta[a] / (2.0 * s[a])).powi(2)).sum();
+                let split = g.sqrt() >= flat;
+                let (mut occ, mut total) = (0.0, 0.0);
+                let h: Vec<i64> = s.iter().map(|s| (r / s).floor() as i64).collect();
+                for oz in -h[2]..=h[2] {
+                    for oy in -h[1]..=h[1] {
+                        for ox in -h[0]..=h[0] {
+                            let o = [ox, oy, oz];
+                            let d2: f64 = (0..3).map(|a| (o[a] as f64 * s[a]).powi(2)).sum();
+                            if d2 == 0.0 || d2 > r * r {
+                                continue;
+                            }
+                            let dot: f64 = (0..3).map(|a| o[a] as f64 * delta[a]).sum();
+                            if split && dot > 0.0 {
+                                continue;
+                            }
+                            let w = s_min * s_min / d2;
+                            total += w;
+                            let p = [x + ox, y + oy, z + oz];
+                            if (0..3).all(|a| p[a] >= 0 && (p[a] as usize) < dims[a]) {
+                                occ += w * q[at(p)] as f64;
+                            }
+                        }
+                    }
+                }
+                out.push(1.0 - occ / total);
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn ao_command_hemispheres_agree_with_an_independent_implementation() {
+    let dir = tmp("ao-hemispheres");
+    // A 16-bit CT-like volume on an anisotropic grid: an ellipsoid of "bone" (1200) in "soft
+    // tissue" (40) with a tilted slab of air (-1000) through it, so gradients point every way.
+    let (dims, s) = ([18usize, 16, 12], [1.0f64, 1.25, 1.6]);
+    let mut f = Vec::new();
+    for z in 0..dims[2] {
+        for y in 0..dims[1] {
+            for x in 0..dims[0] {
+                let p = [x as f64 * s[0], y as f64 * s[1], z as f64 * s[2]];
+                let e = ((p[0] - 9.0) / 6.0).powi(2)
+                    + ((p[1] - 9.0) / 5.0).powi(2)
+                    + ((p[2] - 9.0) / 7.0).powi(2);
+                let slab = (p[0] + 0.5 * p[1] - 0.7 * p[2] - 6.0).abs() < 1.5;
+                f.push(if slab {
+                    -1000i16
+                } else if e < 1.0 {
+                    1200
+                } else {
+                    40
+                });
+            }
+        }
+    }
+    let vol = dir.join("ct.nrrd");
+    let mut file = format!(
+        "NRRD0004\ntype: short\ndimension: 3\nsizes: {} {} {}\nspace: left-posterior-superior\n\
+         space directions: ({},0,0) (0,{},0) (0,0,{})\nspace origin: (0,0,0)\nendian: little\n\
+         encoding: raw\n\n",
+        dims[0], dims[1], dims[2], s[0], s[1], s[2]
+    )
+    .into_bytes();
+    file.extend(f.iter().flat_map(|v| v.to_le_bytes()));
+    std::fs::write(&vol, file).unwrap();
+    let tf = dir.join("bone.json");
+    std::fs::write(
+        &tf,
+        r#"{"name":"bone","domain":"normalized","points":[
+            {"value":0.0,"color":[0,0,0],"alpha":0.0},
+            {"value":0.5,"color":[1,1,1],"alpha":0.0},
+            {"value":0.6,"color":[1,1,1],"alpha":1.0},
+            {"value":1.0,"color":[1,1,1],"alpha":1.0}]}"#,
+    )
+    .unwrap();
+    let (a, q) = (dir.join("a.nrrd"), dir.join("q.nrrd"));
+    let out = cao(&[
+        "ao",
+        vol.to_str().unwrap(),
+        "--tf",
+        tf.to_str().unwrap(),
+        "--ao",
+        "histogram",
+        "--hist-hemispheres",
+        "--clusters",
+        "0",
+        "--hist-radius-mm",
+        "4",
+        "--hist-bins",
+        "16",
+        "--out",
+        a.to_str().unwrap(),
+        "--opacity-out",
+        q.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let side: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(a.with_extension("json")).unwrap()).unwrap();
+    assert_eq!(side["hemispheres"], true);
+    let (got_dims, _, got) = read_nrrd_f32(&a);
+    assert_eq!(got_dims, dims);
+    let (_, _, qv) = read_nrrd_f32(&q);
+    let fv: Vec<f64> = f.iter().map(|&v| v as f64).collect();
+    let want = independent_hemisphere_openness(&fv, &qv, &dims, &s, 4.0);
+    crate::common::assert_agrees(&got, &want, "histogram --hist-hemispheres --clusters 0");
+    // Just outside the bone the front faces away from it: open, where the sphere is not.
+    let i = 9 + dims[0] * (7 + dims[1]); // (9, 7, 1)
+    assert!(qv[i] == 0.0 && want[i] > 0.99, "open outside: {}", want[i]);
+    let sphere = independent_histogram_openness(&qv, &dims, &s, 4.0);
+    let opened = want
+        .iter()
+        .zip(&sphere)
+        .filter(|(h, s)| **h > **s + 0.05)
+        .count();
+    assert!(opened > 50, "{opened} voxels opened");
+    // The clustered form is not built with hemispheres: refused by name.
+    let bad = cao(&[
+        "ao",
+        vol.to_str().unwrap(),
+        "--ao",
+        "histogram",
+        "--hist-hemispheres",
+        "--out",
+        dir.join("x.nrrd").to_str().unwrap(),
+    ]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--hist-hemispheres"));
+}
+
 /// A PNG's pixels: (width, height, channels, bytes).
 fn read_png(path: &Path) -> (usize, usize, usize, Vec<u8>) {
     let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));

@@ -73,35 +73,54 @@ fn the_gpu_direct_sums_agree_with_the_cpu_reference() {
     let gpu = common::gpu();
     let vol = phantom::head(24);
     let tf = TransferFunction::preset("ct-skin").unwrap();
-    // 9.2 mm voxels: r = 20 mm reaches two voxels along each axis.
-    let p = HistParams {
-        radius_mm: 20.0,
-        bins: 32,
-        clusters: 0,
-    };
-    let (cao, q) = setup(&gpu, &vol, &tf, p, "reference");
-    let h = cao.histogram().unwrap();
-    let (want_q, shades, table) = histogram::direct_inputs(&vol, &tf, p.bins, &[]);
-    assert_eq!(q, want_q);
-    let nb = histogram::Neighbourhood::new(p.radius_mm, vol.spacing);
-    let (want_a, want_e) = histogram::direct_reference(vol.dims, &q, &shades, &table, &nb);
-    let got_a = read_ao(&cao.ao);
-    common::assert_agrees(&got_a, &want_a, "the direct sums");
-    assert!(
-        got_a.iter().any(|&a| a < 0.7),
-        "the phantom occludes somewhere"
-    );
-    // E is stored as 8 bits per channel.
-    let got_e = e_of(&h.pre_e);
-    for (i, (g, w)) in got_e.iter().zip(&want_e).enumerate() {
-        for c in 0..3 {
-            assert!(
-                (g[c] - w[c]).abs() <= 0.5 / 255.0 + 1e-4,
-                "voxel {i}: E {g:?} vs {w:?}"
-            );
+    let mut sphere = Vec::new();
+    for hemispheres in [false, true] {
+        // 9.2 mm voxels: r = 20 mm reaches two voxels along each axis.
+        let p = HistParams {
+            radius_mm: 20.0,
+            bins: 32,
+            clusters: 0,
+            hemispheres,
+        };
+        let (cao, q) = setup(&gpu, &vol, &tf, p, "reference");
+        let h = cao.histogram().unwrap();
+        let (want_q, shades, table) = histogram::direct_inputs(&vol, &tf, p.bins, &[]);
+        assert_eq!(q, want_q);
+        let nb = histogram::Neighbourhood::new(p.radius_mm, vol.spacing);
+        let splits = if hemispheres {
+            histogram::splits(&vol)
+        } else {
+            Vec::new()
+        };
+        let (want_a, want_e) =
+            histogram::direct_reference(vol.dims, &q, &shades, &table, &nb, &splits);
+        let got_a = read_ao(&cao.ao);
+        let what = format!("the direct sums, hemispheres {hemispheres}");
+        common::assert_agrees(&got_a, &want_a, &what);
+        assert!(
+            got_a.iter().any(|&a| a < 0.7),
+            "the phantom occludes somewhere"
+        );
+        if hemispheres {
+            // The front faces away from the skin: outside it, the AO opens.
+            let opened = got_a.iter().zip(&sphere).filter(|(h, s)| *h > *s).count();
+            assert!(opened > got_a.len() / 20, "{opened} voxels opened");
+            assert!(splits.iter().any(|s| s.is_none()), "some flat voxels");
+        } else {
+            sphere = got_a.clone();
         }
+        // E is stored as 8 bits per channel.
+        let got_e = e_of(&h.pre_e);
+        for (i, (g, w)) in got_e.iter().zip(&want_e).enumerate() {
+            for c in 0..3 {
+                assert!(
+                    (g[c] - w[c]).abs() <= 0.5 / 255.0 + 1e-4,
+                    "voxel {i}: E {g:?} vs {w:?}"
+                );
+            }
+        }
+        assert!(want_e.iter().any(|e| e[0] > 0.1), "some bleeding colour");
     }
-    assert!(want_e.iter().any(|e| e[0] > 0.1), "some bleeding colour");
     common::assert_no_validation_messages(&gpu);
 }
 
@@ -113,6 +132,7 @@ fn analytic_cases_empty_opaque_and_one_coloured_voxel() {
         radius_mm: 4.0,
         bins: 4,
         clusters: 0,
+        ..Default::default()
     };
     // Empty: every voxel open, no colour.
     let (cao, _) = setup(
@@ -174,6 +194,7 @@ fn the_clustering_is_close_to_the_direct_sums_and_its_cache_is_reused_and_checke
         radius_mm: 24.0,
         bins: 32,
         clusters: 0,
+        ..Default::default()
     };
     let clustered = HistParams {
         clusters: 512,
@@ -237,11 +258,12 @@ fn the_clip_update_equals_a_direct_recompute_of_the_affected_voxels_bit_for_bit_
     let vol = phantom::head(32);
     let tf = TransferFunction::preset("ct-skin").unwrap();
     let placement = Placement::default();
-    for clusters in [0, 128] {
+    for (clusters, hemispheres) in [(0, false), (128, false), (0, true)] {
         let p = HistParams {
             radius_mm: 14.0,
             bins: 16,
             clusters,
+            hemispheres,
         };
         let (mut cao, _) = setup(&gpu, &vol, &tf, p, "frames");
         let (mut naive, _) = setup(&gpu, &vol, &tf, p, "frames");
@@ -307,6 +329,7 @@ fn a_tf_change_is_a_table_update_shown_in_the_next_frame() {
         radius_mm: 20.0,
         bins: 32,
         clusters: 64,
+        ..Default::default()
     };
     let skin = TransferFunction::preset("ct-skin").unwrap();
     // The same opacities in other colours: A stays, E changes.
@@ -383,6 +406,7 @@ fn the_stick_click_leaves_the_local_histograms_and_comes_back_to_them() {
         radius_mm: 24.0,
         bins: 16,
         clusters: 32,
+        ..Default::default()
     };
     let lao = LaoParams {
         rays: 6,
@@ -575,6 +599,7 @@ fn the_direct_sums_follow_the_structures_shown_and_their_colours() {
         radius_mm: 30.0,
         bins: 16,
         clusters: 0,
+        ..Default::default()
     };
     let (mut cao, _) = setup(&gpu, &vol, &tf, p, "labels");
     let check = |cao: &Cao, shown: &[f32], what: &str| {
@@ -626,6 +651,7 @@ fn the_clustered_values_follow_the_structures_shown() {
         radius_mm: 30.0,
         bins: 16,
         clusters: 512,
+        ..Default::default()
     };
     let (mut cao, _) = setup(&gpu, &vol, &tf, p, "labels-clustered");
     let near = |cao: &Cao, shown: &[f32], what: &str| {

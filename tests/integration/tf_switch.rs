@@ -610,6 +610,7 @@ fn the_left_stick_moves_the_isovalue_and_the_next_frame_shows_its_surface_and_ao
         radius_mm: 20.0,
         bins: 16,
         clusters: 0,
+        ..Default::default()
     });
     let new = |iso: f32| {
         let mut lighting = LightingOptions::default();
