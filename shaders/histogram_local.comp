@@ -4,7 +4,8 @@
 // LH_k(v) = sum of w / W over the in-grid members of S_r whose shade (bin, with the structure
 // folded in: src/ao/histogram.rs Shades) is k. The voxels are a range (base + row) or a list
 // (the clustering's training sample). A row has one entry per shade, however many there are:
-// the sums go straight into it, in the order of S_r.
+// the sums go straight into it, in the order of S_r. With the two hemispheres a voxel has two
+// rows, H_f's then H_b's, each over its own W_h (docs/design.md); a flat voxel's are both S_r's.
 #extension GL_GOOGLE_include_directive : require
 #include "constants.glsl"
 layout(local_size_x = 64) in;
@@ -15,6 +16,8 @@ layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Bin
 layout(std430, binding = 1) readonly buffer Neighbours { vec4 neighbours[]; };
 layout(std430, binding = 2) readonly buffer List { uint list[]; };
 layout(std430, binding = 3) buffer Rows { float rows[]; };
+#define SPLIT_BINDING 4
+#include "histogram_split.glsl"
 
 layout(push_constant) uniform Push {
     Bins bins_buf;
@@ -31,12 +34,34 @@ void main() {
     uint i = pc.job.w == 1u ? list[r] : pc.job.z + r;
     ivec3 v = ivec3(int(i) % pc.dims.x, (int(i) / pc.dims.x) % pc.dims.y,
                     int(i) / (pc.dims.x * pc.dims.y));
-    uint base = r * pc.job.y;
-    for (uint k = 0u; k < pc.job.y; k++) rows[base + k] = 0.0;
+    uint shades = pc.job.y;
+    uint base = (split_on != 0u ? 2u * r : r) * shades;
+    for (uint k = 0u; k < shades; k++) rows[base + k] = 0.0;
     // Away from the border every member is in the grid: no test per member.
     bool inside = all(greaterThanEqual(v, pc.reach.xyz)) && all(lessThan(v + pc.reach.xyz, pc.dims.xyz));
     int row = pc.dims.x, slice = pc.dims.x * pc.dims.y;
     int i0 = v.x + row * v.y + slice * v.z;
+    vec3 d;
+    if (split_at(v, pc.dims.xyz, d)) {
+        uint back = base + shades;
+        for (uint k = 0u; k < shades; k++) rows[back + k] = 0.0;
+        float total_f = 0.0, total_b = 0.0;
+        for (int n = 0; n < pc.dims.w; n++) {
+            vec4 nb = neighbours[n];
+            ivec3 o = ivec3(nb.xyz);
+            bool b = in_back(o, d);
+            if (b) total_b += nb.w; else total_f += nb.w;
+            ivec3 u = v + o;
+            if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
+            rows[(b ? back : base) + bins[u.x + row * u.y + slice * u.z]] += nb.w;
+        }
+        float sf = total_f > 0.0 ? 1.0 / total_f : 0.0, sb = total_b > 0.0 ? 1.0 / total_b : 0.0;
+        for (uint k = 0u; k < shades; k++) {
+            rows[base + k] *= sf;
+            rows[back + k] *= sb;
+        }
+        return;
+    }
     if (inside) {
         for (int n = 0; n < pc.dims.w; n++) {
             vec4 nb = neighbours[n];
@@ -50,5 +75,8 @@ void main() {
             if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
             rows[base + bins[u.x + row * u.y + slice * u.z]] += nb.w;
         }
+    }
+    if (split_on != 0u) {
+        for (uint k = 0u; k < shades; k++) rows[base + shades + k] = rows[base + k];
     }
 }

@@ -26,16 +26,8 @@ layout(std430, binding = 2) readonly buffer BinTable { vec4 bin_table[]; };
 layout(std430, binding = 3) readonly buffer Neighbours { vec4 neighbours[]; };
 // Per cluster, for the current TF: rgb = E, a = A.
 layout(std430, binding = 10) readonly buffer Clusters { vec4 clusters[]; };
-// The two hemispheres (docs/design.md): the scalar per voxel, whether to split, whether the
-// scalars are integers (then the split's dot products are exact in int), 1 / (2 s) per axis
-// and, in w, the square of the flat threshold in scalar units per mm.
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Scalars { float s[]; };
-layout(std430, binding = 11) readonly buffer Split {
-    Scalars scalars;
-    uint split_on;
-    uint integer_scalars;
-    vec4 half_inv_spacing;
-};
+#define SPLIT_BINDING 11
+#include "histogram_split.glsl"
 
 layout(push_constant) uniform Push {
     Q q_buf;
@@ -62,30 +54,14 @@ layout(push_constant) uniform Push {
 #define out_e pc.out_e_buf.out_e
 #define ids pc.ids_buf.ids
 
-// Δ(v): the scalar's central differences, neighbours clamped into the grid.
-vec3 delta(ivec3 v) {
-    int row = pc.dims.x, slice = pc.dims.x * pc.dims.y;
-    ivec3 hi = min(v + 1, pc.dims.xyz - 1), lo = max(v - 1, ivec3(0));
-    return vec3(scalars.s[hi.x + row * v.y + slice * v.z] - scalars.s[lo.x + row * v.y + slice * v.z],
-                scalars.s[v.x + row * hi.y + slice * v.z] - scalars.s[v.x + row * lo.y + slice * v.z],
-                scalars.s[v.x + row * v.y + slice * hi.z] - scalars.s[v.x + row * v.y + slice * lo.z]);
-}
-
 void direct(ivec3 v, out float a, out vec3 e) {
     float occ = 0.0;
     vec3 rgb = vec3(0.0);
     // The front hemisphere H_f, members with o . Δ <= 0, where the gradient is steep enough;
     // total: its share of W (out-of-grid members included).
-    bool split = false;
-    vec3 d = vec3(0.0);
-    ivec3 di = ivec3(0);
+    vec3 d;
+    bool split = split_at(v, pc.dims.xyz, d);
     float total = 0.0;
-    if (split_on != 0u) {
-        d = delta(v);
-        vec3 g = d * half_inv_spacing.xyz;
-        split = dot(g, g) >= half_inv_spacing.w;
-        di = ivec3(d);
-    }
     // Away from the border every member is in the grid: no test per member. The sum runs in
     // the same order either way, so a region's values equal the whole volume's bit for bit.
     bool inside = all(greaterThanEqual(v, pc.reach.xyz)) && all(lessThan(v + pc.reach.xyz, pc.dims.xyz));
@@ -95,9 +71,7 @@ void direct(ivec3 v, out float a, out vec3 e) {
         vec4 nb = neighbours[n];
         ivec3 o = ivec3(nb.xyz);
         if (split) {
-            bool back = integer_scalars != 0u ? o.x * di.x + o.y * di.y + o.z * di.z > 0
-                                              : dot(vec3(o), d) > 0.0;
-            if (back) continue;
+            if (in_back(o, d)) continue;
             total += nb.w;
         }
         if (!inside) {
@@ -119,7 +93,8 @@ void main() {
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
     int mode = pc.box_min.w;
     if (mode == 4) {
-        vec4 c = clusters[ids[i]];
+        // With hemispheres a voxel has two ids, the front's first.
+        vec4 c = clusters[ids[split_on != 0u ? 2 * i : i]];
         out_a[i] = uint16_t(unorm16_word(c.a));
         out_e[i] = packUnorm4x8(vec4(c.rgb, 1.0));
         return;

@@ -64,9 +64,6 @@ impl HistParams {
                 self.clusters
             ));
         }
-        if self.hemispheres && self.clusters > 0 {
-            return Err("--hist-hemispheres is built for the direct sums: add --clusters 0".into());
-        }
         Ok(())
     }
 }
@@ -694,8 +691,9 @@ pub fn training_sample(dims: [usize; 3], bins: &[u32], count: usize) -> Vec<u32>
     out
 }
 
-/// The clustering of one volume: each voxel's cluster and each cluster's representative, the
-/// mean of its members' full histograms (N x shades, row-major; [`Shades`]).
+/// The clustering of one volume: each voxel's cluster (two with the hemispheres, H_f's first)
+/// and each cluster's representative, the mean of its members' full histograms (N x shades,
+/// row-major; [`Shades`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Clusters {
     /// The histograms' length: the number of shades.
@@ -753,7 +751,13 @@ const CACHE_VERSION: u32 = 2;
 const CACHE_MAGIC: &[u8; 8] = b"CAOXRLH\x01";
 
 /// What a clustering depends on: the volume's shades and geometry, and the parameters.
-pub fn cache_key(dims: [usize; 3], spacing: [f64; 3], shades: &Shades, p: &HistParams) -> u64 {
+pub fn cache_key(
+    dims: [usize; 3],
+    spacing: [f64; 3],
+    shades: &Shades,
+    p: &HistParams,
+    scalars: Option<&[f32]>,
+) -> u64 {
     let mut h = Fnv::new();
     h.bytes(&CACHE_VERSION.to_le_bytes());
     for d in dims {
@@ -765,7 +769,12 @@ pub fn cache_key(dims: [usize; 3], spacing: [f64; 3], shades: &Shades, p: &HistP
     h.bytes(&p.radius_mm.to_le_bytes());
     h.bytes(&(p.bins as u64).to_le_bytes());
     h.bytes(&(p.clusters as u64).to_le_bytes());
+    h.bytes(&[p.hemispheres as u8]);
     h.bytes(bytemuck::cast_slice(&shades.ids));
+    // The hemispheres' split follows the scalars themselves, not only their bins.
+    if let Some(s) = scalars {
+        h.bytes(bytemuck::cast_slice(s));
+    }
     for &(id, k) in &shades.pairs {
         h.bytes(&[id]);
         h.bytes(&k.to_le_bytes());

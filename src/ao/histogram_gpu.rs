@@ -132,11 +132,12 @@ impl HistogramGpu {
         let nb = Neighbourhood::new(params.radius_mm, vol.spacing);
         let geometry = (vol.dims, vol.spacing, vol.value_range());
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
-        let scalars = if params.hemispheres {
-            let values: Vec<f32> = (0..n).into_par_iter().map(|i| vol.voxels.get(i)).collect();
-            Buffer::device_local(gpu, &values, storage, "hist-scalars")?
-        } else {
-            Buffer::new(gpu, 4, storage, MemoryLocation::GpuOnly, "hist-scalars")?
+        let values: Option<Vec<f32>> = params
+            .hemispheres
+            .then(|| (0..n).into_par_iter().map(|i| vol.voxels.get(i)).collect());
+        let scalars = match &values {
+            Some(v) => Buffer::device_local(gpu, v, storage, "hist-scalars")?,
+            None => Buffer::new(gpu, 4, storage, MemoryLocation::GpuOnly, "hist-scalars")?,
         };
         let integer = !matches!(vol.voxels, crate::volume::Voxels::F32(_));
         let mut h = HistogramGpu::with_state(
@@ -149,12 +150,14 @@ impl HistogramGpu {
             (scalars, integer),
         )?;
         if params.clusters > 0 {
-            let key = hist::cache_key(vol.dims, vol.spacing, &h.shades, &params);
+            let key = hist::cache_key(vol.dims, vol.spacing, &h.shades, &params, values.as_deref());
+            drop(values);
             let path = cache_dir.map(|d| hist::cache_path(d, key));
             let count = h.shades.count();
+            let rows = n * h.hemispheres();
             let cached = path
                 .as_deref()
-                .and_then(|p| hist::load_cache(p, key, n, count, &params));
+                .and_then(|p| hist::load_cache(p, key, rows, count, &params));
             let clusters = match cached {
                 Some(c) => {
                     h.timing.cached = true;
@@ -332,8 +335,9 @@ impl HistogramGpu {
         .sum()
     }
 
-    /// The local histograms of `rows` voxels (from `first`, or the voxels of `list`) into
-    /// `out` (device memory: the shader adds into it member by member), copied to `readback`.
+    /// The local histograms of `rows` voxels (from `first`, or the voxels of `list`; two each
+    /// with the hemispheres) into `out` (device memory: the shader adds into it member by
+    /// member), copied to `readback`.
     fn local_rows(
         &self,
         local: &ComputePipeline,
@@ -352,12 +356,12 @@ impl HistogramGpu {
             ],
             reach: self.reach4(),
         };
-        let bytes = (rows * self.shades.count() * 4) as u64;
+        let bytes = (rows * self.hemispheres() * self.shades.count() * 4) as u64;
         self.gpu.submit_and_wait(|cmd| {
             let l = list.unwrap_or(&self.bins);
             local.bind(
                 cmd,
-                &[&self.bins, &self.neighbours, l, out],
+                &[&self.bins, &self.neighbours, l, out, &self.split],
                 bytemuck::bytes_of(&push),
             );
             local.dispatch(cmd, [(rows as u32).div_ceil(64), 1, 1]);
@@ -372,6 +376,11 @@ impl HistogramGpu {
             self.gpu.barrier(cmd);
         })?;
         Ok(())
+    }
+
+    /// Local histograms per voxel: two with the hemispheres (H_f's, then H_b's), else one.
+    fn hemispheres(&self) -> usize {
+        1 + self.params.hemispheres as usize
     }
 
     /// S_r's largest offset per axis.
@@ -400,7 +409,11 @@ impl HistogramGpu {
     /// the host, then every voxel's histogram and nearest centroid on the GPU batch by batch,
     /// each cluster's representative the mean of its members' full histograms.
     fn cluster(&mut self, progress: &mut dyn FnMut(u64, u64, &str)) -> Result<Clusters> {
-        let (b, n) = (self.shades.count(), self.shades.ids.len());
+        let (b, n, hemis) = (
+            self.shades.count(),
+            self.shades.ids.len(),
+            self.hemispheres(),
+        );
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
         let packing = Packing::new(&self.shades.ids, b, hist::packed_dims(b));
         let p = packing.packed;
@@ -431,6 +444,7 @@ impl HistogramGpu {
                 Reach::Descriptor,
                 Reach::Descriptor,
                 Reach::Descriptor,
+                Reach::Descriptor,
             ],
             48,
         )?;
@@ -443,8 +457,8 @@ impl HistogramGpu {
             MIN_TRAINING.max(16 * self.params.clusters),
         );
         let list = Buffer::from_slice(&self.gpu, &sample, storage, "hist-sample")?;
-        let rows = readable(sample.len() * b * 4, "hist-sample-rows")?;
-        let gpu_rows = device_rows(sample.len() * b * 4, "hist-sample-rows-gpu")?;
+        let rows = readable(sample.len() * hemis * b * 4, "hist-sample-rows")?;
+        let gpu_rows = device_rows(sample.len() * hemis * b * 4, "hist-sample-rows-gpu")?;
         self.local_rows(&local, (0, sample.len()), Some(&list), &gpu_rows, &rows)?;
         let sample_rows: &[f32] = bytemuck::cast_slice(rows.mapped()?);
         let packed: Vec<f32> = sample_rows
@@ -474,14 +488,14 @@ impl HistogramGpu {
         let group_count = groups.first.len() as u32 - 1;
         let packing_buf = Buffer::from_slice(&self.gpu, &packing.matrix, storage, "hist-packing")?;
         let centroid_buf = Buffer::from_slice(&self.gpu, &centroids, storage, "hist-centroids")?;
-        let batch = (BATCH_BYTES / (b * 4)).clamp(64, n.max(64));
-        let rows = readable(batch * b * 4, "hist-rows")?;
-        let gpu_rows = device_rows(batch * b * 4, "hist-rows-gpu")?;
-        let ids_buf = readable(batch * 4, "hist-batch-ids")?;
+        let batch = (BATCH_BYTES / (hemis * b * 4)).clamp(64, n.max(64));
+        let rows = readable(batch * hemis * b * 4, "hist-rows")?;
+        let gpu_rows = device_rows(batch * hemis * b * 4, "hist-rows-gpu")?;
+        let ids_buf = readable(batch * hemis * 4, "hist-batch-ids")?;
         let k = self.params.clusters;
         let mut sums = vec![0.0f64; k * b];
         let mut pop = vec![0u64; k];
-        let mut ids = Vec::with_capacity(n);
+        let mut ids = Vec::with_capacity(n * hemis);
         let (mut hist_ms, mut assign_ms) = (sample_ms, 0.0);
         let batches = n.div_ceil(batch);
         for (i, first) in (0..n).step_by(batch).enumerate() {
@@ -492,7 +506,7 @@ impl HistogramGpu {
             hist_ms += t.elapsed().as_secs_f64() * 1e3;
             let t = std::time::Instant::now();
             let push = [
-                count as u32,
+                (count * hemis) as u32,
                 b as u32,
                 p as u32,
                 k as u32,
@@ -508,9 +522,9 @@ impl HistogramGpu {
                     &[&gpu_rows, &packing_buf, &centroid_buf, &ids_buf, gc, gf, gm],
                     bytemuck::bytes_of(&push),
                 );
-                assign.dispatch(cmd, [(count as u32).div_ceil(64), 1, 1]);
+                assign.dispatch(cmd, [((count * hemis) as u32).div_ceil(64), 1, 1]);
             })?;
-            let batch_ids: &[u32] = &bytemuck::cast_slice(ids_buf.mapped()?)[..count];
+            let batch_ids: &[u32] = &bytemuck::cast_slice(ids_buf.mapped()?)[..count * hemis];
             let batch_rows: &[f32] = bytemuck::cast_slice(rows.mapped()?);
             for (r, &c) in batch_ids.iter().enumerate() {
                 pop[c as usize] += 1;
@@ -532,9 +546,11 @@ impl HistogramGpu {
         );
         self.timing.histograms_ms = hist_ms;
         self.timing.assignment_ms = assign_ms;
-        self.timing.peak_host_bytes =
-            (2 * batch * b * 4 + k * b * 8 + n * 4 + packed.len() * 4 + sample.len() * b * 4)
-                as u64;
+        self.timing.peak_host_bytes = (2 * batch * hemis * b * 4
+            + k * b * 8
+            + n * hemis * 4
+            + packed.len() * 4
+            + sample.len() * hemis * b * 4) as u64;
         let reps = sums
             .chunks_exact(b)
             .zip(&pop)

@@ -812,7 +812,7 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
             v.push(("bins", 4.0));
             v.push(("E (precomputed, current, image)", 12.0));
             if h.clusters > 0 {
-                v.push(("cluster ids", 4.0));
+                v.push(("cluster ids", 4.0 * (1 + h.hemispheres as u8) as f64));
             }
             if h.hemispheres {
                 v.push(("scalars (the hemispheres' split)", 4.0));

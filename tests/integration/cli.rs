@@ -724,18 +724,6 @@ fn ao_command_hemispheres_agree_with_an_independent_implementation() {
         .filter(|(h, s)| **h > **s + 0.05)
         .count();
     assert!(opened > 50, "{opened} voxels opened");
-    // The clustered form is not built with hemispheres: refused by name.
-    let bad = cao(&[
-        "ao",
-        vol.to_str().unwrap(),
-        "--ao",
-        "histogram",
-        "--hist-hemispheres",
-        "--out",
-        dir.join("x.nrrd").to_str().unwrap(),
-    ]);
-    assert!(!bad.status.success());
-    assert!(String::from_utf8_lossy(&bad.stderr).contains("--hist-hemispheres"));
 }
 
 /// A PNG's pixels: (width, height, channels, bytes).

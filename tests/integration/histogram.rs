@@ -249,6 +249,37 @@ fn the_clustering_is_close_to_the_direct_sums_and_its_cache_is_reused_and_checke
         bytes.len(),
         "rewritten whole"
     );
+    // Two hemispheres: two histograms per voxel in one codebook, the front's values close to
+    // the front's direct sums (and not the sphere's); their cache entry is their own.
+    let hemispheres = |clusters| HistParams {
+        clusters,
+        hemispheres: true,
+        ..direct
+    };
+    let (dh, _) = setup(&gpu, &vol, &tf, hemispheres(0), "direct-hemispheres");
+    let want_h = read_ao(&dh.ao);
+    let run_h = |expect_cached: bool| {
+        let h = histogram_state(&gpu, &vol, hemispheres(512), Some(&dir), false).unwrap();
+        assert_eq!(h.timing.cached, expect_cached);
+        assert_eq!(h.clusters().unwrap().ids.len(), 2 * a.len());
+        let v = precompute_histogram(&gpu, &lao, &vol, &tf, &LaoParams::default(), h).unwrap();
+        read_ao(&v.ao_buf)
+    };
+    let ah = run_h(false);
+    let mean_to = |want: &[f32]| {
+        let (sum, count) = (0..a.len())
+            .filter(|&i| q[i] > 0.001)
+            .fold((0.0, 0), |(s, c), i| {
+                (s + (ah[i] as f64 - want[i] as f64).abs(), c + 1)
+            });
+        sum / count as f64
+    };
+    let (to_front, to_sphere) = (mean_to(&want_h), mean_to(&want));
+    assert!(
+        to_front <= 0.03 && to_front < to_sphere / 2.0,
+        "mean |clustered - direct|: {to_front} to the front's, {to_sphere} to the sphere's"
+    );
+    assert!(run_h(true) == ah, "the cached hemispheres");
     common::assert_no_validation_messages(&gpu);
 }
 
@@ -258,7 +289,7 @@ fn the_clip_update_equals_a_direct_recompute_of_the_affected_voxels_bit_for_bit_
     let vol = phantom::head(32);
     let tf = TransferFunction::preset("ct-skin").unwrap();
     let placement = Placement::default();
-    for (clusters, hemispheres) in [(0, false), (128, false), (0, true)] {
+    for (clusters, hemispheres) in [(0, false), (128, false), (0, true), (128, true)] {
         let p = HistParams {
             radius_mm: 14.0,
             bins: 16,
