@@ -51,8 +51,10 @@ struct App {
     opts: ViewOptions,
     fl: FrameLoop,
     input: DesktopInput,
-    window: Option<Window>,
+    // Fields drop in order: the presenter (its surface and swapchain) before the window it
+    // draws into, on every path out, an early error's included.
     presenter: Option<Presenter>,
+    window: Option<Window>,
     recorder: Option<Recorder>,
     both_eyes: bool,
     frame: usize,

@@ -676,11 +676,16 @@ impl FrameLoop {
 
     /// Waits for the oldest frame in flight and reads what it produced.
     fn retire(&mut self) -> Result<Option<Retired>> {
+        let Some(f) = self.slots.flights.front() else {
+            return Ok(None);
+        };
+        // Waited for before it leaves the list: a frame whose wait failed stays in flight, so
+        // the slots are never destroyed under it.
+        self.gpu.wait_fences(&[self.slots.slots[f.slot].fence])?;
         let Some(f) = self.slots.flights.pop_front() else {
             return Ok(None);
         };
         let slot = &self.slots.slots[f.slot];
-        self.gpu.wait_fences(&[slot.fence])?;
         self.tfs.picture_shown();
         let metrics = self.cao.read_metrics(f.pending)?;
         let sh = match (f.sh, self.lighting.as_ref()) {
@@ -1065,7 +1070,9 @@ impl Drop for Slots {
                 .map(|f| self.slots[f.slot].fence)
                 .collect();
             if !fences.is_empty() && self.gpu.wait_fences(&fences).is_err() {
-                // A device that stopped answering may still use them: leaked, not destroyed.
+                // A device that stopped answering may still use them (the timers' query pools
+                // and read-back buffers too): leaked, not destroyed.
+                std::mem::forget(std::mem::take(&mut self.slots));
                 return;
             }
             for s in &self.slots {
