@@ -37,245 +37,281 @@ struct Cli {
 enum Cmd {
     /// The main job: a headset session if an OpenXR runtime answers, else the desktop window if
     /// there is a display, else a headless render of a carved volume to out/render.
-    Start {
-        #[command(flatten)]
-        vol: VolumeArgs,
-        #[command(flatten)]
-        lao: LaoArgs,
-        #[command(flatten)]
-        light: LightArgs,
-    },
+    Start(StartArgs),
     /// Render both eyes of a volume (LAO-lit) to DIR/left.png, right.png and stereo.png.
-    Render {
-        #[command(flatten)]
-        vol: VolumeArgs,
-        #[command(flatten)]
-        lao: LaoArgs,
-        #[command(flatten)]
-        light: LightArgs,
-        /// Output directory.
-        #[arg(long, default_value = "out/render")]
-        out: PathBuf,
-        /// Pixels per eye, WIDTHxHEIGHT.
-        #[arg(long, default_value = "640x640", value_parser = parse_size)]
-        size: (u32, u32),
-        /// Render without ambient occlusion (for comparison).
-        #[arg(long)]
-        no_ao: bool,
-        /// Weight of the gradient diffuse term (overrides the --shading mode's).
-        #[arg(long)]
-        diffuse: Option<f32>,
-        /// Render the reference to measure against: a step 1/16 of the default, point samples,
-        /// no jitter (compare with `cao-xr compare`).
-        #[arg(long)]
-        reference: bool,
-        /// A clipping tool, SHAPE[:SIZE_MM[:X,Y,Z]] (sphere, box, cylinder, torus; prefix probe-
-        /// to keep only its inside; offset in mm from the volume centre, x right, y up, z towards
-        /// the viewer). Repeatable. The AO around the cut is CAO.
-        #[arg(long)]
-        tool: Vec<String>,
-        /// The background: R,G,B (0..1), or `transparent` for RGBA PNGs (straight alpha) of what
-        /// an ALPHA_BLEND (passthrough) runtime composites over the world.
-        #[arg(long, value_parser = parse_background)]
-        background: Option<Background>,
-    },
+    Render(RenderArgs),
     /// Precompute the LAO volume; write it as float32 NRRD plus a JSON sidecar.
-    Ao {
-        #[command(flatten)]
-        vol: VolumeArgs,
-        #[command(flatten)]
-        lao: LaoArgs,
-        /// Output AO volume (.nrrd); the sidecar goes next to it as .json.
-        #[arg(long)]
-        out: PathBuf,
-        /// Also write the opacity volume O that the AO was computed from (the filters' density d,
-        /// the local histograms' q).
-        #[arg(long)]
-        opacity_out: Option<PathBuf>,
-        /// With --ao histogram: also write the bleeding colour E (RGB NRRD).
-        #[arg(long)]
-        bleeding_out: Option<PathBuf>,
-        /// Use the CPU reference implementation instead of the GPU.
-        #[arg(long)]
-        cpu: bool,
-    },
+    Ao(AoArgs),
     /// Benchmarks that print tables (medians of several runs).
-    Bench {
-        #[command(subcommand)]
-        what: BenchCmd,
-    },
+    Bench(BenchCmdArgs),
     /// PSNR and SSIM (on luma) of picture B against picture A, e.g. a render against
     /// `render --reference`; optionally a difference image.
-    Compare {
-        a: PathBuf,
-        b: PathBuf,
-        /// Write |A - B| (luma, times 8) as a PNG here.
-        #[arg(long)]
-        diff: Option<PathBuf>,
-    },
+    Compare(CompareArgs),
     /// Fetch the real CT head (Debian's invesalius-examples) and convert it to NRRD in the cache.
-    FetchCt {
-        /// Fetch again even if the cache already holds it.
-        #[arg(long)]
-        force: bool,
-    },
+    FetchCt(FetchCtArgs),
     /// Write the procedural head phantom as NRRD.
-    Phantom {
-        /// Voxels per axis.
-        #[arg(long, default_value_t = 128)]
-        size: usize,
-        #[arg(long)]
-        out: PathBuf,
-    },
+    Phantom(PhantomArgs),
     /// Render every frame of a pose stream headless (both eyes side by side) with per-frame
     /// metrics: DIR/frame-00000.png ..., DIR/metrics.csv, optionally an animated PNG.
-    Replay {
-        /// The pose stream (.jsonl), e.g. controllers/scripts/sphere-sweep.jsonl.
-        script: PathBuf,
-        #[command(flatten)]
-        vol: VolumeArgs,
-        #[command(flatten)]
-        lao: LaoArgs,
-        #[command(flatten)]
-        light: LightArgs,
-        #[arg(long, default_value = "out/replay")]
-        out: PathBuf,
-        /// Keep one frame in N as PNG.
-        #[arg(long, default_value_t = 1)]
-        every: usize,
-        /// Write an animated PNG (APNG) of the kept frames.
-        #[arg(long)]
-        preview: Option<PathBuf>,
-        /// Pixels per eye, WIDTHxHEIGHT.
-        #[arg(long, default_value = "320x320", value_parser = parse_size)]
-        size: (u32, u32),
-        /// Recompute LAO for every voxel every frame (the baseline) instead of CAO.
-        #[arg(long)]
-        naive: bool,
-        /// Play at the recorded timing instead of as fast as possible.
-        #[arg(long)]
-        realtime: bool,
-        /// The right hand's tool: sphere, box, cylinder, torus (default: from the stream).
-        #[arg(long)]
-        shape: Option<String>,
-        /// Frames the GPU may hold at once: 2 records the next frame (and writes the last one's
-        /// PNG) while the GPU renders; 1 waits for every frame. The images are the same.
-        #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
-        frames_in_flight: Option<u32>,
-        /// Place the volume's centre at X,Y,Z metres in the stage (default: where the recorded
-        /// session put it, else 0,1.4,-0.6).
-        #[arg(long, value_parser = cao_xr::xr::parse_point, allow_hyphen_values = true)]
-        volume_at: Option<glam::Vec3>,
-        /// Every N frames print a line on stdout: host RSS, GPU memory in use (the allocator's
-        /// report), CPU and wall time, validation messages so far.
-        #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
-        stats_every: Option<u64>,
-    },
+    Replay(ReplayArgs),
     /// Open a desktop window: the mouse and keys are the head and the right hand (see README).
-    View {
-        #[command(flatten)]
-        vol: VolumeArgs,
-        #[command(flatten)]
-        lao: LaoArgs,
-        #[command(flatten)]
-        light: LightArgs,
-        /// Pixels per eye, WIDTHxHEIGHT (the window shows both eyes side by side).
-        #[arg(long, default_value = "480x480", value_parser = parse_size)]
-        size: (u32, u32),
-        /// Close after this many frames.
-        #[arg(long)]
-        frames: Option<usize>,
-        /// Record the session as a pose stream (JSON Lines) that `cao-xr replay` plays back.
-        #[arg(long)]
-        record: Option<PathBuf>,
-        /// Move head and tool automatically (an orbit and a carving sweep).
-        #[arg(long)]
-        demo: bool,
-        /// Save the last frame the window showed as PNG.
-        #[arg(long)]
-        screenshot: Option<PathBuf>,
-        /// Write every frame shown (both eyes side by side) as DIR/frame-00000.png, ...
-        #[arg(long)]
-        dump: Option<PathBuf>,
-        /// Frames the GPU may hold at once: 2 lets the next frame's input and interaction (and the
-        /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
-        #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
-        frames_in_flight: Option<u32>,
-        /// Hold this frame time (ms) by lengthening the ray step (up to 3x; the AO is
-        /// untouched). Off by default in the window.
-        #[arg(long, value_parser = parse_budget)]
-        frame_budget_ms: Option<f64>,
-    },
+    View(ViewArgs),
     /// Run a headset session through OpenXR (XR_KHR_vulkan_enable2): both eyes into the
     /// runtime's swapchain, controllers as hands, optionally recording the pose stream.
-    Xr {
-        #[command(flatten)]
-        vol: VolumeArgs,
-        #[command(flatten)]
-        lao: LaoArgs,
-        #[command(flatten)]
-        light: LightArgs,
-        /// Submit this many frames, then end the session cleanly.
-        #[arg(long)]
-        frames: Option<usize>,
-        /// Record the session as a pose stream (JSON Lines) that `cao-xr replay` plays back.
-        #[arg(long)]
-        record: Option<PathBuf>,
-        /// Pixels per eye, WIDTHxHEIGHT (default: the runtime's recommended size).
-        #[arg(long, value_parser = parse_size)]
-        size: Option<(u32, u32)>,
-        /// Directory of controller binding files (default: controllers/bindings, else built in).
-        #[arg(long)]
-        bindings: Option<PathBuf>,
-        /// Hold the right trigger from the first frame (carving on without a button press).
-        #[arg(long)]
-        carve: bool,
-        /// Place the volume's centre at X,Y,Z metres in the stage (default 0,1.4,-0.6).
-        #[arg(long, value_parser = cao_xr::xr::parse_point, allow_hyphen_values = true)]
-        volume_at: Option<glam::Vec3>,
-        /// Also show the left eye in a desktop window (X11) while the session runs.
-        #[arg(long)]
-        mirror: bool,
-        /// The environment blend mode: auto (the runtime's preferred one, or with --passthrough
-        /// the first of alpha-blend and additive it offers), opaque, additive or alpha-blend. A
-        /// mode the runtime does not offer is refused, with the list it does offer.
-        #[arg(long, default_value = "auto")]
-        blend: cao_xr::xr::blend::BlendRequest,
-        /// Mixed reality: the world shows through where the volume is not.
-        #[arg(long)]
-        passthrough: bool,
-        /// Frames the GPU may hold at once: 2 lets the next frame's input and interaction (and the
-        /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
-        #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
-        frames_in_flight: Option<u32>,
-        /// Hold this frame time (ms) by lengthening the ray step (up to 3x; the AO is
-        /// untouched); 0 turns it off. Default: 90 Hz.
-        #[arg(long, value_parser = parse_budget, default_value_t = app::budget::HEADSET_FRAME_MS)]
-        frame_budget_ms: f64,
-    },
+    Xr(XrArgs),
     /// Generate a scripted pose stream (JSON Lines) for replay and tests.
-    Script {
-        /// sphere-sweep, box-push-pull, torus-pass, two-tools, grab-scale, tremor, tf-switch,
-        /// hand-pinch or carve-loop (a tool carving without a pause, for soak runs).
-        kind: String,
-        #[arg(long)]
-        out: PathBuf,
-        #[arg(long, default_value_t = ScriptParams::default().frames)]
-        frames: usize,
-        #[arg(long, default_value_t = ScriptParams::default().fps)]
-        fps: f64,
-        /// How far the motion reaches from the volume centre, in metres.
-        #[arg(long, default_value_t = ScriptParams::default().radius_m)]
-        radius: f32,
-        /// Seed of the tremor.
-        #[arg(long, default_value_t = ScriptParams::default().seed)]
-        seed: u64,
-    },
+    Script(ScriptArgs),
     /// Print a volume's dimensions, type, spacing, orientation and value range.
-    Info {
-        #[command(flatten)]
-        vol: VolumeArgs,
-    },
+    Info(InfoArgs),
+}
+
+#[derive(Args)]
+struct StartArgs {
+    #[command(flatten)]
+    vol: VolumeArgs,
+    #[command(flatten)]
+    lao: LaoArgs,
+    #[command(flatten)]
+    light: LightArgs,
+}
+
+#[derive(Args)]
+struct RenderArgs {
+    #[command(flatten)]
+    vol: VolumeArgs,
+    #[command(flatten)]
+    lao: LaoArgs,
+    #[command(flatten)]
+    light: LightArgs,
+    /// Output directory.
+    #[arg(long, default_value = "out/render")]
+    out: PathBuf,
+    /// Pixels per eye, WIDTHxHEIGHT.
+    #[arg(long, default_value = "640x640", value_parser = parse_size)]
+    size: (u32, u32),
+    /// Render without ambient occlusion (for comparison).
+    #[arg(long)]
+    no_ao: bool,
+    /// Weight of the gradient diffuse term (overrides the --shading mode's).
+    #[arg(long)]
+    diffuse: Option<f32>,
+    /// Render the reference to measure against: a step 1/16 of the default, point samples,
+    /// no jitter (compare with `cao-xr compare`).
+    #[arg(long)]
+    reference: bool,
+    /// A clipping tool, SHAPE[:SIZE_MM[:X,Y,Z]] (sphere, box, cylinder, torus; prefix probe-
+    /// to keep only its inside; offset in mm from the volume centre, x right, y up, z towards
+    /// the viewer). Repeatable. The AO around the cut is CAO.
+    #[arg(long)]
+    tool: Vec<String>,
+    /// The background: R,G,B (0..1), or `transparent` for RGBA PNGs (straight alpha) of what
+    /// an ALPHA_BLEND (passthrough) runtime composites over the world.
+    #[arg(long, value_parser = parse_background)]
+    background: Option<Background>,
+}
+
+#[derive(Args)]
+struct AoArgs {
+    #[command(flatten)]
+    vol: VolumeArgs,
+    #[command(flatten)]
+    lao: LaoArgs,
+    /// Output AO volume (.nrrd); the sidecar goes next to it as .json.
+    #[arg(long)]
+    out: PathBuf,
+    /// Also write the opacity volume O that the AO was computed from (the filters' density d,
+    /// the local histograms' q).
+    #[arg(long)]
+    opacity_out: Option<PathBuf>,
+    /// With --ao histogram: also write the bleeding colour E (RGB NRRD).
+    #[arg(long)]
+    bleeding_out: Option<PathBuf>,
+    /// Use the CPU reference implementation instead of the GPU.
+    #[arg(long)]
+    cpu: bool,
+}
+
+#[derive(Args)]
+struct BenchCmdArgs {
+    #[command(subcommand)]
+    what: BenchCmd,
+}
+
+#[derive(Args)]
+struct CompareArgs {
+    a: PathBuf,
+    b: PathBuf,
+    /// Write |A - B| (luma, times 8) as a PNG here.
+    #[arg(long)]
+    diff: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct FetchCtArgs {
+    /// Fetch again even if the cache already holds it.
+    #[arg(long)]
+    force: bool,
+}
+
+#[derive(Args)]
+struct PhantomArgs {
+    /// Voxels per axis.
+    #[arg(long, default_value_t = 128)]
+    size: usize,
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(Args)]
+struct ReplayArgs {
+    /// The pose stream (.jsonl), e.g. controllers/scripts/sphere-sweep.jsonl.
+    script: PathBuf,
+    #[command(flatten)]
+    vol: VolumeArgs,
+    #[command(flatten)]
+    lao: LaoArgs,
+    #[command(flatten)]
+    light: LightArgs,
+    #[arg(long, default_value = "out/replay")]
+    out: PathBuf,
+    /// Keep one frame in N as PNG.
+    #[arg(long, default_value_t = 1)]
+    every: usize,
+    /// Write an animated PNG (APNG) of the kept frames.
+    #[arg(long)]
+    preview: Option<PathBuf>,
+    /// Pixels per eye, WIDTHxHEIGHT.
+    #[arg(long, default_value = "320x320", value_parser = parse_size)]
+    size: (u32, u32),
+    /// Recompute LAO for every voxel every frame (the baseline) instead of CAO.
+    #[arg(long)]
+    naive: bool,
+    /// Play at the recorded timing instead of as fast as possible.
+    #[arg(long)]
+    realtime: bool,
+    /// The right hand's tool: sphere, box, cylinder, torus (default: from the stream).
+    #[arg(long)]
+    shape: Option<String>,
+    /// Frames the GPU may hold at once: 2 records the next frame (and writes the last one's
+    /// PNG) while the GPU renders; 1 waits for every frame. The images are the same.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
+    frames_in_flight: Option<u32>,
+    /// Place the volume's centre at X,Y,Z metres in the stage (default: where the recorded
+    /// session put it, else 0,1.4,-0.6).
+    #[arg(long, value_parser = cao_xr::xr::parse_point, allow_hyphen_values = true)]
+    volume_at: Option<glam::Vec3>,
+    /// Every N frames print a line on stdout: host RSS, GPU memory in use (the allocator's
+    /// report), CPU and wall time, validation messages so far.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    stats_every: Option<u64>,
+}
+
+#[derive(Args)]
+struct ViewArgs {
+    #[command(flatten)]
+    vol: VolumeArgs,
+    #[command(flatten)]
+    lao: LaoArgs,
+    #[command(flatten)]
+    light: LightArgs,
+    /// Pixels per eye, WIDTHxHEIGHT (the window shows both eyes side by side).
+    #[arg(long, default_value = "480x480", value_parser = parse_size)]
+    size: (u32, u32),
+    /// Close after this many frames.
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Record the session as a pose stream (JSON Lines) that `cao-xr replay` plays back.
+    #[arg(long)]
+    record: Option<PathBuf>,
+    /// Move head and tool automatically (an orbit and a carving sweep).
+    #[arg(long)]
+    demo: bool,
+    /// Save the last frame the window showed as PNG.
+    #[arg(long)]
+    screenshot: Option<PathBuf>,
+    /// Write every frame shown (both eyes side by side) as DIR/frame-00000.png, ...
+    #[arg(long)]
+    dump: Option<PathBuf>,
+    /// Frames the GPU may hold at once: 2 lets the next frame's input and interaction (and the
+    /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
+    frames_in_flight: Option<u32>,
+    /// Hold this frame time (ms) by lengthening the ray step (up to 3x; the AO is
+    /// untouched). Off by default in the window.
+    #[arg(long, value_parser = parse_budget)]
+    frame_budget_ms: Option<f64>,
+}
+
+#[derive(Args)]
+struct XrArgs {
+    #[command(flatten)]
+    vol: VolumeArgs,
+    #[command(flatten)]
+    lao: LaoArgs,
+    #[command(flatten)]
+    light: LightArgs,
+    /// Submit this many frames, then end the session cleanly.
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Record the session as a pose stream (JSON Lines) that `cao-xr replay` plays back.
+    #[arg(long)]
+    record: Option<PathBuf>,
+    /// Pixels per eye, WIDTHxHEIGHT (default: the runtime's recommended size).
+    #[arg(long, value_parser = parse_size)]
+    size: Option<(u32, u32)>,
+    /// Directory of controller binding files (default: controllers/bindings, else built in).
+    #[arg(long)]
+    bindings: Option<PathBuf>,
+    /// Hold the right trigger from the first frame (carving on without a button press).
+    #[arg(long)]
+    carve: bool,
+    /// Place the volume's centre at X,Y,Z metres in the stage (default 0,1.4,-0.6).
+    #[arg(long, value_parser = cao_xr::xr::parse_point, allow_hyphen_values = true)]
+    volume_at: Option<glam::Vec3>,
+    /// Also show the left eye in a desktop window (X11) while the session runs.
+    #[arg(long)]
+    mirror: bool,
+    /// The environment blend mode: auto (the runtime's preferred one, or with --passthrough
+    /// the first of alpha-blend and additive it offers), opaque, additive or alpha-blend. A
+    /// mode the runtime does not offer is refused, with the list it does offer.
+    #[arg(long, default_value = "auto")]
+    blend: cao_xr::xr::blend::BlendRequest,
+    /// Mixed reality: the world shows through where the volume is not.
+    #[arg(long)]
+    passthrough: bool,
+    /// Frames the GPU may hold at once: 2 lets the next frame's input and interaction (and the
+    /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
+    frames_in_flight: Option<u32>,
+    /// Hold this frame time (ms) by lengthening the ray step (up to 3x; the AO is
+    /// untouched); 0 turns it off. Default: 90 Hz.
+    #[arg(long, value_parser = parse_budget, default_value_t = app::budget::HEADSET_FRAME_MS)]
+    frame_budget_ms: f64,
+}
+
+#[derive(Args)]
+struct ScriptArgs {
+    /// sphere-sweep, box-push-pull, torus-pass, two-tools, grab-scale, tremor, tf-switch,
+    /// hand-pinch or carve-loop (a tool carving without a pause, for soak runs).
+    kind: String,
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long, default_value_t = ScriptParams::default().frames)]
+    frames: usize,
+    #[arg(long, default_value_t = ScriptParams::default().fps)]
+    fps: f64,
+    /// How far the motion reaches from the volume centre, in metres.
+    #[arg(long, default_value_t = ScriptParams::default().radius_m)]
+    radius: f32,
+    /// Seed of the tremor.
+    #[arg(long, default_value_t = ScriptParams::default().seed)]
+    seed: u64,
+}
+
+#[derive(Args)]
+struct InfoArgs {
+    #[command(flatten)]
+    vol: VolumeArgs,
 }
 
 #[derive(Subcommand)]
@@ -283,142 +319,163 @@ enum BenchCmd {
     /// Every AO method side by side: full compute, per-frame clip update, TF change, memory,
     /// the filters' error and each picture against LAO at K = 54: phantom 64^3 and 128^3 and the
     /// CT head (or VOLUME).
-    Ao {
-        #[command(flatten)]
-        common: BenchArgs,
-        /// LAO's ray count K.
-        #[arg(long, default_value_t = LaoParams::default().rays)]
-        rays: u32,
-        /// Filter radii R in mm.
-        #[arg(long, value_delimiter = ',', default_value = "6,10")]
-        radii: Vec<f64>,
-        /// Frames of the sweep.
-        #[arg(long, default_value_t = 8)]
-        frames: usize,
-        /// The transfer function the TF change switches to.
-        #[arg(long, default_value = "ct-skin")]
-        tf_after: String,
-        /// Cluster counts N of the local-histogram table (0: the direct sums; none: skip it).
-        #[arg(long, value_delimiter = ',', default_value = "256,512,1024,2048")]
-        hist_clusters: Vec<usize>,
-        /// The local histograms' radius r in mm.
-        #[arg(long, default_value_t = HistParams::default().radius_mm)]
-        hist_radius_mm: f64,
-        /// The local histograms' bins B.
-        #[arg(long, default_value_t = HistParams::default().bins)]
-        hist_bins: usize,
-        /// Only the local-histogram table (its clusterings take minutes on a large volume).
-        #[arg(long)]
-        histogram_only: bool,
-    },
+    Ao(BenchAoArgs),
     /// CAO vs the naive full LAO recompute per frame, a 25 mm sphere sweeping through the
     /// phantom at 64^3 and 128^3 and the CT head (or VOLUME).
-    Cao {
-        #[command(flatten)]
-        common: BenchArgs,
-        #[arg(long, value_delimiter = ',', default_value = "6,14,26,54")]
-        rays: Vec<u32>,
-        /// Frames of the sweep.
-        #[arg(long, default_value_t = 8)]
-        frames: usize,
-        /// Compare every naive frame with CAO bit for bit; exit non-zero on a difference.
-        #[arg(long)]
-        verify: bool,
-        /// Radii in mm of the probe sweeps after the carving table.
-        #[arg(long, value_delimiter = ',', default_value = "20,40,60")]
-        probe_radii: Vec<f32>,
-        /// No probe table.
-        #[arg(long)]
-        no_probes: bool,
-    },
+    Cao(BenchCaoArgs),
     /// SH visibility precompute time with the hierarchy on and off and its error: phantom 64^3
     /// and 128^3 and the CT head (or VOLUME).
-    Sh {
-        #[command(flatten)]
-        common: BenchArgs,
-        /// SH volume rates 1:N (volume voxels per SH voxel and axis).
-        #[arg(long, value_delimiter = ',', default_value = "1,2,4,8")]
-        sh_downsample: Vec<u32>,
-        /// Coefficient counts (4 = bands 0-1, 16 = bands 0-3).
-        #[arg(long, value_delimiter = ',', default_value = "4,16")]
-        coeffs: Vec<u32>,
-        /// Directions per voxel.
-        #[arg(long, value_delimiter = ',', default_value = "100,400")]
-        directions: Vec<u32>,
-        /// Visibility ray length in mm.
-        #[arg(long, default_value_t = ShParams::default().length_mm)]
-        sh_length: f32,
-    },
+    Sh(BenchShArgs),
     /// The ray caster's pictures against the reference render (PSNR, SSIM) and their GPU time,
     /// for step multiples 1, 2, 4 with and without pre-integration, two views each: phantom
     /// 64^3 and 128^3 and the CT head (or VOLUME).
-    Quality {
-        #[command(flatten)]
-        common: BenchArgs,
-        /// Pixels per side of each eye.
-        #[arg(long, default_value_t = 256)]
-        size: u32,
-    },
+    Quality(BenchQualityArgs),
     /// GPU ms of every pass of a frame (a sphere carving), two eyes against one, the CAO update
     /// against the tool's radius and against the volume padded to 2x per axis, and fps with
     /// one and two frames in flight: the phantom at 64^3 (or VOLUME).
-    Frame {
-        #[command(flatten)]
-        common: BenchArgs,
-        /// LAO's ray count K.
-        #[arg(long, default_value_t = 14)]
-        rays: u32,
-        /// Pixels per eye, WIDTHxHEIGHT.
-        #[arg(long, default_value = "320x320", value_parser = parse_size)]
-        size: (u32, u32),
-        /// Frames of the sweep.
-        #[arg(long, default_value_t = 16)]
-        frames: usize,
-    },
+    Frame(BenchFrameArgs),
     /// How cao-xr scales with the volume: synthetic chest CTs of clinical sizes, written as
     /// NIfTI and read back; per size the load time and the time to a first picture, per size
     /// and method the precompute, GPU bytes per voxel, peak host memory, the CAO update of a
     /// fixed tool and the ray cast per eye.
-    Scale {
-        /// Grids, WxHxD, comma-separated.
-        #[arg(long, value_delimiter = ',', default_value = "512x512x133,512x512x600", value_parser = parse_dims)]
-        sizes: Vec<[usize; 3]>,
-        /// Voxel spacing in mm, X,Y,Z (a routine chest CT's by default).
-        #[arg(long, default_value = "0.7,0.7,2.5", value_parser = parse_spacing)]
-        spacing: [f64; 3],
-        /// AO methods to measure at each size.
-        #[arg(long, value_delimiter = ',', default_value = "filter-gauss,lao")]
-        methods: Vec<String>,
-        #[command(flatten)]
-        lao: LaoArgs,
-        /// Transfer function.
-        #[arg(long, default_value = "ct-bone")]
-        tf: String,
-        /// Pixels per eye, WIDTHxHEIGHT.
-        #[arg(long, default_value = "320x320", value_parser = parse_size)]
-        size: (u32, u32),
-        /// Frames with the fixed tool.
-        #[arg(long, default_value_t = 5)]
-        frames: usize,
-        /// The fixed tool, SHAPE[:SIZE_MM[:X,Y,Z]] as for render --tool.
-        #[arg(long, default_value = "sphere:40:0,0,60")]
-        tool: String,
-        /// Where the NIfTI files are written (and removed after reading).
-        #[arg(long, default_value = "out/bench-scale")]
-        dir: PathBuf,
-    },
+    Scale(BenchScaleArgs),
     /// LAO precompute time and throughput: phantom 64^3 and 128^3 and the CT head (or VOLUME).
-    Lao {
-        #[command(flatten)]
-        common: BenchArgs,
-        /// Ray counts to measure.
-        #[arg(long, value_delimiter = ',', default_value = "6,14,26")]
-        rays: Vec<u32>,
-        /// The kernel: new, old (the one before issue 18) or both, interleaved run by run, with
-        /// their ratio.
-        #[arg(long, default_value = "both", value_parser = ["new", "old", "both"])]
-        kernel: String,
-    },
+    Lao(BenchLaoArgs),
+}
+
+#[derive(Args)]
+struct BenchAoArgs {
+    #[command(flatten)]
+    common: BenchArgs,
+    /// LAO's ray count K.
+    #[arg(long, default_value_t = LaoParams::default().rays)]
+    rays: u32,
+    /// Filter radii R in mm.
+    #[arg(long, value_delimiter = ',', default_value = "6,10")]
+    radii: Vec<f64>,
+    /// Frames of the sweep.
+    #[arg(long, default_value_t = 8)]
+    frames: usize,
+    /// The transfer function the TF change switches to.
+    #[arg(long, default_value = "ct-skin")]
+    tf_after: String,
+    /// Cluster counts N of the local-histogram table (0: the direct sums; none: skip it).
+    #[arg(long, value_delimiter = ',', default_value = "256,512,1024,2048")]
+    hist_clusters: Vec<usize>,
+    /// The local histograms' radius r in mm.
+    #[arg(long, default_value_t = HistParams::default().radius_mm)]
+    hist_radius_mm: f64,
+    /// The local histograms' bins B.
+    #[arg(long, default_value_t = HistParams::default().bins)]
+    hist_bins: usize,
+    /// Only the local-histogram table (its clusterings take minutes on a large volume).
+    #[arg(long)]
+    histogram_only: bool,
+}
+
+#[derive(Args)]
+struct BenchCaoArgs {
+    #[command(flatten)]
+    common: BenchArgs,
+    #[arg(long, value_delimiter = ',', default_value = "6,14,26,54")]
+    rays: Vec<u32>,
+    /// Frames of the sweep.
+    #[arg(long, default_value_t = 8)]
+    frames: usize,
+    /// Compare every naive frame with CAO bit for bit; exit non-zero on a difference.
+    #[arg(long)]
+    verify: bool,
+    /// Radii in mm of the probe sweeps after the carving table.
+    #[arg(long, value_delimiter = ',', default_value = "20,40,60")]
+    probe_radii: Vec<f32>,
+    /// No probe table.
+    #[arg(long)]
+    no_probes: bool,
+}
+
+#[derive(Args)]
+struct BenchShArgs {
+    #[command(flatten)]
+    common: BenchArgs,
+    /// SH volume rates 1:N (volume voxels per SH voxel and axis).
+    #[arg(long, value_delimiter = ',', default_value = "1,2,4,8")]
+    sh_downsample: Vec<u32>,
+    /// Coefficient counts (4 = bands 0-1, 16 = bands 0-3).
+    #[arg(long, value_delimiter = ',', default_value = "4,16")]
+    coeffs: Vec<u32>,
+    /// Directions per voxel.
+    #[arg(long, value_delimiter = ',', default_value = "100,400")]
+    directions: Vec<u32>,
+    /// Visibility ray length in mm.
+    #[arg(long, default_value_t = ShParams::default().length_mm)]
+    sh_length: f32,
+}
+
+#[derive(Args)]
+struct BenchQualityArgs {
+    #[command(flatten)]
+    common: BenchArgs,
+    /// Pixels per side of each eye.
+    #[arg(long, default_value_t = 256)]
+    size: u32,
+}
+
+#[derive(Args)]
+struct BenchFrameArgs {
+    #[command(flatten)]
+    common: BenchArgs,
+    /// LAO's ray count K.
+    #[arg(long, default_value_t = 14)]
+    rays: u32,
+    /// Pixels per eye, WIDTHxHEIGHT.
+    #[arg(long, default_value = "320x320", value_parser = parse_size)]
+    size: (u32, u32),
+    /// Frames of the sweep.
+    #[arg(long, default_value_t = 16)]
+    frames: usize,
+}
+
+#[derive(Args)]
+struct BenchScaleArgs {
+    /// Grids, WxHxD, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "512x512x133,512x512x600", value_parser = parse_dims)]
+    sizes: Vec<[usize; 3]>,
+    /// Voxel spacing in mm, X,Y,Z (a routine chest CT's by default).
+    #[arg(long, default_value = "0.7,0.7,2.5", value_parser = parse_spacing)]
+    spacing: [f64; 3],
+    /// AO methods to measure at each size.
+    #[arg(long, value_delimiter = ',', default_value = "filter-gauss,lao")]
+    methods: Vec<String>,
+    #[command(flatten)]
+    lao: LaoArgs,
+    /// Transfer function.
+    #[arg(long, default_value = "ct-bone")]
+    tf: String,
+    /// Pixels per eye, WIDTHxHEIGHT.
+    #[arg(long, default_value = "320x320", value_parser = parse_size)]
+    size: (u32, u32),
+    /// Frames with the fixed tool.
+    #[arg(long, default_value_t = 5)]
+    frames: usize,
+    /// The fixed tool, SHAPE[:SIZE_MM[:X,Y,Z]] as for render --tool.
+    #[arg(long, default_value = "sphere:40:0,0,60")]
+    tool: String,
+    /// Where the NIfTI files are written (and removed after reading).
+    #[arg(long, default_value = "out/bench-scale")]
+    dir: PathBuf,
+}
+
+#[derive(Args)]
+struct BenchLaoArgs {
+    #[command(flatten)]
+    common: BenchArgs,
+    /// Ray counts to measure.
+    #[arg(long, value_delimiter = ',', default_value = "6,14,26")]
+    rays: Vec<u32>,
+    /// The kernel: new, old (the one before issue 18) or both, interleaved run by run, with
+    /// their ratio.
+    #[arg(long, default_value = "both", value_parser = ["new", "old", "both"])]
+    kernel: String,
 }
 
 #[derive(Args)]
@@ -938,482 +995,535 @@ fn main() -> std::process::ExitCode {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
-        Cmd::Compare { a, b, diff } => {
-            use cao_xr::render::compare;
-            let read = |p: &PathBuf| compare::read_png(p).map_err(anyhow::Error::msg);
-            let (pa, pb) = (read(&a)?, read(&b)?);
-            let (c, image) = compare::compare(&pa, &pb)
-                .map_err(|e| anyhow::anyhow!("{} against {}: {e}", b.display(), a.display()))?;
-            if let Some(path) = &diff {
-                cao_xr::render::png_out::write_rgb(path, pa.width as u32, pa.height as u32, &image)
-                    .with_context(|| format!("cannot write {}", path.display()))?;
-            }
-            println!(
-                "PSNR {:.2} dB  SSIM {:.4}  max |d luma| {:.0}  ({}x{})",
-                c.psnr, c.ssim, c.max_diff, pa.width, pa.height
-            );
+        Cmd::Start(a) => start(a, cli.validation),
+        Cmd::Render(a) => render(a, cli.validation),
+        Cmd::Ao(a) => ao(a, cli.validation),
+        Cmd::Bench(a) => bench(a.what, cli.validation),
+        Cmd::Compare(a) => compare(a),
+        Cmd::FetchCt(a) => fetch_ct(a),
+        Cmd::Phantom(a) => phantom(a),
+        Cmd::Replay(a) => replay(a, cli.validation),
+        Cmd::View(a) => view(a, cli.validation),
+        Cmd::Xr(a) => xr(a, cli.validation),
+        Cmd::Script(a) => script(a),
+        Cmd::Info(a) => info(a),
+    }
+}
+
+fn bench(what: BenchCmd, validation: bool) -> Result<()> {
+    match what {
+        BenchCmd::Ao(a) => bench_ao(a, validation),
+        BenchCmd::Cao(a) => bench_cao(a, validation),
+        BenchCmd::Sh(a) => bench_sh(a, validation),
+        BenchCmd::Quality(a) => bench_quality(a, validation),
+        BenchCmd::Frame(a) => bench_frame(a, validation),
+        BenchCmd::Scale(a) => bench_scale(a, validation),
+        BenchCmd::Lao(a) => bench_lao(a, validation),
+    }
+}
+
+fn start(a: StartArgs, validation: bool) -> Result<()> {
+    let StartArgs { vol, lao, light } = a;
+    let spec = session_spec(&vol, &lao, &light)?;
+    println!("{}", app::start(&spec, validation)?);
+    Ok(())
+}
+
+fn render(a: RenderArgs, validation: bool) -> Result<()> {
+    let RenderArgs {
+        vol,
+        lao,
+        light,
+        out,
+        size,
+        no_ao,
+        diffuse,
+        reference,
+        tool,
+        background,
+    } = a;
+    let mut spec = session_spec(&vol, &lao, &light)?;
+    let shading = &mut spec.lighting.shading;
+    shading.no_ao = no_ao;
+    shading.diffuse = diffuse;
+    if reference {
+        *shading = shading.reference(spec.volume.spacing);
+    }
+    let v = &spec.volume;
+    eprintln!(
+        "volume {} {:?} spacing {:?} mm, tf {}",
+        v.name, v.dims, v.spacing, spec.tf.name
+    );
+    let gpu = gpu(validation)?;
+    let mut settings = RenderSettings::default();
+    match background {
+        Some(Background::Transparent) => settings.transparent = true,
+        Some(Background::Colour(c)) => settings.background = c,
+        None => {}
+    }
+    let placement = cao_xr::space::Placement::default();
+    let tools = tool
+        .iter()
+        .map(|t| app::parse_tool(t, &placement))
+        .collect::<Result<Vec<_>, _>>()?;
+    let t0 = std::time::Instant::now();
+    let m = app::render_to_dir(&gpu, &spec, &tools, size, &settings, &out)?;
+    if let Some(m) = m {
+        println!(
+            "CAO: {} clipped, {} recomputed ({:.2} %), GPU restore {:.1} ms, clip {:.1} ms, update {:.1} ms",
+            m.clipped,
+            m.recomputed,
+            m.percent_recomputed(),
+            m.restore_ms,
+            m.clip_ms,
+            m.update_ms
+        );
+    }
+    let peak = gpu.memory_peak();
+    println!(
+        "GPU memory: peak {} MiB, {:.1} bytes per voxel",
+        peak >> 20,
+        peak as f64 / spec.volume.voxel_count().max(1) as f64
+    );
+    println!(
+        "wrote {0}/left.png {0}/right.png {0}/stereo.png in {1:.1} s",
+        out.display(),
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn ao(a: AoArgs, validation: bool) -> Result<()> {
+    let AoArgs {
+        vol,
+        lao,
+        out,
+        opacity_out,
+        bleeding_out,
+        cpu,
+    } = a;
+    let (v, tf) = vol.load()?;
+    let gpu = if cpu { None } else { Some(gpu(validation)?) };
+    let t = app::write_ao(
+        gpu.as_ref(),
+        &v,
+        &tf,
+        &lao.config()?,
+        &out,
+        opacity_out.as_deref(),
+        bleeding_out.as_deref(),
+    )?;
+    println!(
+        "wrote {} and {} ({:.1} ms{})",
+        out.display(),
+        out.with_extension("json").display(),
+        if cpu { t.wall_ms } else { t.gpu_ms },
+        if cpu { " on the CPU" } else { " GPU time" }
+    );
+    Ok(())
+}
+
+fn bench_ao(a: BenchAoArgs, validation: bool) -> Result<()> {
+    let BenchAoArgs {
+        common,
+        rays,
+        radii,
+        frames,
+        tf_after,
+        hist_clusters,
+        hist_radius_mm,
+        hist_bins,
+        histogram_only,
+    } = a;
+    let b = common.setup(validation)?;
+    let tf_after = TransferFunction::resolve(&tf_after)?;
+    let base = LaoParams { rays, ..b.base };
+    if !histogram_only {
+        app::bench_ao::bench_ao(
+            &b.gpu,
+            &b.volumes,
+            &b.tf,
+            &tf_after,
+            &radii,
+            &base,
+            frames.max(1),
+            b.runs,
+        )?;
+    }
+    if !hist_clusters.is_empty() {
+        let p = HistParams {
+            radius_mm: hist_radius_mm,
+            bins: hist_bins,
+            clusters: 0,
+            hemispheres: false,
+        };
+        p.validate().map_err(anyhow::Error::msg)?;
+        println!();
+        app::bench_ao::bench_histogram(
+            &b.gpu,
+            &b.volumes,
+            &b.tf,
+            &tf_after,
+            p,
+            &hist_clusters,
+            &base,
+            frames.max(1),
+        )?;
+    }
+    Ok(())
+}
+
+fn bench_cao(a: BenchCaoArgs, validation: bool) -> Result<()> {
+    let BenchCaoArgs {
+        common,
+        rays,
+        frames,
+        verify,
+        probe_radii,
+        no_probes,
+    } = a;
+    let b = common.setup(validation)?;
+    let frames = frames.max(1);
+    if let Some(r) = probe_radii.iter().find(|r| !(r.is_finite() && **r > 0.0)) {
+        bail!("--probe-radii must be positive, got {r}");
+    }
+    app::bench::bench_cao(
+        &b.gpu,
+        &b.volumes,
+        &b.tf,
+        &rays,
+        &b.base,
+        frames,
+        b.runs,
+        verify,
+        if no_probes { &[] } else { &probe_radii },
+    )?;
+    Ok(())
+}
+
+fn bench_sh(a: BenchShArgs, validation: bool) -> Result<()> {
+    let BenchShArgs {
+        common,
+        sh_downsample,
+        coeffs,
+        directions,
+        sh_length,
+    } = a;
+    let b = common.setup(validation)?;
+    let base = ShParams {
+        length_mm: sh_length,
+        ..ShParams::default()
+    };
+    for d in &directions {
+        ShParams {
+            directions: *d,
+            ..base
         }
-        Cmd::Start { vol, lao, light } => {
-            let spec = session_spec(&vol, &lao, &light)?;
-            println!("{}", app::start(&spec, cli.validation)?);
-        }
-        Cmd::Render {
-            vol,
-            lao,
-            light,
-            out,
-            size,
-            no_ao,
-            diffuse,
-            reference,
-            tool,
-            background,
-        } => {
-            let mut spec = session_spec(&vol, &lao, &light)?;
-            let shading = &mut spec.lighting.shading;
-            shading.no_ao = no_ao;
-            shading.diffuse = diffuse;
-            if reference {
-                *shading = shading.reference(spec.volume.spacing);
-            }
-            let v = &spec.volume;
-            eprintln!(
-                "volume {} {:?} spacing {:?} mm, tf {}",
-                v.name, v.dims, v.spacing, spec.tf.name
-            );
-            let gpu = gpu(cli.validation)?;
-            let mut settings = RenderSettings::default();
-            match background {
-                Some(Background::Transparent) => settings.transparent = true,
-                Some(Background::Colour(c)) => settings.background = c,
-                None => {}
-            }
-            let placement = cao_xr::space::Placement::default();
-            let tools = tool
-                .iter()
-                .map(|t| app::parse_tool(t, &placement))
-                .collect::<Result<Vec<_>, _>>()?;
-            let t0 = std::time::Instant::now();
-            let m = app::render_to_dir(&gpu, &spec, &tools, size, &settings, &out)?;
-            if let Some(m) = m {
-                println!(
-                    "CAO: {} clipped, {} recomputed ({:.2} %), GPU restore {:.1} ms, clip {:.1} ms, update {:.1} ms",
-                    m.clipped,
-                    m.recomputed,
-                    m.percent_recomputed(),
-                    m.restore_ms,
-                    m.clip_ms,
-                    m.update_ms
-                );
-            }
-            let peak = gpu.memory_peak();
-            println!(
-                "GPU memory: peak {} MiB, {:.1} bytes per voxel",
-                peak >> 20,
-                peak as f64 / spec.volume.voxel_count().max(1) as f64
-            );
-            println!(
-                "wrote {0}/left.png {0}/right.png {0}/stereo.png in {1:.1} s",
-                out.display(),
-                t0.elapsed().as_secs_f64()
-            );
-        }
-        Cmd::Ao {
-            vol,
-            lao,
-            out,
-            opacity_out,
-            bleeding_out,
-            cpu,
-        } => {
-            let (v, tf) = vol.load()?;
-            let gpu = if cpu {
-                None
-            } else {
-                Some(gpu(cli.validation)?)
-            };
-            let t = app::write_ao(
-                gpu.as_ref(),
-                &v,
-                &tf,
-                &lao.config()?,
-                &out,
-                opacity_out.as_deref(),
-                bleeding_out.as_deref(),
-            )?;
-            println!(
-                "wrote {} and {} ({:.1} ms{})",
-                out.display(),
-                out.with_extension("json").display(),
-                if cpu { t.wall_ms } else { t.gpu_ms },
-                if cpu { " on the CPU" } else { " GPU time" }
-            );
-        }
-        Cmd::Bench {
-            what:
-                BenchCmd::Sh {
-                    common,
-                    sh_downsample,
-                    coeffs,
-                    directions,
-                    sh_length,
-                },
-        } => {
-            let b = common.setup(cli.validation)?;
-            let base = ShParams {
-                length_mm: sh_length,
-                ..ShParams::default()
-            };
-            for d in &directions {
-                ShParams {
-                    directions: *d,
-                    ..base
-                }
-                .validate()
-                .map_err(anyhow::Error::msg)?;
-            }
-            app::bench::bench_sh(
-                &b.gpu,
-                &b.volumes,
-                &b.tf,
-                &sh_downsample,
-                &coeffs,
-                &directions,
-                &base,
-                b.runs,
-            )?;
-        }
-        Cmd::Bench {
-            what:
-                BenchCmd::Ao {
-                    common,
-                    rays,
-                    radii,
-                    frames,
-                    tf_after,
-                    hist_clusters,
-                    hist_radius_mm,
-                    hist_bins,
-                    histogram_only,
-                },
-        } => {
-            let b = common.setup(cli.validation)?;
-            let tf_after = TransferFunction::resolve(&tf_after)?;
-            let base = LaoParams { rays, ..b.base };
-            if !histogram_only {
-                app::bench_ao::bench_ao(
-                    &b.gpu,
-                    &b.volumes,
-                    &b.tf,
-                    &tf_after,
-                    &radii,
-                    &base,
-                    frames.max(1),
-                    b.runs,
-                )?;
-            }
-            if !hist_clusters.is_empty() {
-                let p = HistParams {
-                    radius_mm: hist_radius_mm,
-                    bins: hist_bins,
-                    clusters: 0,
-                    hemispheres: false,
-                };
-                p.validate().map_err(anyhow::Error::msg)?;
-                println!();
-                app::bench_ao::bench_histogram(
-                    &b.gpu,
-                    &b.volumes,
-                    &b.tf,
-                    &tf_after,
-                    p,
-                    &hist_clusters,
-                    &base,
-                    frames.max(1),
-                )?;
-            }
-        }
-        Cmd::Bench {
-            what: BenchCmd::Quality { common, size },
-        } => {
-            let b = common.setup(cli.validation)?;
-            let lao = LaoParams {
-                rays: LaoParams::default().rays,
-                ..b.base
-            };
-            app::bench_quality::bench_quality(&b.gpu, &b.volumes, &b.tf, lao, size, b.runs)?;
-        }
-        Cmd::Bench {
-            what:
-                BenchCmd::Frame {
-                    mut common,
-                    rays,
-                    size,
-                    frames,
-                },
-        } => {
-            common.volume.get_or_insert_with(|| "phantom:64".into());
-            let b = common.setup(cli.validation)?;
-            let lao = LaoParams { rays, ..b.base };
-            app::bench_frame::bench_frame(&b.gpu, &b.volumes[0], &b.tf, lao, size, frames, b.runs)?;
-        }
-        Cmd::Bench {
-            what:
-                BenchCmd::Scale {
-                    sizes,
-                    spacing,
-                    methods,
-                    lao,
-                    tf,
-                    size,
-                    frames,
-                    tool,
-                    dir,
-                },
-        } => {
-            let config = lao.config()?;
-            let methods = methods
-                .iter()
-                .map(|m| AoMethod::parse(m, config.filter, lao.hist()))
-                .collect::<std::result::Result<Vec<_>, _>>()
-                .map_err(anyhow::Error::msg)?;
-            let opts = app::bench_scale::ScaleOptions {
-                sizes,
-                spacing,
-                config,
-                methods,
-                tf: TransferFunction::resolve(&tf)?,
-                eye: size,
-                frames,
-                tool: app::parse_tool(&tool, &cao_xr::space::Placement::default())?,
-            };
-            app::bench_scale::bench_scale(&gpu(cli.validation)?, &opts, &dir)?;
-        }
-        Cmd::Bench {
-            what:
-                BenchCmd::Lao {
-                    common,
-                    rays,
-                    kernel,
-                },
-        } => {
-            let b = common.setup(cli.validation)?;
-            let kernels: &[LaoKernel] = match kernel.as_str() {
-                "old" => &[LaoKernel::Old],
-                "new" => &[LaoKernel::New],
-                _ => &[LaoKernel::Old, LaoKernel::New],
-            };
-            app::bench::bench_lao(&b.gpu, &b.volumes, &b.tf, &rays, &b.base, b.runs, kernels)?;
-        }
-        Cmd::Bench {
-            what:
-                BenchCmd::Cao {
-                    common,
-                    rays,
-                    frames,
-                    verify,
-                    probe_radii,
-                    no_probes,
-                },
-        } => {
-            let b = common.setup(cli.validation)?;
-            let frames = frames.max(1);
-            if let Some(r) = probe_radii.iter().find(|r| !(r.is_finite() && **r > 0.0)) {
-                bail!("--probe-radii must be positive, got {r}");
-            }
-            app::bench::bench_cao(
-                &b.gpu,
-                &b.volumes,
-                &b.tf,
-                &rays,
-                &b.base,
-                frames,
-                b.runs,
-                verify,
-                if no_probes { &[] } else { &probe_radii },
-            )?;
-        }
-        Cmd::FetchCt { force } => {
-            let cached = ct_head::cached_path();
-            if cached.exists() && !force {
-                println!(
-                    "CT head already cached at {} (--force fetches it again)",
-                    cached.display()
-                );
-                return Ok(());
-            }
-            let path = ct_head::fetch(&mut |msg| eprintln!("{msg}"))?;
-            println!("CT head cached at {}", path.display());
-        }
-        Cmd::Phantom { size, out } => {
-            if !(4..=1024).contains(&size) {
-                bail!("--size must be 4..=1024");
-            }
-            let v = phantom::head(size);
-            cao_xr::volume::nrrd::write_volume(&out, &v, true)?;
-            println!("wrote {}", out.display());
-        }
-        Cmd::Replay {
-            script,
-            vol,
-            lao,
-            light,
-            out,
-            every,
-            preview,
-            size,
-            naive,
-            realtime,
-            shape,
-            frames_in_flight,
-            volume_at,
-            stats_every,
-        } => {
-            let spec = session_spec(&vol, &lao, &light)?;
-            let gpu = gpu(cli.validation)?;
-            let shape = match shape.as_deref() {
-                None => None,
-                Some(s) => Some(app::parse_tool(s, &Default::default())?.shape),
-            };
-            let opts = app::replay::ReplayOptions {
-                every,
-                preview,
-                size,
-                mode: if naive {
-                    cao_xr::ao::cao::Mode::Naive
-                } else {
-                    Default::default()
-                },
-                realtime,
-                shape,
-                frames_in_flight: frames_in_flight.map(|n| n as usize),
-                volume_at,
-                stats_every: stats_every.map(|n| n as usize),
-            };
-            let s = app::replay::replay(&gpu, &script, &spec, &out, &opts)?;
-            println!(
-                "replayed {} frames into {} ({} PNGs, metrics.csv): mean AO update {:.1} ms, {:.2} % recomputed; {} frames recorded while the one before was in flight",
-                s.frames,
-                out.display(),
-                s.pngs,
-                s.mean_ao_ms,
-                s.mean_percent_recomputed,
-                s.overlapped
-            );
-        }
-        Cmd::View {
-            vol,
-            lao,
-            light,
-            size,
-            frames,
-            record,
-            demo,
-            screenshot,
-            dump,
-            frames_in_flight,
-            frame_budget_ms,
-        } => {
-            let spec = session_spec(&vol, &lao, &light)?;
-            let opts = app::desktop::ViewOptions {
-                frame_budget_ms,
-                size,
-                frames,
-                record,
-                demo,
-                screenshot,
-                dump,
-                validation: cli.validation,
-                frames_in_flight: frames_in_flight.map(|n| n as usize),
-            };
-            let n = app::desktop::run(&spec, opts)?;
-            println!("closed after {n} frames");
-            interrupted_note();
-        }
-        Cmd::Xr {
-            vol,
-            lao,
-            light,
-            frames,
-            record,
-            size,
-            bindings,
-            carve,
-            volume_at,
-            mirror,
-            blend,
-            passthrough,
-            frames_in_flight,
-            frame_budget_ms,
-        } => {
-            let spec = session_spec(&vol, &lao, &light)?;
-            let opts = cao_xr::xr::XrOptions {
-                frames,
-                record,
-                size,
-                bindings,
-                carve,
-                volume_at,
-                mirror,
-                validation: cli.validation,
-                blend,
-                passthrough,
-                frames_in_flight: frames_in_flight.map(|n| n as usize),
-                frame_budget_ms: (frame_budget_ms > 0.0).then_some(frame_budget_ms),
-            };
-            let s = app::headset::run(&spec, opts)?;
-            interrupted_note();
-            println!(
-                "xr session ended cleanly: {} frames submitted, {} with tracked hands, states {}, focused {}, haptic pulses {}, space {}, blend {} (offered {})",
-                s.frames,
-                s.tracked_frames,
-                s.states.join(">"),
-                s.focused,
-                s.pulses,
-                s.space,
-                s.blend,
-                s.blend_offered.join(", ")
-            );
-            match &s.depth_missing {
-                None => println!("depth layer: submitted with {} frames", s.depth_frames),
-                Some(why) => println!("depth layer: {why}"),
-            }
-            println!(
-                "hand tracking: {}, joints drove {} frames",
-                if s.hand_tracking { "on" } else { "off" },
-                s.hand_frames
-            );
-        }
-        Cmd::Script {
-            kind,
-            out,
-            frames,
-            fps,
-            radius,
-            seed,
-        } => {
-            let kind: ScriptKind = kind.parse()?;
-            let params = ScriptParams {
-                frames,
-                fps,
-                radius_m: radius,
-                seed,
-                ..Default::default()
-            };
-            write_script(kind, &params, &out)?;
-            println!("wrote {} ({frames} frames of {kind})", out.display());
-        }
-        Cmd::Info { vol } => {
-            if let Some((listing, chosen)) = app::dicom_listing(vol.volume.as_deref())? {
-                print!("{listing}");
-                if !chosen {
-                    println!("pick one as DIR#N or DIR#SERIES_UID for its volume info");
-                    return Ok(());
-                }
-            }
-            let (v, tf) = vol.load()?;
-            print!("{}", app::info_report(&v, &tf));
+        .validate()
+        .map_err(anyhow::Error::msg)?;
+    }
+    app::bench::bench_sh(
+        &b.gpu,
+        &b.volumes,
+        &b.tf,
+        &sh_downsample,
+        &coeffs,
+        &directions,
+        &base,
+        b.runs,
+    )?;
+    Ok(())
+}
+
+fn bench_quality(a: BenchQualityArgs, validation: bool) -> Result<()> {
+    let BenchQualityArgs { common, size } = a;
+    let b = common.setup(validation)?;
+    let lao = LaoParams {
+        rays: LaoParams::default().rays,
+        ..b.base
+    };
+    app::bench_quality::bench_quality(&b.gpu, &b.volumes, &b.tf, lao, size, b.runs)?;
+    Ok(())
+}
+
+fn bench_frame(a: BenchFrameArgs, validation: bool) -> Result<()> {
+    let BenchFrameArgs {
+        mut common,
+        rays,
+        size,
+        frames,
+    } = a;
+    common.volume.get_or_insert_with(|| "phantom:64".into());
+    let b = common.setup(validation)?;
+    let lao = LaoParams { rays, ..b.base };
+    app::bench_frame::bench_frame(&b.gpu, &b.volumes[0], &b.tf, lao, size, frames, b.runs)?;
+    Ok(())
+}
+
+fn bench_scale(a: BenchScaleArgs, validation: bool) -> Result<()> {
+    let BenchScaleArgs {
+        sizes,
+        spacing,
+        methods,
+        lao,
+        tf,
+        size,
+        frames,
+        tool,
+        dir,
+    } = a;
+    let config = lao.config()?;
+    let methods = methods
+        .iter()
+        .map(|m| AoMethod::parse(m, config.filter, lao.hist()))
+        .collect::<std::result::Result<Vec<_>, _>>()
+        .map_err(anyhow::Error::msg)?;
+    let opts = app::bench_scale::ScaleOptions {
+        sizes,
+        spacing,
+        config,
+        methods,
+        tf: TransferFunction::resolve(&tf)?,
+        eye: size,
+        frames,
+        tool: app::parse_tool(&tool, &cao_xr::space::Placement::default())?,
+    };
+    app::bench_scale::bench_scale(&gpu(validation)?, &opts, &dir)?;
+    Ok(())
+}
+
+fn bench_lao(a: BenchLaoArgs, validation: bool) -> Result<()> {
+    let BenchLaoArgs {
+        common,
+        rays,
+        kernel,
+    } = a;
+    let b = common.setup(validation)?;
+    let kernels: &[LaoKernel] = match kernel.as_str() {
+        "old" => &[LaoKernel::Old],
+        "new" => &[LaoKernel::New],
+        _ => &[LaoKernel::Old, LaoKernel::New],
+    };
+    app::bench::bench_lao(&b.gpu, &b.volumes, &b.tf, &rays, &b.base, b.runs, kernels)?;
+    Ok(())
+}
+
+fn compare(a: CompareArgs) -> Result<()> {
+    let CompareArgs { a, b, diff } = a;
+    use cao_xr::render::compare;
+    let read = |p: &PathBuf| compare::read_png(p).map_err(anyhow::Error::msg);
+    let (pa, pb) = (read(&a)?, read(&b)?);
+    let (c, image) = compare::compare(&pa, &pb)
+        .map_err(|e| anyhow::anyhow!("{} against {}: {e}", b.display(), a.display()))?;
+    if let Some(path) = &diff {
+        cao_xr::render::png_out::write_rgb(path, pa.width as u32, pa.height as u32, &image)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    println!(
+        "PSNR {:.2} dB  SSIM {:.4}  max |d luma| {:.0}  ({}x{})",
+        c.psnr, c.ssim, c.max_diff, pa.width, pa.height
+    );
+    Ok(())
+}
+
+fn fetch_ct(a: FetchCtArgs) -> Result<()> {
+    let FetchCtArgs { force } = a;
+    let cached = ct_head::cached_path();
+    if cached.exists() && !force {
+        println!(
+            "CT head already cached at {} (--force fetches it again)",
+            cached.display()
+        );
+        return Ok(());
+    }
+    let path = ct_head::fetch(&mut |msg| eprintln!("{msg}"))?;
+    println!("CT head cached at {}", path.display());
+    Ok(())
+}
+
+fn phantom(a: PhantomArgs) -> Result<()> {
+    let PhantomArgs { size, out } = a;
+    if !(4..=1024).contains(&size) {
+        bail!("--size must be 4..=1024");
+    }
+    let v = phantom::head(size);
+    cao_xr::volume::nrrd::write_volume(&out, &v, true)?;
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
+fn replay(a: ReplayArgs, validation: bool) -> Result<()> {
+    let ReplayArgs {
+        script,
+        vol,
+        lao,
+        light,
+        out,
+        every,
+        preview,
+        size,
+        naive,
+        realtime,
+        shape,
+        frames_in_flight,
+        volume_at,
+        stats_every,
+    } = a;
+    let spec = session_spec(&vol, &lao, &light)?;
+    let gpu = gpu(validation)?;
+    let shape = match shape.as_deref() {
+        None => None,
+        Some(s) => Some(app::parse_tool(s, &Default::default())?.shape),
+    };
+    let opts = app::replay::ReplayOptions {
+        every,
+        preview,
+        size,
+        mode: if naive {
+            cao_xr::ao::cao::Mode::Naive
+        } else {
+            Default::default()
+        },
+        realtime,
+        shape,
+        frames_in_flight: frames_in_flight.map(|n| n as usize),
+        volume_at,
+        stats_every: stats_every.map(|n| n as usize),
+    };
+    let s = app::replay::replay(&gpu, &script, &spec, &out, &opts)?;
+    println!(
+        "replayed {} frames into {} ({} PNGs, metrics.csv): mean AO update {:.1} ms, {:.2} % recomputed; {} frames recorded while the one before was in flight",
+        s.frames,
+        out.display(),
+        s.pngs,
+        s.mean_ao_ms,
+        s.mean_percent_recomputed,
+        s.overlapped
+    );
+    Ok(())
+}
+
+fn view(a: ViewArgs, validation: bool) -> Result<()> {
+    let ViewArgs {
+        vol,
+        lao,
+        light,
+        size,
+        frames,
+        record,
+        demo,
+        screenshot,
+        dump,
+        frames_in_flight,
+        frame_budget_ms,
+    } = a;
+    let spec = session_spec(&vol, &lao, &light)?;
+    let opts = app::desktop::ViewOptions {
+        frame_budget_ms,
+        size,
+        frames,
+        record,
+        demo,
+        screenshot,
+        dump,
+        validation,
+        frames_in_flight: frames_in_flight.map(|n| n as usize),
+    };
+    let n = app::desktop::run(&spec, opts)?;
+    println!("closed after {n} frames");
+    interrupted_note();
+    Ok(())
+}
+
+fn xr(a: XrArgs, validation: bool) -> Result<()> {
+    let XrArgs {
+        vol,
+        lao,
+        light,
+        frames,
+        record,
+        size,
+        bindings,
+        carve,
+        volume_at,
+        mirror,
+        blend,
+        passthrough,
+        frames_in_flight,
+        frame_budget_ms,
+    } = a;
+    let spec = session_spec(&vol, &lao, &light)?;
+    let opts = cao_xr::xr::XrOptions {
+        frames,
+        record,
+        size,
+        bindings,
+        carve,
+        volume_at,
+        mirror,
+        validation,
+        blend,
+        passthrough,
+        frames_in_flight: frames_in_flight.map(|n| n as usize),
+        frame_budget_ms: (frame_budget_ms > 0.0).then_some(frame_budget_ms),
+    };
+    let s = app::headset::run(&spec, opts)?;
+    interrupted_note();
+    println!(
+        "xr session ended cleanly: {} frames submitted, {} with tracked hands, states {}, focused {}, haptic pulses {}, space {}, blend {} (offered {})",
+        s.frames,
+        s.tracked_frames,
+        s.states.join(">"),
+        s.focused,
+        s.pulses,
+        s.space,
+        s.blend,
+        s.blend_offered.join(", ")
+    );
+    match &s.depth_missing {
+        None => println!("depth layer: submitted with {} frames", s.depth_frames),
+        Some(why) => println!("depth layer: {why}"),
+    }
+    println!(
+        "hand tracking: {}, joints drove {} frames",
+        if s.hand_tracking { "on" } else { "off" },
+        s.hand_frames
+    );
+    Ok(())
+}
+
+fn script(a: ScriptArgs) -> Result<()> {
+    let ScriptArgs {
+        kind,
+        out,
+        frames,
+        fps,
+        radius,
+        seed,
+    } = a;
+    let kind: ScriptKind = kind.parse()?;
+    let params = ScriptParams {
+        frames,
+        fps,
+        radius_m: radius,
+        seed,
+        ..Default::default()
+    };
+    write_script(kind, &params, &out)?;
+    println!("wrote {} ({frames} frames of {kind})", out.display());
+    Ok(())
+}
+
+fn info(a: InfoArgs) -> Result<()> {
+    let InfoArgs { vol } = a;
+    if let Some((listing, chosen)) = app::dicom_listing(vol.volume.as_deref())? {
+        print!("{listing}");
+        if !chosen {
+            println!("pick one as DIR#N or DIR#SERIES_UID for its volume info");
+            return Ok(());
         }
     }
+    let (v, tf) = vol.load()?;
+    print!("{}", app::info_report(&v, &tf));
     Ok(())
 }
