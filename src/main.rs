@@ -715,7 +715,7 @@ struct LaoArgs {
     #[arg(long, default_value_t = HistParams::default().clusters)]
     clusters: usize,
     /// Two hemispheres per voxel split by the scalar's gradient: the local histograms' AO and
-    /// colour from the one facing down the gradient (with --clusters 0).
+    /// colour from the one facing down the gradient, away from the higher values.
     #[arg(long)]
     hist_hemispheres: bool,
     /// Colour bleeding weight W of --ao histogram: the TF colour moves towards the
