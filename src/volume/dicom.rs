@@ -753,10 +753,23 @@ fn name_of(p: &Path) -> String {
 /// Checks that every slice shares the first one's pixel format and plane geometry, sorts them
 /// along the slice normal and measures the spacing.
 fn geometry(series: &Series) -> Result<Geometry, VolumeError> {
-    let sl = &series.slices;
-    let first = &sl[0];
-    let p0 = &first.path;
+    let first = &series.slices[0];
     // pixel format first: a colour series fails here with the clearest message
+    check_pixel_format(first)?;
+    for s in &series.slices[1..] {
+        check_same_as_first(series, s)?;
+    }
+    let plane = Plane::of(first)?;
+    match first.ipp {
+        // No positions anywhere: stack by InstanceNumber, spacing from the header.
+        None => stack_by_instance(series, &plane),
+        Some(_) => stack_by_position(series, &plane),
+    }
+}
+
+/// Refuses a first slice whose samples cannot make a greyscale volume.
+fn check_pixel_format(first: &Slice) -> Result<(), VolumeError> {
+    let p0 = &first.path;
     if first.samples != 1 || first.photometric.starts_with("PALETTE") {
         return Err(VolumeError::unsupported(
             p0,
@@ -794,146 +807,186 @@ fn geometry(series: &Series) -> Result<Geometry, VolumeError> {
             ),
         ));
     }
-    let clash = |s: &Slice, what: &str, a: String, b: String| {
+    Ok(())
+}
+
+/// Refuses slice `s` unless it has the series' first slice's size, pixel format, pixel spacing
+/// and orientation, and a position exactly when the first has one.
+fn check_same_as_first(series: &Series, s: &Slice) -> Result<(), VolumeError> {
+    let first = &series.slices[0];
+    let clash = |what: &str, a: String, b: String| {
         VolumeError::format(
             &s.path,
             format!(
                 "mixed series {}: {what} is {b} here but {a} in {} (one series must share one \
                  geometry and pixel format)",
                 series.uid,
-                name_of(p0)
+                name_of(&first.path)
             ),
         )
     };
     let close = |a: &[f64], b: &[f64], tol: f64| a.iter().zip(b).all(|(x, y)| (x - y).abs() <= tol);
-    for s in &sl[1..] {
-        if (s.rows, s.cols) != (first.rows, first.cols) {
-            return Err(clash(
-                s,
-                "Rows x Columns",
-                format!("{} x {}", first.rows, first.cols),
-                format!("{} x {}", s.rows, s.cols),
-            ));
-        }
-        if (
-            s.samples,
-            s.bits_allocated,
-            s.bits_stored,
-            s.high_bit,
-            s.signed,
-        ) != (
-            first.samples,
-            first.bits_allocated,
-            first.bits_stored,
-            first.high_bit,
-            first.signed,
-        ) {
-            let f = |x: &Slice| {
-                format!(
-                    "{} sample(s) of {}/{} bits (high bit {}, {})",
-                    x.samples,
-                    x.bits_stored,
-                    x.bits_allocated,
-                    x.high_bit,
-                    if x.signed { "signed" } else { "unsigned" }
-                )
-            };
-            return Err(clash(s, "the pixel format", f(first), f(s)));
-        }
-        let ps = |x: &Slice| x.pixel_spacing.map_or("none".into(), |v| format!("{v:?}"));
-        match (first.pixel_spacing, s.pixel_spacing) {
-            (Some(a), Some(b)) if close(&a, &b, 1e-4 * a[0].abs().max(1.0)) => {}
-            (None, None) => {}
-            _ => return Err(clash(s, "PixelSpacing", ps(first), ps(s))),
-        }
-        let io = |x: &Slice| x.iop.map_or("none".into(), |v| format!("{v:?}"));
-        match (first.iop, s.iop) {
-            (Some(a), Some(b)) if close(&a, &b, 1e-4) => {}
-            (None, None) => {}
-            _ => return Err(clash(s, "ImageOrientationPatient", io(first), io(s))),
-        }
-        if s.ipp.is_some() != first.ipp.is_some() {
-            return Err(clash(
-                s,
-                "ImagePositionPatient",
-                if first.ipp.is_some() {
-                    "present"
-                } else {
-                    "absent"
-                }
-                .into(),
-                if s.ipp.is_some() { "present" } else { "absent" }.into(),
-            ));
-        }
+    if (s.rows, s.cols) != (first.rows, first.cols) {
+        return Err(clash(
+            "Rows x Columns",
+            format!("{} x {}", first.rows, first.cols),
+            format!("{} x {}", s.rows, s.cols),
+        ));
     }
-    let [row_sp, col_sp] = match first.pixel_spacing {
-        Some(v) if v[0] > 0.0 && v[1] > 0.0 => v,
-        Some(v) => {
-            return Err(VolumeError::format(
-                p0,
-                format!("PixelSpacing {v:?} is not positive"),
-            ))
-        }
-        // no spacing at all (e.g. secondary capture): unit pixels
-        None => [1.0, 1.0],
+    let format_of = |x: &Slice| {
+        (
+            x.samples,
+            x.bits_allocated,
+            x.bits_stored,
+            x.high_bit,
+            x.signed,
+        )
     };
-    let single_spacing = || {
-        [first.spacing_between, first.slice_thickness]
+    if format_of(s) != format_of(first) {
+        let f = |x: &Slice| {
+            format!(
+                "{} sample(s) of {}/{} bits (high bit {}, {})",
+                x.samples,
+                x.bits_stored,
+                x.bits_allocated,
+                x.high_bit,
+                if x.signed { "signed" } else { "unsigned" }
+            )
+        };
+        return Err(clash("the pixel format", f(first), f(s)));
+    }
+    let ps = |x: &Slice| x.pixel_spacing.map_or("none".into(), |v| format!("{v:?}"));
+    match (first.pixel_spacing, s.pixel_spacing) {
+        (Some(a), Some(b)) if close(&a, &b, 1e-4 * a[0].abs().max(1.0)) => {}
+        (None, None) => {}
+        _ => return Err(clash("PixelSpacing", ps(first), ps(s))),
+    }
+    let io = |x: &Slice| x.iop.map_or("none".into(), |v| format!("{v:?}"));
+    match (first.iop, s.iop) {
+        (Some(a), Some(b)) if close(&a, &b, 1e-4) => {}
+        (None, None) => {}
+        _ => return Err(clash("ImageOrientationPatient", io(first), io(s))),
+    }
+    if s.ipp.is_some() != first.ipp.is_some() {
+        let had = |x: &Slice| if x.ipp.is_some() { "present" } else { "absent" };
+        return Err(clash(
+            "ImagePositionPatient",
+            had(first).into(),
+            had(s).into(),
+        ));
+    }
+    Ok(())
+}
+
+/// The image plane shared by a series' slices: pixel spacing and the row and column
+/// directions.
+struct Plane {
+    row_sp: f64,
+    col_sp: f64,
+    row_dir: DVec3,
+    col_dir: DVec3,
+    /// Slice spacing from the header alone (SpacingBetweenSlices, else SliceThickness, else 1).
+    header_spacing: f64,
+}
+
+impl Plane {
+    fn of(first: &Slice) -> Result<Plane, VolumeError> {
+        let p0 = &first.path;
+        let [row_sp, col_sp] = match first.pixel_spacing {
+            Some(v) if v[0] > 0.0 && v[1] > 0.0 => v,
+            Some(v) => {
+                return Err(VolumeError::format(
+                    p0,
+                    format!("PixelSpacing {v:?} is not positive"),
+                ))
+            }
+            // no spacing at all (e.g. secondary capture): unit pixels
+            None => [1.0, 1.0],
+        };
+        let header_spacing = [first.spacing_between, first.slice_thickness]
             .into_iter()
             .flatten()
             .find(|v| *v > 0.0)
-            .unwrap_or(1.0)
-    };
-    let (row_dir, col_dir) = match first.iop {
-        Some(v) => {
-            let r = DVec3::new(v[0], v[1], v[2]);
-            let c = DVec3::new(v[3], v[4], v[5]);
-            if r.length() < 0.5 || c.length() < 0.5 || r.normalize().dot(c.normalize()).abs() > 1e-2
-            {
+            .unwrap_or(1.0);
+        let (row_dir, col_dir) = match first.iop {
+            Some(v) => {
+                let r = DVec3::new(v[0], v[1], v[2]);
+                let c = DVec3::new(v[3], v[4], v[5]);
+                if r.length() < 0.5
+                    || c.length() < 0.5
+                    || r.normalize().dot(c.normalize()).abs() > 1e-2
+                {
+                    return Err(VolumeError::format(
+                        p0,
+                        format!("ImageOrientationPatient {v:?} is not two orthogonal unit vectors"),
+                    ));
+                }
+                let r = r.normalize();
+                // re-orthogonalise the rounding in the file away
+                let c = (c - r * r.dot(c)).normalize();
+                (r, c)
+            }
+            None if first.ipp.is_none() => (DVec3::X, DVec3::Y),
+            None => {
                 return Err(VolumeError::format(
                     p0,
-                    format!("ImageOrientationPatient {v:?} is not two orthogonal unit vectors"),
-                ));
+                    "ImagePositionPatient without ImageOrientationPatient: cannot place the slices",
+                ))
             }
-            let r = r.normalize();
-            // re-orthogonalise the rounding in the file away
-            let c = (c - r * r.dot(c)).normalize();
-            (r, c)
-        }
-        None if first.ipp.is_none() => (DVec3::X, DVec3::Y),
-        None => {
-            return Err(VolumeError::format(
-                p0,
-                "ImagePositionPatient without ImageOrientationPatient: cannot place the slices",
-            ))
-        }
-    };
-    let normal = row_dir.cross(col_dir);
-    let n = sl.len();
-    let Some(_) = first.ipp else {
-        // No positions anywhere: stack by InstanceNumber, spacing from the header.
-        let mut order: Vec<usize> = (0..n).collect();
-        order.sort_by_key(|&i| (sl[i].instance, sl[i].frame));
-        for w in order.windows(2) {
-            let (a, b) = (&sl[w[0]], &sl[w[1]]);
-            if n > 1 && (a.instance.is_none() || (a.instance == b.instance && a.frame == b.frame)) {
-                return Err(VolumeError::format(
-                    &b.path,
-                    format!(
-                        "no ImagePositionPatient and no distinct InstanceNumber (clashes with \
-                         {}): cannot order the slices",
-                        name_of(&a.path)
-                    ),
-                ));
-            }
-        }
-        return Ok(Geometry {
+        };
+        Ok(Plane {
+            row_sp,
+            col_sp,
+            row_dir,
+            col_dir,
+            header_spacing,
+        })
+    }
+
+    fn normal(&self) -> DVec3 {
+        self.row_dir.cross(self.col_dir)
+    }
+
+    /// The geometry of slices in `order` stacked along `k_dir`, `k_sp` apart, from `origin`.
+    fn stack(&self, order: Vec<usize>, k_dir: DVec3, k_sp: f64, origin: DVec3) -> Geometry {
+        Geometry {
             order,
-            spacing: [col_sp, row_sp, single_spacing()],
-            directions: DMat3::from_cols(row_dir, col_dir, normal),
-            origin: DVec3::ZERO,
-        });
-    };
+            spacing: [self.col_sp, self.row_sp, k_sp],
+            directions: DMat3::from_cols(self.row_dir, self.col_dir, k_dir),
+            origin,
+        }
+    }
+}
+
+/// Slices without positions: stacked in InstanceNumber (and frame) order, which must tell every
+/// slice apart, spaced as the header says.
+fn stack_by_instance(series: &Series, plane: &Plane) -> Result<Geometry, VolumeError> {
+    let sl = &series.slices;
+    let n = sl.len();
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by_key(|&i| (sl[i].instance, sl[i].frame));
+    for w in order.windows(2) {
+        let (a, b) = (&sl[w[0]], &sl[w[1]]);
+        if n > 1 && (a.instance.is_none() || (a.instance == b.instance && a.frame == b.frame)) {
+            return Err(VolumeError::format(
+                &b.path,
+                format!(
+                    "no ImagePositionPatient and no distinct InstanceNumber (clashes with \
+                     {}): cannot order the slices",
+                    name_of(&a.path)
+                ),
+            ));
+        }
+    }
+    Ok(plane.stack(order, plane.normal(), plane.header_spacing, DVec3::ZERO))
+}
+
+/// Slices with positions: sorted along the slice normal, which must find them distinct, evenly
+/// spaced and on one line (a tilted gantry's sheared stack included).
+fn stack_by_position(series: &Series, plane: &Plane) -> Result<Geometry, VolumeError> {
+    let sl = &series.slices;
+    let n = sl.len();
+    let normal = plane.normal();
     let pos = |i: usize| DVec3::from(sl[i].ipp.unwrap_or_default());
     let mut order: Vec<usize> = (0..n).collect();
     order.sort_by(|&a, &b| pos(a).dot(normal).total_cmp(&pos(b).dot(normal)));
@@ -949,7 +1002,7 @@ fn geometry(series: &Series) -> Result<Geometry, VolumeError> {
         )
     };
     // two planes at one position: several acquisitions/echoes/phases in one series
-    let min_pix = row_sp.min(col_sp);
+    let min_pix = plane.row_sp.min(plane.col_sp);
     for (k, &step) in d.iter().enumerate() {
         if step.abs() < 1e-3 * min_pix.max(0.1) {
             return Err(VolumeError::format(
@@ -968,12 +1021,7 @@ fn geometry(series: &Series) -> Result<Geometry, VolumeError> {
     }
     let origin = pos(order[0]);
     if n == 1 {
-        return Ok(Geometry {
-            order,
-            spacing: [col_sp, row_sp, single_spacing()],
-            directions: DMat3::from_cols(row_dir, col_dir, normal),
-            origin,
-        });
+        return Ok(plane.stack(order, normal, plane.header_spacing, origin));
     }
     let mut sorted = d.clone();
     sorted.sort_by(f64::total_cmp);
@@ -1019,12 +1067,7 @@ fn geometry(series: &Series) -> Result<Geometry, VolumeError> {
     } else {
         (step.normalize(), step.length())
     };
-    Ok(Geometry {
-        order,
-        spacing: [col_sp, row_sp, k_sp],
-        directions: DMat3::from_cols(row_dir, col_dir, k_dir),
-        origin,
-    })
+    Ok(plane.stack(order, k_dir, k_sp, origin))
 }
 
 fn frame_tag(s: &Slice) -> String {

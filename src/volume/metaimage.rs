@@ -7,6 +7,7 @@
 //! infinities are refused). MetaImage
 //! geometry is already in LPS, so it is taken as written.
 
+use super::data_source::{DataSource, Described, Skip};
 use super::{
     checked_size, read_wide, split_axes, write_atomically, write_voxels, Modality, Volume,
     VolumeError, Voxels, WideType,
@@ -17,7 +18,7 @@ use flate2::Compression;
 use glam::{DMat3, DVec3};
 use std::collections::HashMap;
 use std::fs::File;
-use std::io::{BufRead, BufReader, Read, Seek, SeekFrom, Write};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 
 /// Longest accepted header (a binary file must not make us read gigabytes of "lines").
@@ -117,217 +118,34 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     let file = File::open(path).map_err(|e| VolumeError::io(path, e))?;
     let mut reader = BufReader::new(file);
     let (h, header_end) = read_header(path, &mut reader)?;
-    let fmt = |m: String| VolumeError::format(path, m);
-    let get = |keys: &[&str]| keys.iter().find_map(|k| h.get(*k).map(String::as_str));
-    let required = |key: &str, name: &str| {
-        h.get(key)
-            .map(String::as_str)
-            .ok_or_else(|| fmt(format!("missing required field `{name}`")))
-    };
-
-    if let Some(t) = get(&["objecttype"]) {
-        if !t.eq_ignore_ascii_case("image") {
-            return Err(VolumeError::unsupported(
-                path,
-                format!("ObjectType {t:?} (only Image)"),
-            ));
-        }
-    }
-    let ndims = required("ndims", "NDims")?;
-    if ndims != "3" {
-        return Err(VolumeError::unsupported(
-            path,
-            format!("NDims {ndims}: only 3-dimensional images are supported"),
-        ));
-    }
-    let ds = required("dimsize", "DimSize")?;
-    let d: Vec<u64> =
-        numbers(ds, 3).ok_or_else(|| fmt(format!("invalid DimSize {ds:?} (3 sizes)")))?;
-    let dims = [d[0], d[1], d[2]];
-    if let Some(c) = get(&["elementnumberofchannels"]) {
-        if c.trim() != "1" {
-            return Err(VolumeError::unsupported(
-                path,
-                format!("ElementNumberOfChannels {c} (only scalar images)"),
-            ));
-        }
-    }
-    let ts = required("elementtype", "ElementType")?;
-    let ty = parse_type(ts).map_err(|m| {
-        VolumeError::unsupported(
-            path,
-            format!(
-                "{m}; supported are MET_UCHAR, MET_CHAR, MET_SHORT, MET_USHORT, MET_INT, \
-                 MET_UINT, MET_FLOAT and MET_DOUBLE"
-            ),
-        )
-    })?;
-    let (_, data_bytes) = checked_size(path, dims, ty.bytes())?;
-    let udims = dims.map(|d| d as usize);
-    if let Some(b) = get(&["binarydata"]) {
-        if boolean(b) == Some(false) {
-            return Err(VolumeError::unsupported(
-                path,
-                "BinaryData = False (ASCII data)",
-            ));
-        }
-    }
-    let big_endian = match get(&["binarydatabyteordermsb", "elementbyteordermsb"]) {
-        Some(s) => boolean(s).ok_or_else(|| fmt(format!("invalid byte order flag {s:?}")))?,
-        None => false,
-    };
-    let compressed = match get(&["compresseddata"]) {
-        Some(s) => boolean(s).ok_or_else(|| fmt(format!("invalid CompressedData {s:?}")))?,
-        None => false,
-    };
-    let compressed_size: Option<u64> = match get(&["compresseddatasize"]) {
-        Some(s) => Some(
-            s.parse()
-                .map_err(|_| fmt(format!("invalid CompressedDataSize {s:?}")))?,
-        ),
-        None => None,
-    };
-    let header_size: i64 = match get(&["headersize"]) {
-        Some(s) => s
-            .parse()
-            .ok()
-            .filter(|&v| v >= -1)
-            .ok_or_else(|| fmt(format!("invalid HeaderSize {s:?} (must be >= -1)")))?,
-        None => 0,
-    };
-
-    // geometry
-    let spacing = match get(&["elementspacing", "elementsize"]) {
-        Some(s) => {
-            let v: Vec<f64> =
-                numbers(s, 3).ok_or_else(|| fmt(format!("invalid ElementSpacing {s:?}")))?;
-            if v.iter().any(|x| !(x.is_finite() && *x > 0.0)) {
-                return Err(fmt(format!(
-                    "invalid ElementSpacing {s:?} (must be positive)"
-                )));
-            }
-            [v[0], v[1], v[2]]
-        }
-        None => [1.0; 3],
-    };
-    // ITK's convention: the i-th triple of TransformMatrix is the direction of axis i.
-    let directions = match get(&["transformmatrix", "orientation", "rotation"]) {
-        Some(s) => {
-            let v: Vec<f64> = numbers(s, 9)
-                .filter(|v: &Vec<f64>| v.iter().all(|x| x.is_finite()))
-                .ok_or_else(|| fmt(format!("invalid TransformMatrix {s:?} (9 numbers)")))?;
-            let m = DMat3::from_cols_array(&[v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8]]);
-            split_axes(path, m)?.1
-        }
-        None => DMat3::IDENTITY,
-    };
-    let origin = match get(&["offset", "position", "origin"]) {
-        Some(s) => {
-            let v: Vec<f64> = numbers(s, 3)
-                .filter(|v: &Vec<f64>| v.iter().all(|x| x.is_finite()))
-                .ok_or_else(|| fmt(format!("invalid Offset {s:?} (3 numbers)")))?;
-            DVec3::new(v[0], v[1], v[2])
-        }
-        None => DVec3::ZERO,
-    };
-    let modality = match get(&["modality"]).map(str::to_ascii_uppercase).as_deref() {
+    let fields = Fields { path, h: &h };
+    let shape = fields.shape()?;
+    let storage = fields.storage()?;
+    let (spacing, directions, origin) = fields.geometry()?;
+    let modality = match fields
+        .get(&["modality"])
+        .map(str::to_ascii_uppercase)
+        .as_deref()
+    {
         Some("MET_MOD_CT") => Modality::Ct,
         Some("MET_MOD_MR") => Modality::Mr,
         _ => Modality::Unknown,
     };
-
-    // data source
-    let df = required("elementdatafile", "ElementDataFile")?;
-    let (data_path, mut data, start) = if df.eq_ignore_ascii_case("local") {
-        (path.to_path_buf(), reader, header_end)
+    let df = fields.required("elementdatafile", "ElementDataFile")?;
+    let (source, data, start) = if df.eq_ignore_ascii_case("local") {
+        (DataSource::attached(path), reader, header_end)
     } else {
-        let tokens: Vec<&str> = df.split_whitespace().collect();
-        if tokens
-            .first()
-            .is_some_and(|t| t.eq_ignore_ascii_case("list"))
-            || (tokens.len() >= 4 && tokens[0].contains('%'))
-        {
-            return Err(VolumeError::unsupported(
-                path,
-                format!("multi-file data (`ElementDataFile = {df}`); only a single data file"),
-            ));
-        }
-        let dp = Path::new(df);
-        let dp = if dp.is_absolute() {
-            dp.to_path_buf()
-        } else {
-            path.parent().unwrap_or(Path::new(".")).join(dp)
-        };
-        let f = File::open(&dp)
-            .map_err(|e| fmt(format!("cannot open data file {}: {e}", dp.display())))?;
-        (dp, BufReader::new(f), 0)
+        let (source, data) = DataSource::detached(path, "ElementDataFile =", df)?;
+        (source, data, 0)
     };
-    let what = if data_path == path {
-        String::new()
-    } else {
-        format!("data file {}: ", data_path.display())
-    };
-    let dio = |e: std::io::Error| fmt(format!("{what}read error: {e}"));
-    let len = data.get_ref().metadata().map_err(dio)?.len();
-
-    let voxels = if compressed {
-        if header_size == -1 {
-            return Err(VolumeError::unsupported(
-                path,
-                "HeaderSize = -1 with compressed data",
-            ));
-        }
-        let start = start.saturating_add(header_size as u64);
-        if start > len {
-            return Err(fmt(format!(
-                "{what}truncated data: the file ends before the data start ({start})"
-            )));
-        }
-        data.seek(SeekFrom::Start(start)).map_err(dio)?;
-        let limit = compressed_size.unwrap_or(u64::MAX);
-        let mut dec = ZlibDecoder::new(data.take(limit));
-        let what = format!("{what}zlib ");
-        read_wide(path, &what, &mut dec, ty, udims, big_endian, None, false)?
-    } else {
-        let start = if header_size == -1 {
-            len.checked_sub(data_bytes)
-                .filter(|&s| s >= start)
-                .ok_or_else(|| {
-                    fmt(format!(
-                    "{what}truncated data: expected {data_bytes} bytes at the end of the file, \
-                     found {}",
-                    len.saturating_sub(start)
-                ))
-                })?
-        } else {
-            start.saturating_add(header_size as u64)
-        };
-        let avail = len.saturating_sub(start);
-        if avail < data_bytes {
-            return Err(fmt(format!(
-                "{what}truncated data: expected {data_bytes} bytes, found {avail}"
-            )));
-        }
-        // A separate raw data file holds the samples and nothing else: more bytes than the
-        // header describes means DimSize or ElementType are wrong. (Data inside the .mha may be
-        // followed by anything; HeaderSize = -1 takes the last bytes on purpose.)
-        if data_path != path && header_size != -1 && avail > data_bytes {
-            return Err(fmt(format!(
-                "{what}the file holds {avail} bytes after the header skip but the header \
-                 describes {data_bytes} ({} x {} x {} {ts}): wrong DimSize or ElementType?",
-                dims[0], dims[1], dims[2]
-            )));
-        }
-        data.seek(SeekFrom::Start(start)).map_err(dio)?;
-        read_wide(path, &what, &mut data, ty, udims, big_endian, None, true)?
-    };
+    let voxels = read_payload(&source, data, start, &shape, &storage)?;
     let name = path
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "volume".into());
     Ok(Volume {
         name,
-        dims: udims,
+        dims: shape.dims.map(|d| d as usize),
         spacing,
         directions,
         origin,
@@ -335,6 +153,227 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         voxels,
         labels: None,
     })
+}
+
+/// The header's fields (keys lower-cased) and the file they came from, for the messages.
+struct Fields<'a> {
+    path: &'a Path,
+    h: &'a HashMap<String, String>,
+}
+
+/// The samples a header describes.
+struct Shape {
+    dims: [u64; 3],
+    ty: WideType,
+    /// The element type as written (for messages).
+    ty_s: String,
+    data_bytes: u64,
+}
+
+/// How the samples are stored.
+struct Storage {
+    big_endian: bool,
+    compressed: bool,
+    compressed_size: Option<u64>,
+    /// `HeaderSize`: bytes before the data, or -1 (the data are the file's last bytes).
+    header_size: i64,
+}
+
+impl Fields<'_> {
+    fn fmt(&self, m: String) -> VolumeError {
+        VolumeError::format(self.path, m)
+    }
+
+    /// The first of `keys` present.
+    fn get(&self, keys: &[&str]) -> Option<&str> {
+        keys.iter().find_map(|k| self.h.get(*k).map(String::as_str))
+    }
+
+    /// A required field's value, or the error naming it.
+    fn required(&self, key: &str, name: &str) -> Result<&str, VolumeError> {
+        self.get(&[key])
+            .ok_or_else(|| self.fmt(format!("missing required field `{name}`")))
+    }
+
+    /// Step 1: `ObjectType`, `NDims`, `DimSize`, `ElementNumberOfChannels`, `ElementType`.
+    fn shape(&self) -> Result<Shape, VolumeError> {
+        let path = self.path;
+        if let Some(t) = self.get(&["objecttype"]) {
+            if !t.eq_ignore_ascii_case("image") {
+                return Err(VolumeError::unsupported(
+                    path,
+                    format!("ObjectType {t:?} (only Image)"),
+                ));
+            }
+        }
+        let ndims = self.required("ndims", "NDims")?;
+        if ndims != "3" {
+            return Err(VolumeError::unsupported(
+                path,
+                format!("NDims {ndims}: only 3-dimensional images are supported"),
+            ));
+        }
+        let ds = self.required("dimsize", "DimSize")?;
+        let d: Vec<u64> =
+            numbers(ds, 3).ok_or_else(|| self.fmt(format!("invalid DimSize {ds:?} (3 sizes)")))?;
+        let dims = [d[0], d[1], d[2]];
+        if let Some(c) = self.get(&["elementnumberofchannels"]) {
+            if c.trim() != "1" {
+                return Err(VolumeError::unsupported(
+                    path,
+                    format!("ElementNumberOfChannels {c} (only scalar images)"),
+                ));
+            }
+        }
+        let ts = self.required("elementtype", "ElementType")?;
+        let ty = parse_type(ts).map_err(|m| {
+            VolumeError::unsupported(
+                path,
+                format!(
+                    "{m}; supported are MET_UCHAR, MET_CHAR, MET_SHORT, MET_USHORT, MET_INT, \
+                     MET_UINT, MET_FLOAT and MET_DOUBLE"
+                ),
+            )
+        })?;
+        let (_, data_bytes) = checked_size(path, dims, ty.bytes())?;
+        Ok(Shape {
+            dims,
+            ty,
+            ty_s: ts.to_string(),
+            data_bytes,
+        })
+    }
+
+    /// Step 2: `BinaryData`, the byte order, `CompressedData(Size)` and `HeaderSize`.
+    fn storage(&self) -> Result<Storage, VolumeError> {
+        if let Some(b) = self.get(&["binarydata"]) {
+            if boolean(b) == Some(false) {
+                return Err(VolumeError::unsupported(
+                    self.path,
+                    "BinaryData = False (ASCII data)",
+                ));
+            }
+        }
+        let big_endian = match self.get(&["binarydatabyteordermsb", "elementbyteordermsb"]) {
+            Some(s) => {
+                boolean(s).ok_or_else(|| self.fmt(format!("invalid byte order flag {s:?}")))?
+            }
+            None => false,
+        };
+        let compressed = match self.get(&["compresseddata"]) {
+            Some(s) => {
+                boolean(s).ok_or_else(|| self.fmt(format!("invalid CompressedData {s:?}")))?
+            }
+            None => false,
+        };
+        let compressed_size: Option<u64> = match self.get(&["compresseddatasize"]) {
+            Some(s) => Some(
+                s.parse()
+                    .map_err(|_| self.fmt(format!("invalid CompressedDataSize {s:?}")))?,
+            ),
+            None => None,
+        };
+        let header_size: i64 = match self.get(&["headersize"]) {
+            Some(s) => s
+                .parse()
+                .ok()
+                .filter(|&v| v >= -1)
+                .ok_or_else(|| self.fmt(format!("invalid HeaderSize {s:?} (must be >= -1)")))?,
+            None => 0,
+        };
+        Ok(Storage {
+            big_endian,
+            compressed,
+            compressed_size,
+            header_size,
+        })
+    }
+
+    /// Step 3: (spacing, directions, origin) from `ElementSpacing`, `TransformMatrix` and
+    /// `Offset` (already LPS).
+    fn geometry(&self) -> Result<([f64; 3], DMat3, DVec3), VolumeError> {
+        let spacing = match self.get(&["elementspacing", "elementsize"]) {
+            Some(s) => {
+                let v: Vec<f64> = numbers(s, 3)
+                    .ok_or_else(|| self.fmt(format!("invalid ElementSpacing {s:?}")))?;
+                if v.iter().any(|x| !(x.is_finite() && *x > 0.0)) {
+                    return Err(
+                        self.fmt(format!("invalid ElementSpacing {s:?} (must be positive)"))
+                    );
+                }
+                [v[0], v[1], v[2]]
+            }
+            None => [1.0; 3],
+        };
+        // ITK's convention: the i-th triple of TransformMatrix is the direction of axis i.
+        let directions = match self.get(&["transformmatrix", "orientation", "rotation"]) {
+            Some(s) => {
+                let v: Vec<f64> = numbers(s, 9)
+                    .filter(|v: &Vec<f64>| v.iter().all(|x| x.is_finite()))
+                    .ok_or_else(|| {
+                        self.fmt(format!("invalid TransformMatrix {s:?} (9 numbers)"))
+                    })?;
+                let m =
+                    DMat3::from_cols_array(&[v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8]]);
+                split_axes(self.path, m)?.1
+            }
+            None => DMat3::IDENTITY,
+        };
+        let origin = match self.get(&["offset", "position", "origin"]) {
+            Some(s) => {
+                let v: Vec<f64> = numbers(s, 3)
+                    .filter(|v: &Vec<f64>| v.iter().all(|x| x.is_finite()))
+                    .ok_or_else(|| self.fmt(format!("invalid Offset {s:?} (3 numbers)")))?;
+                DVec3::new(v[0], v[1], v[2])
+            }
+            None => DVec3::ZERO,
+        };
+        Ok((spacing, directions, origin))
+    }
+}
+
+/// Step 4: reads the samples, `start` bytes into `data` (after the header of a `.mha`), raw or
+/// zlib-compressed, after `HeaderSize`.
+fn read_payload(
+    source: &DataSource,
+    mut data: BufReader<File>,
+    start: u64,
+    shape: &Shape,
+    storage: &Storage,
+) -> Result<Voxels, VolumeError> {
+    let path = source.header();
+    let udims = shape.dims.map(|d| d as usize);
+    let (ty, be) = (shape.ty, storage.big_endian);
+    if storage.compressed {
+        if storage.header_size == -1 {
+            return Err(VolumeError::unsupported(
+                path,
+                "HeaderSize = -1 with compressed data",
+            ));
+        }
+        let start = start.saturating_add(storage.header_size as u64);
+        if start > source.file_len(&data)? {
+            return Err(source.truncated("zlib ", shape.data_bytes, 0));
+        }
+        source.seek(&mut data, start)?;
+        let limit = storage.compressed_size.unwrap_or(u64::MAX);
+        let mut dec = ZlibDecoder::new(data.take(limit));
+        let what = source.what("zlib ");
+        read_wide(path, &what, &mut dec, ty, udims, be, None, false)
+    } else {
+        let skip = match storage.header_size {
+            -1 => Skip::Tail,
+            s => Skip::Bytes(s as u64),
+        };
+        let d = shape.dims;
+        let described = Described {
+            shape: format!("{} x {} x {} {}", d[0], d[1], d[2], shape.ty_s),
+            fields: "DimSize or ElementType",
+        };
+        let start = source.locate_raw(&data, start, skip, shape.data_bytes, &described)?;
+        source.seek(&mut data, start)?;
+        read_wide(path, &source.what(""), &mut data, ty, udims, be, None, true)
+    }
 }
 
 /// Writes `vol` as little-endian MetaImage: `.mhd` gets its data in `<stem>.raw` (`.zraw` when

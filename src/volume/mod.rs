@@ -2,6 +2,7 @@
 //! fetched CT head.
 
 pub mod ct_head;
+mod data_source;
 pub mod dicom;
 pub mod distance;
 pub mod labels;
@@ -574,12 +575,7 @@ pub(crate) fn read_wide(
     let count = dims[0] * dims[1] * dims[2];
     let data_bytes = count as u64 * ty.bytes();
     let io = |e: std::io::Error| VolumeError::format(path, format!("{what}read error: {e}"));
-    let short = |got: u64| {
-        VolumeError::format(
-            path,
-            format!("{what}truncated data: expected {data_bytes} bytes, found {got}"),
-        )
-    };
+    let short = |got: u64| data_source::truncated(path, what, data_bytes, got);
     if let (Some(f), None) = (ty.narrow(), scale) {
         let (v, got) = read_samples(r, f, count, big_endian, exact).map_err(io)?;
         if got < data_bytes || v.len() != count {

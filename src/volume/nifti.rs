@@ -10,6 +10,7 @@
 //! converted from NIfTI's RAS+ world into LPS. The writer stores both an sform and (for
 //! rotations) a qform.
 
+use super::data_source::{self, DataSource, Described, Skip};
 use super::{
     checked_size, pick_frame, read_wide, split_axes, write_atomically, write_voxels, Modality,
     Volume, VolumeError, Voxels, WideType,
@@ -19,7 +20,7 @@ use flate2::write::GzEncoder;
 use flate2::Compression;
 use glam::{DMat3, DQuat, DVec3};
 use std::fs::File;
-use std::io::{BufReader, Read, Seek, SeekFrom, Write};
+use std::io::{BufReader, Read, Write};
 use std::path::Path;
 
 /// Size of the NIfTI-1 header proper.
@@ -218,13 +219,36 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
     } else {
         Box::new(BufReader::new(file))
     };
+    let (h, be) = read_header(path, &mut reader, gzip)?;
+    let (dims, frame) = frame_dims(path, &h, frame)?;
+    let samples = parse_samples(path, &h, dims)?;
+    let (spacing, directions, origin) = parse_geometry(path, &h)?;
+    let voxels = read_payload(path, reader, gzip, be, &h, &samples, dims, frame)?;
+    Ok(Volume {
+        name: volume_name(path),
+        dims: dims.map(|d| d as usize),
+        spacing,
+        directions,
+        origin,
+        modality: Modality::Unknown,
+        voxels,
+        labels: None,
+    })
+}
+
+/// Step 1: the header proper from `reader`: sizeof_hdr (348: NIfTI-1, 540: NIfTI-2) gives the
+/// version and the byte order (big-endian: true), the magic says single-file. `gzip`: the
+/// reader decompresses (for the messages).
+fn read_header(
+    path: &Path,
+    reader: &mut dyn Read,
+    gzip: bool,
+) -> Result<(Header, bool), VolumeError> {
     let fmt = |m: String| VolumeError::format(path, m);
     let what = if gzip { "gzip " } else { "" };
-
-    // sizeof_hdr (348: NIfTI-1, 540: NIfTI-2) gives the version and the byte order
     let read_err = |e: std::io::Error| fmt(format!("{what}read error in the header: {e}"));
     let mut hdr = vec![0u8; HEADER2_BYTES];
-    let mut got = fill(&mut reader, &mut hdr[..4]).map_err(read_err)?;
+    let mut got = fill(reader, &mut hdr[..4]).map_err(read_err)?;
     let first = i32::from_le_bytes([hdr[0], hdr[1], hdr[2], hdr[3]]);
     let want = match (first, first.swap_bytes()) {
         _ if got < 4 => HEADER_BYTES,
@@ -237,7 +261,7 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
         }
     };
     if got == 4 {
-        got += fill(&mut reader, &mut hdr[4..want]).map_err(read_err)?;
+        got += fill(reader, &mut hdr[4..want]).map_err(read_err)?;
     }
     if got < want {
         return Err(fmt(format!(
@@ -271,8 +295,12 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
             String::from_utf8_lossy(magic)
         )));
     }
+    Ok((h, be))
+}
 
-    // dimensions
+/// Step 2: the sizes of the spatial axes and the volume to read (a 4-D file is a series of
+/// 3-D volumes: time points, echoes, phases; one is shown).
+fn frame_dims(path: &Path, h: &Header, frame: Option<u64>) -> Result<([u64; 3], u64), VolumeError> {
     let dim = h.dim;
     let ndim = dim[0];
     if !(3..=7).contains(&ndim) {
@@ -285,10 +313,9 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
                 ),
             )
         } else {
-            fmt(format!("invalid dim[0] = {ndim} (must be 1..7)"))
+            VolumeError::format(path, format!("invalid dim[0] = {ndim} (must be 1..7)"))
         });
     }
-    // a 4-D file is a series of 3-D volumes (time points, echoes, phases): one is shown
     let frames = if ndim >= 4 { dim[4] } else { 1 };
     if frames < 1 || (ndim > 4 && dim[5..=ndim as usize].iter().any(|&d| d != 1)) {
         return Err(VolumeError::unsupported(
@@ -301,15 +328,33 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
         ));
     }
     if dim[1..=3].iter().any(|&d| d < 1) {
-        return Err(fmt(format!(
-            "invalid sizes {} {} {} (must be positive)",
-            dim[1], dim[2], dim[3]
-        )));
+        return Err(VolumeError::format(
+            path,
+            format!(
+                "invalid sizes {} {} {} (must be positive)",
+                dim[1], dim[2], dim[3]
+            ),
+        ));
     }
     let dims = [dim[1] as u64, dim[2] as u64, dim[3] as u64];
     let frame = pick_frame(path, frames as u64, dims, frame)?;
+    Ok((dims, frame))
+}
 
-    // samples
+/// The samples' type, scaling and place.
+struct Samples {
+    ty: WideType,
+    /// Bytes of one volume.
+    data_bytes: u64,
+    /// (slope, intercept), when the values are scaled.
+    scale: Option<(f64, f64)>,
+    /// Where the first volume's samples begin.
+    vox_offset: u64,
+}
+
+/// Step 3: datatype and bitpix, the size of a volume, scl_slope/scl_inter and vox_offset.
+fn parse_samples(path: &Path, h: &Header, dims: [u64; 3]) -> Result<Samples, VolumeError> {
+    let fmt = |m: String| VolumeError::format(path, m);
     let code = h.datatype;
     let ty = parse_datatype(code).map_err(|t| {
         VolumeError::unsupported(
@@ -328,7 +373,6 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
         )));
     }
     let (_, data_bytes) = checked_size(path, dims, ty.bytes())?;
-    let udims = dims.map(|d| d as usize);
     let (slope, inter) = (h.slope, h.inter);
     let scale = if slope == 0.0 || !slope.is_finite() || (slope == 1.0 && inter == 0.0) {
         None // "scl_slope = 0: no scaling", as the standard says
@@ -344,16 +388,24 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
             h.bytes
         )));
     }
-    let vox_offset = vox_offset as u64;
+    Ok(Samples {
+        ty,
+        data_bytes,
+        scale,
+        vox_offset: vox_offset as u64,
+    })
+}
 
-    // geometry: NIfTI's spatial unit (xyzt_units & 7) is metres, mm or microns; we work in mm.
+/// Step 4: (spacing, directions, origin) in LPS and mm, from the sform (preferred), the qform
+/// or the voxel sizes alone.
+fn parse_geometry(path: &Path, h: &Header) -> Result<([f64; 3], DMat3, DVec3), VolumeError> {
+    // NIfTI's spatial unit (xyzt_units & 7) is metres, mm or microns; we work in mm.
     let unit = match h.xyzt_units & 7 {
         1 => 1000.0,
         3 => 0.001,
         _ => 1.0, // mm, or unknown (taken as mm, as most readers do)
     };
     let pixdim = h.pixdim;
-    let (sform_code, qform_code) = (h.sform_code, h.qform_code);
     let pix = |a: usize| {
         let p = pixdim[a].abs();
         if p.is_finite() && p > 0.0 {
@@ -362,12 +414,12 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
             1.0
         }
     };
-    let (steps_ras, origin_ras) = if sform_code > 0 {
+    let (steps_ras, origin_ras) = if h.sform_code > 0 {
         let row = |r: usize| DVec3::from_slice(&h.srow[r]);
         let m = DMat3::from_cols(row(0), row(1), row(2)).transpose();
         let o = DVec3::new(h.srow[0][3], h.srow[1][3], h.srow[2][3]);
         (m, o)
-    } else if qform_code > 0 {
+    } else if h.qform_code > 0 {
         let r = quaternion_matrix(h.quatern.x, h.quatern.y, h.quatern.z);
         let qfac = if pixdim[0] < 0.0 { -1.0 } else { 1.0 };
         let m = DMat3::from_cols(
@@ -384,48 +436,60 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
         )
     };
     if !(steps_ras.is_finite() && origin_ras.is_finite()) {
-        return Err(fmt("the sform/qform holds non-finite numbers".into()));
+        return Err(VolumeError::format(
+            path,
+            "the sform/qform holds non-finite numbers",
+        ));
     }
     let flip = DMat3::from_diagonal(RAS_TO_LPS);
     let (spacing, directions) = split_axes(path, flip * steps_ras * unit)?;
     let origin = origin_ras * RAS_TO_LPS * unit;
+    Ok((spacing, directions, origin))
+}
 
-    // data
-    // the chosen volume's samples follow the earlier volumes'
-    let vox_offset = frame
-        .checked_mul(data_bytes)
-        .and_then(|b| b.checked_add(vox_offset))
-        .ok_or_else(|| fmt(format!("volume #{frame} lies beyond any file size")))?;
+/// Step 5: reads volume `frame` (its samples follow the earlier volumes') from `reader`, which
+/// has read the header: on through the gzip stream, or from the file opened anew at the data.
+#[allow(clippy::too_many_arguments)]
+fn read_payload(
+    path: &Path,
+    mut reader: Box<dyn Read>,
+    gzip: bool,
+    be: bool,
+    h: &Header,
+    samples: &Samples,
+    dims: [u64; 3],
+    frame: u64,
+) -> Result<Voxels, VolumeError> {
+    let source = DataSource::attached(path);
+    let data_bytes = samples.data_bytes;
+    let vox_offset = data_source::frame_offset(path, samples.vox_offset, frame, data_bytes)?;
     let exact;
     if gzip {
         let skip = vox_offset - h.bytes as u64;
-        let skipped = std::io::copy(&mut (&mut reader).take(skip), &mut std::io::sink())
-            .map_err(|e| fmt(format!("gzip data are corrupt: {e}")))?;
-        if skipped < skip {
-            return Err(fmt(format!(
-                "truncated data: the file ends before vox_offset {vox_offset}"
-            )));
-        }
+        source.skip_decoded(&mut reader, "gzip ", skip, data_bytes)?;
         exact = false;
     } else {
         drop(reader);
-        let mut file = File::open(path).map_err(|e| VolumeError::io(path, e))?;
-        let len = file.metadata().map_err(|e| VolumeError::io(path, e))?.len();
-        let avail = len.saturating_sub(vox_offset);
-        if avail < data_bytes {
-            return Err(fmt(format!(
-                "truncated data: expected {data_bytes} bytes after vox_offset {vox_offset}, \
-                 found {avail}"
-            )));
-        }
-        file.seek(SeekFrom::Start(vox_offset))
-            .map_err(|e| VolumeError::io(path, e))?;
-        reader = Box::new(BufReader::new(file));
+        let file = File::open(path).map_err(|e| VolumeError::io(path, e))?;
+        let mut file = BufReader::new(file);
+        let described = Described {
+            shape: String::new(), // attached data: never more than described
+            fields: "",
+        };
+        let start = source.locate_raw(&file, vox_offset, Skip::Bytes(0), data_bytes, &described)?;
+        source.seek(&mut file, start)?;
+        reader = Box::new(file);
         exact = true;
     }
-    let voxels = read_wide(path, what, &mut reader, ty, udims, be, scale, exact)?;
-    let name = path
-        .file_name()
+    let what = source.what(if gzip { "gzip " } else { "" });
+    let (ty, scale) = (samples.ty, samples.scale);
+    let udims = dims.map(|d| d as usize);
+    read_wide(path, &what, &mut reader, ty, udims, be, scale, exact)
+}
+
+/// The file name without `.nii`, `.nii.gz` or `.gz`.
+fn volume_name(path: &Path) -> String {
+    path.file_name()
         .map(|s| {
             let s = s.to_string_lossy();
             let l = s.to_ascii_lowercase();
@@ -435,17 +499,7 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
                 .map_or(0, |e| e.len());
             s[..s.len() - cut].to_string()
         })
-        .unwrap_or_else(|| "volume".into());
-    Ok(Volume {
-        name,
-        dims: udims,
-        spacing,
-        directions,
-        origin,
-        modality: Modality::Unknown,
-        voxels,
-        labels: None,
-    })
+        .unwrap_or_else(|| "volume".into())
 }
 
 /// The 352 bytes (header + empty extension flag) the writer puts before the data of `vol`.

@@ -5,14 +5,15 @@
 //! directions`/`spacings`, and converts the geometry into LPS; and one volume of a 4-D series
 //! whose last axis is not spatial. Writes NRRD0004 in LPS, raw or gzip.
 
+use super::data_source::{self, DataSource, Described, Skip};
 use super::{checked_size, pick_frame, read_wide, Modality, Volume, VolumeError, Voxels, WideType};
 use flate2::read::MultiGzDecoder;
 use flate2::write::GzEncoder;
 use flate2::Compression;
 use glam::{DMat3, DVec3};
 use std::fs::File;
-use std::io::{BufRead, BufReader, Read, Seek, SeekFrom, Write};
-use std::path::{Path, PathBuf};
+use std::io::{BufRead, BufReader, Read, Seek, Write};
+use std::path::Path;
 
 /// Longest accepted header (a malformed file must not make us read gigabytes of "lines").
 const MAX_HEADER_BYTES: u64 = 1 << 20;
@@ -297,10 +298,10 @@ fn read_header<R: BufRead>(path: &Path, r: &mut R) -> Result<(Header, bool), Vol
     }
 }
 
-/// Loads a 3-D NRRD (`.nrrd` with attached data or `.nhdr` with a detached data file).
 /// The shortest voxel spacing a space direction may give (mm).
 const MIN_SPACING_MM: f64 = 1e-6;
 
+/// Loads a 3-D NRRD (`.nrrd` with attached data or `.nhdr` with a detached data file).
 pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     load_frame(path, None)
 }
@@ -332,14 +333,62 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
     let file = File::open(path).map_err(|e| VolumeError::io(path, e))?;
     let mut reader = BufReader::new(file);
     let (h, terminated) = read_header(path, &mut reader)?;
-    let fmt = |m: String| VolumeError::format(path, m);
-    let required = |v: &Option<String>, name: &str| {
-        v.clone()
-            .ok_or_else(|| fmt(format!("missing required field `{name}`")))
+    let shape = parse_shape(path, &h, frame)?;
+    let encoding = parse_encoding(path, &h, &shape)?;
+    let (spacing, directions, origin) = parse_geometry(path, &h, &shape)?;
+    let modality = match h.modality.as_deref().map(str::trim) {
+        Some(m) if m.eq_ignore_ascii_case("ct") => Modality::Ct,
+        Some(m) if m.eq_ignore_ascii_case("mr") || m.eq_ignore_ascii_case("mri") => Modality::Mr,
+        _ => Modality::Unknown,
     };
+    let (line_skip, byte_skip) = parse_skips(path, &h, encoding.gzip)?;
+    let (source, data) = open_source(path, &h, reader, terminated)?;
+    let voxels = read_payload(&source, data, &shape, &encoding, line_skip, byte_skip)?;
+    let name = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "volume".into());
+    Ok(Volume {
+        name,
+        dims: shape.dims.map(|d| d as usize),
+        spacing,
+        directions,
+        origin,
+        modality,
+        voxels,
+        labels: None,
+    })
+}
 
-    // type
-    let ty_s = required(&h.ty, "type")?;
+/// The samples a header describes and the volume to read of them.
+struct Shape {
+    ty: WideType,
+    /// The type as written (for messages).
+    ty_s: String,
+    dim: u64,
+    sizes: Vec<u64>,
+    /// The volume to read, of `frames` laid out as `layout`.
+    frame: u64,
+    frames: u64,
+    layout: Layout,
+    /// Sizes of the spatial axes.
+    dims: [u64; 3],
+    /// Bytes of one volume.
+    data_bytes: u64,
+    /// Bytes of every volume (each must be in the file).
+    total_bytes: u64,
+}
+
+/// A required header field's value, or the error naming it.
+fn required(path: &Path, v: &Option<String>, name: &str) -> Result<String, VolumeError> {
+    v.clone()
+        .ok_or_else(|| VolumeError::format(path, format!("missing required field `{name}`")))
+}
+
+/// Step 1: `type`, `dimension` and `sizes`, the series axis and the volume `frame` picks.
+fn parse_shape(path: &Path, h: &Header, frame: Option<u64>) -> Result<Shape, VolumeError> {
+    let fmt = |m: String| VolumeError::format(path, m);
+    let ty_s = required(path, &h.ty, "type")?;
     let ty = parse_type(&ty_s).map_err(|kind| {
         VolumeError::unsupported(
             path,
@@ -349,9 +398,7 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
             ),
         )
     })?;
-
-    // dimension, sizes
-    let dim_s = required(&h.dimension, "dimension")?;
+    let dim_s = required(path, &h.dimension, "dimension")?;
     let dim: u64 = dim_s
         .parse()
         .map_err(|_| fmt(format!("invalid dimension {dim_s:?}")))?;
@@ -361,7 +408,7 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
             format!("dimension {dim}: only 3-dimensional volumes and 4-D series are supported"),
         ));
     }
-    let sizes_s = required(&h.sizes, "sizes")?;
+    let sizes_s = required(path, &h.sizes, "sizes")?;
     let sizes: Vec<u64> = sizes_s
         .split_whitespace()
         .map(|s| s.parse::<u64>())
@@ -372,30 +419,35 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
             "sizes {sizes_s:?} must have {dim} entries (dimension {dim})"
         )));
     }
-    let (frame, frames, layout) = series_frame(path, &h, &sizes, frame)?;
-    let axes = spatial_axes(layout);
-    let dims = axes.map(|a| sizes[a]);
+    let (frame, frames, layout) = series_frame(path, h, &sizes, frame)?;
+    let dims = spatial_axes(layout).map(|a| sizes[a]);
     let (_, data_bytes) = checked_size(path, dims, ty.bytes())?;
     // every volume of a series is checked to be in the file; the chosen one is read
-    let total_bytes = data_bytes
-        .checked_mul(frames)
-        .filter(|&b| b <= super::MAX_DATA_BYTES.saturating_mul(64))
-        .ok_or_else(|| {
-            fmt(format!(
-                "{frames} volumes of {data_bytes} bytes are too large"
-            ))
-        })?;
-    // A series' volume lies whole after the ones before it; interleaved components are read
-    // together (as one volume `frames` times wider) and the one asked for picked out.
-    let (frame_skip, read_dims) = match layout {
-        Layout::Interleaved => (0, [dims[0] * frames, dims[1], dims[2]]),
-        Layout::One | Layout::Series => (frame * data_bytes, dims),
-    };
-    let udims = dims.map(|d| d as usize);
-    let read_dims = read_dims.map(|d| d as usize);
+    let total_bytes = data_source::series_bytes(path, frames, data_bytes)?;
+    Ok(Shape {
+        ty,
+        ty_s,
+        dim,
+        sizes,
+        frame,
+        frames,
+        layout,
+        dims,
+        data_bytes,
+        total_bytes,
+    })
+}
 
-    // encoding, endian
-    let enc_s = required(&h.encoding, "encoding")?;
+/// How the samples are stored.
+struct Encoding {
+    gzip: bool,
+    big_endian: bool,
+}
+
+/// Step 2: `encoding` and `endian` (required for samples wider than a byte).
+fn parse_encoding(path: &Path, h: &Header, shape: &Shape) -> Result<Encoding, VolumeError> {
+    let fmt = |m: String| VolumeError::format(path, m);
+    let enc_s = required(path, &h.encoding, "encoding")?;
     let gzip = match enc_s.to_ascii_lowercase().as_str() {
         "raw" => false,
         "gzip" | "gz" => true,
@@ -411,15 +463,25 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
         Some("little") => false,
         Some("big") => true,
         Some(other) => return Err(fmt(format!("invalid endian {other:?} (little or big)"))),
-        None if ty.bytes() > 1 => {
+        None if shape.ty.bytes() > 1 => {
             return Err(fmt(format!(
-                "missing required field `endian` for type {ty_s:?}"
+                "missing required field `endian` for type {:?}",
+                shape.ty_s
             )))
         }
         None => false,
     };
+    Ok(Encoding { gzip, big_endian })
+}
 
-    // geometry
+/// Step 3: the geometry in LPS, (spacing, directions, origin), from `space`, `space
+/// dimension`, `space directions` (else `spacings`) and `space origin`.
+fn parse_geometry(
+    path: &Path,
+    h: &Header,
+    shape: &Shape,
+) -> Result<([f64; 3], DMat3, DVec3), VolumeError> {
+    let fmt = |m: String| VolumeError::format(path, m);
     let signs = match &h.space {
         Some(s) => space_signs(path, s)?,
         None => [1.0; 3],
@@ -433,79 +495,108 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
         }
     }
     let flip = DVec3::from_array(signs);
-    let mut spacing = [1.0f64; 3];
-    let mut directions = DMat3::IDENTITY;
-    if let Some(sd) = &h.space_directions {
-        let items = split_vectors(sd)
-            .filter(|v| {
-                v.len() as u64 == dim
-                    && match layout {
-                        Layout::One => true,
-                        Layout::Series => v[3] == "none",
-                        Layout::Interleaved => v[0] == "none",
-                    }
-            })
-            .ok_or_else(|| {
-                fmt(format!(
-                    "space directions {sd:?} must be three vectors (and `none` for a series or \
-                     component axis)"
-                ))
-            })?;
-        let mut cols = [DVec3::ZERO; 3];
-        for (a, item) in axes.iter().map(|&i| &items[i]).enumerate() {
-            let v = parse_vector(item).ok_or_else(|| {
-                fmt(format!(
-                    "space directions: axis {a} has {item:?}, expected (x,y,z)"
-                ))
-            })?;
-            let len = v.length();
-            // A vector a millionth of a millimetre long is no voxel spacing: refused like zero.
-            if !len.is_finite() || len < MIN_SPACING_MM {
-                return Err(fmt(format!(
-                    "space directions: axis {a} has a zero (or near-zero, {len:e} mm) vector"
-                )));
-            }
-            spacing[a] = len;
-            cols[a] = v / len * flip;
-        }
-        directions = DMat3::from_cols(cols[0], cols[1], cols[2]);
-        if directions.determinant().abs() < 1e-6 {
-            return Err(fmt(format!(
-                "space directions {sd:?} are degenerate (not independent)"
-            )));
-        }
+    let (spacing, directions) = if let Some(sd) = &h.space_directions {
+        space_directions(path, sd, shape, flip)?
     } else if let Some(sp) = &h.spacings {
-        let vals: Vec<f64> = sp
-            .split_whitespace()
-            .map(|s| s.parse::<f64>())
-            .collect::<Result<_, _>>()
-            .map_err(|_| fmt(format!("invalid spacings {sp:?}")))?;
-        if vals.len() as u64 != dim {
-            return Err(fmt(format!("spacings {sp:?} must have {dim} entries")));
-        }
-        for (a, v) in axes.iter().map(|&i| vals[i]).enumerate() {
-            if v.is_nan() {
-                continue; // "nan": no spacing known, keep 1 mm
-            }
-            if !(v.is_finite() && v != 0.0) {
-                return Err(fmt(format!("spacings: axis {a} has invalid spacing {v}")));
-            }
-            spacing[a] = v.abs();
-        }
-    }
+        (spacings(path, sp, shape)?, DMat3::IDENTITY)
+    } else {
+        ([1.0; 3], DMat3::IDENTITY)
+    };
     let origin = match &h.space_origin {
         Some(o) => {
             parse_vector(o).ok_or_else(|| fmt(format!("invalid space origin {o:?}")))? * flip
         }
         None => DVec3::ZERO,
     };
-    let modality = match h.modality.as_deref().map(str::trim) {
-        Some(m) if m.eq_ignore_ascii_case("ct") => Modality::Ct,
-        Some(m) if m.eq_ignore_ascii_case("mr") || m.eq_ignore_ascii_case("mri") => Modality::Mr,
-        _ => Modality::Unknown,
-    };
+    Ok((spacing, directions, origin))
+}
 
-    // skips
+/// The spacing and unit directions of `space directions` `sd` (a vector per spatial axis,
+/// `none` for the series or component axis), flipped into LPS by `flip`.
+fn space_directions(
+    path: &Path,
+    sd: &str,
+    shape: &Shape,
+    flip: DVec3,
+) -> Result<([f64; 3], DMat3), VolumeError> {
+    let fmt = |m: String| VolumeError::format(path, m);
+    let items = split_vectors(sd)
+        .filter(|v| {
+            v.len() as u64 == shape.dim
+                && match shape.layout {
+                    Layout::One => true,
+                    Layout::Series => v[3] == "none",
+                    Layout::Interleaved => v[0] == "none",
+                }
+        })
+        .ok_or_else(|| {
+            fmt(format!(
+                "space directions {sd:?} must be three vectors (and `none` for a series or \
+                 component axis)"
+            ))
+        })?;
+    let mut spacing = [1.0f64; 3];
+    let mut cols = [DVec3::ZERO; 3];
+    let axes = spatial_axes(shape.layout);
+    for (a, item) in axes.iter().map(|&i| &items[i]).enumerate() {
+        let v = parse_vector(item).ok_or_else(|| {
+            fmt(format!(
+                "space directions: axis {a} has {item:?}, expected (x,y,z)"
+            ))
+        })?;
+        let len = v.length();
+        // A vector a millionth of a millimetre long is no voxel spacing: refused like zero.
+        if !len.is_finite() || len < MIN_SPACING_MM {
+            return Err(fmt(format!(
+                "space directions: axis {a} has a zero (or near-zero, {len:e} mm) vector"
+            )));
+        }
+        spacing[a] = len;
+        cols[a] = v / len * flip;
+    }
+    let directions = DMat3::from_cols(cols[0], cols[1], cols[2]);
+    if directions.determinant().abs() < 1e-6 {
+        return Err(fmt(format!(
+            "space directions {sd:?} are degenerate (not independent)"
+        )));
+    }
+    Ok((spacing, directions))
+}
+
+/// The voxel spacing of `spacings` `sp` (`nan` for an axis keeps 1 mm).
+fn spacings(path: &Path, sp: &str, shape: &Shape) -> Result<[f64; 3], VolumeError> {
+    let fmt = |m: String| VolumeError::format(path, m);
+    let vals: Vec<f64> = sp
+        .split_whitespace()
+        .map(|s| s.parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| fmt(format!("invalid spacings {sp:?}")))?;
+    if vals.len() as u64 != shape.dim {
+        return Err(fmt(format!(
+            "spacings {sp:?} must have {} entries",
+            shape.dim
+        )));
+    }
+    let mut spacing = [1.0f64; 3];
+    for (a, v) in spatial_axes(shape.layout)
+        .iter()
+        .map(|&i| vals[i])
+        .enumerate()
+    {
+        if v.is_nan() {
+            continue; // "nan": no spacing known, keep 1 mm
+        }
+        if !(v.is_finite() && v != 0.0) {
+            return Err(fmt(format!("spacings: axis {a} has invalid spacing {v}")));
+        }
+        spacing[a] = v.abs();
+    }
+    Ok(spacing)
+}
+
+/// Step 4: `line skip` and `byte skip` (-1: the data are the file's last bytes, raw only).
+fn parse_skips(path: &Path, h: &Header, gzip: bool) -> Result<(u64, Skip), VolumeError> {
+    let fmt = |m: String| VolumeError::format(path, m);
     let line_skip: u64 = match &h.line_skip {
         Some(s) => s
             .parse()
@@ -532,148 +623,101 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
     if gzip && byte_skip as u64 > super::MAX_DATA_BYTES {
         return Err(fmt(format!("byte skip {byte_skip} is too large")));
     }
-
-    // data source
-    let (data_path, mut data): (PathBuf, BufReader<File>) = match &h.data_file {
-        Some(df) => {
-            let tokens: Vec<&str> = df.split_whitespace().collect();
-            if tokens.first() == Some(&"LIST") || (tokens.len() >= 4 && tokens[0].contains('%')) {
-                return Err(VolumeError::unsupported(
-                    path,
-                    format!("multi-file data (`data file: {df}`); only a single data file works"),
-                ));
-            }
-            let dp = Path::new(df);
-            let dp = if dp.is_absolute() {
-                dp.to_path_buf()
-            } else {
-                path.parent().unwrap_or(Path::new(".")).join(dp)
-            };
-            let f = File::open(&dp).map_err(|e| {
-                fmt(format!(
-                    "cannot open detached data file {}: {e}",
-                    dp.display()
-                ))
-            })?;
-            (dp, BufReader::new(f))
-        }
-        None => {
-            if !terminated {
-                return Err(fmt(
-                    "header ends without an empty line and no `data file`; \
-                                no data follows"
-                        .into(),
-                ));
-            }
-            (path.to_path_buf(), reader)
-        }
+    let skip = match byte_skip {
+        -1 => Skip::Tail,
+        b => Skip::Bytes(b as u64),
     };
-    // Error for the data, naming the data file and (if different) the header.
-    let dfmt = |m: String| {
-        if data_path == path {
-            VolumeError::format(path, m)
-        } else {
-            VolumeError::format(path, format!("data file {}: {m}", data_path.display()))
-        }
-    };
-    let dio = |e: std::io::Error| dfmt(format!("read error: {e}"));
+    Ok((line_skip, skip))
+}
 
+/// Step 5: the file holding the samples: the detached `data file`, or the header's own
+/// remainder (which needs the empty line that ends the header).
+fn open_source(
+    path: &Path,
+    h: &Header,
+    reader: BufReader<File>,
+    terminated: bool,
+) -> Result<(DataSource, BufReader<File>), VolumeError> {
+    match &h.data_file {
+        Some(df) => DataSource::detached(path, "data file:", df),
+        None if !terminated => Err(VolumeError::format(
+            path,
+            "header ends without an empty line and no `data file`; no data follows",
+        )),
+        None => Ok((DataSource::attached(path), reader)),
+    }
+}
+
+/// Step 6: skips the lines and bytes before the samples and reads the chosen volume (of a
+/// series: every volume must be in the file; of interleaved components: the one picked out).
+fn read_payload(
+    source: &DataSource,
+    mut data: BufReader<File>,
+    shape: &Shape,
+    encoding: &Encoding,
+    line_skip: u64,
+    byte_skip: Skip,
+) -> Result<Voxels, VolumeError> {
     let mut line = Vec::new();
     for n in 0..line_skip {
         line.clear();
         let got = (&mut data)
             .take(1 << 20)
             .read_until(b'\n', &mut line)
-            .map_err(dio)?;
+            .map_err(|e| source.io_error(e))?;
         if got == 0 {
-            return Err(dfmt(format!(
+            return Err(source.error(format_args!(
                 "end of file while skipping line {} of {line_skip}",
                 n + 1
             )));
         }
     }
-
-    // Prefix of the data messages: the detached data file, if any, and the encoding.
-    let what = format!(
-        "{}{}",
-        if data_path == path {
-            String::new()
-        } else {
-            format!("data file {}: ", data_path.display())
-        },
-        if gzip { "gzip " } else { "" }
-    );
-    let voxels = if gzip {
+    // A series' volume lies whole after the ones before it; interleaved components are read
+    // together (as one volume `frames` times wider) and the one asked for picked out.
+    let (frame, frames, dims) = (shape.frame, shape.frames, shape.dims);
+    let (frame_skip, read_dims) = match shape.layout {
+        Layout::Interleaved => (0, [dims[0] * frames, dims[1], dims[2]]),
+        Layout::One | Layout::Series => (
+            data_source::frame_offset(source.header(), 0, frame, shape.data_bytes)?,
+            dims,
+        ),
+    };
+    let read_bytes = read_dims.iter().product::<u64>() * shape.ty.bytes();
+    let read_dims = read_dims.map(|d| d as usize);
+    let codec = if encoding.gzip { "gzip " } else { "" };
+    let what = source.what(codec);
+    let header = source.header();
+    let (ty, be) = (shape.ty, encoding.big_endian);
+    let voxels = if encoding.gzip {
         let mut dec = MultiGzDecoder::new(data);
-        let gz_err = |e: std::io::Error| dfmt(format!("gzip data are corrupt: {e}"));
-        let skip = byte_skip as u64 + frame_skip;
-        let skipped =
-            std::io::copy(&mut (&mut dec).take(skip), &mut std::io::sink()).map_err(gz_err)?;
-        if skipped < skip {
-            return Err(dfmt(format!(
-                "truncated data: decompressed data end after {skipped} of {skip} bytes to skip"
-            )));
-        }
-        read_wide(
-            path, &what, &mut dec, ty, read_dims, big_endian, None, false,
-        )?
-    } else {
-        let pos = data.stream_position().map_err(dio)?;
-        let len = data.get_ref().metadata().map_err(dio)?.len();
-        let start = if byte_skip == -1 {
-            if len < pos.saturating_add(total_bytes) {
-                return Err(dfmt(format!(
-                    "truncated data: expected {total_bytes} bytes at the end of the file, found {}",
-                    len.saturating_sub(pos)
-                )));
-            }
-            len - total_bytes
-        } else {
-            pos.saturating_add(byte_skip as u64)
+        let skip = match byte_skip {
+            Skip::Bytes(b) => b + frame_skip,
+            Skip::Tail => frame_skip, // refused with gzip by parse_skips
         };
-        let avail = len.saturating_sub(start);
-        if avail < total_bytes {
-            return Err(dfmt(format!(
-                "truncated data: expected {total_bytes} bytes, found {avail}"
-            )));
-        }
-        // A detached raw file holds the samples and nothing else: more bytes than the header
-        // describes means the sizes or the type are wrong. (Attached data may be followed by
-        // anything, as teem allows; `byte skip: -1` takes the last bytes on purpose.)
-        if data_path != path && byte_skip != -1 && avail > total_bytes {
-            return Err(dfmt(format!(
-                "the data file holds {avail} bytes after the skips but the header describes \
-                 {total_bytes} ({} {ty_s}): wrong sizes or type?",
-                sizes
+        source.skip_decoded(&mut dec, codec, skip, read_bytes)?;
+        read_wide(header, &what, &mut dec, ty, read_dims, be, None, false)?
+    } else {
+        let pos = data.stream_position().map_err(|e| source.io_error(e))?;
+        let described = Described {
+            shape: format!(
+                "{} {}",
+                shape
+                    .sizes
                     .iter()
                     .map(u64::to_string)
                     .collect::<Vec<_>>()
-                    .join(" x ")
-            )));
-        }
-        data.seek(SeekFrom::Start(start + frame_skip))
-            .map_err(dio)?;
-        read_wide(
-            path, &what, &mut data, ty, read_dims, big_endian, None, true,
-        )?
+                    .join(" x "),
+                shape.ty_s
+            ),
+            fields: "sizes or type",
+        };
+        let start = source.locate_raw(&data, pos, byte_skip, shape.total_bytes, &described)?;
+        source.seek(&mut data, start + frame_skip)?;
+        read_wide(header, &what, &mut data, ty, read_dims, be, None, true)?
     };
-    let voxels = match layout {
+    Ok(match shape.layout {
         Layout::Interleaved => voxels.strided(frame as usize, frames as usize),
         Layout::One | Layout::Series => voxels,
-    };
-    let name = path
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "volume".into());
-    Ok(Volume {
-        name,
-        dims: udims,
-        spacing,
-        directions,
-        origin,
-        modality,
-        voxels,
-        labels: None,
     })
 }
 
