@@ -39,6 +39,12 @@ void main() {
     uint r = gl_GlobalInvocationID.x;
     if (r >= pc.job.x) return;
     uint b = pc.job.y, p = pc.job.z;
+    // A flat voxel's second row (marked negative by histogram_local.comp) is its first: the
+    // host takes the first row's cluster.
+    if (rows[r * b] < 0.0) {
+        ids[r] = SAME_AS_FRONT;
+        return;
+    }
     for (uint d = 0u; d < p; d++) packed[d] = 0.0;
     for (uint k = 0u; k < b; k++) {
         float x = rows[r * b + k];

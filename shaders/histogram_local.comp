@@ -76,7 +76,10 @@ void main() {
             rows[base + bins[u.x + row * u.y + slice * u.z]] += nb.w;
         }
     }
+    // A flat voxel's H_b is its H_f: its second row is only marked (its first entry negative),
+    // and the clustering takes the first row for it (src/ao/histogram_gpu.rs).
     if (split_on != 0u) {
-        for (uint k = 0u; k < shades; k++) rows[base + shades + k] = rows[base + k];
+        rows[base + shades] = -1.0;
+        for (uint k = 1u; k < shades; k++) rows[base + shades + k] = 0.0;
     }
 }

@@ -23,10 +23,13 @@ pub const SH_T_MIN: f64 = 1.0 / 1024.0;
 /// Y_0 = 1 / (2 sqrt(pi)) = 1 / sqrt(4 pi): the constant SH band, and the bound of every
 /// visibility coefficient.
 pub const Y0: f64 = 0.282_094_791_773_878_14;
-/// Most bins a local histogram has (histogram_local.comp keeps one per invocation).
+/// Most bins a local histogram has (`--hist-bins`).
 pub const HIST_MAX_BINS: u32 = 256;
 /// Most dimensions the clustering packs a local histogram into (histogram_assign.comp).
 pub const HIST_MAX_PACKED: u32 = 32;
+/// The cluster id histogram_assign.comp gives a flat voxel's second hemisphere: the same as its
+/// first's (the host resolves it).
+pub const SAME_AS_FRONT: u32 = u32::MAX;
 /// Bricks of 2^RAY_BRICK_SHIFT voxels per axis for the ray caster's exact empty-space skipping
 /// (src/render/empty_space.rs).
 pub const RAY_BRICK_SHIFT: u32 = 3;

@@ -8,6 +8,7 @@
 use super::histogram::{self as hist, Clusters, HistParams, Neighbourhood, Packing, Shades};
 use super::voxel_box::{dispatch_box, VoxelBox};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, Reach, Result};
+use crate::shader_constants::SAME_AS_FRONT;
 use crate::volume::labels::LabelMap;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
@@ -451,10 +452,12 @@ impl HistogramGpu {
         // Training: the sample's histograms, packed.
         let t0 = std::time::Instant::now();
         progress(0, 1, "histograms of the training sample");
+        // As many rows as with one sphere: half the voxels with two hemispheres, fewer where a
+        // flat voxel's second row is its first.
         let sample = hist::training_sample(
             self.dims,
             &self.shades.ids,
-            MIN_TRAINING.max(16 * self.params.clusters),
+            MIN_TRAINING.max(16 * self.params.clusters) / hemis,
         );
         let list = Buffer::from_slice(&self.gpu, &sample, storage, "hist-sample")?;
         let rows = readable(sample.len() * hemis * b * 4, "hist-sample-rows")?;
@@ -463,6 +466,7 @@ impl HistogramGpu {
         let sample_rows: &[f32] = bytemuck::cast_slice(rows.mapped()?);
         let packed: Vec<f32> = sample_rows
             .chunks_exact(b)
+            .filter(|lh| lh[0] >= 0.0)
             .flat_map(|lh| packing.pack(lh))
             .collect();
         let sample_ms = t0.elapsed().as_secs_f64() * 1e3;
@@ -527,16 +531,22 @@ impl HistogramGpu {
             let batch_ids: &[u32] = &bytemuck::cast_slice(ids_buf.mapped()?)[..count * hemis];
             let batch_rows: &[f32] = bytemuck::cast_slice(rows.mapped()?);
             for (r, &c) in batch_ids.iter().enumerate() {
+                // A flat voxel's second row is its first (marked, not assigned: only odd rows).
+                let (c, row) = if c == SAME_AS_FRONT {
+                    (batch_ids[r - 1], r - 1)
+                } else {
+                    (c, r)
+                };
                 pop[c as usize] += 1;
                 let dst = &mut sums[c as usize * b..(c as usize + 1) * b];
                 // A neighbourhood holds few of the shades: adding the zeros would change nothing.
-                for (d, x) in dst.iter_mut().zip(&batch_rows[r * b..(r + 1) * b]) {
+                for (d, x) in dst.iter_mut().zip(&batch_rows[row * b..(row + 1) * b]) {
                     if *x != 0.0 {
                         *d += *x as f64;
                     }
                 }
+                ids.push(c);
             }
-            ids.extend_from_slice(batch_ids);
             assign_ms += t.elapsed().as_secs_f64() * 1e3;
         }
         progress(
