@@ -2,11 +2,13 @@
 //! renders both eyes, and a blit puts one eye or both side by side on an X11 swapchain.
 
 use super::frame_loop::FrameLoop;
-use super::session::{record_error, recorder, start_gpu, Recorder, SessionSpec};
+use super::session::{
+    desktop_interaction, record_error, recorder, start_gpu, Recorder, SessionSpec,
+};
 use super::{AppError, Result};
 use crate::gpu::present::Presenter;
 use crate::input::desktop::{DesktopInput, Key};
-use crate::input::{InteractionSettings, StreamHeader};
+use crate::input::StreamHeader;
 use glam::Vec2;
 use std::path::PathBuf;
 use winit::application::ApplicationHandler;
@@ -36,15 +38,6 @@ pub struct ViewOptions {
     pub frames_in_flight: Option<usize>,
     /// `--frame-budget-ms`: the frame time the ray step is scaled to hold (None: off).
     pub frame_budget_ms: Option<f64>,
-}
-
-/// Interaction settings of desktop sessions (and of their replays): the emulated grip is the
-/// tool, so there is no offset in the hand.
-pub fn desktop_interaction() -> InteractionSettings {
-    InteractionSettings {
-        tool_offset: glam::Vec3::ZERO,
-        ..Default::default()
-    }
 }
 
 struct App {

@@ -156,7 +156,7 @@ pub fn replay(
     // Scripts and desktop sessions describe where the tool goes, so their grip is the tool:
     // no offset in the hand (as the desktop window ran it).
     let interaction = if header.source.starts_with("script:") || header.source == "desktop" {
-        super::desktop::desktop_interaction()
+        super::session::desktop_interaction()
     } else {
         InteractionSettings::default()
     };

@@ -16,6 +16,15 @@ use crate::volume::Volume;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+/// Interaction settings of desktop sessions (and of their replays): the emulated grip is the
+/// tool, so there is no offset in the hand.
+pub fn desktop_interaction() -> InteractionSettings {
+    InteractionSettings {
+        tool_offset: glam::Vec3::ZERO,
+        ..Default::default()
+    }
+}
+
 /// GPU options from the command line: `--validation` turns the Khronos layer on (it is also on
 /// in debug builds and with CAO_XR_VALIDATION=1); `present` for a window or a mirror.
 pub fn gpu_options(validation: bool, present: bool) -> GpuOptions {
