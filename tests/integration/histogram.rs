@@ -621,6 +621,17 @@ fn labelled_head() -> Volume {
     vol
 }
 
+/// What the structure menu does: the method's tables for the structures as `shown` (one table
+/// update), then a frame with no tool.
+fn show_structures(gpu: &Gpu, cao: &mut Cao, vol: &Volume, tf: &TransferFunction, shown: &[f32]) {
+    let lao = LaoGpu::new(gpu).unwrap();
+    let h = cao.histogram_mut().unwrap();
+    let t = cao_xr::app::histogram_tables(gpu, &lao, vol.dims, h, (tf, shown)).unwrap();
+    cao.replace_precomputed(t.opacity, t.pao, None).unwrap();
+    cao.run_frame(&[], &Placement::default(), Mode::Contextual)
+        .unwrap();
+}
+
 #[test]
 fn the_direct_sums_follow_the_structures_shown_and_their_colours() {
     let gpu = common::gpu();
@@ -655,12 +666,7 @@ fn the_direct_sums_follow_the_structures_shown_and_their_colours() {
     );
     // The menu hides the green one and shows the blue one translucent: one table update.
     let shown = [0.0, 0.3];
-    let lao = LaoGpu::new(&gpu).unwrap();
-    let h = cao.histogram_mut().unwrap();
-    let t = cao_xr::app::histogram_tables(&gpu, &lao, vol.dims, h, (&tf, &shown)).unwrap();
-    cao.replace_precomputed(t.opacity, t.pao, None).unwrap();
-    cao.run_frame(&[], &Placement::default(), Mode::Contextual)
-        .unwrap();
+    show_structures(&gpu, &mut cao, &vol, &tf, &shown);
     let (a_hidden, _) = check(&cao, &shown, "green hidden, blue translucent");
     assert!(
         a_hidden.iter().zip(&a_shown).any(|(h, s)| h - s > 0.05),
@@ -699,12 +705,7 @@ fn the_clustered_values_follow_the_structures_shown() {
     };
     let shown_ao = near(&cao, &[1.0, 1.0], "structures shown");
     let shown = [0.0, 1.0];
-    let lao = LaoGpu::new(&gpu).unwrap();
-    let h = cao.histogram_mut().unwrap();
-    let t = cao_xr::app::histogram_tables(&gpu, &lao, vol.dims, h, (&tf, &shown)).unwrap();
-    cao.replace_precomputed(t.opacity, t.pao, None).unwrap();
-    cao.run_frame(&[], &Placement::default(), Mode::Contextual)
-        .unwrap();
+    show_structures(&gpu, &mut cao, &vol, &tf, &shown);
     let hidden_ao = near(&cao, &shown, "green hidden");
     assert!(
         hidden_ao.iter().zip(&shown_ao).any(|(h, s)| h - s > 0.05),
