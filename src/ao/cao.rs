@@ -7,9 +7,10 @@
 //! the tools, not the volume. The result equals the naive full recompute ([`Mode::Naive`]) bit
 //! for bit: both use the same kernels on the same clipped opacity.
 
-use super::filter_gpu::{FilterGpu, FilterMode};
-use super::histogram_gpu::{HistMode, HistogramGpu};
+use super::filter_gpu::FilterGpu;
+use super::histogram_gpu::HistogramGpu;
 use super::lao::{LaoLayout, LaoParams, SkipBuffers, LAO_GROUP};
+use super::method::MethodBuffers;
 use super::voxel_box::{dispatch_box, dispatch_box_in, merge_boxes, VoxelBox};
 use crate::clip::margin::{self, MarginHit};
 use crate::clip::Shape;
@@ -801,26 +802,15 @@ impl Cao {
         }
         slot.timer.begin(cmd);
         self.record_restore(cmd, &restore, clipped);
+        let bufs = MethodBuffers {
+            density: &self.clipped,
+            mask: &self.mask,
+            pre_a: &self.pao,
+            out_a: &self.ao,
+        };
         if let MethodGpu::Histogram(h) = &self.method {
-            // The bleeding colour of last frame's boxes, restored like V_AO (clipped: the
-            // values of category a, from the mask just written).
-            if clipped {
-                self.gpu.barrier(cmd);
-            }
-            let hmode = if clipped {
-                HistMode::Contextual
-            } else {
-                HistMode::Restore
-            };
-            h.record(
-                cmd,
-                &self.clipped,
-                &self.mask,
-                &self.pao,
-                &self.ao,
-                &restore,
-                hmode,
-            );
+            // The bleeding colour of last frame's boxes, restored like V_AO.
+            h.record_restore(cmd, &bufs, &restore, clipped);
         }
         self.gpu.barrier(cmd);
         self.slots[self.slot].timer.mark(cmd, "restore");
@@ -852,36 +842,8 @@ impl Cao {
         self.gpu.barrier(cmd);
         self.slots[self.slot].timer.mark(cmd, "clip");
         match &self.method {
-            MethodGpu::Filter(f) => {
-                let fmode = match mode {
-                    Mode::Contextual => FilterMode::Contextual,
-                    Mode::Naive => FilterMode::Naive,
-                };
-                f.record(
-                    cmd,
-                    &self.clipped,
-                    &self.ao,
-                    &self.mask,
-                    &self.pao,
-                    &boxes,
-                    fmode,
-                );
-            }
-            MethodGpu::Histogram(h) => {
-                let hmode = match mode {
-                    Mode::Contextual => HistMode::Contextual,
-                    Mode::Naive => HistMode::Naive,
-                };
-                h.record(
-                    cmd,
-                    &self.clipped,
-                    &self.mask,
-                    &self.pao,
-                    &self.ao,
-                    &boxes,
-                    hmode,
-                );
-            }
+            MethodGpu::Filter(f) => f.record(cmd, &bufs, &boxes, mode),
+            MethodGpu::Histogram(h) => h.record(cmd, &bufs, &boxes, mode),
             MethodGpu::Lao | MethodGpu::Open => {}
         }
         let lao = matches!(self.method, MethodGpu::Lao);

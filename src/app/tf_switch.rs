@@ -11,13 +11,12 @@
 use super::lighting::ShLighting;
 use super::{AppError, Result};
 use crate::ao::cao::{Cao, MethodGpu};
-use crate::ao::filter_gpu::{FilterGpu, FilterMode};
+use crate::ao::filter_gpu::FilterGpu;
 use crate::ao::filtered;
 use crate::ao::histogram_gpu::HistogramGpu;
 use crate::ao::lao::{LaoLayout, SkipBuffers, SkipData};
 use crate::ao::progressive::{HostTask, SlabScheduler};
 use crate::ao::sh::ShVolume;
-use crate::ao::voxel_box::VoxelBox;
 use crate::ao::{AoMethod, LaoGpu};
 use crate::gpu::{Buffer, Gpu, GpuTimer};
 use crate::render::VolumeTextures;
@@ -513,10 +512,7 @@ impl TfSwitcher {
         if let Some(z) = slabs.next_slab() {
             self.timer.begin(cmd);
             match filter {
-                Some(f) => {
-                    let whole = [VoxelBox::whole(vol.dims)];
-                    f.record(cmd, opacity, pao, opacity, opacity, &whole, FilterMode::All);
-                }
+                Some(f) => f.record_precompute(cmd, opacity, pao),
                 None => {
                     let (lao, dirs) = (&self.lao, &self.lao_dirs);
                     let skip = skip
