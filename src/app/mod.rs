@@ -189,11 +189,9 @@ pub struct AoVolume {
     pub opacity_buf: Buffer,
     /// V_PAO: the AO method's openness of the unclipped volume (f32, x fastest).
     pub ao_buf: Buffer,
-    /// Exact empty-space skipping data of O (valid for every clipped O too); stand-ins for the
-    /// methods that do not read it ([`LaoGpu::skip_stand_in`]).
-    pub skip: SkipBuffers,
     pub timing: LaoTiming,
-    /// The method's GPU state (it goes to the CAO state with the volumes).
+    /// The method's GPU state (it goes to the CAO state with the volumes; for LAO the exact
+    /// empty-space skipping data of O, valid for every clipped O too).
     pub method: MethodGpu,
 }
 
@@ -205,32 +203,18 @@ impl AoVolume {
             opacity: self.opacity.clone(),
             opacity_buf: self.opacity_buf.duplicate(usage, "opacity")?,
             ao_buf: self.ao_buf.duplicate(usage, "pao")?,
-            skip: SkipBuffers {
-                clear: self.skip.clear.duplicate(usage, "lao-clear")?,
-                bricks: self.skip.bricks.duplicate(usage, "lao-bricks")?,
-                padded: self.skip.padded.duplicate(usage, "lao-padded")?,
-                samples: self.skip.samples.duplicate(usage, "lao-samples")?,
-                stride: self.skip.stride,
-            },
             timing: self.timing.clone(),
-            method: match &self.method {
-                MethodGpu::Open => MethodGpu::Open,
-                MethodGpu::Lao => MethodGpu::Lao,
-                MethodGpu::Filter(f) => MethodGpu::Filter(f.duplicate()?),
-                MethodGpu::Histogram(h) => MethodGpu::Histogram(h.duplicate()?),
-            },
+            method: self.method.duplicate()?,
         })
     }
 
-    /// Hands O, V_PAO and the skipping data to a CAO state for per-frame clipping.
-    pub fn into_cao(self, gpu: &Gpu, vol: &Volume, params: LaoParams) -> Result<Cao> {
+    /// Hands O, V_PAO and the method to a CAO state for per-frame clipping.
+    pub fn into_cao(self, gpu: &Gpu, vol: &Volume) -> Result<Cao> {
         Ok(Cao::new(
             gpu,
             vol,
             self.opacity_buf,
             self.ao_buf,
-            self.skip,
-            params,
             self.method,
         )?)
     }
@@ -288,9 +272,8 @@ pub fn precompute_ao(
         opacity,
         opacity_buf,
         ao_buf,
-        skip,
         timing,
-        method: MethodGpu::Lao,
+        method: MethodGpu::lao(gpu, vol, *params, skip)?,
     })
 }
 
@@ -375,7 +358,7 @@ pub fn precompute(
 /// The AO of no method yet ([`MethodGpu::Open`]): V_PAO 1 everywhere and O zero, both
 /// filled on the GPU, so a first picture waits for no classification, upload or precompute
 /// (the switch to a method classifies and computes its own).
-pub(crate) fn open_ao(gpu: &Gpu, lao: &LaoGpu, vol: &Volume) -> Result<AoVolume> {
+pub(crate) fn open_ao(gpu: &Gpu, vol: &Volume) -> Result<AoVolume> {
     crate::render::check_volume_fits_gpu(gpu, vol)?;
     let n = vol.voxel_count() as u64;
     let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST;
@@ -409,7 +392,6 @@ pub(crate) fn open_ao(gpu: &Gpu, lao: &LaoGpu, vol: &Volume) -> Result<AoVolume>
         opacity: Vec::new(),
         opacity_buf,
         ao_buf,
-        skip: lao.skip_stand_in()?,
         timing: LaoTiming::default(),
         method: MethodGpu::Open,
     })
@@ -445,7 +427,6 @@ pub(crate) fn precompute_method(
     let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
     // f32: the filters' gradients of it need more than 16 bits (`Cao::clipped_stride`).
     let opacity_buf = Buffer::device_local(gpu, &density, usage, "opacity")?;
-    let skip = lao.skip_stand_in()?;
     let filter = FilterGpu::new(gpu, vol.dims, vol.spacing, fp)?;
     let t0 = std::time::Instant::now();
     let (ao_buf, gpu_ms) = filter.compute(&opacity_buf)?;
@@ -458,7 +439,6 @@ pub(crate) fn precompute_method(
         opacity: density,
         opacity_buf,
         ao_buf,
-        skip,
         timing,
         method: MethodGpu::Filter(filter),
     })
@@ -560,7 +540,6 @@ pub fn precompute_histogram(
         opacity: t.q,
         opacity_buf: t.opacity,
         ao_buf: t.pao,
-        skip: lao.skip_stand_in()?,
         timing,
         method: MethodGpu::Histogram(h),
     })
