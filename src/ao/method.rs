@@ -3,13 +3,15 @@
 //! write, by role. Each method's state and passes live in a file of their own (lao.rs,
 //! filter_gpu.rs, histogram_gpu.rs); this file only delegates.
 
-use super::cao::Mode;
+use super::cao::{Cao, Mode};
 use super::filter_gpu::FilterGpu;
+use super::filtered::FilterParams;
 use super::histogram_gpu::HistogramGpu;
-use super::lao::{LaoLayout, LaoMethod, LaoParams, SkipBuffers};
+use super::lao::{LaoGpu, LaoLayout, LaoMethod, LaoParams, LaoTiming, SkipBuffers};
 use super::voxel_box::VoxelBox;
 use super::AoMethod;
 use crate::gpu::{Buffer, Gpu, Result};
+use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use ash::vk;
 
@@ -232,4 +234,191 @@ impl AoMethod {
             AoMethod::Histogram(_) => Refresh::Table,
         }
     }
+}
+
+/// A volume's classification and precomputed AO, resident on the GPU: what a CAO state is
+/// made from ([`AoVolume::into_cao`]).
+pub struct AoVolume {
+    /// O of docs/design.md, on the host (for the filters: the density they filter, O or the
+    /// normalised scalar; for the local histograms q).
+    pub opacity: Vec<f32>,
+    pub opacity_buf: Buffer,
+    /// V_PAO: the AO method's openness of the unclipped volume (stored, x fastest).
+    pub ao_buf: Buffer,
+    pub timing: LaoTiming,
+    /// The method's GPU state (it goes to the CAO state with the volumes; for LAO the exact
+    /// empty-space skipping data of O, valid for every clipped O too).
+    pub method: MethodGpu,
+}
+
+impl AoVolume {
+    /// A second, independent copy on the GPU (to run two CAO states side by side).
+    pub fn duplicate(&self) -> Result<AoVolume> {
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
+        Ok(AoVolume {
+            opacity: self.opacity.clone(),
+            opacity_buf: self.opacity_buf.duplicate(usage, "opacity")?,
+            ao_buf: self.ao_buf.duplicate(usage, "pao")?,
+            timing: self.timing.clone(),
+            method: self.method.duplicate()?,
+        })
+    }
+
+    /// Hands O, V_PAO and the method to a CAO state for per-frame clipping.
+    pub fn into_cao(self, gpu: &Gpu, vol: &Volume) -> Result<Cao> {
+        Cao::new(gpu, vol, self.opacity_buf, self.ao_buf, self.method)
+    }
+
+    /// LAO's precompute of `opacity` (O of `vol`, host) with `params`, `progress(done, total)`
+    /// told slab by slab.
+    pub fn lao(
+        gpu: &Gpu,
+        lao: &LaoGpu,
+        vol: &Volume,
+        opacity: Vec<f32>,
+        params: &LaoParams,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<AoVolume> {
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        let opacity_buf = super::stored::upload(gpu, &opacity, usage, "opacity")?;
+        let skip = lao.skip_buffers(&opacity, vol.dims, vol.spacing, params)?;
+        let (ao_buf, timing) =
+            lao.compute(&opacity_buf, &skip, vol.dims, vol.spacing, params, progress)?;
+        Ok(AoVolume {
+            opacity,
+            opacity_buf,
+            ao_buf,
+            timing,
+            method: MethodGpu::lao(gpu, vol, *params, skip)?,
+        })
+    }
+
+    /// The filters' precompute (one pass) over `density`, the density of `vol` they filter.
+    pub fn filter(
+        gpu: &Gpu,
+        vol: &Volume,
+        density: Vec<f32>,
+        params: FilterParams,
+    ) -> Result<AoVolume> {
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        // f32: the filters' gradients of it need more than 16 bits (`Cao::clipped_stride`).
+        let opacity_buf = Buffer::device_local(gpu, &density, usage, "opacity")?;
+        let filter = FilterGpu::new(gpu, vol.dims, vol.spacing, params)?;
+        let t0 = std::time::Instant::now();
+        let (ao_buf, gpu_ms) = filter.compute(&opacity_buf)?;
+        let timing = LaoTiming {
+            gpu_ms,
+            wall_ms: t0.elapsed().as_secs_f64() * 1e3,
+            ..Default::default()
+        };
+        Ok(AoVolume {
+            opacity: density,
+            opacity_buf,
+            ao_buf,
+            timing,
+            method: MethodGpu::Filter(filter),
+        })
+    }
+
+    /// V_PAO and the bleeding volume of the local-histogram method `h` under `tf`: one table
+    /// update and one pass (the clusters' values, or with N = 0 the direct sums).
+    pub fn histogram(
+        gpu: &Gpu,
+        lao: &LaoGpu,
+        vol: &Volume,
+        tf: &TransferFunction,
+        mut h: HistogramGpu,
+    ) -> Result<AoVolume> {
+        let t0 = std::time::Instant::now();
+        let t = histogram_tables(gpu, lao, vol.dims, &mut h, (tf, &[]))?;
+        let timing = LaoTiming {
+            gpu_ms: t.gpu_ms,
+            wall_ms: t0.elapsed().as_secs_f64() * 1e3,
+            ..Default::default()
+        };
+        Ok(AoVolume {
+            opacity: t.q,
+            opacity_buf: t.opacity,
+            ao_buf: t.pao,
+            timing,
+            method: MethodGpu::Histogram(h),
+        })
+    }
+
+    /// The AO of no method yet ([`MethodGpu::Open`]): V_PAO 1 everywhere and O zero, both
+    /// filled on the GPU, so a first picture waits for no classification, upload or
+    /// precompute (the switch to a method classifies and computes its own).
+    pub fn open(gpu: &Gpu, vol: &Volume) -> Result<AoVolume> {
+        let n = vol.voxel_count() as u64;
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST;
+        let opacity_buf = Buffer::new(
+            gpu,
+            super::stored::bytes(n).next_multiple_of(4),
+            usage,
+            gpu_allocator::MemoryLocation::GpuOnly,
+            "opacity",
+        )?;
+        let ao_buf = super::stored::buffer(gpu, vol.dims, "pao")?;
+        // A fill writes whole 4-byte words: the last 16-bit word of an odd count is copied in.
+        let tail = Buffer::device_local(
+            gpu,
+            &[super::stored::pack(1.0)],
+            vk::BufferUsageFlags::TRANSFER_SRC,
+            "pao-tail",
+        )?;
+        gpu.submit_and_wait(|cmd| unsafe {
+            // SAFETY: the buffers were just made with these usages, and nothing else uses them.
+            let d = &gpu.device;
+            d.cmd_fill_buffer(cmd, opacity_buf.raw, 0, vk::WHOLE_SIZE, 0);
+            // Every 16-bit word all ones: AO_OPEN, AO 1.
+            d.cmd_fill_buffer(cmd, ao_buf.raw, 0, vk::WHOLE_SIZE, u32::MAX);
+            gpu.barrier(cmd);
+            let last = ao_buf.size - super::stored::BYTES_PER_VOXEL;
+            let region = vk::BufferCopy::default().dst_offset(last).size(2);
+            d.cmd_copy_buffer(cmd, tail.raw, ao_buf.raw, &[region]);
+        })?;
+        Ok(AoVolume {
+            opacity: Vec::new(),
+            opacity_buf,
+            ao_buf,
+            timing: LaoTiming::default(),
+            method: MethodGpu::Open,
+        })
+    }
+}
+
+/// What [`histogram_tables`] made: q (host and GPU), V_PAO, and the pass's GPU ms.
+pub struct HistogramTables {
+    pub q: Vec<f32>,
+    pub opacity: Buffer,
+    pub pao: Buffer,
+    pub gpu_ms: f64,
+}
+
+/// The local-histogram method `h` under `tf` and the structures as `structures` shows them (its
+/// first TF, a TF change or a structure shown or hidden): its tables, then q (the opacity CAO
+/// clips) and V_PAO with the bleeding volume in one pass.
+pub fn histogram_tables(
+    gpu: &Gpu,
+    lao: &LaoGpu,
+    dims: [usize; 3],
+    h: &mut HistogramGpu,
+    (tf, structures): (&TransferFunction, &[f32]),
+) -> Result<HistogramTables> {
+    let q = h.set_tf(tf, structures)?;
+    let opacity = super::stored::upload(gpu, &q, vk::BufferUsageFlags::STORAGE_BUFFER, "opacity")?;
+    let pao = lao.output_buffer(dims)?;
+    let mut timer = crate::gpu::GpuTimer::new(gpu, 2)?;
+    gpu.submit_and_wait(|cmd| {
+        timer.begin(cmd);
+        h.record_precompute(cmd, &opacity, &pao);
+        timer.mark(cmd, "histogram");
+    })?;
+    let gpu_ms = timer.read()?.iter().map(|t| t.1).sum();
+    Ok(HistogramTables {
+        q,
+        opacity,
+        pao,
+        gpu_ms,
+    })
 }
