@@ -7,10 +7,12 @@
 //! the tools, not the volume. The result equals the naive full recompute ([`Mode::Naive`]) bit
 //! for bit: both use the same kernels on the same clipped opacity.
 
-use super::filter_gpu::{FilterGpu, FilterMode};
-use super::histogram_gpu::{HistMode, HistogramGpu};
-use super::lao::{LaoLayout, LaoParams, SkipBuffers, LAO_GROUP};
-use super::voxel_box::{dispatch_box, dispatch_box_in, merge_boxes, VoxelBox};
+use super::filter_gpu::FilterGpu;
+use super::histogram_gpu::HistogramGpu;
+use super::lao::LaoLayout;
+use super::method::MethodBuffers;
+pub use super::method::MethodGpu;
+use super::voxel_box::{dispatch_box, merge_boxes, VoxelBox};
 use crate::clip::margin::{self, MarginHit};
 use crate::clip::Shape;
 use crate::clip::{shape_mesh, ClipMap, ClipMapGpu, TriMesh};
@@ -87,61 +89,25 @@ struct ClipPush {
 }
 crate::gpu::glsl_layout!(ClipPush, 64, dims: 0, box_min: 16, box_max: 32, stride: 48);
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct UpdatePush {
-    dims: [i32; 4],
-    stride: [i32; 4],
-    rays: u32,
-    steps: u32,
-    exponent: f32,
-    naive: u32,
-    box_min: [i32; 4],
-    box_max: [i32; 4],
-}
-crate::gpu::glsl_layout!(UpdatePush, 80,
-    dims: 0, stride: 16, rays: 32, steps: 36, exponent: 40, naive: 44, box_min: 48, box_max: 64);
-
-/// The AO method CAO drives (docs/design.md, "AO methods"): what recomputes the category-b
-/// voxels, and whose reach the dilation covers. V_PAO holds that method's AO of the unclipped
-/// volume.
-// One per CAO state: the sizes do not matter.
-#[allow(clippy::large_enum_variant)]
-pub enum MethodGpu {
-    /// No method yet: AO 1 everywhere (V_PAO open), for a first picture before the configured
-    /// method's precompute is done (a fast start, `app::frame_loop`). Its frames run the clip
-    /// machinery alone, so the tools cut the picture while V_AO stays 1.
-    Open,
-    Lao,
-    Filter(FilterGpu),
-    Histogram(HistogramGpu),
-}
-
 /// The volume's CAO state on the GPU and the passes that update it every frame.
 pub struct Cao {
     gpu: Gpu,
     restore: ComputePipeline,
     clip: ComputePipeline,
-    update: ComputePipeline,
     pub dims: [usize; 3],
     pub spacing: [f64; 3],
     /// The volume's geometry (no voxels), for its model matrix.
     geometry: Volume,
-    pub params: LaoParams,
     max_spacing_mm: f64,
     opacity: Buffer,
-    /// O_c: the anti-aliased clipped opacity. While the method is LAO it lies inside the zero
-    /// border the LAO kernel reads ([`LaoLayout`]; the border stays 0), else without one: one
-    /// copy either way. Stored in 16 bits ([`super::stored`]), but for the filters' f32 density
-    /// ([`Cao::clipped_stride`]).
+    /// O_c: the anti-aliased clipped opacity, laid out as the method reads it
+    /// ([`MethodGpu::clipped_stride`]: for LAO inside the zero border its kernel reads, which
+    /// stays 0). Stored in 16 bits ([`super::stored`]), but for the filters' f32 density.
     clipped: Buffer,
-    /// [`LaoLayout::stride`] of LAO's padded grid.
-    stride: [i32; 4],
     mask: Buffer,
     pao: Buffer,
     /// V_AO: this frame's ambient occlusion.
     pub ao: Buffer,
-    skip: SkipBuffers,
     /// What the host writes or reads back per frame, one set per frame in flight, so the next
     /// frame is recorded while the GPU still runs this one; [`Cao::record_frame`] takes the
     /// next slot.
@@ -215,19 +181,16 @@ fn label_buffers(gpu: &Gpu, vol: &Volume) -> Result<(Buffer, Buffer, bool)> {
 }
 
 impl Cao {
-    /// `opacity` is O (device buffer), `pao` its AO under `method` (V_PAO), `skip` its
-    /// skipping data (stand-ins for the methods that do not read it).
+    /// `opacity` is O (device buffer), `pao` its AO under `method` (V_PAO).
     pub fn new(
         gpu: &Gpu,
         vol: &Volume,
         opacity: Buffer,
         pao: Buffer,
-        skip: SkipBuffers,
-        params: LaoParams,
         method: MethodGpu,
     ) -> Result<Cao> {
-        // Before anything else is allocated: the precompute's padded O goes.
-        let skip = skip.for_update(gpu)?;
+        // Before anything else is allocated: what only the precompute reads goes.
+        let method = method.for_update()?;
         let (dims, spacing) = (vol.dims, vol.spacing);
         let geometry = vol.clone_geometry();
         let (labels, protect, any_protected) = label_buffers(gpu, vol)?;
@@ -261,22 +224,6 @@ impl Cao {
             ],
             std::mem::size_of::<ClipPush>() as u32,
         )?;
-        let update = ComputePipeline::with_addresses(
-            gpu,
-            &spv(include_bytes!(concat!(
-                env!("OUT_DIR"),
-                "/cao_update.comp.spv"
-            ))),
-            &[
-                Reach::Address,
-                Reach::Descriptor,
-                Reach::Address,
-                Reach::Address,
-                Reach::Address,
-                Reach::Address,
-            ],
-            std::mem::size_of::<UpdatePush>() as u32,
-        )?;
         let n = (dims[0] * dims[1] * dims[2]) as u64;
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER
             | vk::BufferUsageFlags::TRANSFER_SRC
@@ -290,10 +237,7 @@ impl Cao {
             MemoryLocation::GpuOnly,
             "cao-mask",
         )?;
-        let layout = LaoLayout::new(&params, spacing, dims);
-        let stride = layout.stride();
-        check_layout(&vol.name, &skip, stride)?;
-        let clipped = clipped_buffer(gpu, &layout, &method)?;
+        let clipped = clipped_buffer(gpu, dims, &method)?;
         let slots = (0..MAX_FRAMES_IN_FLIGHT)
             .map(|_| FrameSlot::new(gpu))
             .collect::<Result<Vec<_>>>()?;
@@ -301,19 +245,15 @@ impl Cao {
             gpu: gpu.clone(),
             restore,
             clip,
-            update,
             dims,
             spacing,
             geometry,
-            params,
             max_spacing_mm: spacing.iter().cloned().fold(0.0, f64::max),
             opacity,
             clipped,
-            stride,
             mask,
             pao,
             ao,
-            skip,
             slots,
             slot: 0,
             map_builder: ClipMapGpu::new(gpu)?,
@@ -354,26 +294,20 @@ impl Cao {
             cao.gpu
                 .submit_and_wait(|cmd| cao.record_restore(cmd, &[all], false))?;
         }
-        if matches!(cao.method, MethodGpu::Histogram(_)) {
+        if cao.method.has_bleeding() {
             // The first frame's restore writes the local histograms' bleeding volume too.
             cao.prev_boxes = vec![all];
         }
         Ok(cao)
     }
 
-    /// Swaps in a new O, its V_PAO and skipping data (a transfer-function switch) and makes the
+    /// Swaps in a new O and its V_PAO (a transfer-function switch) and makes the
     /// next [`Cao::record_frame`] restore the whole volume from them first, so its clip and
     /// update passes (over the current tools' boxes) start from exactly the state a fresh
     /// [`Cao::new`] has. The old buffers are dropped here: call it only when no submitted
     /// command buffer still uses them (after the frame's wait).
-    /// `skip` None keeps the old skipping data (for the methods that do not read it: all but
-    /// LAO).
-    pub fn replace_precomputed(
-        &mut self,
-        opacity: Buffer,
-        pao: Buffer,
-        skip: Option<SkipBuffers>,
-    ) -> Result<()> {
+    /// A method whose state follows O (LAO's skipping data) comes with [`Cao::set_method`].
+    pub fn replace_precomputed(&mut self, opacity: Buffer, pao: Buffer) -> Result<()> {
         let n = (self.dims[0] * self.dims[1] * self.dims[2]) as u64;
         // O is 16-bit or f32 (by the method set next), and may be rounded up to whole words.
         let bytes = super::stored::bytes(n);
@@ -384,15 +318,8 @@ impl Cao {
                 self.geometry.name, opacity.size, pao.size, self.dims
             )));
         }
-        if let Some(skip) = &skip {
-            check_layout(&self.geometry.name, skip, self.stride)?;
-        }
-        let skip = skip.map(|s| s.for_update(&self.gpu)).transpose()?;
         self.opacity = opacity;
         self.pao = pao;
-        if let Some(skip) = skip {
-            self.skip = skip;
-        }
         self.prev_boxes = vec![VoxelBox::whole(self.dims)];
         Ok(())
     }
@@ -401,11 +328,7 @@ impl Cao {
     /// zero border while the method is LAO; [3] is 1 where O and O_c are f32 (the filters'
     /// density, whose gradients 16 bits would coarsen), 0 where they are 16-bit.
     pub fn clipped_stride(&self) -> [i32; 4] {
-        let [x, y, z, _] = match self.method {
-            MethodGpu::Lao => self.stride,
-            _ => LaoLayout::unpadded_stride(self.dims),
-        };
-        [x, y, z, float_o(&self.method) as i32]
+        self.method.clipped_stride(self.dims)
     }
 
     /// O_c, laid out by [`Cao::clipped_stride`].
@@ -434,13 +357,14 @@ impl Cao {
 
     /// Sets the AO method and returns the one it replaces. V_PAO must already hold the new
     /// method's AO of the unclipped volume ([`Cao::replace_precomputed`]). Call it only when no
-    /// submitted command buffer still uses O_c: a switch to or from LAO lays it out anew.
+    /// submitted command buffer still uses O_c (or what the old method reads): a method that
+    /// lays O_c out otherwise gets a new one.
     pub fn set_method(&mut self, method: MethodGpu) -> Result<MethodGpu> {
-        let lao = |m: &MethodGpu| matches!(m, MethodGpu::Lao);
-        if (lao(&method), float_o(&method)) != (lao(&self.method), float_o(&self.method)) {
+        let method = method.for_update()?;
+        let layout = |m: &MethodGpu| (m.clipped_voxels(self.dims), m.float_density());
+        if layout(&method) != layout(&self.method) {
             // The next frame's whole restore fills it.
-            let layout = LaoLayout::new(&self.params, self.spacing, self.dims);
-            self.clipped = clipped_buffer(&self.gpu, &layout, &method)?;
+            self.clipped = clipped_buffer(&self.gpu, self.dims, &method)?;
         }
         // The next frame restores the whole volume from the new method's values (its bleeding
         // volume included).
@@ -448,51 +372,34 @@ impl Cao {
         Ok(std::mem::replace(&mut self.method, method))
     }
 
+    /// The AO method and its GPU state.
+    pub fn method(&self) -> &MethodGpu {
+        &self.method
+    }
+
     /// The AO method's name, as `--ao` spells it (lao, filter-gauss, histogram, ...), or
     /// "none" before one is computed ([`MethodGpu::Open`]).
     pub fn method_name(&self) -> String {
-        match &self.method {
-            MethodGpu::Open => "none".into(),
-            MethodGpu::Lao => super::AoMethod::Lao.name(),
-            MethodGpu::Filter(f) => super::AoMethod::Filter(f.params).name(),
-            MethodGpu::Histogram(h) => super::AoMethod::Histogram(h.params).name(),
-        }
+        self.method.name()
     }
 
     /// The filters, when they are the AO method.
     pub fn filter(&self) -> Option<&FilterGpu> {
-        match &self.method {
-            MethodGpu::Filter(f) => Some(f),
-            _ => None,
-        }
+        self.method.filter()
     }
 
     /// The local-histogram method's state, when it is the AO method.
     pub fn histogram(&self) -> Option<&HistogramGpu> {
-        match &self.method {
-            MethodGpu::Histogram(h) => Some(h),
-            _ => None,
-        }
+        self.method.histogram()
     }
 
     pub fn histogram_mut(&mut self) -> Option<&mut HistogramGpu> {
-        match &mut self.method {
-            MethodGpu::Histogram(h) => Some(h),
-            _ => None,
-        }
+        self.method.histogram_mut()
     }
 
-    /// The AO method's reach in mm: for LAO the farthest sample, (M - 1) D; for the filters the
-    /// farthest box member; for the local histograms the farthest member of S_r.
+    /// The AO method's reach in mm ([`MethodGpu::reach_mm`]).
     pub fn reach_mm(&self) -> f64 {
-        match &self.method {
-            MethodGpu::Filter(f) => f.params.reach_mm(self.spacing),
-            MethodGpu::Histogram(h) => h.reach_mm(),
-            MethodGpu::Open => 0.0,
-            MethodGpu::Lao => {
-                self.params.steps.saturating_sub(1) as f64 * self.params.step_mm as f64
-            }
-        }
+        self.method.reach_mm(self.spacing)
     }
 
     /// The dilation radius in mm: the method's reach, the trilinear footprint around its
@@ -801,27 +708,15 @@ impl Cao {
         }
         slot.timer.begin(cmd);
         self.record_restore(cmd, &restore, clipped);
-        if let MethodGpu::Histogram(h) = &self.method {
-            // The bleeding colour of last frame's boxes, restored like V_AO (clipped: the
-            // values of category a, from the mask just written).
-            if clipped {
-                self.gpu.barrier(cmd);
-            }
-            let hmode = if clipped {
-                HistMode::Contextual
-            } else {
-                HistMode::Restore
-            };
-            h.record(
-                cmd,
-                &self.clipped,
-                &self.mask,
-                &self.pao,
-                &self.ao,
-                &restore,
-                hmode,
-            );
-        }
+        let bufs = MethodBuffers {
+            density: &self.clipped,
+            mask: &self.mask,
+            pre_a: &self.pao,
+            out_a: &self.ao,
+        };
+        // The method's own restore (the local histograms' bleeding colour of last frame's
+        // boxes, restored like V_AO).
+        self.method.record_restore(cmd, &bufs, &restore, clipped);
         self.gpu.barrier(cmd);
         self.slots[self.slot].timer.mark(cmd, "restore");
         let slot = &self.slots[self.slot];
@@ -851,62 +746,7 @@ impl Cao {
         }
         self.gpu.barrier(cmd);
         self.slots[self.slot].timer.mark(cmd, "clip");
-        match &self.method {
-            MethodGpu::Filter(f) => {
-                let fmode = match mode {
-                    Mode::Contextual => FilterMode::Contextual,
-                    Mode::Naive => FilterMode::Naive,
-                };
-                f.record(
-                    cmd,
-                    &self.clipped,
-                    &self.ao,
-                    &self.mask,
-                    &self.pao,
-                    &boxes,
-                    fmode,
-                );
-            }
-            MethodGpu::Histogram(h) => {
-                let hmode = match mode {
-                    Mode::Contextual => HistMode::Contextual,
-                    Mode::Naive => HistMode::Naive,
-                };
-                h.record(
-                    cmd,
-                    &self.clipped,
-                    &self.mask,
-                    &self.pao,
-                    &self.ao,
-                    &boxes,
-                    hmode,
-                );
-            }
-            MethodGpu::Lao | MethodGpu::Open => {}
-        }
-        let lao = matches!(self.method, MethodGpu::Lao);
-        for b in boxes.iter().filter(|_| lao) {
-            let push = UpdatePush {
-                dims: self.dims4(),
-                stride: self.stride,
-                rays: self.params.rays,
-                steps: self.params.steps,
-                exponent: self.params.step_mm,
-                naive: (mode == Mode::Naive) as u32,
-                box_min: [b.min[0], b.min[1], b.min[2], 0],
-                box_max: [b.max[0], b.max[1], b.max[2], 0],
-            };
-            let bufs = [
-                &self.clipped,
-                &self.skip.samples,
-                &self.ao,
-                &self.skip.clear,
-                &self.mask,
-                &self.pao,
-            ];
-            self.update.bind(cmd, &bufs, bytemuck::bytes_of(&push));
-            dispatch_box_in(&self.update, cmd, b, LAO_GROUP);
-        }
+        self.method.record_update(cmd, &bufs, &boxes, mode);
         self.gpu.barrier(cmd);
         self.slots[self.slot].timer.mark(cmd, "update");
         let visited = boxes.iter().map(|b| b.voxels()).sum();
@@ -977,7 +817,7 @@ impl Cao {
     /// voxels lie (in [`Cao::clipped_stride`]'s form: no border).
     pub fn opacity(&self) -> (&Buffer, [i32; 4]) {
         let [x, y, z, _] = LaoLayout::unpadded_stride(self.dims);
-        (&self.opacity, [x, y, z, float_o(&self.method) as i32])
+        (&self.opacity, [x, y, z, self.method.float_density() as i32])
     }
 
     /// The last frame's voxel categories read back, one per voxel (0: clipped, 1: affected,
@@ -1039,20 +879,11 @@ impl FrameSlot {
     }
 }
 
-/// Whether O and O_c are f32 under `method` (the filters' density), not 16-bit.
-fn float_o(method: &MethodGpu) -> bool {
-    matches!(method, MethodGpu::Filter(_))
-}
-
-/// O_c for `method`, zero throughout: inside LAO's zero border (which stays so) under LAO,
-/// else without a border.
-fn clipped_buffer(gpu: &Gpu, layout: &LaoLayout, method: &MethodGpu) -> Result<Buffer> {
-    let voxels = match method {
-        MethodGpu::Lao => layout.padded_len(),
-        _ => layout.dims.iter().product(),
-    } as u64;
+/// O_c for `method`, zero throughout (LAO's zero border stays so).
+fn clipped_buffer(gpu: &Gpu, dims: [usize; 3], method: &MethodGpu) -> Result<Buffer> {
+    let voxels = method.clipped_voxels(dims) as u64;
     // Whole 4-byte words: the fill below writes whole words.
-    let bytes = match float_o(method) {
+    let bytes = match method.float_density() {
         true => voxels * 4,
         false => super::stored::bytes(voxels).next_multiple_of(4),
     };
@@ -1066,18 +897,6 @@ fn clipped_buffer(gpu: &Gpu, layout: &LaoLayout, method: &MethodGpu) -> Result<B
         gpu.device.cmd_fill_buffer(cmd, b.raw, 0, vk::WHOLE_SIZE, 0);
     })?;
     Ok(b)
-}
-
-/// Skipping data made for another grid than the CAO state's (a stand-in has stride 0) would make
-/// the kernel read the wrong voxels: an error naming the volume.
-fn check_layout(name: &str, skip: &SkipBuffers, stride: [i32; 4]) -> Result<()> {
-    if skip.stride != [0; 4] && skip.stride != stride {
-        return Err(GpuError::Other(format!(
-            "{name}: LAO skipping data for a padded grid of strides {:?}, the CAO state uses {stride:?}",
-            skip.stride
-        )));
-    }
-    Ok(())
 }
 
 /// A recorded frame whose metrics are not read yet.

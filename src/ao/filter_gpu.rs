@@ -4,7 +4,9 @@
 //! the whole volume's bit for bit; that is what makes the filters a clip-aware AO method of CAO
 //! (docs/design.md, "AO methods"). [`super::filtered::filtered_ao`] is the CPU reference.
 
+use super::cao::Mode;
 use super::filtered::FilterParams;
+use super::method::MethodBuffers;
 use super::voxel_box::{dispatch_box, BoxPush, VoxelBox};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Reach, Result, SlabBuffer};
 use ash::vk;
@@ -20,9 +22,9 @@ struct AoPush {
 }
 crate::gpu::glsl_layout!(AoPush, 80, dims: 0, box_min: 16, box_max: 32, hw: 48, spacing: 64);
 
-/// How [`FilterGpu::record`] treats each voxel of its boxes.
+/// filter_ao.comp's modes: how a pass treats each voxel of its boxes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum FilterMode {
+enum Pass {
     /// Every voxel computed, no mask (the precompute of the unclipped volume).
     All = 0,
     /// CAO's categories: a -> 1, c -> the precomputed openness, b -> recomputed.
@@ -93,19 +95,36 @@ impl FilterGpu {
         ]
     }
 
-    /// Records the openness of the voxels of `boxes` from `density` into `out` (`mask` and `pre`
-    /// as [`FilterMode`] says; any buffer of the right size stands in when unused).
-    #[allow(clippy::too_many_arguments)]
+    /// Records the openness of the voxels of `boxes` from `bufs.density` into `bufs.out_a`,
+    /// CAO's categories (`bufs.mask`, `bufs.pre_a`) as `mode` says.
     pub fn record(
         &self,
         cmd: vk::CommandBuffer,
-        density: &Buffer,
-        out: &Buffer,
-        mask: &Buffer,
-        pre: &Buffer,
+        bufs: &MethodBuffers,
         boxes: &[VoxelBox],
-        mode: FilterMode,
+        mode: Mode,
     ) {
+        let pass = match mode {
+            Mode::Contextual => Pass::Contextual,
+            Mode::Naive => Pass::Naive,
+        };
+        self.dispatch(cmd, bufs, boxes, pass);
+    }
+
+    /// Records the openness of every voxel of the unclipped `density` into `out` (V_PAO).
+    pub fn record_precompute(&self, cmd: vk::CommandBuffer, density: &Buffer, out: &Buffer) {
+        let bufs = MethodBuffers::precompute(density, out);
+        self.dispatch(cmd, &bufs, &[VoxelBox::whole(self.dims)], Pass::All);
+    }
+
+    fn dispatch(
+        &self,
+        cmd: vk::CommandBuffer,
+        bufs: &MethodBuffers,
+        boxes: &[VoxelBox],
+        mode: Pass,
+    ) {
+        let density = bufs.density;
         let h = self.params.half_widths(self.spacing);
         let o = self.params.max_offsets(self.spacing);
         // The statistics are needed at every centre a box's voxels can pick: the box grown by
@@ -150,7 +169,13 @@ impl FilterGpu {
                     self.params.radius_mm as f32,
                 ],
             };
-            let bufs = [density, &self.pass_a.table, out, mask, pre];
+            let bufs = [
+                density,
+                &self.pass_a.table,
+                bufs.out_a,
+                bufs.mask,
+                bufs.pre_a,
+            ];
             self.estimate.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.estimate, cmd, b);
         }
@@ -162,18 +187,9 @@ impl FilterGpu {
     pub fn compute(&self, density: &Buffer) -> Result<(Buffer, f64)> {
         let out = super::stored::buffer(&self.gpu, self.dims, "filtered-ao")?;
         let mut timer = GpuTimer::new(&self.gpu, 2)?;
-        let whole = [VoxelBox::whole(self.dims)];
         self.gpu.submit_and_wait(|cmd| {
             timer.begin(cmd);
-            self.record(
-                cmd,
-                density,
-                &out,
-                density,
-                density,
-                &whole,
-                FilterMode::All,
-            );
+            self.record_precompute(cmd, density, &out);
             timer.mark(cmd, "filter");
         })?;
         let ms = timer.read()?.iter().map(|t| t.1).sum();

@@ -5,7 +5,9 @@
 //! the clip update over any set of voxel boxes. [`super::histogram`] holds the CPU side and the
 //! reference.
 
+use super::cao::Mode;
 use super::histogram::{self as hist, Clusters, HistParams, Neighbourhood, Packing, Shades};
+use super::method::MethodBuffers;
 use super::voxel_box::{dispatch_box, VoxelBox};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, Reach, Result};
 use crate::shader_constants::SAME_AS_FRONT;
@@ -18,9 +20,9 @@ use rayon::prelude::*;
 use std::path::Path;
 use std::sync::Arc;
 
-/// How [`HistogramGpu::record`] treats each voxel of its boxes (histogram_sums.comp's modes).
+/// histogram_sums.comp's modes: how a pass treats each voxel of its boxes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum HistMode {
+enum Pass {
     /// The direct sums for every voxel, no mask (the unclipped precompute with `--clusters 0`).
     Direct = 0,
     /// CAO's categories: a -> 1, c -> the precomputed values, b -> the direct sums.
@@ -603,50 +605,59 @@ impl HistogramGpu {
     /// sums over `q`.
     pub fn record_precompute(&self, cmd: vk::CommandBuffer, q: &Buffer, pre_a: &Buffer) {
         let mode = if self.clusters.is_some() {
-            HistMode::Clustered
+            Pass::Clustered
         } else {
-            HistMode::Direct
+            Pass::Direct
         };
-        self.dispatch(
-            cmd,
-            q,
-            q,
-            pre_a,
-            pre_a,
-            &self.pre_e,
-            &[VoxelBox::whole(self.dims)],
-            mode,
-        );
+        let bufs = MethodBuffers::precompute(q, pre_a);
+        self.dispatch(cmd, &bufs, &self.pre_e, &[VoxelBox::whole(self.dims)], mode);
     }
 
-    /// Records this method's values for the voxels of `boxes` into `out_a` and
-    /// [`HistogramGpu::e`], from the clipped `q` and CAO's `mask` as `mode` says (`pre_a` is
-    /// V_PAO).
-    #[allow(clippy::too_many_arguments)]
+    /// Records this method's values for the voxels of `boxes` into `bufs.out_a` and
+    /// [`HistogramGpu::e`], from the clipped q (`bufs.density`) and CAO's categories as `mode`
+    /// says.
     pub fn record(
         &self,
         cmd: vk::CommandBuffer,
-        q: &Buffer,
-        mask: &Buffer,
-        pre_a: &Buffer,
-        out_a: &Buffer,
+        bufs: &MethodBuffers,
         boxes: &[VoxelBox],
-        mode: HistMode,
+        mode: Mode,
     ) {
-        self.dispatch(cmd, q, mask, pre_a, out_a, &self.e, boxes, mode);
+        let pass = match mode {
+            Mode::Contextual => Pass::Contextual,
+            Mode::Naive => Pass::Naive,
+        };
+        self.dispatch(cmd, bufs, &self.e, boxes, pass);
     }
 
-    #[allow(clippy::too_many_arguments)]
+    /// Records the bleeding colour (and V_AO) of the voxels of `boxes` back to the background
+    /// state, as CAO's restore leaves V_AO: the precomputed values, or while `clipped` (a probe
+    /// is active) those of category a, from the mask the restore just wrote.
+    pub fn record_restore(
+        &self,
+        cmd: vk::CommandBuffer,
+        bufs: &MethodBuffers,
+        boxes: &[VoxelBox],
+        clipped: bool,
+    ) {
+        if clipped {
+            self.gpu.barrier(cmd);
+        }
+        let pass = if clipped {
+            Pass::Contextual
+        } else {
+            Pass::Restore
+        };
+        self.dispatch(cmd, bufs, &self.e, boxes, pass);
+    }
+
     fn dispatch(
         &self,
         cmd: vk::CommandBuffer,
-        q: &Buffer,
-        mask: &Buffer,
-        pre_a: &Buffer,
-        out_a: &Buffer,
+        bufs: &MethodBuffers,
         out_e: &Buffer,
         boxes: &[VoxelBox],
-        mode: HistMode,
+        mode: Pass,
     ) {
         for bx in boxes {
             let push = SumsPush {
@@ -656,14 +667,14 @@ impl HistogramGpu {
                 reach: self.reach4(),
             };
             let bufs = [
-                q,
+                bufs.density,
                 &self.bins,
                 &self.bin_table,
                 &self.neighbours,
-                mask,
-                pre_a,
+                bufs.mask,
+                bufs.pre_a,
                 &self.pre_e,
-                out_a,
+                bufs.out_a,
                 out_e,
                 &self.ids,
                 &self.cluster_table,

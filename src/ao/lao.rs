@@ -1,5 +1,8 @@
 //! Local Ambient Occlusion (Hernell et al.) as docs/design.md defines it, precomputed on the GPU.
 
+use super::cao::Mode;
+use super::method::MethodBuffers;
+use super::voxel_box::{dispatch_box_in, VoxelBox};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Reach, Result};
 use ash::vk;
 use bytemuck::Zeroable;
@@ -415,19 +418,6 @@ impl LaoGpu {
         self.upload_skip(&SkipData::new(opacity, dims, spacing, params))
     }
 
-    /// Stand-ins for the skipping data of a CAO state whose method is not LAO (the filters and
-    /// the local histograms never read it); a switch to LAO brings real ones.
-    pub fn skip_stand_in(&self) -> Result<SkipBuffers> {
-        let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
-        Ok(SkipBuffers {
-            clear: Buffer::device_local(&self.gpu, &[0u32], usage, "lao-clear")?,
-            bricks: Buffer::device_local(&self.gpu, &[0u32], usage, "lao-bricks")?,
-            padded: Buffer::device_local(&self.gpu, &[0u32], usage, "lao-padded")?,
-            samples: Buffer::device_local(&self.gpu, &[LaoSample::zeroed()], usage, "lao-samples")?,
-            stride: [0; 4],
-        })
-    }
-
     /// Uploads skipping data computed on the host (possibly on another thread).
     pub fn upload_skip(&self, data: &SkipData) -> Result<SkipBuffers> {
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
@@ -571,6 +561,163 @@ impl LaoGpu {
         timing.samples = n as u64 * params.rays as u64 * params.steps.saturating_sub(1) as u64;
         Ok((out, timing))
     }
+}
+
+/// Push constants of cao_update.comp: the padded grid, the LAO parameters and a box.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct UpdatePush {
+    dims: [i32; 4],
+    stride: [i32; 4],
+    rays: u32,
+    steps: u32,
+    exponent: f32,
+    naive: u32,
+    box_min: [i32; 4],
+    box_max: [i32; 4],
+}
+crate::gpu::glsl_layout!(UpdatePush, 80,
+    dims: 0, stride: 16, rays: 32, steps: 36, exponent: 40, naive: 44, box_min: 48, box_max: 64);
+
+/// LAO as CAO's method ([`super::method::MethodGpu::Lao`]): its parameters, its region
+/// recompute (cao_update.comp) and what that kernel reads besides O_c: the skipping data of O
+/// and the padded grid O_c lies in ([`LaoLayout`]).
+pub struct LaoMethod {
+    gpu: Gpu,
+    update: ComputePipeline,
+    pub params: LaoParams,
+    /// The skipping data of O (the whole precompute's set until [`LaoMethod::for_update`]).
+    pub skip: SkipBuffers,
+    pub dims: [usize; 3],
+    /// [`LaoLayout::stride`] and [`LaoLayout::padded_len`] of the padded grid.
+    stride: [i32; 4],
+    padded_len: usize,
+}
+
+impl LaoMethod {
+    /// LAO with `params` over a volume of `dims` voxels of `spacing` (named `name` in errors),
+    /// `skip` the skipping data of its O: an error when they were made for another grid.
+    pub fn new(
+        gpu: &Gpu,
+        (name, dims, spacing): (&str, [usize; 3], [f64; 3]),
+        params: LaoParams,
+        skip: SkipBuffers,
+    ) -> Result<LaoMethod> {
+        let layout = LaoLayout::new(&params, spacing, dims);
+        let stride = layout.stride();
+        if skip.stride != stride {
+            return Err(crate::gpu::GpuError::Other(format!(
+                "{name}: LAO skipping data for a padded grid of strides {:?}, the CAO state uses {stride:?}",
+                skip.stride
+            )));
+        }
+        let update = update_pipeline(gpu)?;
+        Ok(LaoMethod {
+            gpu: gpu.clone(),
+            update,
+            params,
+            skip,
+            dims,
+            stride,
+            padded_len: layout.padded_len(),
+        })
+    }
+
+    /// What the per-frame update keeps ([`SkipBuffers::for_update`]).
+    pub fn for_update(self) -> Result<LaoMethod> {
+        let skip = self.skip.for_update(&self.gpu)?;
+        Ok(LaoMethod { skip, ..self })
+    }
+
+    /// An independent copy (skipping data of its own), for a second CAO state.
+    pub fn duplicate(&self) -> Result<LaoMethod> {
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
+        let skip = SkipBuffers {
+            clear: self.skip.clear.duplicate(usage, "lao-clear")?,
+            bricks: self.skip.bricks.duplicate(usage, "lao-bricks")?,
+            padded: self.skip.padded.duplicate(usage, "lao-padded")?,
+            samples: self.skip.samples.duplicate(usage, "lao-samples")?,
+            stride: self.skip.stride,
+        };
+        Ok(LaoMethod {
+            gpu: self.gpu.clone(),
+            update: update_pipeline(&self.gpu)?,
+            skip,
+            ..*self
+        })
+    }
+
+    /// The farthest sample in mm, (M - 1) D: the method's reach.
+    pub fn reach_mm(&self) -> f64 {
+        self.params.steps.saturating_sub(1) as f64 * self.params.step_mm as f64
+    }
+
+    /// Where voxel v of O_c lies, inside the zero border the kernel reads (its 4th component 0).
+    pub fn stride(&self) -> [i32; 4] {
+        self.stride
+    }
+
+    /// Voxels of the padded grid O_c lies in.
+    pub fn padded_len(&self) -> usize {
+        self.padded_len
+    }
+
+    /// GPU memory the method holds beyond the volumes every method has (the skipping data the
+    /// update reads, and the bricks).
+    pub fn resident_bytes(&self) -> u64 {
+        self.skip.clear.size + self.skip.bricks.size
+    }
+
+    /// Records the LAO of the voxels of `boxes` from O_c (`bufs.density`, in the padded grid)
+    /// into `bufs.out_a`, CAO's categories as `mode` says. Records no barrier.
+    pub fn record(
+        &self,
+        cmd: vk::CommandBuffer,
+        bufs: &MethodBuffers,
+        boxes: &[VoxelBox],
+        mode: Mode,
+    ) {
+        let d = self.dims;
+        for b in boxes {
+            let push = UpdatePush {
+                dims: [d[0] as i32, d[1] as i32, d[2] as i32, 0],
+                stride: self.stride,
+                rays: self.params.rays,
+                steps: self.params.steps,
+                exponent: self.params.step_mm,
+                naive: (mode == Mode::Naive) as u32,
+                box_min: [b.min[0], b.min[1], b.min[2], 0],
+                box_max: [b.max[0], b.max[1], b.max[2], 0],
+            };
+            let bufs = [
+                bufs.density,
+                &self.skip.samples,
+                bufs.out_a,
+                &self.skip.clear,
+                bufs.mask,
+                bufs.pre_a,
+            ];
+            self.update.bind(cmd, &bufs, bytemuck::bytes_of(&push));
+            dispatch_box_in(&self.update, cmd, b, LAO_GROUP);
+        }
+    }
+}
+
+/// cao_update.comp: LAO of the voxels of a box from O_c, by CAO's categories.
+fn update_pipeline(gpu: &Gpu) -> Result<ComputePipeline> {
+    ComputePipeline::with_addresses(
+        gpu,
+        include_bytes!(concat!(env!("OUT_DIR"), "/cao_update.comp.spv")),
+        &[
+            Reach::Address,
+            Reach::Descriptor,
+            Reach::Address,
+            Reach::Address,
+            Reach::Address,
+            Reach::Address,
+        ],
+        std::mem::size_of::<UpdatePush>() as u32,
+    )
 }
 
 #[cfg(test)]

@@ -7,6 +7,7 @@ pub mod filtered;
 pub mod histogram;
 pub mod histogram_gpu;
 pub mod lao;
+pub mod method;
 pub mod progressive;
 pub mod sh;
 pub mod stored;

@@ -246,8 +246,8 @@ pub fn bench_cao(
         for &k in ks {
             let params = LaoParams { rays: k, ..*base };
             let ao = precompute_ao(gpu, &lao, vol, tf, &params, false)?;
-            let mut naive = ao.duplicate()?.into_cao(gpu, vol, params)?;
-            let mut cao = ao.into_cao(gpu, vol, params)?;
+            let mut naive = ao.duplicate()?.into_cao(gpu, vol)?;
+            let mut cao = ao.into_cao(gpu, vol)?;
             let sweep = sweep_tools(vol, 25.0, frames);
             let timed = naive_timed_frames(frames, naive_frames);
             let (mut c_runs, mut n_runs, mut pct) = (Vec::new(), Vec::new(), 0.0);
@@ -383,11 +383,11 @@ fn bench_probes(
             let params = LaoParams { rays: k, ..*base };
             let ao = precompute_ao(gpu, &lao, vol, tf, &params, false)?;
             let mut naive = if verify {
-                Some(ao.duplicate()?.into_cao(gpu, vol, params)?)
+                Some(ao.duplicate()?.into_cao(gpu, vol)?)
             } else {
                 None
             };
-            let mut cao = ao.into_cao(gpu, vol, params)?;
+            let mut cao = ao.into_cao(gpu, vol)?;
             let total = vol.voxel_count() as f64;
             for &r in radii {
                 let mut sweep = sweep_tools(vol, r, frames);

@@ -5,7 +5,7 @@
 
 use super::bench::{median, sweep_tools};
 use super::{precompute, AoVolume, HeadlessRenderer, Result};
-use crate::ao::cao::{MethodGpu, Mode};
+use crate::ao::cao::Mode;
 use crate::ao::filtered::{Estimator, FilterParams};
 use crate::ao::histogram::{self, HistParams};
 use crate::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
@@ -72,12 +72,7 @@ fn pictures(
 /// The method's own GPU memory beyond the volumes every method has (O, O_c, the mask, V_PAO,
 /// V_AO): LAO's skipping data, the filters' two statistics volumes.
 fn resident_bytes(v: &AoVolume) -> u64 {
-    match &v.method {
-        MethodGpu::Filter(f) => f.resident_bytes(),
-        MethodGpu::Histogram(h) => h.resident_bytes(),
-        MethodGpu::Lao => v.skip.clear.size + v.skip.bricks.size,
-        MethodGpu::Open => 0,
-    }
+    v.method.resident_bytes()
 }
 
 /// One table for every volume: LAO at `base`, then each filter estimator at each radius.
@@ -165,7 +160,7 @@ pub fn bench_ao(
                 .map(|(a, b)| ssim(a, b, side, side))
                 .sum::<f64>()
                 / n;
-            let mut cao = v.into_cao(gpu, vol, cfg.lao)?;
+            let mut cao = v.into_cao(gpu, vol)?;
             for _ in 0..runs.max(1) {
                 let mut ms = 0.0;
                 for tools in &sweep {
@@ -341,7 +336,7 @@ pub fn bench_histogram(
                 .unwrap_or(0.0);
             let voxels = vol.voxel_count() as f64;
             let gpu_mb = (resident_bytes(&v) as f64 + 5.0 * 4.0 * voxels) / (1 << 20) as f64;
-            let mut cao = v.into_cao(gpu, vol, *base)?;
+            let mut cao = v.into_cao(gpu, vol)?;
             let mut ms = 0.0;
             for tools in &sweep {
                 ms += cao.run_frame(tools, &placement, Mode::Contextual)?.gpu_ms();

@@ -137,7 +137,7 @@ fn cao_sweep(
     params: LaoParams,
     tools: &[Vec<Tool>],
 ) -> Result<(f64, f64)> {
-    let mut cao = precompute_ao(gpu, lao, vol, tf, &params, false)?.into_cao(gpu, vol, params)?;
+    let mut cao = precompute_ao(gpu, lao, vol, tf, &params, false)?.into_cao(gpu, vol)?;
     let (mut ms, pct) = cao_frames(&mut cao, tools)?;
     Ok((median(&mut ms), pct))
 }
@@ -290,8 +290,8 @@ pub fn bench_frame(
     // machine busy for a while slows both alike; medians over all their frames.
     let big = padded(vol);
     let (mut cao_small, mut cao_big) = (
-        precompute_ao(gpu, &lao, vol, tf, &params, false)?.into_cao(gpu, vol, params)?,
-        precompute_ao(gpu, &lao, &big, tf, &params, false)?.into_cao(gpu, &big, params)?,
+        precompute_ao(gpu, &lao, vol, tf, &params, false)?.into_cao(gpu, vol)?,
+        precompute_ao(gpu, &lao, &big, tf, &params, false)?.into_cao(gpu, &big)?,
     );
     let (mut small_ms, mut big_ms) = (Vec::new(), Vec::new());
     for _ in 0..runs.max(1) {

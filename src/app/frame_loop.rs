@@ -339,7 +339,7 @@ impl FrameLoop {
                 let ao = precompute_method(gpu, &lao, &vol, tf, &first, show_progress)?;
                 (ao, k)
             }
-            Start::Open => (super::open_ao(gpu, &lao, &vol)?, 0),
+            Start::Open => (super::open_ao(gpu, &vol)?, 0),
         };
         let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
         let mut tex = VolumeTextures::new(gpu, &vol, tf)?;
@@ -362,7 +362,7 @@ impl FrameLoop {
         };
         Ok(FrameLoop {
             gpu: gpu.clone(),
-            cao: ao.into_cao(gpu, &vol, params)?,
+            cao: ao.into_cao(gpu, &vol)?,
             tex,
             renderer: Renderer::new(gpu)?,
             overlay: OverlayRenderer::new(gpu)?,
@@ -384,7 +384,7 @@ impl FrameLoop {
                 tfs,
                 (methods, shown, start == Start::Open),
                 (vol.labels.as_deref(), vol.value_range(), iso),
-                (lao, lao_dirs),
+                (lao, lao_dirs, params),
             )?,
             tf_samples_per_frame: default_tf_samples_per_frame(gpu),
             tf_slab_share: (start != Start::Shown(0)).then_some(FAST_START_SLAB_SHARE),
@@ -822,7 +822,7 @@ impl FrameLoop {
         gpu.barrier(cmd);
         let timer = &mut slot.timer;
         let recorded = (|| {
-            let slab = tfs.record_slab(cmd, volume, cao);
+            let slab = tfs.record_slab(cmd, volume);
             let pending = cao.record_frame(cmd, &scene.tools, &scene.volume, *mode)?;
             timer.begin(cmd);
             // Only where this frame's passes may have changed V_AO (and E): the copy follows the
@@ -833,8 +833,8 @@ impl FrameLoop {
                 .map(|b| (b.min.map(|v| v as u32), b.max.map(|v| v as u32)))
                 .collect();
             tex.cmd_update_ambient(cmd, &cao.ao, &changed);
-            if let Some(h) = cao.histogram() {
-                tex.cmd_update_bleeding(cmd, &h.e, &changed);
+            if let Some(e) = cao.method().bleeding() {
+                tex.cmd_update_bleeding(cmd, e, &changed);
             }
             timer.mark(cmd, PASS_TEXTURE);
             let sh = lighting.as_mut().map(|l| l.record_frame(gpu, cmd, cao));
@@ -854,7 +854,7 @@ impl FrameLoop {
             // The bleeding volume is the local histograms' alone.
             let mut settings = *settings;
             settings.iso = scene.iso;
-            if cao.histogram().is_none() {
+            if !cao.method().has_bleeding() {
                 settings.bleeding = 0.0;
             }
             renderer.record_eyes(

@@ -17,11 +17,11 @@ pub mod replay;
 pub mod session;
 pub mod tf_switch;
 
-use crate::ao::cao::{Cao, FrameMetrics, MethodGpu};
-use crate::ao::filter_gpu::FilterGpu;
+use crate::ao::cao::{FrameMetrics, MethodGpu};
 use crate::ao::histogram::{self, HistParams};
 use crate::ao::histogram_gpu::HistogramGpu;
-use crate::ao::lao::{directions, LaoTiming, SkipBuffers};
+use crate::ao::lao::{directions, LaoTiming};
+pub use crate::ao::method::{histogram_tables, AoVolume, HistogramTables};
 use crate::ao::{filtered, AoConfig, AoMethod, LaoGpu, LaoParams};
 use crate::gpu::{Buffer, Gpu, GpuError, OutOfMemory};
 use crate::input::{FrameInput, InteractionSettings};
@@ -35,7 +35,6 @@ use crate::volume::nrrd::{self, NrrdData};
 use crate::volume::raw::RawSpec;
 use crate::volume::transfer::{TfError, TransferFunction};
 use crate::volume::{ct_head, phantom, Volume, VolumeError};
-use ash::vk;
 use frame_loop::FrameLoop;
 use session::SessionSpec;
 use std::path::Path;
@@ -181,61 +180,6 @@ pub fn dicom_listing(spec: Option<&str>) -> Result<Option<(String, bool)>> {
     Ok(Some((head, chosen)))
 }
 
-/// A volume's classification and precomputed AO, resident on the GPU.
-pub struct AoVolume {
-    /// O of docs/design.md, on the host (for the filters: the density they filter, O or the
-    /// normalised scalar).
-    pub opacity: Vec<f32>,
-    pub opacity_buf: Buffer,
-    /// V_PAO: the AO method's openness of the unclipped volume (f32, x fastest).
-    pub ao_buf: Buffer,
-    /// Exact empty-space skipping data of O (valid for every clipped O too); stand-ins for the
-    /// methods that do not read it ([`LaoGpu::skip_stand_in`]).
-    pub skip: SkipBuffers,
-    pub timing: LaoTiming,
-    /// The method's GPU state (it goes to the CAO state with the volumes).
-    pub method: MethodGpu,
-}
-
-impl AoVolume {
-    /// A second, independent copy on the GPU (to run two CAO states side by side).
-    pub fn duplicate(&self) -> Result<AoVolume> {
-        let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
-        Ok(AoVolume {
-            opacity: self.opacity.clone(),
-            opacity_buf: self.opacity_buf.duplicate(usage, "opacity")?,
-            ao_buf: self.ao_buf.duplicate(usage, "pao")?,
-            skip: SkipBuffers {
-                clear: self.skip.clear.duplicate(usage, "lao-clear")?,
-                bricks: self.skip.bricks.duplicate(usage, "lao-bricks")?,
-                padded: self.skip.padded.duplicate(usage, "lao-padded")?,
-                samples: self.skip.samples.duplicate(usage, "lao-samples")?,
-                stride: self.skip.stride,
-            },
-            timing: self.timing.clone(),
-            method: match &self.method {
-                MethodGpu::Open => MethodGpu::Open,
-                MethodGpu::Lao => MethodGpu::Lao,
-                MethodGpu::Filter(f) => MethodGpu::Filter(f.duplicate()?),
-                MethodGpu::Histogram(h) => MethodGpu::Histogram(h.duplicate()?),
-            },
-        })
-    }
-
-    /// Hands O, V_PAO and the skipping data to a CAO state for per-frame clipping.
-    pub fn into_cao(self, gpu: &Gpu, vol: &Volume, params: LaoParams) -> Result<Cao> {
-        Ok(Cao::new(
-            gpu,
-            vol,
-            self.opacity_buf,
-            self.ao_buf,
-            self.skip,
-            params,
-            self.method,
-        )?)
-    }
-}
-
 /// A terminal progress bar counting slices (hidden when stderr is not a terminal).
 pub fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
     progress_bar_of(len, label, "slices")
@@ -267,45 +211,16 @@ pub fn precompute_ao(
     params.validate().map_err(AppError::Usage)?;
     crate::render::check_volume_fits_gpu(gpu, vol)?;
     let opacity = tf.opacity_volume(vol);
-    let (opacity_buf, skip) = upload_opacity(gpu, lao, vol, &opacity, params)?;
     let bar = show_progress.then(|| progress_bar(vol.dims[2] as u64, "LAO"));
-    let (ao_buf, timing) = lao.compute(
-        &opacity_buf,
-        &skip,
-        vol.dims,
-        vol.spacing,
-        params,
-        &mut |done, _| {
-            if let Some(b) = &bar {
-                b.set_position(done as u64)
-            }
-        },
-    )?;
+    let v = AoVolume::lao(gpu, lao, vol, opacity, params, &mut |done, _| {
+        if let Some(b) = &bar {
+            b.set_position(done as u64)
+        }
+    })?;
     if let Some(b) = bar {
         b.finish_and_clear();
     }
-    Ok(AoVolume {
-        opacity,
-        opacity_buf,
-        ao_buf,
-        skip,
-        timing,
-        method: MethodGpu::Lao,
-    })
-}
-
-/// LAO's opacity volume O on the GPU, with its exact empty-space skipping data.
-fn upload_opacity(
-    gpu: &Gpu,
-    lao: &LaoGpu,
-    vol: &Volume,
-    opacity: &[f32],
-    params: &LaoParams,
-) -> Result<(Buffer, SkipBuffers)> {
-    let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
-    let buf = crate::ao::stored::upload(gpu, opacity, usage, "opacity")?;
-    let skip = lao.skip_buffers(opacity, vol.dims, vol.spacing, params)?;
-    Ok((buf, skip))
+    Ok(v)
 }
 
 /// Bytes per voxel of an upload's host-visible staging copy (one f32 volume at a time).
@@ -372,47 +287,10 @@ pub fn precompute(
     precompute_method(gpu, lao, vol, tf, ao, show_progress).map_err(|e| fit_advice(vol, e, None))
 }
 
-/// The AO of no method yet ([`MethodGpu::Open`]): V_PAO 1 everywhere and O zero, both
-/// filled on the GPU, so a first picture waits for no classification, upload or precompute
-/// (the switch to a method classifies and computes its own).
-pub(crate) fn open_ao(gpu: &Gpu, lao: &LaoGpu, vol: &Volume) -> Result<AoVolume> {
+/// The AO of no method yet ([`AoVolume::open`]).
+pub(crate) fn open_ao(gpu: &Gpu, vol: &Volume) -> Result<AoVolume> {
     crate::render::check_volume_fits_gpu(gpu, vol)?;
-    let n = vol.voxel_count() as u64;
-    let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST;
-    let opacity_buf = Buffer::new(
-        gpu,
-        crate::ao::stored::bytes(n).next_multiple_of(4),
-        usage,
-        gpu_allocator::MemoryLocation::GpuOnly,
-        "opacity",
-    )?;
-    let ao_buf = crate::ao::stored::buffer(gpu, vol.dims, "pao")?;
-    // A fill writes whole 4-byte words: the last 16-bit word of an odd count is copied in.
-    let tail = Buffer::device_local(
-        gpu,
-        &[crate::ao::stored::pack(1.0)],
-        vk::BufferUsageFlags::TRANSFER_SRC,
-        "pao-tail",
-    )?;
-    gpu.submit_and_wait(|cmd| unsafe {
-        // SAFETY: the buffers were just made with these usages, and nothing else uses them.
-        let d = &gpu.device;
-        d.cmd_fill_buffer(cmd, opacity_buf.raw, 0, vk::WHOLE_SIZE, 0);
-        // Every 16-bit word all ones: AO_OPEN, AO 1.
-        d.cmd_fill_buffer(cmd, ao_buf.raw, 0, vk::WHOLE_SIZE, u32::MAX);
-        gpu.barrier(cmd);
-        let last = ao_buf.size - crate::ao::stored::BYTES_PER_VOXEL;
-        let region = vk::BufferCopy::default().dst_offset(last).size(2);
-        d.cmd_copy_buffer(cmd, tail.raw, ao_buf.raw, &[region]);
-    })?;
-    Ok(AoVolume {
-        opacity: Vec::new(),
-        opacity_buf,
-        ao_buf,
-        skip: lao.skip_stand_in()?,
-        timing: LaoTiming::default(),
-        method: MethodGpu::Open,
-    })
+    Ok(AoVolume::open(gpu, vol)?)
 }
 
 /// [`precompute`] with GPU memory exhaustion left as it is (for a caller that tells it).
@@ -442,26 +320,7 @@ pub(crate) fn precompute_method(
     fp.validate().map_err(AppError::Usage)?;
     crate::render::check_volume_fits_gpu(gpu, vol)?;
     let density = filtered::density(fp.input, &tf.opacity_volume(vol), vol);
-    let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
-    // f32: the filters' gradients of it need more than 16 bits (`Cao::clipped_stride`).
-    let opacity_buf = Buffer::device_local(gpu, &density, usage, "opacity")?;
-    let skip = lao.skip_stand_in()?;
-    let filter = FilterGpu::new(gpu, vol.dims, vol.spacing, fp)?;
-    let t0 = std::time::Instant::now();
-    let (ao_buf, gpu_ms) = filter.compute(&opacity_buf)?;
-    let timing = LaoTiming {
-        gpu_ms,
-        wall_ms: t0.elapsed().as_secs_f64() * 1e3,
-        ..Default::default()
-    };
-    Ok(AoVolume {
-        opacity: density,
-        opacity_buf,
-        ao_buf,
-        skip,
-        timing,
-        method: MethodGpu::Filter(filter),
-    })
+    Ok(AoVolume::filter(gpu, vol, density, fp)?)
 }
 
 /// The local-histogram method set up for `vol` (the clustering loaded from `cache` or computed,
@@ -501,43 +360,6 @@ pub fn histogram_state(
     Ok(h)
 }
 
-/// What [`histogram_tables`] made: q (host and GPU), V_PAO, and the pass's GPU ms.
-pub struct HistogramTables {
-    pub q: Vec<f32>,
-    pub opacity: Buffer,
-    pub pao: Buffer,
-    pub gpu_ms: f64,
-}
-
-/// The local-histogram method `h` under `tf` and the structures as `structures` shows them (its
-/// first TF, a TF change or a structure shown or hidden): its tables, then q (the opacity CAO
-/// clips) and V_PAO with the bleeding volume in one pass.
-pub fn histogram_tables(
-    gpu: &Gpu,
-    lao: &LaoGpu,
-    dims: [usize; 3],
-    h: &mut HistogramGpu,
-    (tf, structures): (&TransferFunction, &[f32]),
-) -> Result<HistogramTables> {
-    let q = h.set_tf(tf, structures)?;
-    let opacity =
-        crate::ao::stored::upload(gpu, &q, vk::BufferUsageFlags::STORAGE_BUFFER, "opacity")?;
-    let pao = lao.output_buffer(dims)?;
-    let mut timer = crate::gpu::GpuTimer::new(gpu, 2)?;
-    gpu.submit_and_wait(|cmd| {
-        timer.begin(cmd);
-        h.record_precompute(cmd, &opacity, &pao);
-        timer.mark(cmd, "histogram");
-    })?;
-    let gpu_ms = timer.read()?.iter().map(|t| t.1).sum();
-    Ok(HistogramTables {
-        q,
-        opacity,
-        pao,
-        gpu_ms,
-    })
-}
-
 /// V_PAO and the bleeding volume of the local-histogram method `h` under `tf`: one table
 /// update and one pass (the clusters' values, or with N = 0 the direct sums).
 pub fn precompute_histogram(
@@ -546,24 +368,10 @@ pub fn precompute_histogram(
     vol: &Volume,
     tf: &TransferFunction,
     params: &LaoParams,
-    mut h: HistogramGpu,
+    h: HistogramGpu,
 ) -> Result<AoVolume> {
     params.validate().map_err(AppError::Usage)?;
-    let t0 = std::time::Instant::now();
-    let t = histogram_tables(gpu, lao, vol.dims, &mut h, (tf, &[]))?;
-    let timing = LaoTiming {
-        gpu_ms: t.gpu_ms,
-        wall_ms: t0.elapsed().as_secs_f64() * 1e3,
-        ..Default::default()
-    };
-    Ok(AoVolume {
-        opacity: t.q,
-        opacity_buf: t.opacity,
-        ao_buf: t.pao,
-        skip: lao.skip_stand_in()?,
-        timing,
-        method: MethodGpu::Histogram(h),
-    })
+    Ok(AoVolume::histogram(gpu, lao, vol, tf, h)?)
 }
 
 /// Everything needed to render a volume from scratch on the GPU.

@@ -10,14 +10,14 @@
 
 use super::lighting::ShLighting;
 use super::{AppError, Result};
-use crate::ao::cao::{Cao, MethodGpu};
-use crate::ao::filter_gpu::{FilterGpu, FilterMode};
+use crate::ao::cao::Cao;
+use crate::ao::filter_gpu::FilterGpu;
 use crate::ao::filtered;
 use crate::ao::histogram_gpu::HistogramGpu;
-use crate::ao::lao::{LaoLayout, SkipBuffers, SkipData};
+use crate::ao::lao::{LaoLayout, LaoParams, SkipData};
+use crate::ao::method::{MethodGpu, Refresh};
 use crate::ao::progressive::{HostTask, SlabScheduler};
 use crate::ao::sh::ShVolume;
-use crate::ao::voxel_box::VoxelBox;
 use crate::ao::{AoMethod, LaoGpu};
 use crate::gpu::{Buffer, Gpu, GpuTimer};
 use crate::render::VolumeTextures;
@@ -108,20 +108,23 @@ fn tf_of(tfs: &[TransferFunction], range: (f32, f32), c: &Choice) -> TransferFun
 struct Switch {
     /// What it computes.
     choice: Choice,
-    /// That method's filters (None for LAO).
-    filter: Option<FilterGpu>,
     stage: Stage,
 }
 
 // At most one exists per loop: its size does not matter.
 #[allow(clippy::large_enum_variant)]
 enum Stage {
-    /// O' and, for LAO (the only method that reads them), its skipping data, on a worker thread.
-    Classifying(HostTask<(Vec<f32>, Option<SkipData>)>),
-    /// One slab of V_PAO' per frame, then (with SH lighting) one slab of V_PSH'.
+    /// O' and, for LAO (the only method that reads them), its skipping data, on a worker thread;
+    /// the filters' state, made when the switch starts (None for LAO).
+    Classifying {
+        task: HostTask<(Vec<f32>, Option<SkipData>)>,
+        filter: Option<FilterGpu>,
+    },
+    /// The new method's state and O', one slab of V_PAO' per frame, then (with SH lighting)
+    /// one slab of V_PSH'.
     Computing {
         opacity: Buffer,
-        skip: Option<SkipBuffers>,
+        method: MethodGpu,
         pao: Buffer,
         slabs: SlabScheduler,
         sh: Option<(ShVolume, SlabScheduler)>,
@@ -131,7 +134,7 @@ enum Stage {
 impl Switch {
     fn fraction(&self) -> f32 {
         match &self.stage {
-            Stage::Classifying(_) => 0.0,
+            Stage::Classifying { .. } => 0.0,
             Stage::Computing {
                 slabs, sh: None, ..
             } => slabs.fraction(),
@@ -168,6 +171,8 @@ pub struct TfSwitcher {
     parked: Option<HistogramGpu>,
     lao: LaoGpu,
     lao_dirs: Buffer,
+    /// The LAO parameters a switch to LAO computes with (`lao_dirs` holds their directions).
+    params: LaoParams,
     timer: GpuTimer,
 }
 
@@ -181,7 +186,7 @@ impl TfSwitcher {
         tfs: Vec<TransferFunction>,
         (methods, shown_method, open): (Vec<AoMethod>, usize, bool),
         (labels, value_range, iso): (Option<&LabelMap>, (f32, f32), Option<f32>),
-        (lao, lao_dirs): (LaoGpu, Buffer),
+        (lao, lao_dirs, params): (LaoGpu, Buffer, LaoParams),
     ) -> Result<Self> {
         Ok(TfSwitcher {
             gpu: gpu.clone(),
@@ -203,6 +208,7 @@ impl TfSwitcher {
             parked: None,
             lao,
             lao_dirs,
+            params,
             timer: GpuTimer::new(gpu, 2)?,
         })
     }
@@ -317,7 +323,7 @@ impl TfSwitcher {
     ) -> Result<()> {
         let want = self.wanted(scene);
         let target = self.switch.as_ref().map_or(&self.shown, |s| &s.choice);
-        if want != self.shown && matches!(self.methods[want.method], AoMethod::Histogram(_)) {
+        if want != self.shown && self.methods[want.method].refresh() == Refresh::Table {
             // The local histograms follow a new TF (or come back) with one table update.
             self.switch = None;
             return self.switch_to_histogram(want, vol, cao, tex);
@@ -332,13 +338,13 @@ impl TfSwitcher {
             // classification thread is detached and its result discarded.
             self.switch = None;
             if want != self.shown || first {
-                self.switch = Some(self.start(want, vol, cao)?);
+                self.switch = Some(self.start(want, vol)?);
             }
         }
         let Some(sw) = self.switch.as_mut() else {
             return Ok(());
         };
-        if let Stage::Classifying(task) = &mut sw.stage {
+        if let Stage::Classifying { task, filter } = &mut sw.stage {
             let Some(done) = task.poll() else {
                 return Ok(());
             };
@@ -362,25 +368,36 @@ impl TfSwitcher {
             };
             // O in its method's format: f32 for the filters, else 16-bit (`Cao::clipped_stride`).
             let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
-            let opacity = match sw.filter {
+            let opacity = match filter {
                 Some(_) => Buffer::device_local(&self.gpu, &opacity, usage, "opacity")?,
                 None => crate::ao::stored::upload(&self.gpu, &opacity, usage, "opacity")?,
+            };
+            let method = match (filter.take(), skip) {
+                (Some(f), _) => MethodGpu::Filter(f),
+                (None, skip) => {
+                    let skip = skip.ok_or_else(|| {
+                        AppError::Usage(format!("{}: LAO without skipping data", vol.name))
+                    })?;
+                    let skip = self.lao.upload_skip(&skip)?;
+                    MethodGpu::lao(&self.gpu, vol, self.params, skip)?
+                }
+            };
+            // The filters refilter the whole volume in one go (they are cheap); LAO goes a
+            // bounded slab of slices per frame.
+            let slabs = match self.methods[sw.choice.method].refresh() {
+                Refresh::Slabs => SlabScheduler::with_budget(
+                    vol.dims[2],
+                    LaoGpu::samples_per_slice(vol.dims, &self.params),
+                    budget,
+                ),
+                Refresh::OneGo | Refresh::Table => SlabScheduler::new(1, 1),
             };
             sw.stage = Stage::Computing {
                 sh,
                 opacity,
-                skip: skip.map(|s| self.lao.upload_skip(&s)).transpose()?,
+                method,
                 pao: self.lao.output_buffer(vol.dims)?,
-                // The filters refilter the whole volume in one go (they are cheap); LAO goes a
-                // bounded slab of slices per frame.
-                slabs: match &sw.filter {
-                    Some(_) => SlabScheduler::new(1, 1),
-                    None => SlabScheduler::with_budget(
-                        vol.dims[2],
-                        LaoGpu::samples_per_slice(vol.dims, &cao.params),
-                        budget,
-                    ),
-                },
+                slabs,
             };
         }
         if let Stage::Computing { slabs, sh, .. } = &mut sw.stage {
@@ -395,7 +412,7 @@ impl TfSwitcher {
             let sw = self.switch.take().expect("checked above");
             let Stage::Computing {
                 opacity,
-                skip,
+                method,
                 pao,
                 sh,
                 ..
@@ -405,11 +422,7 @@ impl TfSwitcher {
             };
             tex.set_transfer_function(&self.tf_of(&sw.choice))?;
             tex.set_structure_opacities(&sw.choice.structures);
-            cao.replace_precomputed(opacity, pao, skip)?;
-            let method = match sw.filter {
-                Some(f) => MethodGpu::Filter(f),
-                None => MethodGpu::Lao,
-            };
+            cao.replace_precomputed(opacity, pao)?;
             if let MethodGpu::Histogram(h) = cao.set_method(method)? {
                 self.parked = Some(h);
             }
@@ -441,13 +454,13 @@ impl TfSwitcher {
             None => None,
         };
         match shown_here {
-            Some(t) => cao.replace_precomputed(t.opacity, t.pao, None)?,
+            Some(t) => cao.replace_precomputed(t.opacity, t.pao)?,
             None => {
                 let mut h = self.parked.take().ok_or_else(|| {
                     AppError::Usage("the local-histogram method was not set up".into())
                 })?;
                 let t = build(&mut h)?;
-                cao.replace_precomputed(t.opacity, t.pao, None)?;
+                cao.replace_precomputed(t.opacity, t.pao)?;
                 cao.set_method(MethodGpu::Histogram(h))?;
             }
         }
@@ -457,7 +470,7 @@ impl TfSwitcher {
         Ok(())
     }
 
-    fn start(&self, choice: Choice, vol: &Arc<Volume>, cao: &Cao) -> Result<Switch> {
+    fn start(&self, choice: Choice, vol: &Arc<Volume>) -> Result<Switch> {
         let filter = match self.methods[choice.method] {
             AoMethod::Filter(p) => Some(FilterGpu::new(&self.gpu, vol.dims, vol.spacing, p)?),
             _ => None,
@@ -466,7 +479,7 @@ impl TfSwitcher {
         let tf = self.tf_of(&choice);
         let tf_name = tf.name.clone();
         let structures = choice.structures.clone();
-        let params = cao.params;
+        let params = self.params;
         let input = filter.as_ref().map(|f| f.params.input);
         let name = vol.name.clone();
         let task = HostTask::spawn("cao-xr-classify", move || {
@@ -486,25 +499,23 @@ impl TfSwitcher {
         })?;
         Ok(Switch {
             choice,
-            filter,
-            stage: Stage::Classifying(task),
+            stage: Stage::Classifying { task, filter },
         })
     }
 
     /// Records this frame's slab of V_PAO' (or, once those are done, of V_PSH'). It writes only
     /// buffers of its own, which no other pass of the frame reads, so it needs no barrier.
     /// Returns whether a slab was recorded (then [`TfSwitcher::read_ms`] has its time).
-    pub fn record_slab(&mut self, cmd: vk::CommandBuffer, vol: &Volume, cao: &Cao) -> bool {
+    pub fn record_slab(&mut self, cmd: vk::CommandBuffer, vol: &Volume) -> bool {
         let Some(Switch {
             stage:
                 Stage::Computing {
                     opacity,
-                    skip,
+                    method,
                     pao,
                     slabs,
                     sh,
                 },
-            filter,
             ..
         }) = self.switch.as_mut()
         else {
@@ -512,18 +523,14 @@ impl TfSwitcher {
         };
         if let Some(z) = slabs.next_slab() {
             self.timer.begin(cmd);
-            match filter {
-                Some(f) => {
-                    let whole = [VoxelBox::whole(vol.dims)];
-                    f.record(cmd, opacity, pao, opacity, opacity, &whole, FilterMode::All);
-                }
-                None => {
+            match method {
+                MethodGpu::Filter(f) => f.record_precompute(cmd, opacity, pao),
+                MethodGpu::Lao(l) => {
                     let (lao, dirs) = (&self.lao, &self.lao_dirs);
-                    let skip = skip
-                        .as_ref()
-                        .expect("an LAO switch classifies its skipping data");
-                    lao.record_slab(cmd, opacity, dirs, skip, pao, vol.dims, &cao.params, z);
+                    lao.record_slab(cmd, opacity, dirs, &l.skip, pao, vol.dims, &l.params, z);
                 }
+                // (the local histograms refresh at once, and there is no switch to no method)
+                MethodGpu::Histogram(_) | MethodGpu::Open => {}
             }
             self.timer.mark(cmd, "tf-slab");
             return true;
@@ -531,7 +538,7 @@ impl TfSwitcher {
         if let Some((v, sh_slabs)) = sh.as_mut() {
             if sh_slabs.done() == 0 {
                 let [x, y, z, _] = LaoLayout::unpadded_stride(vol.dims);
-                let stride = [x, y, z, filter.is_some() as i32];
+                let stride = [x, y, z, method.float_density() as i32];
                 v.record_pyramid(cmd, opacity, stride);
             }
             if let Some(z) = sh_slabs.next_slab() {

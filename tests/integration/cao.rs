@@ -38,7 +38,14 @@ pub(crate) fn setup(gpu: &Gpu, vol: &Volume) -> (Cao, Vec<f32>, Vec<f32>) {
     // O as the GPU holds it.
     let o = cao_xr::ao::stored::quantised(&o);
     (
-        Cao::new(gpu, vol, obuf, pao, skip, PARAMS, MethodGpu::Lao).unwrap(),
+        Cao::new(
+            gpu,
+            vol,
+            obuf,
+            pao,
+            MethodGpu::lao(gpu, vol, PARAMS, skip).unwrap(),
+        )
+        .unwrap(),
         o,
         pao_host,
     )

@@ -34,7 +34,7 @@ fn setup(gpu: &Gpu, vol: &Volume, ao: &AoConfig) -> (Cao, Vec<f32>) {
     let lao = LaoGpu::new(gpu).unwrap();
     let v = precompute(gpu, &lao, vol, &tf, ao, false).unwrap();
     let density = v.opacity.clone();
-    (v.into_cao(gpu, vol, ao.lao).unwrap(), density)
+    (v.into_cao(gpu, vol).unwrap(), density)
 }
 
 #[test]

@@ -41,7 +41,7 @@ fn setup(
     let h = histogram_state(gpu, vol, p, Some(&cache(tag)), false).unwrap();
     let v = precompute_histogram(gpu, &lao, vol, tf, &LaoParams::default(), h).unwrap();
     let q = v.opacity.clone();
-    (v.into_cao(gpu, vol, LaoParams::default()).unwrap(), q)
+    (v.into_cao(gpu, vol).unwrap(), q)
 }
 
 fn volume(dims: [usize; 3], spacing: f64, v: Vec<f32>) -> Volume {
@@ -627,7 +627,7 @@ fn show_structures(gpu: &Gpu, cao: &mut Cao, vol: &Volume, tf: &TransferFunction
     let lao = LaoGpu::new(gpu).unwrap();
     let h = cao.histogram_mut().unwrap();
     let t = cao_xr::app::histogram_tables(gpu, &lao, vol.dims, h, (tf, shown)).unwrap();
-    cao.replace_precomputed(t.opacity, t.pao, None).unwrap();
+    cao.replace_precomputed(t.opacity, t.pao).unwrap();
     cao.run_frame(&[], &Placement::default(), Mode::Contextual)
         .unwrap();
 }

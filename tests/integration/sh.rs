@@ -201,7 +201,14 @@ fn cao_for(gpu: &Gpu, vol: &Volume, params: LaoParams) -> (Cao, Buffer) {
         .compute(&obuf, &skip, vol.dims, vol.spacing, &params, &mut |_, _| {})
         .unwrap();
     (
-        Cao::new(gpu, vol, obuf, pao, skip, params, MethodGpu::Lao).unwrap(),
+        Cao::new(
+            gpu,
+            vol,
+            obuf,
+            pao,
+            MethodGpu::lao(gpu, vol, params, skip).unwrap(),
+        )
+        .unwrap(),
         o2,
     )
 }
