@@ -34,6 +34,8 @@ fn constants_glsl() -> String {
         format!("const uint SAME_AS_FRONT = {SAME_AS_FRONT}u;"),
         format!("const int RAY_BRICK_SHIFT = {RAY_BRICK_SHIFT};"),
         format!("const int MAX_TOOLS = {MAX_TOOLS};"),
+        format!("const uint CLIP_BRICK_OPEN = {CLIP_BRICK_OPEN}u;"),
+        format!("const uint CLIP_BRICK_CUT = {CLIP_BRICK_CUT}u;"),
         format!("const float TORUS_MINOR = {TORUS_MINOR:?};"),
         format!("const uint SHAPE_MESH = {SHAPE_MESH}u;"),
         format!("const uint SHAPE_SPHERE = {SHAPE_SPHERE}u;"),

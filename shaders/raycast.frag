@@ -47,6 +47,12 @@ layout(set = 0, binding = 17) uniform sampler3D glow;
 #define CLIP_MAPS_BINDING 5
 #define CLIP_TOOL_COUNT frame.viewport.z
 #include "clip.glsl"
+// Per brick of the empty-space grid, four to a word (src/clip/bricks.rs): CLIP_BRICK_OPEN where
+// no tool hides any sample, 1 + t where tool t is every sample's first hider, CLIP_BRICK_CUT
+// where the samples test the maps. Read when CLIPPING and CLIP_BRICKS.
+layout(std430, set = 0, binding = 20) readonly buffer ClipBricks {
+    uint clip_bricks[];
+};
 
 // Which eye (layer of the stereo target) this draw renders, and its pass (src/render/mod.rs
 // Foveation): 0, every pixel cast; 1, the coarse pass of a foveated eye, each pixel standing for
@@ -72,6 +78,7 @@ const uint LABELS = 16u;
 const uint CLIPPING = 32u;
 const uint GLOW = 64u;
 const uint ISO = 128u;
+const uint CLIP_BRICKS = 256u;
 // Bisections that place an isosurface within 1/256 of a step.
 const int ISO_BISECTIONS = 8;
 
@@ -168,10 +175,16 @@ int hiding_tool(vec3 w, vec3 p, vec3 v) {
                        || any(greaterThanEqual(v, vec3(frame.tool_reach[2 * t + 1].xyz))))) {
             continue;
         }
-        bool inside = (tool_test(t, (tools[t].local_from_world * vec4(w, 1.0)).xyz) & 1u) != 0u;
+        bool inside = tool_inside(t, (tools[t].local_from_world * vec4(w, 1.0)).xyz);
         if (probe ? !inside : inside && !spared_at(p)) return int(t);
     }
     return -1;
+}
+
+// The clip state of brick b of a grid of n bricks (see ClipBricks).
+uint clip_brick(ivec3 b, ivec3 n) {
+    uint i = uint(b.x + n.x * (b.y + n.y * b.z));
+    return (clip_bricks[i >> 2] >> ((i & 3u) * 8u)) & 0xffu;
 }
 
 // The structures around texture point t, interpolated per structure rather than by id, so that
@@ -369,6 +382,10 @@ void main() {
         ivec3 brick = ivec3(-1);
         bool brick_empty = false;
         bool prev_skippable = false;
+        // The clip state of the brick the last sample was in (see ClipBricks).
+        ivec3 clip_grid = (ivec3(dims) + (1 << RAY_BRICK_SHIFT) - 1) >> RAY_BRICK_SHIFT;
+        ivec3 clip_at = ivec3(-1);
+        uint clip_state = CLIP_BRICK_CUT;
         // The samples lie on the lattice t = t0 + k dt (computed, not accumulated, so that a
         // jump over k lands exactly where stepping would have); a cut-face bisection restarts
         // it at the cut. No fixed sample cap: the loop is bounded by twice the ray's sample
@@ -423,7 +440,19 @@ void main() {
             // Shadow-test clipping: the same maps the AO update used.
             if (clipping) {
                 vec3 w = a_w + t * (b_w - a_w);
-                int hider = hiding_tool(w, p, p * dims);
+                vec3 vi = p * dims;
+                if (flag(CLIP_BRICKS)) {
+                    ivec3 b = clamp(ivec3(floor(vi)) >> RAY_BRICK_SHIFT, ivec3(0), clip_grid - 1);
+                    if (b != clip_at) {
+                        clip_state = clip_brick(b, clip_grid);
+                        clip_at = b;
+                    }
+                }
+                // A brick no tool cuts needs no test; in one a tool hides whole, that tool is
+                // the first hider unless a protected structure is spared.
+                int hider = clip_state == CLIP_BRICK_OPEN ? -1
+                          : clip_state == CLIP_BRICK_CUT || flag(LABELS) ? hiding_tool(w, p, vi)
+                          : int(clip_state) - 1;
                 if (hider >= 0) {
                     prev_tool = hider;
                     have_prev = false;

@@ -33,6 +33,10 @@ pub const SAME_AS_FRONT: u32 = u32::MAX;
 /// Bricks of 2^RAY_BRICK_SHIFT voxels per axis for the ray caster's exact empty-space skipping
 /// (src/render/empty_space.rs).
 pub const RAY_BRICK_SHIFT: u32 = 3;
+/// The ray caster's clip state of a brick (src/clip/bricks.rs): no tool hides any of it; 1 + t:
+/// tool t hides all of it; a tool's surface may cross it (each sample tests the maps).
+pub const CLIP_BRICK_OPEN: u32 = 0;
+pub const CLIP_BRICK_CUT: u32 = 255;
 /// At most this many tools clip at once.
 pub const MAX_TOOLS: usize = 8;
 /// Minor (tube) radius of the unit torus (major radius 1, around local Z).

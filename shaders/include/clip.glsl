@@ -34,6 +34,16 @@ uint tool_test(uint t, vec3 local) {
     return r;
 }
 
+// Whether a tool-local point is inside the tool's shape: tool_test's bit 0, one map read.
+bool tool_inside(uint t, vec3 local) {
+    ClipTool tool = tools[t];
+    ivec2 px = ivec2(floor((local.xy + tool.map.x) * tool.map.y));
+    int res = int(tool.map.z);
+    if (any(lessThan(px, ivec2(0))) || any(greaterThanEqual(px, ivec2(res)))) return false;
+    vec4 c = clip_maps[tool.offsets.x + uint(px.y * res + px.x)];
+    return (local.z >= c.x && local.z <= c.y) || (local.z >= c.z && local.z <= c.w);
+}
+
 // Whether a tool-local point is inside the tool's shape contracted by the dilation radius (z, w
 // of its dilation map; src/clip/mod.rs `dilate`): a probe's cut is out of its reach there.
 bool tool_contracted(uint t, vec3 local) {

@@ -13,6 +13,7 @@ use super::lao::LaoLayout;
 use super::method::MethodBuffers;
 pub use super::method::MethodGpu;
 use super::voxel_box::{dispatch_box, merge_boxes, VoxelBox};
+use crate::clip::bricks::{self, BrickTool};
 use crate::clip::margin::{self, MarginHit};
 use crate::clip::Shape;
 use crate::clip::{shape_mesh, ClipMap, ClipMapGpu, TriMesh};
@@ -140,6 +141,9 @@ pub struct Cao {
     /// Per tool of the last recorded frame, an index-space box holding every point it hides
     /// (the whole volume for a probe): the ray caster skips no sample inside one.
     pub reach_boxes: Vec<VoxelBox>,
+    /// The last frame's bricks that no tool cuts, that one tool hides whole, and that a tool's
+    /// surface may cross ([`bricks::counts`]).
+    pub clip_brick_counts: [usize; 3],
     /// The AO method.
     method: MethodGpu,
     /// The structure of every voxel, a byte each (a 4-byte stand-in without labels), and the
@@ -239,7 +243,7 @@ impl Cao {
         )?;
         let clipped = clipped_buffer(gpu, dims, &method)?;
         let slots = (0..MAX_FRAMES_IN_FLIGHT)
-            .map(|_| FrameSlot::new(gpu))
+            .map(|_| FrameSlot::new(gpu, dims))
             .collect::<Result<Vec<_>>>()?;
         let mut cao = Cao {
             gpu: gpu.clone(),
@@ -268,6 +272,7 @@ impl Cao {
             sh_boxes: Vec::new(),
             tool_count: 0,
             reach_boxes: Vec::new(),
+            clip_brick_counts: [0; 3],
             method,
             labels,
             protect,
@@ -507,6 +512,7 @@ impl Cao {
         let mut boxes = Vec::new();
         let mut sh_boxes = Vec::new();
         let mut reach = Vec::new();
+        let mut brick_tools = Vec::new();
         let lao_radius = self.dilation_radius_mm();
         for tool in active {
             let map = self.map_for(tool, placement, false, lao_radius)?;
@@ -555,12 +561,27 @@ impl Cao {
             // A probe's box holds its inside and the voxels anti-aliased at its surface; every
             // voxel beyond is clipped away (the background, see `record_frame`).
             let b = self.box_of(&map, local_from_index.inverse());
-            reach.push(match tool.mode {
+            let r = match tool.mode {
                 ToolMode::Probe => VoxelBox::whole(self.dims),
                 ToolMode::Carve | ToolMode::Measure => b,
-            });
+            };
+            reach.push(r);
+            brick_tools.push((map, local_from_index, tool.mode == ToolMode::Probe, r));
             boxes.push(b);
         }
+        let bricks = bricks::classify(
+            self.dims,
+            &brick_tools
+                .iter()
+                .map(|(map, m, probe, r)| BrickTool {
+                    map,
+                    local_from_index: *m,
+                    probe: *probe,
+                    reach: (r.min, r.max),
+                })
+                .collect::<Vec<_>>(),
+        );
+        self.clip_brick_counts = bricks::counts(&bricks);
         if !gpu_tools.is_empty() {
             let slot = &mut self.slots[self.slot];
             slot.tools.write(0, bytemuck::cast_slice(&gpu_tools))?;
@@ -581,6 +602,8 @@ impl Cao {
                 )?);
             }
             slot.maps.as_mut().unwrap().write(0, bytes)?;
+            slot.bricks
+                .write(0, bytemuck::cast_slice(&bricks::pack(&bricks)))?;
         }
         self.reach_boxes = reach;
         let boxes = boxes.into_iter().filter(|b| b.voxels() > 0).collect();
@@ -720,7 +743,7 @@ impl Cao {
         self.gpu.barrier(cmd);
         self.slots[self.slot].timer.mark(cmd, "restore");
         let slot = &self.slots[self.slot];
-        let (tools, maps) = slot.clip_buffers();
+        let (tools, maps, _) = slot.clip_buffers();
         for b in &boxes {
             let [x, y, z, _] = self.dims4();
             let push = ClipPush {
@@ -837,7 +860,7 @@ impl Cao {
 
     /// The tool table and clip maps of the frame recorded last, for the passes after CAO's in
     /// the same command buffer (the ray caster's clipping, the SH update).
-    pub fn clip_buffers(&self) -> (&Buffer, &Buffer) {
+    pub fn clip_buffers(&self) -> (&Buffer, &Buffer, &Buffer) {
         self.slots[self.slot].clip_buffers()
     }
 }
@@ -847,13 +870,23 @@ impl Cao {
 struct FrameSlot {
     tools: Buffer,
     maps: Option<Buffer>,
+    /// The ray caster's clip state per brick ([`bricks::classify`]).
+    bricks: Buffer,
     counts: Buffer,
     timer: GpuTimer,
 }
 
 impl FrameSlot {
-    fn new(gpu: &Gpu) -> Result<FrameSlot> {
+    fn new(gpu: &Gpu, dims: [usize; 3]) -> Result<FrameSlot> {
+        let n = bricks::grid(dims);
         Ok(FrameSlot {
+            bricks: Buffer::new(
+                gpu,
+                (n[0] * n[1] * n[2]).div_ceil(4) as u64 * 4,
+                vk::BufferUsageFlags::STORAGE_BUFFER,
+                MemoryLocation::CpuToGpu,
+                "cao-clip-bricks",
+            )?,
             tools: Buffer::new(
                 gpu,
                 (MAX_TOOLS.max(1) * std::mem::size_of::<ClipToolGpu>()) as u64,
@@ -873,9 +906,14 @@ impl FrameSlot {
         })
     }
 
-    /// The tools and their maps (the tool table stands in while no map was uploaded).
-    fn clip_buffers(&self) -> (&Buffer, &Buffer) {
-        (&self.tools, self.maps.as_ref().unwrap_or(&self.tools))
+    /// The tools, their maps (the tool table stands in while no map was uploaded) and the
+    /// bricks' clip states.
+    fn clip_buffers(&self) -> (&Buffer, &Buffer, &Buffer) {
+        (
+            &self.tools,
+            self.maps.as_ref().unwrap_or(&self.tools),
+            &self.bricks,
+        )
     }
 }
 

@@ -769,7 +769,7 @@ impl ShVolume {
         if boxes.is_empty() && restore.is_empty() {
             return ShFrameMetrics::default();
         }
-        let (tools, maps) = cao.clip_buffers();
+        let (tools, maps, _) = cao.clip_buffers();
         self.timer = (self.timer + 1) % self.timers.len();
         self.timers[self.timer].begin(cmd);
         if !boxes.is_empty() {

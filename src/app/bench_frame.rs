@@ -346,7 +346,7 @@ pub fn bench_frame(
 /// that is off by default, costs).
 fn ablation_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Result<()> {
     type Change = fn(&mut RenderSettings);
-    let rows: [(&str, Change); 7] = [
+    let rows: [(&str, Change); 8] = [
         ("the default", |_| {}),
         ("no AO lookup", |s| s.use_ao = false),
         ("no gradients (ambient only)", |s| {
@@ -357,6 +357,9 @@ fn ablation_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Result
         ("no pre-integration", |s| s.preintegrated = false),
         ("no cut-face lighting", |s| s.cut_lighting = false),
         ("no empty-space skipping", |s| s.skip_empty = false),
+        ("clip test at every sample in reach", |s| {
+            s.clip_bricks = false
+        }),
         ("tricubic scalars (off by default)", |s| s.tricubic = true),
     ];
     let no_tools = vec![Vec::new(); sweep.len()];

@@ -839,13 +839,14 @@ impl FrameLoop {
             timer.mark(cmd, PASS_TEXTURE);
             let sh = lighting.as_mut().map(|l| l.record_frame(gpu, cmd, cao));
             timer.mark(cmd, PASS_SH);
-            let (tools, maps) = cao.clip_buffers();
+            let (tools, maps, bricks) = cao.clip_buffers();
             let frame = FrameViews {
                 views: &input.views,
                 model,
                 clip: (count > 0).then_some(ClipBinding {
                     tools,
                     maps,
+                    bricks,
                     count,
                     reach: &cao.reach_boxes,
                 }),

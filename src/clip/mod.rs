@@ -10,6 +10,7 @@
 //! [`ClipMap::build`] is the CPU reference it is tested against, sampling the same points with
 //! the same crossing rule and dilating with the same kernel.
 
+pub mod bricks;
 pub mod gpu;
 pub mod margin;
 pub mod mesh;

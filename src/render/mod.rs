@@ -101,9 +101,11 @@ pub struct RenderSettings {
     pub jitter: bool,
     /// Cubic B-spline reconstruction of the scalars (else trilinear).
     pub tricubic: bool,
-    /// Skip samples in empty bricks ([`empty_space`]): the same image. Off by default: on
-    /// lavapipe it saves little (`bench frame` measures it).
+    /// Jump over samples in empty bricks ([`empty_space`]): the same image, faster.
     pub skip_empty: bool,
+    /// Test the tools' clip maps only in bricks a tool's surface may cross
+    /// ([`crate::clip::bricks`]): the same image, faster.
+    pub clip_bricks: bool,
     pub background: [f32; 3],
     /// Weight of the SH environment light (used when the frame has an SH volume bound).
     pub sh_weight: f32,
@@ -196,6 +198,7 @@ impl Default for RenderSettings {
             jitter: true,
             tricubic: false,
             skip_empty: true,
+            clip_bricks: true,
             background: [0.06, 0.07, 0.09],
             sh_weight: 1.0,
             sh_times_ao: false,
@@ -1011,11 +1014,12 @@ const FLAG_LABELS: u32 = 16;
 const FLAG_CLIPPING: u32 = 32;
 const FLAG_GLOW: u32 = 64;
 const FLAG_ISO: u32 = 128;
+const FLAG_CLIP_BRICKS: u32 = 256;
 
-/// The ray caster's descriptor writes: the uniforms and the clip tools and maps (bindings 0,
-/// 4, 5), then the sampled images by binding.
+/// The ray caster's descriptor writes: the uniforms, the clip tools, maps and brick states
+/// (bindings 0, 4, 5, 20), then the sampled images by binding.
 fn descriptor_writes<'a>(
-    [ubo, tools, maps]: [&'a [vk::DescriptorBufferInfo]; 3],
+    [ubo, tools, maps, bricks]: [&'a [vk::DescriptorBufferInfo]; 4],
     views: &[(u32, vk::ImageView)],
     infos: &'a [[vk::DescriptorImageInfo; 1]],
 ) -> Vec<vk::WriteDescriptorSet<'a>> {
@@ -1029,6 +1033,7 @@ fn descriptor_writes<'a>(
         buffer(0, vk::DescriptorType::UNIFORM_BUFFER, ubo),
         buffer(4, vk::DescriptorType::STORAGE_BUFFER, tools),
         buffer(5, vk::DescriptorType::STORAGE_BUFFER, maps),
+        buffer(20, vk::DescriptorType::STORAGE_BUFFER, bricks),
     ];
     w.extend(views.iter().zip(infos).map(|((binding, _), info)| {
         vk::WriteDescriptorSet::default()
@@ -1101,6 +1106,9 @@ pub struct ShBinding<'a> {
 pub struct ClipBinding<'a> {
     pub tools: &'a Buffer,
     pub maps: &'a Buffer,
+    /// Per brick of the ray caster's grid, packed: which tool hides all of it, if any, or
+    /// whether a tool cuts it ([`crate::clip::bricks`]).
+    pub bricks: &'a Buffer,
     pub count: u32,
     /// Per tool, an index-space box holding every point it hides (the whole volume for a
     /// probe): no empty-space skipping inside ([`crate::ao::cao::Cao::reach_boxes`]).
@@ -1227,6 +1235,7 @@ impl Renderer {
                     sampled,
                     sampled,
                     sampled,
+                    vk::DescriptorType::STORAGE_BUFFER,
                 ],
                 vk::ShaderStageFlags::FRAGMENT,
             )?;
@@ -1340,6 +1349,7 @@ impl Renderer {
             (tex.labelled, FLAG_LABELS),
             (clip.is_some_and(|c| c.count > 0), FLAG_CLIPPING),
             (glow, FLAG_GLOW),
+            (settings.clip_bricks, FLAG_CLIP_BRICKS),
         ]
         .iter()
         .filter(|f| f.0)
@@ -1515,7 +1525,8 @@ impl Renderer {
         let (plain_infos, full_infos) = (plain.map(img), full.map(img));
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
         let clip_maps = [clip.map_or(&self.no_clip, |c| c.maps).descriptor()];
-        let buffers = [&ubo[..], &clip_tools[..], &clip_maps[..]];
+        let clip_bricks = [clip.map_or(&self.no_clip, |c| c.bricks).descriptor()];
+        let buffers = [&ubo[..], &clip_tools[..], &clip_maps[..], &clip_bricks[..]];
         let plain_writes = descriptor_writes(buffers, &plain, &plain_infos);
         let full_writes = descriptor_writes(buffers, &full, &full_infos);
         // One eye's pass into layer `eye` of `into`.

@@ -62,10 +62,11 @@ fn render(
     let tf = TransferFunction::preset("ct-skin").unwrap();
     let tex = VolumeTextures::new(gpu, vol, &tf).unwrap();
     let mut hr = HeadlessRenderer::new(gpu).unwrap();
-    let (t, m) = cao.clip_buffers();
+    let (t, m, b) = cao.clip_buffers();
     let clip = ClipBinding {
         tools: t,
         maps: m,
+        bricks: b,
         count: tools.iter().filter(|t| t.active).count() as u32,
         reach: &cao.reach_boxes,
     };

@@ -339,6 +339,93 @@ fn empty_space_skipping_changes_no_pixel() {
     common::assert_no_validation_messages(&gpu);
 }
 
+/// The clip test per brick changes no pixel: the phantom, from the front and turned, carved by a
+/// sphere that hides many bricks whole, by that sphere and a turned box that overlaps it (the
+/// first hider decides the cut face), and cut down to a probe, pre-integrated and
+/// point-sampled: each frame equals the one that tests the maps at every sample, colour and
+/// depth, bit for bit, while bricks of every kind (open, hidden whole, cut) are seen.
+#[test]
+fn clip_bricks_change_no_pixel() {
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(64));
+    let mut fl = frame_loop(&gpu, &vol, few_rays());
+    let turned = Placement {
+        rotation: Quat::from_rotation_y(0.7) * Quat::from_rotation_x(0.4),
+        ..Placement::default()
+    };
+    let tool = |shape: &str, mode, offset: Vec3, size: f32, turn: f32| Tool {
+        shape: cao_xr::clip::Shape::builtin(shape).unwrap(),
+        pose: Pose {
+            position: Placement::default().center + offset,
+            orientation: Quat::from_rotation_z(turn) * Quat::from_rotation_x(0.5 * turn),
+        },
+        size,
+        mode,
+        active: true,
+    };
+    let big = tool(
+        "sphere",
+        ToolMode::Carve,
+        Vec3::new(0.02, 0.0, 0.05),
+        0.07,
+        0.0,
+    );
+    let tools = [
+        vec![big],
+        vec![
+            tool(
+                "box",
+                ToolMode::Carve,
+                Vec3::new(0.02, 0.08, 0.05),
+                0.025,
+                0.6,
+            ),
+            big,
+        ],
+        vec![tool(
+            "sphere",
+            ToolMode::Probe,
+            Vec3::new(0.0, 0.02, 0.0),
+            0.06,
+            0.0,
+        )],
+    ];
+    let base = RenderSettings::default();
+    for placement in [Placement::default(), turned] {
+        for t in &tools {
+            fl.scene.tools = t.clone();
+            for preintegrated in [true, false] {
+                let settings = RenderSettings {
+                    preintegrated,
+                    ..base
+                };
+                let on = frame(&mut fl, settings, placement, DEFAULT_IPD);
+                let [open, hidden, cut] = fl.cao.clip_brick_counts;
+                assert!(
+                    open > 0 && hidden > 0 && cut > 0,
+                    "{} tool(s): {open} open, {hidden} hidden, {cut} cut bricks",
+                    t.len()
+                );
+                let off = frame(
+                    &mut fl,
+                    RenderSettings {
+                        clip_bricks: false,
+                        ..settings
+                    },
+                    placement,
+                    DEFAULT_IPD,
+                );
+                assert!(
+                    on == off,
+                    "{} tool(s), pre-integrated {preintegrated}: the clip test per brick changed the image",
+                    t.len()
+                );
+            }
+        }
+    }
+    common::assert_no_validation_messages(&gpu);
+}
+
 /// Pixels of the left eye within `r` pixels of the image centre whose luma differs from the
 /// median of their 3x3 neighbourhood by more than `tol` (of 255): speckle.
 fn speckles(img: &StereoImage, r: f64, tol: f64) -> usize {
