@@ -128,8 +128,9 @@ bool in_tool_reach(vec3 v) {
 }
 
 // Where the ray v(t) = ov + t dv (index space) leaves brick b (an edge brick extends past the
-// grid, as the clamped lookup does) or first enters a tool's reach, whichever comes first.
-float run_end(vec3 ov, vec3 dv, float t, ivec3 b, ivec3 last_brick) {
+// grid, as the clamped lookup does) or, with `reach`, first enters a tool's reach, whichever
+// comes first.
+float run_end(vec3 ov, vec3 dv, float t, ivec3 b, ivec3 last_brick, bool reach) {
     vec3 lo = vec3(b << RAY_BRICK_SHIFT);
     vec3 hi = vec3((b + 1) << RAY_BRICK_SHIFT);
     float end = 3.0e38;
@@ -138,7 +139,7 @@ float run_end(vec3 ov, vec3 dv, float t, ivec3 b, ivec3 last_brick) {
         if (dv[a] < 0.0 && b[a] > 0) end = min(end, (lo[a] - ov[a]) / dv[a]);
     }
     vec3 inv = 1.0 / dv;
-    for (int k = 0; k < min(int(CLIP_TOOL_COUNT), MAX_TOOLS); k++) {
+    for (int k = 0; k < (reach ? min(int(CLIP_TOOL_COUNT), MAX_TOOLS) : 0); k++) {
         vec3 t0 = (vec3(frame.tool_reach[2 * k].xyz) - ov) * inv;
         vec3 t1 = (vec3(frame.tool_reach[2 * k + 1].xyz) - ov) * inv;
         float enter = max(max(min(t0.x, t1.x), min(t0.y, t1.y)), min(t0.z, t1.z));
@@ -374,18 +375,17 @@ void main() {
         int prev_tool = -1;
         float cut_t = -1.0;
         vec3 cut_n = vec3(0.0);
-        // Empty-space skipping: the brick the last sample was in, whether it is empty, and
-        // whether that sample could have been skipped (empty brick, out of the tools' reach).
+        // Empty-space skipping and the clip test per brick: the brick the last sample was
+        // in, whether it is empty, its clip state (see ClipBricks; CUT: test every sample),
+        // and whether that sample could have been skipped (an empty brick no tool cuts).
         bool skipping = flag(SKIP_EMPTY);
+        bool clip_bricks = clipping && flag(CLIP_BRICKS);
         vec3 dims = vec3(textureSize(scalars, 0));
-        ivec3 last_brick = textureSize(empty_bricks, 0) - 1;
+        ivec3 last_brick = ((ivec3(dims) + (1 << RAY_BRICK_SHIFT) - 1) >> RAY_BRICK_SHIFT) - 1;
         ivec3 brick = ivec3(-1);
         bool brick_empty = false;
-        bool prev_skippable = false;
-        // The clip state of the brick the last sample was in (see ClipBricks).
-        ivec3 clip_grid = (ivec3(dims) + (1 << RAY_BRICK_SHIFT) - 1) >> RAY_BRICK_SHIFT;
-        ivec3 clip_at = ivec3(-1);
         uint clip_state = CLIP_BRICK_CUT;
+        bool prev_skippable = false;
         // The samples lie on the lattice t = t0 + k dt (computed, not accumulated, so that a
         // jump over k lands exactly where stepping would have); a cut-face bisection restarts
         // it at the cut. No fixed sample cap: the loop is bounded by twice the ray's sample
@@ -397,15 +397,34 @@ void main() {
             t = t0 + float(k) * dt;
             if (t >= tf) break;
             vec3 p = o + t * d;
-            if (skipping) {
-                vec3 v = p * dims;
-                ivec3 b = clamp(ivec3(floor(v)) >> RAY_BRICK_SHIFT, ivec3(0), last_brick);
+            vec3 vi = p * dims;
+            if (skipping || clip_bricks) {
+                ivec3 b = clamp(ivec3(floor(vi)) >> RAY_BRICK_SHIFT, ivec3(0), last_brick);
                 if (b != brick) {
-                    brick_empty = texelFetch(empty_bricks, b, 0).r > 0.5;
+                    brick_empty = skipping && texelFetch(empty_bricks, b, 0).r > 0.5;
+                    if (clip_bricks) clip_state = clip_brick(b, last_brick + 1);
                     prev_skippable = false;
                     brick = b;
                 }
-                bool here = brick_empty && !in_tool_reach(v);
+            }
+            // A brick one tool hides whole, where no structure can be spared and no glow
+            // shines: every sample is hidden by that tool, as the test would find one by one.
+            // Jump to two steps before the brick's end, as below; the samples from there are
+            // tested one by one.
+            if (clip_bricks && clip_state != CLIP_BRICK_OPEN && clip_state != CLIP_BRICK_CUT
+                && !flag(LABELS) && !flag(GLOW)) {
+                float t_out = min(tf, run_end(o * dims, d * dims, t, brick, last_brick, false));
+                int n = int(floor((t_out - t) / dt)) - 2;
+                if (n > 0) k += n;
+                prev_tool = int(clip_state) - 1;
+                have_prev = false;
+                prev_skippable = false;
+                continue;
+            }
+            if (skipping) {
+                vec3 v = vi;
+                bool here = brick_empty
+                    && (clip_bricks ? clip_state == CLIP_BRICK_OPEN : !in_tool_reach(v));
                 if (here && prev_skippable) {
                     // This sample and the one before read only values (and, pre-integrated,
                     // the segment between them) that classify as transparent, and no tool hides
@@ -415,7 +434,8 @@ void main() {
                     // rounding from ever skipping one the per-sample test would keep); the
                     // rest are tested one by one. Only the last skipped value matters, to the
                     // next segment.
-                    float t_out = min(tf, run_end(o * dims, d * dims, t, brick, last_brick));
+                    float t_out = min(tf, run_end(o * dims, d * dims, t, brick, last_brick,
+                                                  !clip_bricks));
                     int n = int(floor((t_out - t) / dt)) - 2;
                     if (n > 0) {
                         k += n;
@@ -424,7 +444,7 @@ void main() {
                     }
                     vec3 vn = (o + (t0 + float(k + 1) * dt) * d) * dims;
                     ivec3 bn = clamp(ivec3(floor(vn)) >> RAY_BRICK_SHIFT, ivec3(0), last_brick);
-                    if (bn != brick || in_tool_reach(vn)) {
+                    if (bn != brick || (!clip_bricks && in_tool_reach(vn))) {
                         s_prev = scalar_at(p);
                         have_prev = true;
                     }
@@ -440,14 +460,6 @@ void main() {
             // Shadow-test clipping: the same maps the AO update used.
             if (clipping) {
                 vec3 w = a_w + t * (b_w - a_w);
-                vec3 vi = p * dims;
-                if (flag(CLIP_BRICKS)) {
-                    ivec3 b = clamp(ivec3(floor(vi)) >> RAY_BRICK_SHIFT, ivec3(0), clip_grid - 1);
-                    if (b != clip_at) {
-                        clip_state = clip_brick(b, clip_grid);
-                        clip_at = b;
-                    }
-                }
                 // A brick no tool cuts needs no test; in one a tool hides whole, that tool is
                 // the first hider unless a protected structure is spared.
                 int hider = clip_state == CLIP_BRICK_OPEN ? -1
