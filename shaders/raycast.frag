@@ -1,11 +1,12 @@
 #version 460
 // Stereo ray caster: front-to-back compositing through the volume with early termination.
 // Shading (docs/design.md, "Shading"): Blinn-Phong from the data's gradient with a headlight per
-// eye, the AO multiplying the ambient term and a share of the diffuse one,
+// eye (or a light fixed in the world), the AO multiplying the ambient term and a share of the
+// diffuse one,
 //   C = C_tf * (ka * AO + kd * (1 - s + s * AO) * |n.l|) + ks * (n.h)^p  (+ w * E_sh),
 // where E_sh = sum_k V_k L_k is the environment light seen through the SH visibility volume
 // (Ritschel), and with the local-histogram method C_tf bleeds towards the neighbourhood's colour
-// E. Where a tool cut the volume, the tool's surface normal lights a thin layer (the cut face).
+// E, which the Henyey-Greenstein phase function also scatters towards the eye. Where a tool cut the volume, the tool's surface normal lights a thin layer (the cut face).
 // Segments are pre-integrated over (front, back) scalar pairs; the start is jittered by blue
 // noise. Opacity is corrected per mm; depth is written where the ray enters visible material, so
 // later geometry (tools, hands) is depth-correct.
@@ -364,8 +365,16 @@ void main() {
         vec3 d_mm = d * frame.extent_mm.xyz;
         float len_mm = length(d_mm);
         float dt = step_mm / len_mm;
-        // The headlight: from the eye along the ray, so l = v = h.
-        vec3 light = -d_mm / len_mm;
+        // The view direction v (towards the eye); the light l: the headlight (l = v = h) or
+        // one fixed in the world, with Blinn's half vector h.
+        vec3 view = -d_mm / len_mm;
+        bool headlight = frame.light.w < 0.5;
+        vec3 light = headlight ? view : frame.light.xyz;
+        vec3 half_vector = headlight ? view : normalize(light + view);
+        // Scattering: the Henyey-Greenstein phase between the light's travel (-l) and the way
+        // to the eye (v), times 4 pi (1 where g = 0); the same for every sample of the ray.
+        float hg = frame.bleeding.z;
+        float phase = (1.0 - hg * hg) / pow(1.0 + hg * hg + 2.0 * hg * dot(light, view), 1.5);
         float t = tn + dt * pixel_jitter(pixel, v);
         bool clipping = flag(CLIPPING);
         // The previous sample's value (pre-integration), or none after a gap in the material.
@@ -576,9 +585,11 @@ void main() {
                     lit = gmin > 0.0 ? smoothstep(gmin, 2.0 * gmin, g) : float(g > 0.0);
                 }
                 float ndl = 0.0;
+                float ndh = 0.0;
                 if (lit > 0.0) {
                     // Two-sided: a surface is lit from whichever side the eye sees it.
                     ndl = abs(dot(normalize(n), light));
+                    ndh = headlight ? ndl : abs(dot(normalize(n), half_vector));
                 }
                 float ao_diffuse = 1.0 - frame.surface.z + frame.surface.z * occl;
                 vec3 shade = vec3(frame.phong.x * occl + lit * frame.phong.y * ao_diffuse * ndl);
@@ -586,8 +597,15 @@ void main() {
                     float ao_factor = frame.lighting.z > 0.5 ? occl : 1.0;
                     shade += frame.lighting.x * ao_factor * sh_emission(q);
                 }
-                float spec = lit * frame.phong.z * pow(ndl, frame.phong.w);
-                color += (1.0 - alpha) * (premult * shade + a * spec);
+                float spec = lit * frame.phong.z * pow(ndh, frame.phong.w);
+                // Scattering (Ropinski et al. Sect. 3.3): ambient light (ka) of the environment's
+                // colour E, which is both hemispheres' where the data is flat and the front
+                // one's at a border, scattered towards the eye.
+                vec3 scattered = vec3(0.0);
+                if (frame.bleeding.y > 0.0) {
+                    scattered = frame.phong.x * frame.bleeding.y * phase * texture(bleeding, q).rgb;
+                }
+                color += (1.0 - alpha) * (premult * shade + a * (spec + scattered));
                 alpha += (1.0 - alpha) * a;
                 if (depth == 1.0 && alpha >= DEPTH_ALPHA) {
                     vec4 clip = frame.view_proj[v] * vec4(a_w + t * (b_w - a_w), 1.0);

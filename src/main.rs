@@ -653,9 +653,22 @@ struct LightArgs {
     iso: Option<f32>,
     /// Foveated ray casting, RADIUS[,FACTOR]: every pixel within RADIUS (a fraction of the
     /// image's half-diagonal) of each eye's centre casts its ray, beyond it one ray per FACTOR x
-    /// FACTOR block, interpolated. Without a value 0.33,2.
-    #[arg(long, num_args = 0..=1, default_missing_value = "0.33,2")]
+    /// FACTOR block, interpolated. Without a value 0.25,3.
+    #[arg(long, num_args = 0..=1, default_missing_value = "0.25,3")]
     foveate: Option<cao_xr::render::Foveation>,
+    /// Scattering weight of --ao histogram: the neighbourhood's colour E scattered towards the
+    /// eye by the Henyey-Greenstein phase function between the light and the view direction,
+    /// so homogeneous tissue glows with the colour of what surrounds it (0: off).
+    #[arg(long, default_value_t = 0.0, value_parser = parse_unit)]
+    hist_scattering: f32,
+    /// The scattering's anisotropy g in (-1, 1): > 0 forwards (tissue glows lit from behind),
+    /// 0 evenly, < 0 backwards.
+    #[arg(long, default_value_t = cao_xr::render::DEFAULT_ANISOTROPY, allow_hyphen_values = true, value_parser = parse_anisotropy)]
+    hist_anisotropy: f32,
+    /// A light fixed in the world, X,Y,Z towards it (head-tracking space: +Y up, -Z ahead of
+    /// where the session started), instead of a headlight per eye.
+    #[arg(long, value_parser = parse_direction, allow_hyphen_values = true)]
+    light_from: Option<[f32; 3]>,
 }
 
 impl LightArgs {
@@ -683,6 +696,9 @@ impl LightArgs {
                 step_mm: self.ray_step_mm,
                 iso: self.iso,
                 foveation: self.foveate,
+                scattering: self.hist_scattering,
+                anisotropy: self.hist_anisotropy,
+                light_from: self.light_from,
                 ..Default::default()
             },
         }
@@ -934,6 +950,32 @@ fn parse_finite(s: &str) -> std::result::Result<f32, String> {
         .ok()
         .filter(|v| v.is_finite())
         .ok_or_else(|| format!("'{s}': expected a finite number"))
+}
+
+/// A number in [0, 1].
+fn parse_unit(s: &str) -> std::result::Result<f32, String> {
+    parse_finite(s)
+        .ok()
+        .filter(|v| (0.0..=1.0).contains(v))
+        .ok_or_else(|| format!("'{s}': expected a number in [0, 1]"))
+}
+
+/// The Henyey-Greenstein anisotropy g, in (-1, 1) (at +-1 the phase function has no finite
+/// value against the light).
+fn parse_anisotropy(s: &str) -> std::result::Result<f32, String> {
+    parse_finite(s)
+        .ok()
+        .filter(|g| g.abs() < 1.0)
+        .ok_or_else(|| format!("'{s}': the anisotropy g must lie strictly between -1 and 1"))
+}
+
+/// X,Y,Z: a direction (not all zero).
+fn parse_direction(s: &str) -> std::result::Result<[f32; 3], String> {
+    let d = cao_xr::space::parse_triple::<f32>(s)?;
+    if d.iter().all(|v| *v == 0.0) {
+        return Err(format!("'{s}': a direction cannot be 0,0,0"));
+    }
+    Ok(d)
 }
 
 /// R,G,B with each in 0..1.

@@ -17,10 +17,13 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     vec4 jitter;             // xy: left eye's blue-noise offset in pixels, zw: right eye's
     vec4 lighting;           // x: SH light weight (0: off), y: SH coefficients, z: 1 = times AO,
                              // w: 1 / V_max of variance opacity modulation (0: off)
-    vec4 bleeding;           // x: bleeding weight W of the local-histogram method (0: off)
+    vec4 bleeding;           // x: bleeding weight W of the local-histogram method (0: off),
+                             // y: its scattering weight (0: off), z: the phase function's g
     vec4 glow;               // rgb: the safety margins' glow colour, a: its emission per mm
     vec4 sh_light[16];       // rgb: Y_0 * L_k per colour channel (the environment in data space)
     ivec4 tool_reach[2 * MAX_TOOLS]; // per tool, index-space [min, max) holding all it hides
     vec4 structures[256];    // per structure id (0: unlabelled): rgb colour, a: opacity a_l
     uvec4 protect[2];        // bit id: the structure is protected from the carving tools
+    vec4 light;              // xyz: towards a light fixed in the world, in the gradient's frame
+                             // (along i, j, k, in mm, unit); w: 1 = that light, 0 = headlight
 } frame;

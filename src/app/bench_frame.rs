@@ -405,14 +405,27 @@ fn ablation_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Result
     Ok(())
 }
 
-/// The sweep's ray cast of both eyes with and without the default [`Foveation`], interleaved
-/// `runs` times (medians over all their frames), and the PSNR of the last frame's left eye
-/// against the same frame unfoveated. Returns [unfoveated ms, foveated ms, PSNR dB].
+/// The sweep's ray cast of both eyes unfoveated, with the default [`Foveation`] and with other
+/// rings, interleaved `runs` times (medians over all their frames), and the PSNR of each last
+/// frame's left eye against the same frame unfoveated. Returns [unfoveated ms, default
+/// foveated ms, its PSNR dB].
 fn foveation_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Result<[f64; 3]> {
-    let (mut ms, mut pictures) = ([Vec::new(), Vec::new()], [None, None]);
+    // The default first, then other rings for comparison.
+    let mut rings = vec![Foveation::default()];
+    rings.extend(
+        [(0.33, 2), (0.25, 2), (0.33, 3), (0.25, 3), (0.2, 4)]
+            .map(|(radius, factor)| Foveation { radius, factor })
+            .into_iter()
+            .filter(|f| *f != Foveation::default()),
+    );
+    let configs: Vec<Option<Foveation>> = std::iter::once(None)
+        .chain(rings.iter().copied().map(Some))
+        .collect();
+    let mut ms = vec![Vec::new(); configs.len()];
+    let mut pictures = vec![None; configs.len()];
     for _ in 0..runs.max(1) {
-        for (k, f) in [None, Some(Foveation::default())].into_iter().enumerate() {
-            fl.settings.foveation = f;
+        for (k, f) in configs.iter().enumerate() {
+            fl.settings.foveation = *f;
             let (stats, _) = loop_sweep(fl, sweep, false)?;
             ms[k].extend(
                 stats
@@ -423,25 +436,33 @@ fn foveation_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Resul
             let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
             let input = FrameInput::without_hands(0.0, views);
             fl.submit(&input, true, |_, _| {})?;
-            pictures[k] = fl.flush()?.and_then(|r| r.image);
+            pictures[k] = fl
+                .flush()?
+                .and_then(|r| r.image)
+                .map(|p| crate::render::compare::luma(&p.rgba[0]));
         }
     }
-    let [a, b] = pictures.map(|p| p.map(|p| crate::render::compare::luma(&p.rgba[0])));
-    let psnr = match (a, b) {
-        (Some(a), Some(b)) => crate::render::compare::psnr(&a, &b),
+    let ms: Vec<f64> = ms.into_iter().map(|mut m| median(&mut m)).collect();
+    let psnr = |k: usize| match (&pictures[0], &pictures[k]) {
+        (Some(a), Some(b)) => crate::render::compare::psnr(a, b),
         _ => f64::NAN,
     };
-    let [plain, fov] = ms.map(|mut m| median(&mut m));
-    println!(
-        "ray cast, both eyes, foveated  {fov:>9.2} ms  {:>5.2}x faster than {plain:.2} ms \
-         (radius {} of the half-diagonal, 1 ray per {f}x{f} beyond; left eye {psnr:.1} dB \
-         against unfoveated; medians of {} interleaved run(s))",
-        plain / fov,
-        Foveation::default().radius,
-        runs.max(1),
-        f = Foveation::default().factor,
-    );
-    Ok([plain, fov, psnr])
+    for (k, f) in rings.iter().enumerate() {
+        println!(
+            "ray cast, both eyes, foveated  {:>9.2} ms  {:>5.2}x faster than {:.2} ms \
+             (radius {} of the half-diagonal, 1 ray per {f}x{f} beyond{}; left eye {:.1} dB \
+             against unfoveated; medians of {} interleaved run(s))",
+            ms[k + 1],
+            ms[0] / ms[k + 1],
+            ms[0],
+            f.radius,
+            if k == 0 { ", the default" } else { "" },
+            psnr(k + 1),
+            runs.max(1),
+            f = f.factor,
+        );
+    }
+    Ok([ms[0], ms[1], psnr(1)])
 }
 
 #[cfg(test)]

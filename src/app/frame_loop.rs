@@ -857,6 +857,7 @@ impl FrameLoop {
             settings.iso = scene.iso;
             if !cao.method().has_bleeding() {
                 settings.bleeding = 0.0;
+                settings.scattering = 0.0;
             }
             renderer.record_eyes(
                 cmd,

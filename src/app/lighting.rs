@@ -72,6 +72,12 @@ pub struct ShadingOptions {
     pub iso: Option<f32>,
     /// Foveated ray casting (`--foveate`).
     pub foveation: Option<crate::render::Foveation>,
+    /// The local histograms' scattering weight and anisotropy g (`--hist-scattering`,
+    /// `--hist-anisotropy`).
+    pub scattering: f32,
+    pub anisotropy: f32,
+    /// A light fixed in the world instead of the headlight (`--light-from`).
+    pub light_from: Option<[f32; 3]>,
 }
 
 impl Default for ShadingOptions {
@@ -90,6 +96,9 @@ impl Default for ShadingOptions {
             step_mm: s.step_mm,
             iso: s.iso,
             foveation: s.foveation,
+            scattering: s.scattering,
+            anisotropy: s.anisotropy,
+            light_from: s.light_from,
         }
     }
 }
@@ -125,6 +134,9 @@ impl ShadingOptions {
         s.step_mm = self.step_mm;
         s.iso = self.iso;
         s.foveation = self.foveation;
+        s.scattering = self.scattering;
+        s.anisotropy = self.anisotropy;
+        s.light_from = self.light_from;
     }
 }
 
