@@ -821,18 +821,8 @@ pub fn write_ao(
             (ao, opacity, timing, bleeding)
         }
     };
-    let write = |path: &Path, data: &[f32]| {
-        nrrd::write(
-            path,
-            vol.dims,
-            vol.spacing,
-            vol.directions,
-            vol.origin,
-            vol.modality,
-            NrrdData::F32(data),
-            false,
-        )
-    };
+    let grid = vol.grid();
+    let write = |path: &Path, data: &[f32]| nrrd::write(path, &grid, NrrdData::F32(data), false);
     write(out, &ao)?;
     write_json(&out.with_extension("json"), &ao_sidecar(vol, tf, config))?;
     if let Some(o) = opacity_out {
@@ -840,15 +830,7 @@ pub fn write_ao(
     }
     if let (Some(path), Some(e)) = (bleeding_out, bleeding) {
         let flat: Vec<f32> = e.iter().flatten().copied().collect();
-        nrrd::write_rgb(
-            path,
-            vol.dims,
-            vol.spacing,
-            vol.directions,
-            vol.origin,
-            vol.modality,
-            &flat,
-        )?;
+        nrrd::write_rgb(path, &grid, &flat)?;
     }
     Ok(timing)
 }

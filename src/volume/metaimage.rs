@@ -10,7 +10,7 @@
 use super::data_source::{DataSource, Described, Skip};
 use super::{
     checked_size, read_wide, split_axes, write_atomically, write_voxels, Modality, Volume,
-    VolumeError, Voxels, WideType,
+    VolumeError, Voxels, WideSamples, WideType,
 };
 use flate2::read::ZlibDecoder;
 use flate2::write::ZlibEncoder;
@@ -342,8 +342,12 @@ fn read_payload(
     storage: &Storage,
 ) -> Result<Voxels, VolumeError> {
     let path = source.header();
-    let udims = shape.dims.map(|d| d as usize);
-    let (ty, be) = (shape.ty, storage.big_endian);
+    let samples = WideSamples {
+        ty: shape.ty,
+        dims: shape.dims.map(|d| d as usize),
+        big_endian: storage.big_endian,
+        scale: None,
+    };
     if storage.compressed {
         if storage.header_size == -1 {
             return Err(VolumeError::unsupported(
@@ -359,7 +363,7 @@ fn read_payload(
         let limit = storage.compressed_size.unwrap_or(u64::MAX);
         let mut dec = ZlibDecoder::new(data.take(limit));
         let what = source.what("zlib ");
-        read_wide(path, &what, &mut dec, ty, udims, be, None, false)
+        read_wide(path, &what, &mut dec, samples, false)
     } else {
         let skip = match storage.header_size {
             -1 => Skip::Tail,
@@ -372,7 +376,7 @@ fn read_payload(
         };
         let start = source.locate_raw(&data, start, skip, shape.data_bytes, &described)?;
         source.seek(&mut data, start)?;
-        read_wide(path, &source.what(""), &mut data, ty, udims, be, None, true)
+        read_wide(path, &source.what(""), &mut data, samples, true)
     }
 }
 
