@@ -7,7 +7,7 @@
 //! infinities are refused). MetaImage
 //! geometry is already in LPS, so it is taken as written.
 
-use super::data_source::{DataSource, Described, Skip};
+use super::data_source::{self, DataSource, Described, Skip};
 use super::{
     checked_size, read_wide, split_axes, write_atomically, write_voxels, Modality, Volume,
     VolumeError, Voxels, WideSamples, WideType,
@@ -121,7 +121,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     let fields = Fields { path, h: &h };
     let shape = fields.shape()?;
     let storage = fields.storage()?;
-    let (spacing, directions, origin) = fields.geometry()?;
+    let geometry = fields.geometry()?;
     let modality = match fields
         .get(&["modality"])
         .map(str::to_ascii_uppercase)
@@ -139,20 +139,8 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         (source, data, 0)
     };
     let voxels = read_payload(&source, data, start, &shape, &storage)?;
-    let name = path
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "volume".into());
-    Ok(Volume {
-        name,
-        dims: shape.dims.map(|d| d as usize),
-        spacing,
-        directions,
-        origin,
-        modality,
-        voxels,
-        labels: None,
-    })
+    let volume = data_source::loaded_volume(path, shape.dims, geometry, modality, voxels);
+    Ok(volume)
 }
 
 /// The header's fields (keys lower-cased) and the file they came from, for the messages.

@@ -222,17 +222,13 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
     let (h, be) = read_header(path, &mut reader, gzip)?;
     let (dims, frame) = frame_dims(path, &h, frame)?;
     let samples = parse_samples(path, &h, dims)?;
-    let (spacing, directions, origin) = parse_geometry(path, &h)?;
+    let geometry = parse_geometry(path, &h)?;
     let voxels = read_payload(path, reader, gzip, be, &h, &samples, frame)?;
+    let volume = data_source::loaded_volume(path, dims, geometry, Modality::Unknown, voxels);
+    // named without .nii.gz, not by the stem
     Ok(Volume {
         name: volume_name(path),
-        dims: dims.map(|d| d as usize),
-        spacing,
-        directions,
-        origin,
-        modality: Modality::Unknown,
-        voxels,
-        labels: None,
+        ..volume
     })
 }
 

@@ -338,7 +338,7 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
     let (h, terminated) = read_header(path, &mut reader)?;
     let shape = parse_shape(path, &h, frame)?;
     let encoding = parse_encoding(path, &h, &shape)?;
-    let (spacing, directions, origin) = parse_geometry(path, &h, &shape)?;
+    let geometry = parse_geometry(path, &h, &shape)?;
     let modality = match h.modality.as_deref().map(str::trim) {
         Some(m) if m.eq_ignore_ascii_case("ct") => Modality::Ct,
         Some(m) if m.eq_ignore_ascii_case("mr") || m.eq_ignore_ascii_case("mri") => Modality::Mr,
@@ -347,20 +347,8 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
     let (line_skip, byte_skip) = parse_skips(path, &h, encoding.gzip)?;
     let (source, data) = open_source(path, &h, reader, terminated)?;
     let voxels = read_payload(&source, data, &shape, &encoding, line_skip, byte_skip)?;
-    let name = path
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "volume".into());
-    Ok(Volume {
-        name,
-        dims: shape.dims.map(|d| d as usize),
-        spacing,
-        directions,
-        origin,
-        modality,
-        voxels,
-        labels: None,
-    })
+    let volume = data_source::loaded_volume(path, shape.dims, geometry, modality, voxels);
+    Ok(volume)
 }
 
 /// The samples a header describes and the volume to read of them.
