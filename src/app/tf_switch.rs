@@ -14,7 +14,7 @@ use crate::ao::cao::Cao;
 use crate::ao::filter_gpu::FilterGpu;
 use crate::ao::filtered;
 use crate::ao::histogram_gpu::HistogramGpu;
-use crate::ao::lao::{LaoLayout, LaoParams, SkipData};
+use crate::ao::lao::{LaoLayout, LaoParams, SkipData, SlabInput};
 use crate::ao::method::{MethodGpu, Refresh};
 use crate::ao::progressive::{HostTask, SlabScheduler};
 use crate::ao::sh::ShVolume;
@@ -526,8 +526,13 @@ impl TfSwitcher {
             match method {
                 MethodGpu::Filter(f) => f.record_precompute(cmd, opacity, pao),
                 MethodGpu::Lao(l) => {
-                    let (lao, dirs) = (&self.lao, &self.lao_dirs);
-                    lao.record_slab(cmd, opacity, dirs, &l.skip, pao, vol.dims, &l.params, z);
+                    let input = SlabInput {
+                        opacity,
+                        dirs: &self.lao_dirs,
+                        skip: &l.skip,
+                    };
+                    self.lao
+                        .record_slab(cmd, &input, pao, vol.dims, &l.params, z);
                 }
                 // (the local histograms refresh at once, and there is no switch to no method)
                 MethodGpu::Histogram(_) | MethodGpu::Open => {}
