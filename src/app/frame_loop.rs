@@ -23,8 +23,8 @@ use crate::input::{FrameInput, Interaction, InteractionSettings};
 use crate::render::text::{text_items, TEXT_HEIGHT};
 use crate::render::{colors, joint_overlay, markup_overlay, scene_overlay, OverlayRenderer};
 use crate::render::{
-    ClipBinding, Foveation, FrameViews, RenderSettings, Renderer, StereoImage, StereoTarget,
-    VolumeTextures, MAX_FRAMES_IN_FLIGHT,
+    ClipBinding, EyeSlot, Foveation, FrameViews, RenderSettings, Renderer, StereoImage,
+    StereoTarget, VolumeTextures, MAX_FRAMES_IN_FLIGHT,
 };
 use crate::scene::Scene;
 use crate::space::world_from_tex;
@@ -857,15 +857,11 @@ impl FrameLoop {
             if !cao.method().has_bleeding() {
                 settings.bleeding = 0.0;
             }
-            renderer.record_eyes(
-                cmd,
-                index,
-                target,
-                tex,
-                &frame,
-                &settings,
-                &mut |cmd, eye| timer.mark(cmd, PASS_EYES[eye]),
-            )?;
+            let eyes = EyeSlot {
+                slot: index,
+                after_eye: &mut |cmd, eye| timer.mark(cmd, PASS_EYES[eye]),
+            };
+            renderer.record_eyes(cmd, eyes, target, tex, &frame, &settings)?;
             // Tools and tracked hands over the volume, depth-tested against it (not in a still
             // render of the cut), and the markups always.
             let mut items = Vec::new();
