@@ -3,13 +3,13 @@
 //! method's own GPU memory, the filters' error against their exact box openness, and how each
 //! method's picture differs from LAO's at K = 54 (PSNR, SSIM of three fixed views).
 
-use super::bench::{median, sweep_tools};
+use super::bench::{median, sweep_tools, BenchOn};
 use super::{precompute, AoVolume, HeadlessRenderer, Result};
 use crate::ao::cao::Mode;
 use crate::ao::filtered::{Estimator, FilterParams};
 use crate::ao::histogram::{self, HistParams};
 use crate::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
-use crate::gpu::{Buffer, Gpu};
+use crate::gpu::Buffer;
 use crate::render::compare::{luma, psnr, ssim};
 use crate::render::{FrameViews, RenderSettings, VolumeTextures};
 use crate::space::{default_stereo_views, world_from_tex, Placement, DEFAULT_IPD};
@@ -76,17 +76,15 @@ fn resident_bytes(v: &AoVolume) -> u64 {
 }
 
 /// One table for every volume: LAO at `base`, then each filter estimator at each radius.
-#[allow(clippy::too_many_arguments)]
 pub fn bench_ao(
-    gpu: &Gpu,
-    volumes: &[Volume],
-    tf: &TransferFunction,
+    on: BenchOn<'_>,
     tf_after: &TransferFunction,
     radii: &[f64],
     base: &LaoParams,
     frames: usize,
     runs: usize,
 ) -> Result<Vec<AoBenchRow>> {
+    let BenchOn { gpu, volumes, tf } = on;
     let lao = LaoGpu::new(gpu)?;
     let mut hr = HeadlessRenderer::new(gpu)?;
     let placement = Placement::default();
@@ -263,17 +261,15 @@ const ERROR_SAMPLE: usize = 4096;
 /// process's peak memory and the method's GPU memory, the TF change (one table update and one
 /// pass), the mean CAO update per frame of the sphere sweep, and the clustered openness against
 /// the direct sums (mean and p99 of |A - A_direct| over a sample of voxels with q > 0.001).
-#[allow(clippy::too_many_arguments)]
 pub fn bench_histogram(
-    gpu: &Gpu,
-    volumes: &[Volume],
-    tf: &TransferFunction,
+    on: BenchOn<'_>,
     tf_after: &TransferFunction,
     params: HistParams,
     clusters: &[usize],
     base: &LaoParams,
     frames: usize,
 ) -> Result<Vec<HistBenchRow>> {
+    let BenchOn { gpu, volumes, tf } = on;
     let lao = LaoGpu::new(gpu)?;
     let placement = Placement::default();
     println!(
