@@ -1,6 +1,6 @@
 //! `cao-xr bench lao`: LAO precompute time and throughput, medians of several runs.
 
-use super::{precompute_ao, Result};
+use super::common::{precompute_ao, progress_bar, AppError, Result};
 use crate::ao::cao::Cao;
 use crate::ao::lao::LaoKernel;
 use crate::ao::stored;
@@ -106,7 +106,7 @@ pub fn bench_lao(
         )?;
         for &k in ks {
             let params = LaoParams { rays: k, ..*base };
-            params.validate().map_err(super::AppError::Usage)?;
+            params.validate().map_err(AppError::Usage)?;
             let skip = laos[0].skip_buffers(&opacity, vol.dims, vol.spacing, &params)?;
             let mut times = vec![(Vec::new(), Vec::new()); laos.len()];
             let mut outs = vec![Vec::new(); laos.len()];
@@ -326,7 +326,7 @@ fn verify_frame(cao: &Cao, naive: &Cao, vol: &Volume, what: &str) -> Result<()> 
         .position(|(x, y)| x.to_bits() != y.to_bits())
     {
         None => Ok(()),
-        Some(v) => Err(super::AppError::Usage(format!(
+        Some(v) => Err(AppError::Usage(format!(
             "verify: {} {what}: voxel {v} ({}, {}, {}) has CAO {} but naive LAO {}",
             vol.name,
             v % vol.dims[0],
@@ -492,7 +492,7 @@ pub fn bench_sh(
                             let mut shv = ShVolume::new(gpu, vol, p)?;
                             // a run can take minutes on lavapipe: show it, then clear it
                             let label = if hierarchy { "hierarchy" } else { "full march" };
-                            let bar = super::progress_bar(shv.grid.dims[2] as u64, label);
+                            let bar = progress_bar(shv.grid.dims[2] as u64, label);
                             let t = shv.precompute(
                                 (&obuf, crate::ao::lao::LaoLayout::unpadded_stride(vol.dims)),
                                 &mut |done, _| bar.set_position(done as u64),

@@ -4,7 +4,10 @@
 //! method's picture differs from LAO's at K = 54 (PSNR, SSIM of three fixed views).
 
 use super::bench::{median, sweep_tools, BenchOn};
-use super::{precompute, AoVolume, HeadlessRenderer, Result};
+use super::common::{
+    histogram_state, histogram_tables, precompute, precompute_histogram, AoVolume,
+    HeadlessRenderer, Result,
+};
 use crate::ao::cao::Mode;
 use crate::ao::filtered::{Estimator, FilterParams};
 use crate::ao::histogram::{self, HistParams};
@@ -314,10 +317,10 @@ pub fn bench_histogram(
                 ..params
             };
             let t0 = std::time::Instant::now();
-            let h = super::histogram_state(gpu, vol, p, None, false)?;
+            let h = histogram_state(gpu, vol, p, None, false)?;
             let total_s = t0.elapsed().as_secs_f64();
             let timing = h.timing;
-            let v = super::precompute_histogram(gpu, &lao, vol, tf, base, h)?;
+            let v = precompute_histogram(gpu, &lao, vol, tf, base, h)?;
             let a = read(&v.ao_buf, vol)?;
             let mut err: Vec<f64> = sample
                 .iter()
@@ -342,13 +345,7 @@ pub fn bench_histogram(
             let h = cao
                 .histogram_mut()
                 .expect("the method is the local histograms");
-            drop(super::histogram_tables(
-                gpu,
-                &lao,
-                vol.dims,
-                h,
-                (tf_after, &[]),
-            )?);
+            drop(histogram_tables(gpu, &lao, vol.dims, h, (tf_after, &[]))?);
             let tf_change_ms = t1.elapsed().as_secs_f64() * 1e3;
             let row = HistBenchRow {
                 volume: vol.name.clone(),

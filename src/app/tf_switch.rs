@@ -8,8 +8,8 @@
 //! after the last slab switches the LUT, the structure table, the CAO state (its method
 //! included) and the SH volume over at once.
 
+use super::common::{histogram_tables, AppError, Result};
 use super::lighting::ShLighting;
-use super::{AppError, Result};
 use crate::ao::cao::Cao;
 use crate::ao::filter_gpu::FilterGpu;
 use crate::ao::filtered;
@@ -448,7 +448,7 @@ impl TfSwitcher {
         let tf = &self.tf_of(&want);
         let (gpu, lao) = (&self.gpu, &self.lao);
         let shown = (tf, &want.structures[..]);
-        let build = |h: &mut HistogramGpu| super::histogram_tables(gpu, lao, vol.dims, h, shown);
+        let build = |h: &mut HistogramGpu| histogram_tables(gpu, lao, vol.dims, h, shown);
         let shown_here = match cao.histogram_mut() {
             Some(h) => Some(build(h)?),
             None => None,
