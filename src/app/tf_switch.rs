@@ -14,7 +14,7 @@ use crate::ao::cao::Cao;
 use crate::ao::filter_gpu::FilterGpu;
 use crate::ao::filtered;
 use crate::ao::histogram_gpu::HistogramGpu;
-use crate::ao::lao::{LaoLayout, LaoParams, SkipData, SlabInput};
+use crate::ao::lao::{LaoLayout, LaoParams, SkipData};
 use crate::ao::method::{MethodGpu, Refresh};
 use crate::ao::progressive::{HostTask, SlabScheduler};
 use crate::ao::sh::ShVolume;
@@ -372,16 +372,8 @@ impl TfSwitcher {
                 Some(_) => Buffer::device_local(&self.gpu, &opacity, usage, "opacity")?,
                 None => crate::ao::stored::upload(&self.gpu, &opacity, usage, "opacity")?,
             };
-            let method = match (filter.take(), skip) {
-                (Some(f), _) => MethodGpu::Filter(f),
-                (None, skip) => {
-                    let skip = skip.ok_or_else(|| {
-                        AppError::Usage(format!("{}: LAO without skipping data", vol.name))
-                    })?;
-                    let skip = self.lao.upload_skip(&skip)?;
-                    MethodGpu::lao(&self.gpu, vol, self.params, skip)?
-                }
-            };
+            let method =
+                MethodGpu::switched(&self.gpu, &self.lao, vol, self.params, filter.take(), skip)?;
             // The filters refilter the whole volume in one go (they are cheap); LAO goes a
             // bounded slab of slices per frame.
             let slabs = match self.methods[sw.choice.method].refresh() {
@@ -523,20 +515,7 @@ impl TfSwitcher {
         };
         if let Some(z) = slabs.next_slab() {
             self.timer.begin(cmd);
-            match method {
-                MethodGpu::Filter(f) => f.record_precompute(cmd, opacity, pao),
-                MethodGpu::Lao(l) => {
-                    let input = SlabInput {
-                        opacity,
-                        dirs: &self.lao_dirs,
-                        skip: &l.skip,
-                    };
-                    self.lao
-                        .record_slab(cmd, &input, pao, vol.dims, &l.params, z);
-                }
-                // (the local histograms refresh at once, and there is no switch to no method)
-                MethodGpu::Histogram(_) | MethodGpu::Open => {}
-            }
+            method.record_precompute(cmd, &self.lao, &self.lao_dirs, opacity, pao, z);
             self.timer.mark(cmd, "tf-slab");
             return true;
         }
