@@ -507,6 +507,17 @@ struct BenchSetup {
     runs: usize,
 }
 
+impl BenchSetup {
+    /// What the tables measure on.
+    fn on(&self) -> app::bench::BenchOn<'_> {
+        app::bench::BenchOn {
+            gpu: &self.gpu,
+            volumes: &self.volumes,
+            tf: &self.tf,
+        }
+    }
+}
+
 impl BenchArgs {
     fn setup(self, validation: bool) -> Result<BenchSetup> {
         Ok(BenchSetup {
@@ -1181,16 +1192,7 @@ fn bench_ao(a: BenchAoArgs, validation: bool) -> Result<()> {
     let tf_after = TransferFunction::resolve(&tf_after)?;
     let base = LaoParams { rays, ..b.base };
     if !histogram_only {
-        app::bench_ao::bench_ao(
-            &b.gpu,
-            &b.volumes,
-            &b.tf,
-            &tf_after,
-            &radii,
-            &base,
-            frames.max(1),
-            b.runs,
-        )?;
+        app::bench_ao::bench_ao(b.on(), &tf_after, &radii, &base, frames.max(1), b.runs)?;
     }
     if !hist_clusters.is_empty() {
         let p = HistParams {
@@ -1201,16 +1203,7 @@ fn bench_ao(a: BenchAoArgs, validation: bool) -> Result<()> {
         };
         p.validate().map_err(anyhow::Error::msg)?;
         println!();
-        app::bench_ao::bench_histogram(
-            &b.gpu,
-            &b.volumes,
-            &b.tf,
-            &tf_after,
-            p,
-            &hist_clusters,
-            &base,
-            frames.max(1),
-        )?;
+        app::bench_ao::bench_histogram(b.on(), &tf_after, p, &hist_clusters, &base, frames.max(1))?;
     }
     Ok(())
 }
@@ -1230,9 +1223,7 @@ fn bench_cao(a: BenchCaoArgs, validation: bool) -> Result<()> {
         bail!("--probe-radii must be positive, got {r}");
     }
     app::bench::bench_cao(
-        &b.gpu,
-        &b.volumes,
-        &b.tf,
+        b.on(),
         &rays,
         &b.base,
         frames,
@@ -1264,16 +1255,7 @@ fn bench_sh(a: BenchShArgs, validation: bool) -> Result<()> {
         .validate()
         .map_err(anyhow::Error::msg)?;
     }
-    app::bench::bench_sh(
-        &b.gpu,
-        &b.volumes,
-        &b.tf,
-        &sh_downsample,
-        &coeffs,
-        &directions,
-        &base,
-        b.runs,
-    )?;
+    app::bench::bench_sh(b.on(), &sh_downsample, &coeffs, &directions, &base, b.runs)?;
     Ok(())
 }
 
@@ -1346,7 +1328,7 @@ fn bench_lao(a: BenchLaoArgs, validation: bool) -> Result<()> {
         "new" => &[LaoKernel::New],
         _ => &[LaoKernel::Old, LaoKernel::New],
     };
-    app::bench::bench_lao(&b.gpu, &b.volumes, &b.tf, &rays, &b.base, b.runs, kernels)?;
+    app::bench::bench_lao(b.on(), &rays, &b.base, b.runs, kernels)?;
     Ok(())
 }
 

@@ -307,6 +307,15 @@ pub struct SkipBuffers {
     pub stride: [i32; 4],
 }
 
+/// What [`LaoGpu::record_slab`] reads: the old kernel the opacity O and the K ray steps
+/// (`dirs`, from [`LaoGpu::directions_buffer`]), the new one O and its table from `skip`.
+#[derive(Clone, Copy)]
+pub struct SlabInput<'a> {
+    pub opacity: &'a Buffer,
+    pub dirs: &'a Buffer,
+    pub skip: &'a SkipBuffers,
+}
+
 impl SkipBuffers {
     /// What the CAO update keeps of a precompute's skipping data: the clear bits and the sample
     /// table. The padded O (4 bytes per voxel and its border) and the bricks, read only by the
@@ -455,23 +464,24 @@ impl LaoGpu {
         )
     }
 
-    /// Records the LAO of slices `z0..z1` of `opacity` into the same slices of `out`
-    /// (`dirs` from [`LaoGpu::directions_buffer`]; the new kernel reads O and its table from
-    /// `skip` instead, the old one reads `opacity` and `dirs`). Each voxel's value depends only
-    /// on O, so any split into slabs gives the same volume bit for bit. Records no barrier: the
-    /// caller orders `out` against its readers.
-    #[allow(clippy::too_many_arguments)]
+    /// Records the LAO of slices `z0..z1` of `input.opacity` into the same slices of `out`
+    /// (see [`SlabInput`]). Each voxel's value depends only on O, so any split into slabs gives
+    /// the same volume bit for bit. Records no barrier: the caller orders `out` against its
+    /// readers.
     pub fn record_slab(
         &self,
         cmd: vk::CommandBuffer,
-        opacity: &Buffer,
-        dirs: &Buffer,
-        skip: &SkipBuffers,
+        input: &SlabInput,
         out: &Buffer,
         dims: [usize; 3],
         params: &LaoParams,
         z: std::ops::Range<usize>,
     ) {
+        let SlabInput {
+            opacity,
+            dirs,
+            skip,
+        } = *input;
         let dims4 = [dims[0] as i32, dims[1] as i32, dims[2] as i32, 0];
         let pipeline = match self.kernel {
             LaoKernel::New => {
@@ -550,7 +560,12 @@ impl LaoGpu {
             let z1 = (z0 + slab).min(dims[2]);
             self.gpu.submit_and_wait(|cmd| {
                 timer.begin(cmd);
-                self.record_slab(cmd, opacity, &dir_buf, skip, &out, dims, params, z0..z1);
+                let input = SlabInput {
+                    opacity,
+                    dirs: &dir_buf,
+                    skip,
+                };
+                self.record_slab(cmd, &input, &out, dims, params, z0..z1);
                 timer.mark(cmd, "lao");
             })?;
             timing.gpu_ms += timer.read()?.iter().map(|t| t.1).sum::<f64>();

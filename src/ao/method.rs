@@ -7,10 +7,12 @@ use super::cao::{Cao, Mode};
 use super::filter_gpu::FilterGpu;
 use super::filtered::FilterParams;
 use super::histogram_gpu::HistogramGpu;
-use super::lao::{LaoGpu, LaoLayout, LaoMethod, LaoParams, LaoTiming, SkipBuffers};
+use super::lao::{
+    LaoGpu, LaoLayout, LaoMethod, LaoParams, LaoTiming, SkipBuffers, SkipData, SlabInput,
+};
 use super::voxel_box::VoxelBox;
 use super::AoMethod;
-use crate::gpu::{Buffer, Gpu, Result};
+use crate::gpu::{Buffer, Gpu, GpuError, Result};
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use ash::vk;
@@ -67,6 +69,58 @@ impl MethodGpu {
     pub fn lao(gpu: &Gpu, vol: &Volume, params: LaoParams, skip: SkipBuffers) -> Result<MethodGpu> {
         let geometry = (&vol.name[..], vol.dims, vol.spacing);
         Ok(MethodGpu::Lao(LaoMethod::new(gpu, geometry, params, skip)?))
+    }
+
+    /// The state of the method a change of O (a TF switch, a structure shown or hidden)
+    /// switches to, once the new O is classified: the filters' `filter` (made for the new method
+    /// before classifying), else LAO with `params` on `skip`, the skipping data of the new O
+    /// (uploaded with `lao`).
+    pub fn switched(
+        gpu: &Gpu,
+        lao: &LaoGpu,
+        vol: &Volume,
+        params: LaoParams,
+        filter: Option<FilterGpu>,
+        skip: Option<SkipData>,
+    ) -> Result<MethodGpu> {
+        match (filter, skip) {
+            (Some(f), _) => Ok(MethodGpu::Filter(f)),
+            (None, skip) => {
+                let skip = skip.ok_or_else(|| {
+                    GpuError::Other(format!("{}: LAO without skipping data", vol.name))
+                })?;
+                let skip = lao.upload_skip(&skip)?;
+                MethodGpu::lao(gpu, vol, params, skip)
+            }
+        }
+    }
+
+    /// Records slices `z` of the method's precompute after a change of O, from the unclipped O
+    /// `opacity` into V_PAO' `pao` ([`AoMethod::refresh`]): LAO's slab with `lao` (its old
+    /// kernel reads the ray steps `dirs`, [`LaoGpu::directions_buffer`]); the filters refilter
+    /// the whole volume whatever `z`; the local histograms (refreshed at once) and no method
+    /// record nothing. Records no barrier.
+    pub fn record_precompute(
+        &self,
+        cmd: vk::CommandBuffer,
+        lao: &LaoGpu,
+        dirs: &Buffer,
+        opacity: &Buffer,
+        pao: &Buffer,
+        z: std::ops::Range<usize>,
+    ) {
+        match self {
+            MethodGpu::Filter(f) => f.record_precompute(cmd, opacity, pao),
+            MethodGpu::Lao(l) => {
+                let input = SlabInput {
+                    opacity,
+                    dirs,
+                    skip: &l.skip,
+                };
+                lao.record_slab(cmd, &input, pao, l.dims, &l.params, z);
+            }
+            MethodGpu::Histogram(_) | MethodGpu::Open => {}
+        }
     }
 
     /// The method's name, as `--ao` spells it (lao, filter-gauss, histogram, ...), or "none"

@@ -1,6 +1,6 @@
 //! `cao-xr bench lao`: LAO precompute time and throughput, medians of several runs.
 
-use super::{precompute_ao, Result};
+use super::common::{precompute_ao, progress_bar, AppError, Result};
 use crate::ao::cao::Cao;
 use crate::ao::lao::LaoKernel;
 use crate::ao::stored;
@@ -30,6 +30,15 @@ pub struct LaoBenchTime {
     pub samples_per_s: f64,
 }
 
+/// What a bench table measures on: the GPU, the volumes (a row or more each) and the one
+/// transfer function they are classified with (fixed, so that tables compare).
+#[derive(Clone, Copy)]
+pub struct BenchOn<'a> {
+    pub gpu: &'a Gpu,
+    pub volumes: &'a [Volume],
+    pub tf: &'a TransferFunction,
+}
+
 pub fn median(v: &mut [f64]) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     let n = v.len();
@@ -47,14 +56,13 @@ pub fn median(v: &mut [f64]) -> f64 {
 /// run by run (so that both see the same machine load); prints each row as it finishes. With
 /// two kernels it prints their ratio of samples/s and their largest difference.
 pub fn bench_lao(
-    gpu: &Gpu,
-    volumes: &[Volume],
-    tf: &TransferFunction,
+    on: BenchOn<'_>,
     ks: &[u32],
     base: &LaoParams,
     runs: usize,
     kernels: &[LaoKernel],
 ) -> Result<Vec<LaoBenchRow>> {
+    let BenchOn { gpu, volumes, tf } = on;
     use ash::vk;
     let runs = runs.max(1);
     let laos = kernels
@@ -98,7 +106,7 @@ pub fn bench_lao(
         )?;
         for &k in ks {
             let params = LaoParams { rays: k, ..*base };
-            params.validate().map_err(super::AppError::Usage)?;
+            params.validate().map_err(AppError::Usage)?;
             let skip = laos[0].skip_buffers(&opacity, vol.dims, vol.spacing, &params)?;
             let mut times = vec![(Vec::new(), Vec::new()); laos.len()];
             let mut outs = vec![Vec::new(); laos.len()];
@@ -214,11 +222,8 @@ pub fn naive_timed_frames(frames: usize, naive: usize) -> Vec<usize> {
 /// Mean GPU ms per frame of CAO and of the naive full recompute over a sphere sweep, medians of
 /// `runs` runs, both measured in the same run; then a probe of each of `probe_radii` (mm). With `verify`, every naive frame is compared with
 /// the CAO frame bit for bit; the first difference is an error naming the frame and voxel.
-#[allow(clippy::too_many_arguments)]
 pub fn bench_cao(
-    gpu: &Gpu,
-    volumes: &[Volume],
-    tf: &TransferFunction,
+    on: BenchOn<'_>,
     ks: &[u32],
     base: &LaoParams,
     frames: usize,
@@ -226,6 +231,7 @@ pub fn bench_cao(
     verify: bool,
     probe_radii: &[f32],
 ) -> Result<Vec<CaoBenchRow>> {
+    let BenchOn { gpu, volumes, tf } = on;
     use crate::ao::cao::Mode;
     let lao = LaoGpu::new(gpu)?;
     let placement = crate::space::Placement::default();
@@ -301,17 +307,7 @@ pub fn bench_cao(
         println!("(frames a/b: CAO timed on a frames, naive LAO on b of them, on this CPU device)");
     }
     if !probe_radii.is_empty() {
-        bench_probes(
-            gpu,
-            volumes,
-            tf,
-            ks,
-            base,
-            frames,
-            runs,
-            verify,
-            probe_radii,
-        )?;
+        bench_probes(on, ks, base, frames, runs, verify, probe_radii)?;
     }
     if verify {
         println!("verify: every naive frame equals the CAO frame bit for bit");
@@ -330,7 +326,7 @@ fn verify_frame(cao: &Cao, naive: &Cao, vol: &Volume, what: &str) -> Result<()> 
         .position(|(x, y)| x.to_bits() != y.to_bits())
     {
         None => Ok(()),
-        Some(v) => Err(super::AppError::Usage(format!(
+        Some(v) => Err(AppError::Usage(format!(
             "verify: {} {what}: voxel {v} ({}, {}, {}) has CAO {} but naive LAO {}",
             vol.name,
             v % vol.dims[0],
@@ -345,11 +341,8 @@ fn verify_frame(cao: &Cao, naive: &Cao, vol: &Volume, what: &str) -> Result<()> 
 /// A probe (only its inside kept) of each radius sweeping like the carve tool: GPU ms per frame
 /// (mean over the frames, median of `runs`), the share of voxels recomputed, and the share
 /// inside the probe, which is what a probe recomputed every frame before it had a contraction.
-#[allow(clippy::too_many_arguments)]
 fn bench_probes(
-    gpu: &Gpu,
-    volumes: &[Volume],
-    tf: &TransferFunction,
+    on: BenchOn<'_>,
     ks: &[u32],
     base: &LaoParams,
     frames: usize,
@@ -357,6 +350,7 @@ fn bench_probes(
     verify: bool,
     radii: &[f32],
 ) -> Result<()> {
+    let BenchOn { gpu, volumes, tf } = on;
     use crate::ao::cao::Mode;
     use crate::scene::ToolMode;
     let lao = LaoGpu::new(gpu)?;
@@ -451,17 +445,15 @@ pub struct ShBenchRow {
 
 /// SH visibility precompute time at each downsampling, coefficient count and direction count,
 /// with the hierarchy on and off (both in the same run), and the error of the hierarchy.
-#[allow(clippy::too_many_arguments)]
 pub fn bench_sh(
-    gpu: &Gpu,
-    volumes: &[Volume],
-    tf: &TransferFunction,
+    on: BenchOn<'_>,
     downsample: &[u32],
     coeffs: &[u32],
     directions: &[u32],
     base: &crate::ao::sh::ShParams,
     runs: usize,
 ) -> Result<Vec<ShBenchRow>> {
+    let BenchOn { gpu, volumes, tf } = on;
     use crate::ao::sh::{packed_coeff, ShVolume, Y0};
     use ash::vk;
     println!(
@@ -500,7 +492,7 @@ pub fn bench_sh(
                             let mut shv = ShVolume::new(gpu, vol, p)?;
                             // a run can take minutes on lavapipe: show it, then clear it
                             let label = if hierarchy { "hierarchy" } else { "full march" };
-                            let bar = super::progress_bar(shv.grid.dims[2] as u64, label);
+                            let bar = progress_bar(shv.grid.dims[2] as u64, label);
                             let t = shv.precompute(
                                 (&obuf, crate::ao::lao::LaoLayout::unpadded_stride(vol.dims)),
                                 &mut |done, _| bar.set_position(done as u64),

@@ -3,13 +3,16 @@
 //! method's own GPU memory, the filters' error against their exact box openness, and how each
 //! method's picture differs from LAO's at K = 54 (PSNR, SSIM of three fixed views).
 
-use super::bench::{median, sweep_tools};
-use super::{precompute, AoVolume, HeadlessRenderer, Result};
+use super::bench::{median, sweep_tools, BenchOn};
+use super::common::{
+    histogram_state, histogram_tables, precompute, precompute_histogram, AoVolume,
+    HeadlessRenderer, Result,
+};
 use crate::ao::cao::Mode;
 use crate::ao::filtered::{Estimator, FilterParams};
 use crate::ao::histogram::{self, HistParams};
 use crate::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
-use crate::gpu::{Buffer, Gpu};
+use crate::gpu::Buffer;
 use crate::render::compare::{luma, psnr, ssim};
 use crate::render::{FrameViews, RenderSettings, VolumeTextures};
 use crate::space::{default_stereo_views, world_from_tex, Placement, DEFAULT_IPD};
@@ -76,17 +79,15 @@ fn resident_bytes(v: &AoVolume) -> u64 {
 }
 
 /// One table for every volume: LAO at `base`, then each filter estimator at each radius.
-#[allow(clippy::too_many_arguments)]
 pub fn bench_ao(
-    gpu: &Gpu,
-    volumes: &[Volume],
-    tf: &TransferFunction,
+    on: BenchOn<'_>,
     tf_after: &TransferFunction,
     radii: &[f64],
     base: &LaoParams,
     frames: usize,
     runs: usize,
 ) -> Result<Vec<AoBenchRow>> {
+    let BenchOn { gpu, volumes, tf } = on;
     let lao = LaoGpu::new(gpu)?;
     let mut hr = HeadlessRenderer::new(gpu)?;
     let placement = Placement::default();
@@ -263,17 +264,15 @@ const ERROR_SAMPLE: usize = 4096;
 /// process's peak memory and the method's GPU memory, the TF change (one table update and one
 /// pass), the mean CAO update per frame of the sphere sweep, and the clustered openness against
 /// the direct sums (mean and p99 of |A - A_direct| over a sample of voxels with q > 0.001).
-#[allow(clippy::too_many_arguments)]
 pub fn bench_histogram(
-    gpu: &Gpu,
-    volumes: &[Volume],
-    tf: &TransferFunction,
+    on: BenchOn<'_>,
     tf_after: &TransferFunction,
     params: HistParams,
     clusters: &[usize],
     base: &LaoParams,
     frames: usize,
 ) -> Result<Vec<HistBenchRow>> {
+    let BenchOn { gpu, volumes, tf } = on;
     let lao = LaoGpu::new(gpu)?;
     let placement = Placement::default();
     println!(
@@ -318,10 +317,10 @@ pub fn bench_histogram(
                 ..params
             };
             let t0 = std::time::Instant::now();
-            let h = super::histogram_state(gpu, vol, p, None, false)?;
+            let h = histogram_state(gpu, vol, p, None, false)?;
             let total_s = t0.elapsed().as_secs_f64();
             let timing = h.timing;
-            let v = super::precompute_histogram(gpu, &lao, vol, tf, base, h)?;
+            let v = precompute_histogram(gpu, &lao, vol, tf, base, h)?;
             let a = read(&v.ao_buf, vol)?;
             let mut err: Vec<f64> = sample
                 .iter()
@@ -346,13 +345,7 @@ pub fn bench_histogram(
             let h = cao
                 .histogram_mut()
                 .expect("the method is the local histograms");
-            drop(super::histogram_tables(
-                gpu,
-                &lao,
-                vol.dims,
-                h,
-                (tf_after, &[]),
-            )?);
+            drop(histogram_tables(gpu, &lao, vol.dims, h, (tf_after, &[]))?);
             let tf_change_ms = t1.elapsed().as_secs_f64() * 1e3;
             let row = HistBenchRow {
                 volume: vol.name.clone(),

@@ -4,8 +4,8 @@
 //! frames per second with one and with two frames in flight.
 
 use super::bench::{median, sweep_tools};
+use super::common::{precompute_ao, AppError, Result};
 use super::frame_loop::{FrameLoop, FrameStats};
-use super::{precompute_ao, AppError, Result};
 use crate::ao::cao::{Cao, Mode};
 use crate::ao::{LaoGpu, LaoParams};
 use crate::gpu::Gpu;

@@ -3,8 +3,8 @@
 //! 1, 2 and 4 with and without pre-integration, on two views of each volume.
 
 use super::bench::median;
+use super::common::Result;
 use super::frame_loop::FrameLoop;
-use super::Result;
 use crate::ao::LaoParams;
 use crate::gpu::Gpu;
 use crate::input::{FrameInput, InteractionSettings};

@@ -6,8 +6,8 @@
 
 use super::bench_ao::peak_rss_bytes;
 use super::bench_frame::PassMedians;
+use super::common::{load_volume, AppError, Result};
 use super::frame_loop::{Built, FrameLoop, FAST_START_AFTER_S};
-use super::{load_volume, AppError, Result};
 use crate::ao::{AoConfig, AoMethod};
 use crate::gpu::Gpu;
 use crate::input::{FrameInput, InteractionSettings};

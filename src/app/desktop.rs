@@ -1,11 +1,11 @@
 //! `cao-xr view`: the desktop window. winit gives the window and the events, the one frame loop
 //! renders both eyes, and a blit puts one eye or both side by side on an X11 swapchain.
 
+use super::common::{AppError, Result};
 use super::frame_loop::FrameLoop;
 use super::session::{
     desktop_interaction, record_error, recorder, start_gpu, Recorder, SessionSpec,
 };
-use super::{AppError, Result};
 use crate::gpu::present::Presenter;
 use crate::input::desktop::{DesktopInput, Key};
 use crate::input::StreamHeader;

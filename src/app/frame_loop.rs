@@ -10,9 +10,11 @@
 //! volume's data frame every frame (turning it costs no recompute).
 
 use super::budget::FrameBudget;
+use super::common::{
+    downsample_estimate, fit_advice, open_ao, precompute_method, AppError, Result, MAX_DOWNSAMPLE,
+};
 use super::lighting::{LightingOptions, ShLighting};
 use super::tf_switch::{default_tf_samples_per_frame, TfProgress, TfSwitcher};
-use super::{precompute_method, AppError, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode, PendingFrame};
 use crate::ao::filtered::{variance_volume, Estimator, FilterInput, VarianceModulation};
 use crate::ao::sh::ShFrameMetrics;
@@ -23,8 +25,8 @@ use crate::input::{FrameInput, Interaction, InteractionSettings};
 use crate::render::text::{text_items, TEXT_HEIGHT};
 use crate::render::{colors, joint_overlay, markup_overlay, scene_overlay, OverlayRenderer};
 use crate::render::{
-    ClipBinding, Foveation, FrameViews, RenderSettings, Renderer, StereoImage, StereoTarget,
-    VolumeTextures, MAX_FRAMES_IN_FLIGHT,
+    ClipBinding, EyeSlot, Foveation, FrameViews, RenderSettings, Renderer, StereoImage,
+    StereoTarget, VolumeTextures, MAX_FRAMES_IN_FLIGHT,
 };
 use crate::scene::Scene;
 use crate::space::world_from_tex;
@@ -251,8 +253,8 @@ impl FrameLoop {
     }
 
     /// [`FrameLoop::new`], then lit as `lighting` says ([`FrameLoop::set_lighting`]). Running
-    /// out of GPU memory in either is told with [`super::fit_advice`] and the `--downsample N`
-    /// that fits: [`super::downsample_estimate`]'s, checked by setting the downsampled volume
+    /// out of GPU memory in either is told with [`fit_advice`] and the `--downsample N`
+    /// that fits: [`downsample_estimate`]'s, checked by setting the downsampled volume
     /// up the same way (a few larger N are tried where it does not fit).
     pub fn new_lit(
         gpu: &Gpu,
@@ -278,11 +280,11 @@ impl FrameLoop {
             r => return r,
         };
         // the failed set-up is dropped: its memory is free for the tries
-        let fits = super::downsample_estimate(&vol, &m).and_then(|first| {
-            (first..=(first + FIT_TRIES - 1).min(super::MAX_DOWNSAMPLE))
+        let fits = downsample_estimate(&vol, &m).and_then(|first| {
+            (first..=(first + FIT_TRIES - 1).min(MAX_DOWNSAMPLE))
                 .find(|&n| setup(Arc::new(vol.downsample(n)), false).is_ok())
         });
-        Err(super::fit_advice(
+        Err(fit_advice(
             &vol,
             AppError::Gpu(GpuError::OutOfMemory(m)),
             fits,
@@ -339,7 +341,7 @@ impl FrameLoop {
                 let ao = precompute_method(gpu, &lao, &vol, tf, &first, show_progress)?;
                 (ao, k)
             }
-            Start::Open => (super::open_ao(gpu, &vol)?, 0),
+            Start::Open => (open_ao(gpu, &vol)?, 0),
         };
         let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
         let mut tex = VolumeTextures::new(gpu, &vol, tf)?;
@@ -398,12 +400,12 @@ impl FrameLoop {
 
     /// Lights the frames as `opts` says: with SH, precomputes the shared SH visibility volume
     /// of the shown TF's opacity (a progress bar when asked).
-    /// Running out of GPU memory is told with [`super::fit_advice`] (the frame loop holds its
-    /// memory meanwhile, so the `--downsample N` is [`super::downsample_estimate`]'s, untried;
+    /// Running out of GPU memory is told with [`fit_advice`] (the frame loop holds its
+    /// memory meanwhile, so the `--downsample N` is [`downsample_estimate`]'s, untried;
     /// [`FrameLoop::new_lit`] tries it).
     pub fn set_lighting(&mut self, opts: &LightingOptions, show_progress: bool) -> Result<()> {
         self.light(opts, show_progress)
-            .map_err(|e| super::fit_advice(&self.volume, e, None))
+            .map_err(|e| fit_advice(&self.volume, e, None))
     }
 
     fn light(&mut self, opts: &LightingOptions, show_progress: bool) -> Result<()> {
@@ -859,15 +861,11 @@ impl FrameLoop {
                 settings.bleeding = 0.0;
                 settings.scattering = 0.0;
             }
-            renderer.record_eyes(
-                cmd,
-                index,
-                target,
-                tex,
-                &frame,
-                &settings,
-                &mut |cmd, eye| timer.mark(cmd, PASS_EYES[eye]),
-            )?;
+            let eyes = EyeSlot {
+                slot: index,
+                after_eye: &mut |cmd, eye| timer.mark(cmd, PASS_EYES[eye]),
+            };
+            renderer.record_eyes(cmd, eyes, target, tex, &frame, &settings)?;
             // Tools and tracked hands over the volume, depth-tested against it (not in a still
             // render of the cut), and the markups always.
             let mut items = Vec::new();

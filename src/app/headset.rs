@@ -2,10 +2,10 @@
 //! session locates the eyes and hands, the one frame loop renders both eyes and copies them into
 //! the swapchain in the same command buffer, and the session submits the views it rendered.
 
+use super::common::Result;
 use super::frame_loop::{FrameLoop, FrameStats};
 use super::mirror::Mirror;
 use super::session::{gpu_banner, gpu_options, record_error, recorder, Recorder, SessionSpec};
-use super::Result;
 use crate::clip::margin::MarginHit;
 use crate::input::{tool_hand, InteractionSettings, StreamHeader, RIGHT};
 use crate::xr::session::{XrRuntime, XrSession};

@@ -2,7 +2,7 @@
 //! asks for, the one SH volume every view shares, and the light projected into the volume's
 //! data frame each frame (so turning the light or the volume never recomputes visibility).
 
-use super::{progress_bar, AppError, Result};
+use super::common::{progress_bar, AppError, Result};
 use crate::ao::cao::Cao;
 use crate::ao::sh::{ShFrameMetrics, ShParams, ShVolume};
 use crate::gpu::Gpu;

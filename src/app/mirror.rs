@@ -1,7 +1,7 @@
 //! `cao-xr xr --mirror`: a desktop window showing the left eye of the frames the headset loop
 //! rendered, through the desktop window's presenter.
 
-use super::{AppError, Result};
+use super::common::{AppError, Result};
 use crate::gpu::present::{Acquired, Presenter};
 use crate::gpu::Gpu;
 use crate::render::StereoTarget;

@@ -1,9 +1,9 @@
 //! `cao-xr replay`: renders every frame of a pose stream headless through the one frame loop,
 //! writing side-by-side PNGs, per-frame metrics (CSV) and an optional animated PNG preview.
 
+use super::common::{AppError, Result};
 use super::frame_loop::FrameLoop;
 use super::session::SessionSpec;
-use super::{AppError, Result};
 use crate::ao::cao::Mode;
 use crate::clip::Shape;
 use crate::gpu::{Gpu, GpuMemory};

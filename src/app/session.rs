@@ -2,10 +2,10 @@
 //! up the same way: the GPU from the command line's options and its banner, the frame loop with
 //! its transfer-function cycle and lighting, and the pose-stream recorder.
 
+use super::common::{AppError, Result};
 use super::frame_loop::{with_marks, FrameLoop};
 use super::lighting::LightingOptions;
 use super::tf_switch::tf_cycle;
-use super::{AppError, Result};
 use crate::ao::filtered::VarianceModulation;
 use crate::ao::AoConfig;
 use crate::gpu::{Gpu, GpuOptions};

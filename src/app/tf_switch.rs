@@ -8,8 +8,8 @@
 //! after the last slab switches the LUT, the structure table, the CAO state (its method
 //! included) and the SH volume over at once.
 
+use super::common::{histogram_tables, AppError, Result};
 use super::lighting::ShLighting;
-use super::{AppError, Result};
 use crate::ao::cao::Cao;
 use crate::ao::filter_gpu::FilterGpu;
 use crate::ao::filtered;
@@ -372,16 +372,8 @@ impl TfSwitcher {
                 Some(_) => Buffer::device_local(&self.gpu, &opacity, usage, "opacity")?,
                 None => crate::ao::stored::upload(&self.gpu, &opacity, usage, "opacity")?,
             };
-            let method = match (filter.take(), skip) {
-                (Some(f), _) => MethodGpu::Filter(f),
-                (None, skip) => {
-                    let skip = skip.ok_or_else(|| {
-                        AppError::Usage(format!("{}: LAO without skipping data", vol.name))
-                    })?;
-                    let skip = self.lao.upload_skip(&skip)?;
-                    MethodGpu::lao(&self.gpu, vol, self.params, skip)?
-                }
-            };
+            let method =
+                MethodGpu::switched(&self.gpu, &self.lao, vol, self.params, filter.take(), skip)?;
             // The filters refilter the whole volume in one go (they are cheap); LAO goes a
             // bounded slab of slices per frame.
             let slabs = match self.methods[sw.choice.method].refresh() {
@@ -448,7 +440,7 @@ impl TfSwitcher {
         let tf = &self.tf_of(&want);
         let (gpu, lao) = (&self.gpu, &self.lao);
         let shown = (tf, &want.structures[..]);
-        let build = |h: &mut HistogramGpu| super::histogram_tables(gpu, lao, vol.dims, h, shown);
+        let build = |h: &mut HistogramGpu| histogram_tables(gpu, lao, vol.dims, h, shown);
         let shown_here = match cao.histogram_mut() {
             Some(h) => Some(build(h)?),
             None => None,
@@ -523,15 +515,7 @@ impl TfSwitcher {
         };
         if let Some(z) = slabs.next_slab() {
             self.timer.begin(cmd);
-            match method {
-                MethodGpu::Filter(f) => f.record_precompute(cmd, opacity, pao),
-                MethodGpu::Lao(l) => {
-                    let (lao, dirs) = (&self.lao, &self.lao_dirs);
-                    lao.record_slab(cmd, opacity, dirs, &l.skip, pao, vol.dims, &l.params, z);
-                }
-                // (the local histograms refresh at once, and there is no switch to no method)
-                MethodGpu::Histogram(_) | MethodGpu::Open => {}
-            }
+            method.record_precompute(cmd, &self.lao, &self.lao_dirs, opacity, pao, z);
             self.timer.mark(cmd, "tf-slab");
             return true;
         }

@@ -108,6 +108,17 @@ struct PeelPush {
 }
 crate::gpu::glsl_layout!(PeelPush, 24, shift: 0, inv_extent: 8, z_lo: 12, z_scale: 16, mode: 20);
 
+/// What every peel pass of one build draws with: the peel layers and their depth attachment,
+/// the tools' `count` corners, at `res` x `res`.
+#[derive(Clone, Copy)]
+struct PeelLayers<'a> {
+    peels: &'a Image,
+    depth: &'a Image,
+    corners: &'a Buffer,
+    count: u32,
+    res: usize,
+}
+
 /// Push constants of clip_pair.comp (res only) and clip_dilate.comp.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -331,13 +342,19 @@ impl ClipMapGpu {
                 &layer0,
             );
             gpu.barrier(cmd);
-            let count = corners.len() as u32;
+            let layers = PeelLayers {
+                peels: &peels,
+                depth: &depth,
+                corners: &corner_buf,
+                count: corners.len() as u32,
+                res,
+            };
             for k in 0..PEELS {
-                self.record_peel(cmd, &peels, &depth, &corner_buf, count, res, push, k + 1);
+                self.record_peel(cmd, &layers, push, k + 1);
                 gpu.barrier(cmd);
             }
             let far = PeelPush { mode: 1, ..push };
-            self.record_peel(cmd, &peels, &depth, &corner_buf, count, res, far, FARTHEST);
+            self.record_peel(cmd, &layers, far, FARTHEST);
             gpu.barrier(cmd);
             self.record_pair(cmd, &peels, &clip, res);
             gpu.barrier(cmd);
@@ -423,19 +440,22 @@ impl ClipMapGpu {
         Ok(())
     }
 
-    /// One peel pass into layer `target`; a front peel reads layer `target - 1`.
-    #[allow(clippy::too_many_arguments)]
+    /// One peel pass into layer `target` of `layers.peels`; a front peel reads layer
+    /// `target - 1`.
     fn record_peel(
         &self,
         cmd: vk::CommandBuffer,
-        peels: &Image,
-        depth: &Image,
-        corners: &Buffer,
-        count: u32,
-        res: usize,
+        layers: &PeelLayers,
         push: PeelPush,
         target: usize,
     ) {
+        let PeelLayers {
+            peels,
+            depth,
+            corners,
+            count,
+            res,
+        } = *layers;
         let front = push.mode == 0;
         let (clear_z, clear_depth, pipeline) = if front {
             (EMPTY_IN, 1.0, self.front)

@@ -984,6 +984,14 @@ impl StereoTarget {
     }
 }
 
+/// The frame slot [`Renderer::record_eyes`] records in (below [`MAX_FRAMES_IN_FLIGHT`]; the
+/// caller knows no submitted frame still reads its uniform buffer), and `after_eye(cmd, eye)`,
+/// called after each eye's pass (for its timestamp).
+pub struct EyeSlot<'a> {
+    pub slot: usize,
+    pub after_eye: &'a mut dyn FnMut(vk::CommandBuffer, usize),
+}
+
 /// Both eyes on the host: RGBA8 (alpha = accumulated opacity) and depth in [0,1], rows top-down.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StereoImage {
@@ -1316,23 +1324,25 @@ impl Renderer {
         frame: &FrameViews,
         settings: &RenderSettings,
     ) -> Result<()> {
-        self.record_eyes(cmd, 0, target, tex, frame, settings, &mut |_, _| {})
+        let slot = EyeSlot {
+            slot: 0,
+            after_eye: &mut |_, _| {},
+        };
+        self.record_eyes(cmd, slot, target, tex, frame, settings)
     }
 
-    /// [`Renderer::record`] with the uniform buffer of frame slot `slot` (below
-    /// [`MAX_FRAMES_IN_FLIGHT`]; the caller knows no submitted frame still reads
-    /// it), calling `after_eye(cmd, eye)` after each eye's pass (for its timestamp).
-    #[allow(clippy::too_many_arguments)]
+    /// [`Renderer::record`] with the uniform buffer of frame slot `slot.slot`, calling
+    /// `slot.after_eye` after each eye's pass ([`EyeSlot`]).
     pub fn record_eyes(
         &mut self,
         cmd: vk::CommandBuffer,
-        slot: usize,
+        slot: EyeSlot<'_>,
         target: &StereoTarget,
         tex: &VolumeTextures,
         frame: &FrameViews,
         settings: &RenderSettings,
-        after_eye: &mut dyn FnMut(vk::CommandBuffer, usize),
     ) -> Result<()> {
+        let EyeSlot { slot, after_eye } = slot;
         if slot >= self.uniforms.len() {
             return Err(GpuError::Other(format!(
                 "frame slot {slot}: at most {MAX_FRAMES_IN_FLIGHT} frames in flight"

@@ -3,12 +3,40 @@
 //! missing file refused, naming both files), truncation ("truncated data: expected N bytes,
 //! found M", naming the file), a detached raw file longer than its header describes, a skip
 //! that cannot be honoured, and the extent of a series' volumes. NRRD, NIfTI and MetaImage use
-//! it, so bad input is told the same way in every format.
+//! it, so bad input is told the same way in every format; and the one [`Volume`] a loader
+//! returns ([`loaded_volume`]).
 
-use super::VolumeError;
+use super::{Modality, Volume, VolumeError, Voxels};
+use glam::{DMat3, DVec3};
 use std::fs::File;
 use std::io::{BufReader, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
+
+/// The volume a loader read from `path`: named by the file's stem, `dims` voxels on the header's
+/// `(spacing, directions, origin)` (LPS), no labels.
+pub(crate) fn loaded_volume(
+    path: &Path,
+    dims: [u64; 3],
+    geometry: ([f64; 3], DMat3, DVec3),
+    modality: Modality,
+    voxels: Voxels,
+) -> Volume {
+    let (spacing, directions, origin) = geometry;
+    let name = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "volume".into());
+    Volume {
+        name,
+        dims: dims.map(|d| d as usize),
+        spacing,
+        directions,
+        origin,
+        modality,
+        voxels,
+        labels: None,
+    }
+}
 
 /// The one truncation message: `what` prefixes it (the detached data file and the codec, e.g.
 /// `data file x.raw: gzip `); `expected` and `found` count the bytes of the data proper.

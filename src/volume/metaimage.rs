@@ -7,10 +7,10 @@
 //! infinities are refused). MetaImage
 //! geometry is already in LPS, so it is taken as written.
 
-use super::data_source::{DataSource, Described, Skip};
+use super::data_source::{self, DataSource, Described, Skip};
 use super::{
     checked_size, read_wide, split_axes, write_atomically, write_voxels, Modality, Volume,
-    VolumeError, Voxels, WideType,
+    VolumeError, Voxels, WideSamples, WideType,
 };
 use flate2::read::ZlibDecoder;
 use flate2::write::ZlibEncoder;
@@ -121,7 +121,7 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
     let fields = Fields { path, h: &h };
     let shape = fields.shape()?;
     let storage = fields.storage()?;
-    let (spacing, directions, origin) = fields.geometry()?;
+    let geometry = fields.geometry()?;
     let modality = match fields
         .get(&["modality"])
         .map(str::to_ascii_uppercase)
@@ -139,20 +139,8 @@ pub fn load(path: &Path) -> Result<Volume, VolumeError> {
         (source, data, 0)
     };
     let voxels = read_payload(&source, data, start, &shape, &storage)?;
-    let name = path
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "volume".into());
-    Ok(Volume {
-        name,
-        dims: shape.dims.map(|d| d as usize),
-        spacing,
-        directions,
-        origin,
-        modality,
-        voxels,
-        labels: None,
-    })
+    let volume = data_source::loaded_volume(path, shape.dims, geometry, modality, voxels);
+    Ok(volume)
 }
 
 /// The header's fields (keys lower-cased) and the file they came from, for the messages.
@@ -342,8 +330,12 @@ fn read_payload(
     storage: &Storage,
 ) -> Result<Voxels, VolumeError> {
     let path = source.header();
-    let udims = shape.dims.map(|d| d as usize);
-    let (ty, be) = (shape.ty, storage.big_endian);
+    let samples = WideSamples {
+        ty: shape.ty,
+        dims: shape.dims.map(|d| d as usize),
+        big_endian: storage.big_endian,
+        scale: None,
+    };
     if storage.compressed {
         if storage.header_size == -1 {
             return Err(VolumeError::unsupported(
@@ -359,7 +351,7 @@ fn read_payload(
         let limit = storage.compressed_size.unwrap_or(u64::MAX);
         let mut dec = ZlibDecoder::new(data.take(limit));
         let what = source.what("zlib ");
-        read_wide(path, &what, &mut dec, ty, udims, be, None, false)
+        read_wide(path, &what, &mut dec, samples, false)
     } else {
         let skip = match storage.header_size {
             -1 => Skip::Tail,
@@ -372,7 +364,7 @@ fn read_payload(
         };
         let start = source.locate_raw(&data, start, skip, shape.data_bytes, &described)?;
         source.seek(&mut data, start)?;
-        read_wide(path, &source.what(""), &mut data, ty, udims, be, None, true)
+        read_wide(path, &source.what(""), &mut data, samples, true)
     }
 }
 

@@ -137,7 +137,31 @@ pub struct Volume {
     pub labels: Option<std::sync::Arc<labels::LabelMap>>,
 }
 
+/// Where a volume's voxels lie and what they measure: a [`Volume`]'s geometry without its
+/// voxels (what the writers take with the samples to write).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Grid {
+    pub dims: [usize; 3],
+    /// Millimetres between voxel centres along i, j, k.
+    pub spacing: [f64; 3],
+    /// Columns: unit vectors of the i, j, k axes in patient LPS space.
+    pub directions: DMat3,
+    /// LPS position (mm) of the centre of voxel (0,0,0).
+    pub origin: DVec3,
+    pub modality: Modality,
+}
+
 impl Volume {
+    /// The volume's [`Grid`].
+    pub fn grid(&self) -> Grid {
+        Grid {
+            dims: self.dims,
+            spacing: self.spacing,
+            directions: self.directions,
+            origin: self.origin,
+            modality: self.modality,
+        }
+    }
     pub fn voxel_count(&self) -> usize {
         self.dims[0] * self.dims[1] * self.dims[2]
     }
@@ -555,23 +579,35 @@ fn values_to_voxels(
     )
 }
 
+/// The samples [`read_wide`] reads: a `dims` volume of type `ty` in the given byte order, and
+/// the `(slope, inter)` of `value * slope + inter` when the values are scaled.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct WideSamples {
+    pub ty: WideType,
+    pub dims: [usize; 3],
+    pub big_endian: bool,
+    pub scale: Option<(f64, f64)>,
+}
+
 /// Reads the samples of a `dims` volume of type `ty` from `r` and applies
-/// `value * slope + inter` when `scale` is given. 8/16-bit samples without scaling are read as
-/// they are; everything else goes through [`voxels_from_values`] (int16/uint16 when the values
-/// are integers that fit, float32 otherwise; NaN refused). `exact`: the input is known to hold
-/// the data (see [`read_samples`]). Errors name `path`; `what` prefixes data messages (e.g. the
-/// detached data file).
-#[allow(clippy::too_many_arguments)]
+/// `value * slope + inter` when `scale` is given (all of them `samples`'). 8/16-bit samples
+/// without scaling are read as they are; everything else goes through [`voxels_from_values`]
+/// (int16/uint16 when the values are integers that fit, float32 otherwise; NaN refused).
+/// `exact`: the input is known to hold the data (see [`read_samples`]). Errors name `path`;
+/// `what` prefixes data messages (e.g. the detached data file).
 pub(crate) fn read_wide(
     path: &Path,
     what: &str,
     r: &mut dyn std::io::Read,
-    ty: WideType,
-    dims: [usize; 3],
-    big_endian: bool,
-    scale: Option<(f64, f64)>,
+    samples: WideSamples,
     exact: bool,
 ) -> Result<Voxels, VolumeError> {
+    let WideSamples {
+        ty,
+        dims,
+        big_endian,
+        scale,
+    } = samples;
     let count = dims[0] * dims[1] * dims[2];
     let data_bytes = count as u64 * ty.bytes();
     let io = |e: std::io::Error| VolumeError::format(path, format!("{what}read error: {e}"));

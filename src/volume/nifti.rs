@@ -13,7 +13,7 @@
 use super::data_source::{self, DataSource, Described, Skip};
 use super::{
     checked_size, pick_frame, read_wide, split_axes, write_atomically, write_voxels, Modality,
-    Volume, VolumeError, Voxels, WideType,
+    Volume, VolumeError, Voxels, WideSamples, WideType,
 };
 use flate2::read::MultiGzDecoder;
 use flate2::write::GzEncoder;
@@ -222,17 +222,13 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
     let (h, be) = read_header(path, &mut reader, gzip)?;
     let (dims, frame) = frame_dims(path, &h, frame)?;
     let samples = parse_samples(path, &h, dims)?;
-    let (spacing, directions, origin) = parse_geometry(path, &h)?;
-    let voxels = read_payload(path, reader, gzip, be, &h, &samples, dims, frame)?;
+    let geometry = parse_geometry(path, &h)?;
+    let voxels = read_payload(path, reader, gzip, be, &h, &samples, frame)?;
+    let volume = data_source::loaded_volume(path, dims, geometry, Modality::Unknown, voxels);
+    // named without .nii.gz, not by the stem
     Ok(Volume {
         name: volume_name(path),
-        dims: dims.map(|d| d as usize),
-        spacing,
-        directions,
-        origin,
-        modality: Modality::Unknown,
-        voxels,
-        labels: None,
+        ..volume
     })
 }
 
@@ -344,6 +340,8 @@ fn frame_dims(path: &Path, h: &Header, frame: Option<u64>) -> Result<([u64; 3], 
 /// The samples' type, scaling and place.
 struct Samples {
     ty: WideType,
+    /// Sizes of the spatial axes.
+    dims: [u64; 3],
     /// Bytes of one volume.
     data_bytes: u64,
     /// (slope, intercept), when the values are scaled.
@@ -390,6 +388,7 @@ fn parse_samples(path: &Path, h: &Header, dims: [u64; 3]) -> Result<Samples, Vol
     }
     Ok(Samples {
         ty,
+        dims,
         data_bytes,
         scale,
         vox_offset: vox_offset as u64,
@@ -449,7 +448,6 @@ fn parse_geometry(path: &Path, h: &Header) -> Result<([f64; 3], DMat3, DVec3), V
 
 /// Step 5: reads volume `frame` (its samples follow the earlier volumes') from `reader`, which
 /// has read the header: on through the gzip stream, or from the file opened anew at the data.
-#[allow(clippy::too_many_arguments)]
 fn read_payload(
     path: &Path,
     mut reader: Box<dyn Read>,
@@ -457,7 +455,6 @@ fn read_payload(
     be: bool,
     h: &Header,
     samples: &Samples,
-    dims: [u64; 3],
     frame: u64,
 ) -> Result<Voxels, VolumeError> {
     let source = DataSource::attached(path);
@@ -482,9 +479,13 @@ fn read_payload(
         exact = true;
     }
     let what = source.what(if gzip { "gzip " } else { "" });
-    let (ty, scale) = (samples.ty, samples.scale);
-    let udims = dims.map(|d| d as usize);
-    read_wide(path, &what, &mut reader, ty, udims, be, scale, exact)
+    let wide = WideSamples {
+        ty: samples.ty,
+        dims: samples.dims.map(|d| d as usize),
+        big_endian: be,
+        scale: samples.scale,
+    };
+    read_wide(path, &what, &mut reader, wide, exact)
 }
 
 /// The file name without `.nii`, `.nii.gz` or `.gz`.

@@ -6,7 +6,10 @@
 //! whose last axis is not spatial. Writes NRRD0004 in LPS, raw or gzip.
 
 use super::data_source::{self, DataSource, Described, Skip};
-use super::{checked_size, pick_frame, read_wide, Modality, Volume, VolumeError, Voxels, WideType};
+use super::{
+    checked_size, pick_frame, read_wide, Grid, Modality, Volume, VolumeError, Voxels, WideSamples,
+    WideType,
+};
 use flate2::read::MultiGzDecoder;
 use flate2::write::GzEncoder;
 use flate2::Compression;
@@ -335,7 +338,7 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
     let (h, terminated) = read_header(path, &mut reader)?;
     let shape = parse_shape(path, &h, frame)?;
     let encoding = parse_encoding(path, &h, &shape)?;
-    let (spacing, directions, origin) = parse_geometry(path, &h, &shape)?;
+    let geometry = parse_geometry(path, &h, &shape)?;
     let modality = match h.modality.as_deref().map(str::trim) {
         Some(m) if m.eq_ignore_ascii_case("ct") => Modality::Ct,
         Some(m) if m.eq_ignore_ascii_case("mr") || m.eq_ignore_ascii_case("mri") => Modality::Mr,
@@ -344,20 +347,8 @@ pub fn load_frame(path: &Path, frame: Option<u64>) -> Result<Volume, VolumeError
     let (line_skip, byte_skip) = parse_skips(path, &h, encoding.gzip)?;
     let (source, data) = open_source(path, &h, reader, terminated)?;
     let voxels = read_payload(&source, data, &shape, &encoding, line_skip, byte_skip)?;
-    let name = path
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "volume".into());
-    Ok(Volume {
-        name,
-        dims: shape.dims.map(|d| d as usize),
-        spacing,
-        directions,
-        origin,
-        modality,
-        voxels,
-        labels: None,
-    })
+    let volume = data_source::loaded_volume(path, shape.dims, geometry, modality, voxels);
+    Ok(volume)
 }
 
 /// The samples a header describes and the volume to read of them.
@@ -687,7 +678,12 @@ fn read_payload(
     let codec = if encoding.gzip { "gzip " } else { "" };
     let what = source.what(codec);
     let header = source.header();
-    let (ty, be) = (shape.ty, encoding.big_endian);
+    let samples = WideSamples {
+        ty: shape.ty,
+        dims: read_dims,
+        big_endian: encoding.big_endian,
+        scale: None,
+    };
     let voxels = if encoding.gzip {
         let mut dec = MultiGzDecoder::new(data);
         let skip = match byte_skip {
@@ -695,7 +691,7 @@ fn read_payload(
             Skip::Tail => frame_skip, // refused with gzip by parse_skips
         };
         source.skip_decoded(&mut dec, codec, skip, read_bytes)?;
-        read_wide(header, &what, &mut dec, ty, read_dims, be, None, false)?
+        read_wide(header, &what, &mut dec, samples, false)?
     } else {
         let pos = data.stream_position().map_err(|e| source.io_error(e))?;
         let described = Described {
@@ -713,7 +709,7 @@ fn read_payload(
         };
         let start = source.locate_raw(&data, pos, byte_skip, shape.total_bytes, &described)?;
         source.seek(&mut data, start + frame_skip)?;
-        read_wide(header, &what, &mut data, ty, read_dims, be, None, true)?
+        read_wide(header, &what, &mut data, samples, true)?
     };
     Ok(match shape.layout {
         Layout::Interleaved => voxels.strided(frame as usize, frames as usize),
@@ -779,37 +775,17 @@ fn fmt_vec(v: DVec3) -> String {
     format!("({},{},{})", v.x + 0.0, v.y + 0.0, v.z + 0.0)
 }
 
-/// Writes a 3-D NRRD0004 file in LPS space: `directions` columns are the unit vectors of the
-/// i, j, k axes, `spacing` their lengths (mm), `origin` the centre of voxel (0,0,0).
+/// Writes a 3-D NRRD0004 file in LPS space on `grid`: `directions` columns are the unit vectors
+/// of the i, j, k axes, `spacing` their lengths (mm), `origin` the centre of voxel (0,0,0).
 /// The file is written next to `path` under a temporary name and renamed when complete.
-#[allow(clippy::too_many_arguments)]
-pub fn write(
-    path: &Path,
-    dims: [usize; 3],
-    spacing: [f64; 3],
-    directions: DMat3,
-    origin: DVec3,
-    modality: Modality,
-    data: NrrdData,
-    gzip: bool,
-) -> Result<(), VolumeError> {
-    write_components(
-        path, 1, dims, spacing, directions, origin, modality, data, gzip,
-    )
+pub fn write(path: &Path, grid: &Grid, data: NrrdData, gzip: bool) -> Result<(), VolumeError> {
+    write_components(path, 1, grid, data, gzip)
 }
 
 /// [`write`] for an RGB volume: `data` holds r, g, b per voxel (x fastest after the colour),
 /// written as a 4-D NRRD whose first axis is "RGB-color" (as Slicer and teem read it).
-#[allow(clippy::too_many_arguments)]
-pub fn write_rgb(
-    path: &Path,
-    dims: [usize; 3],
-    spacing: [f64; 3],
-    directions: DMat3,
-    origin: DVec3,
-    modality: Modality,
-    data: &[f32],
-) -> Result<(), VolumeError> {
+pub fn write_rgb(path: &Path, grid: &Grid, data: &[f32]) -> Result<(), VolumeError> {
+    let dims = grid.dims;
     let vol = [dims[0] * 3, dims[1], dims[2]];
     if data.len() != vol.iter().product::<usize>() {
         return Err(VolumeError::format(
@@ -820,31 +796,23 @@ pub fn write_rgb(
             ),
         ));
     }
-    write_components(
-        path,
-        3,
+    write_components(path, 3, grid, NrrdData::F32(data), false)
+}
+
+fn write_components(
+    path: &Path,
+    components: usize,
+    grid: &Grid,
+    data: NrrdData,
+    gzip: bool,
+) -> Result<(), VolumeError> {
+    let Grid {
         dims,
         spacing,
         directions,
         origin,
         modality,
-        NrrdData::F32(data),
-        false,
-    )
-}
-
-#[allow(clippy::too_many_arguments)]
-fn write_components(
-    path: &Path,
-    components: usize,
-    dims: [usize; 3],
-    spacing: [f64; 3],
-    directions: DMat3,
-    origin: DVec3,
-    modality: Modality,
-    data: NrrdData,
-    gzip: bool,
-) -> Result<(), VolumeError> {
+    } = *grid;
     let expected = dims.iter().try_fold(components, |a, &d| a.checked_mul(d));
     if dims.contains(&0) || expected != Some(data.len()) {
         return Err(VolumeError::format(
@@ -927,16 +895,7 @@ pub fn write_volume(path: &Path, vol: &Volume, gzip: bool) -> Result<(), VolumeE
         Voxels::I16(v) => NrrdData::I16(v),
         Voxels::F32(v) => NrrdData::F32(v),
     };
-    write(
-        path,
-        vol.dims,
-        vol.spacing,
-        vol.directions,
-        vol.origin,
-        vol.modality,
-        data,
-        gzip,
-    )
+    write(path, &vol.grid(), data, gzip)
 }
 
 #[cfg(test)]
@@ -1015,7 +974,14 @@ mod tests {
             ];
             for (data, want, modality) in cases {
                 let p = s.file(&format!("v-{}-{gzip}.nrrd", want.type_name()));
-                write(&p, dims, spacing, dirs, origin, modality, data, gzip).unwrap();
+                let grid = Grid {
+                    dims,
+                    spacing,
+                    directions: dirs,
+                    origin,
+                    modality,
+                };
+                write(&p, &grid, data, gzip).unwrap();
                 let v = load(&p).unwrap();
                 assert_geometry(&v, dims, spacing, dirs, origin);
                 assert_eq!(v.voxels, want);
@@ -1049,11 +1015,13 @@ mod tests {
             let p = s.file(&format!("f-{gzip}.nrrd"));
             write(
                 &p,
-                dims,
-                [0.5, 2.0, 1.5],
-                dirs,
-                DVec3::ZERO,
-                Modality::Ct,
+                &Grid {
+                    dims,
+                    spacing: [0.5, 2.0, 1.5],
+                    directions: dirs,
+                    origin: DVec3::ZERO,
+                    modality: Modality::Ct,
+                },
                 NrrdData::F32(&vals),
                 gzip,
             )
@@ -1103,11 +1071,13 @@ mod tests {
         let p = s.file("bad.nrrd");
         let e = write(
             &p,
-            [2, 2, 2],
-            [1.0; 3],
-            DMat3::IDENTITY,
-            DVec3::ZERO,
-            Modality::Ct,
+            &Grid {
+                dims: [2, 2, 2],
+                spacing: [1.0; 3],
+                directions: DMat3::IDENTITY,
+                origin: DVec3::ZERO,
+                modality: Modality::Ct,
+            },
             NrrdData::U8(&[1, 2, 3]),
             false,
         )
@@ -1540,11 +1510,13 @@ mod tests {
             let dirs = DMat3::from_cols(DVec3::X, -DVec3::Y, DVec3::Z);
             write(
                 &p,
-                dims,
-                [0.8, 0.8, 2.5],
-                dirs,
-                DVec3::ZERO,
-                Modality::Ct,
+                &Grid {
+                    dims,
+                    spacing: [0.8, 0.8, 2.5],
+                    directions: dirs,
+                    origin: DVec3::ZERO,
+                    modality: Modality::Ct,
+                },
                 NrrdData::I16(&vals),
                 gzip,
             )
