@@ -1739,7 +1739,7 @@ mod tests {
             f("0.4"),
             Ok(Foveation {
                 radius: 0.4,
-                factor: 2
+                factor: Foveation::default().factor
             })
         );
         assert_eq!(
