@@ -371,6 +371,9 @@ struct BenchAoArgs {
     /// Only the local-histogram table (its clusterings take minutes on a large volume).
     #[arg(long)]
     histogram_only: bool,
+    /// The local-histogram table also with two hemispheres per voxel, each N beside one sphere.
+    #[arg(long)]
+    hist_hemispheres: bool,
 }
 
 #[derive(Args)]
@@ -1187,6 +1190,7 @@ fn bench_ao(a: BenchAoArgs, validation: bool) -> Result<()> {
         hist_radius_mm,
         hist_bins,
         histogram_only,
+        hist_hemispheres,
     } = a;
     let b = common.setup(validation)?;
     let tf_after = TransferFunction::resolve(&tf_after)?;
@@ -1203,7 +1207,15 @@ fn bench_ao(a: BenchAoArgs, validation: bool) -> Result<()> {
         };
         p.validate().map_err(anyhow::Error::msg)?;
         println!();
-        app::bench_ao::bench_histogram(b.on(), &tf_after, p, &hist_clusters, &base, frames.max(1))?;
+        app::bench_ao::bench_histogram(
+            b.on(),
+            &tf_after,
+            p,
+            &hist_clusters,
+            hist_hemispheres,
+            &base,
+            frames.max(1),
+        )?;
     }
     Ok(())
 }

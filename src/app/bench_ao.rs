@@ -245,6 +245,8 @@ pub(crate) fn peak_rss_bytes() -> u64 {
 pub struct HistBenchRow {
     pub volume: String,
     pub clusters: usize,
+    /// Two hemispheres per voxel (else one sphere).
+    pub hemispheres: bool,
     pub histograms_s: f64,
     pub training_s: f64,
     pub assignment_s: f64,
@@ -269,6 +271,7 @@ pub fn bench_histogram(
     tf_after: &TransferFunction,
     params: HistParams,
     clusters: &[usize],
+    hemispheres: bool,
     base: &LaoParams,
     frames: usize,
 ) -> Result<Vec<HistBenchRow>> {
@@ -280,13 +283,15 @@ pub fn bench_histogram(
          phase; host MB = the process's peak RSS; GPU MB = the method's buffers and CAO's five \
          volumes; TF = wall ms of a {} -> {} change (table + one pass); clip = mean GPU ms of the \
          25 mm sphere sweep's CAO update over {frames} frames; error = |A - direct sum| over {} \
-         voxels with q > 0.001)",
+         voxels with q > 0.001; H = 1: one sphere, 2: two hemispheres, the error then against \
+         the front's direct sums)",
         gpu.device_name, params.radius_mm, params.bins, tf.name, tf_after.name, ERROR_SAMPLE
     );
     println!(
-        "{:<12} {:>5} {:>8} {:>8} {:>8} {:>8} {:>8} {:>7} {:>8} {:>8} {:>8} {:>8}",
+        "{:<12} {:>5} {:>2} {:>8} {:>8} {:>8} {:>8} {:>8} {:>7} {:>8} {:>8} {:>8} {:>8}",
         "volume",
         "N",
+        "H",
         "hist s",
         "train s",
         "assign s",
@@ -306,14 +311,43 @@ pub fn bench_histogram(
         let candidates: Vec<usize> = (0..q.len()).filter(|&i| q[i] > 0.001).collect();
         let step = (candidates.len() / ERROR_SAMPLE).max(1);
         let sample: Vec<usize> = candidates.iter().step_by(step).copied().collect();
-        let direct: Vec<f32> = sample
-            .par_iter()
-            .map(|&i| histogram::direct_at(vol.dims, &q, &shades, &table, &nb, None, i).0)
-            .collect();
+        let splits = if hemispheres {
+            histogram::splits(vol)
+        } else {
+            Vec::new()
+        };
+        // The direct sums at the sample: the sphere's, and the front hemisphere's.
+        let direct = |split: bool| -> Vec<f32> {
+            sample
+                .par_iter()
+                .map(|&i| {
+                    let s = if split { splits[i] } else { None };
+                    histogram::direct_at(vol.dims, &q, &shades, &table, &nb, s, i).0
+                })
+                .collect()
+        };
+        let direct = [
+            direct(false),
+            if hemispheres {
+                direct(true)
+            } else {
+                Vec::new()
+            },
+        ];
         let sweep = sweep_tools(vol, 25.0, frames);
-        for &n in clusters {
+        // With hemispheres, each N twice, one sphere then two hemispheres, side by side.
+        let shapes: &[bool] = if hemispheres {
+            &[false, true]
+        } else {
+            &[false]
+        };
+        for (n, split) in clusters
+            .iter()
+            .flat_map(|&n| shapes.iter().map(move |&h| (n, h)))
+        {
             let p = HistParams {
                 clusters: n,
+                hemispheres: split,
                 ..params
             };
             let t0 = std::time::Instant::now();
@@ -324,7 +358,7 @@ pub fn bench_histogram(
             let a = read(&v.ao_buf, vol)?;
             let mut err: Vec<f64> = sample
                 .iter()
-                .zip(&direct)
+                .zip(&direct[split as usize])
                 .map(|(&i, d)| (a[i] as f64 - *d as f64).abs())
                 .collect();
             let mean_error = err.iter().sum::<f64>() / err.len().max(1) as f64;
@@ -350,6 +384,7 @@ pub fn bench_histogram(
             let row = HistBenchRow {
                 volume: vol.name.clone(),
                 clusters: n,
+                hemispheres: split,
                 histograms_s: timing.histograms_ms / 1e3,
                 training_s: timing.training_ms / 1e3,
                 assignment_s: timing.assignment_ms / 1e3,
@@ -362,9 +397,10 @@ pub fn bench_histogram(
                 p99_error,
             };
             println!(
-                "{:<12} {:>5} {:>8.1} {:>8.1} {:>8.1} {:>8.1} {:>8.0} {:>7.0} {:>8.1} {:>8.1} {:>8.4} {:>8.4}",
+                "{:<12} {:>5} {:>2} {:>8.1} {:>8.1} {:>8.1} {:>8.1} {:>8.0} {:>7.0} {:>8.1} {:>8.1} {:>8.4} {:>8.4}",
                 row.volume,
                 row.clusters,
+                1 + row.hemispheres as u8,
                 row.histograms_s,
                 row.training_s,
                 row.assignment_s,
