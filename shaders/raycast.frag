@@ -6,7 +6,8 @@
 //   C = C_tf * (ka * AO + kd * (1 - s + s * AO) * |n.l|) + ks * (n.h)^p  (+ w * E_sh),
 // where E_sh = sum_k V_k L_k is the environment light seen through the SH visibility volume
 // (Ritschel), and with the local-histogram method C_tf bleeds towards the neighbourhood's colour
-// E, which the Henyey-Greenstein phase function also scatters towards the eye. Where a tool cut the volume, the tool's surface normal lights a thin layer (the cut face).
+// E, which the Henyey-Greenstein phase function also scatters towards the eye. Where a tool
+// cut the volume, the tool's surface normal lights a thin layer (the cut face).
 // Segments are pre-integrated over (front, back) scalar pairs; the start is jittered by blue
 // noise. Opacity is corrected per mm; depth is written where the ray enters visible material, so
 // later geometry (tools, hands) is depth-correct.
@@ -418,8 +419,8 @@ void main() {
             }
             // A brick one tool hides whole, where no structure can be spared and no glow
             // shines: every sample is hidden by that tool, as the test would find one by one.
-            // Jump to two steps before the brick's end, as below; the samples from there are
-            // tested one by one.
+            // Jump to two steps before the brick's end, as below; the last two are taken here
+            // one by one.
             if (clip_bricks && clip_state != CLIP_BRICK_OPEN && clip_state != CLIP_BRICK_CUT
                 && !flag(LABELS) && !flag(GLOW)) {
                 float t_out = min(tf, run_end(o * dims, d * dims, t, brick, last_brick, false));

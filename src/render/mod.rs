@@ -124,7 +124,7 @@ pub struct RenderSettings {
     pub bleeding: f32,
     /// The local-histogram method's scattering weight: the bleeding colour E scattered towards
     /// the eye by the Henyey-Greenstein phase function between the light and the view
-    /// direction (docs/lighting.md, "Scattering"); 0 = off. Takes effect where the textures
+    /// direction (docs/design.md, "Local-histogram AO"); 0 = off. Takes effect where the textures
     /// hold a bleeding volume.
     pub scattering: f32,
     /// The phase function's anisotropy g in (-1, 1): > 0 scatters forwards (tissue glows
