@@ -15,11 +15,18 @@
 // [[unroll]] on the fixed-length loops of the features that are on: lavapipe (gallivm) ends
 // every loop of an invocation after 65,535 iterations in all (docs/design.md).
 #extension GL_EXT_control_flow_attributes : require
+#extension GL_EXT_buffer_reference : require
+#extension GL_EXT_buffer_reference_uvec2 : require
 #include "frame.glsl"
+#include "unorm16.glsl"
 // The scalars as stored (src/render/mod.rs scalar_storage: integers as unorm texels); value_map
 // and the gradient threshold surface.x are in those units.
 layout(set = 0, binding = 1) uniform sampler3D scalars;
-layout(set = 0, binding = 2) uniform sampler3D ambient;
+// V_AO itself, by address (no copy into an image, no size limit): the method's 16-bit words.
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer AoWords { uint16_t ao_words[]; };
+// The local-histogram method's bleeding colour E (rgb), RGBA8 words by address; read when
+// bleeding.x = W > 0 or bleeding.y > 0.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer BleedingWords { uint e_words[]; };
 layout(set = 0, binding = 3) uniform sampler1D tf_lut;
 // SH visibility, coefficients 4g..4g+3 in texture g, snorm8 of V_k / Y_0 (src/ao/sh.rs).
 layout(set = 0, binding = 6) uniform sampler3D sh0;
@@ -28,8 +35,6 @@ layout(set = 0, binding = 8) uniform sampler3D sh2;
 layout(set = 0, binding = 9) uniform sampler3D sh3;
 // var_s of variance opacity modulation (data units squared); read when lighting.w = 1/V_max > 0.
 layout(set = 0, binding = 10) uniform sampler3D variance;
-// The local-histogram method's bleeding colour E (rgb); read when bleeding.x = W > 0.
-layout(set = 0, binding = 11) uniform sampler3D bleeding;
 // Pre-integrated TF: premultiplied colour and opacity of a step from front to back value.
 layout(set = 0, binding = 12) uniform sampler2D preint;
 // Blue-noise thresholds in (0, 1), tiled over the screen (src/render/blue_noise.rs).
@@ -118,6 +123,49 @@ float scalar_tricubic(vec3 t) {
 
 float scalar_at(vec3 t) {
     return flag(TRICUBIC) ? scalar_tricubic(t) : texture(scalars, t).r;
+}
+
+// The method's volumes the ray caster reads where they lie (V_AO, E: no image, no copy, no size
+// limit but the buffer's), trilinear between voxel centres and clamped to the edge as a linear
+// sampler reads an image: the eight corners around texture coordinates t, as the first
+// voxel's index v, the offsets d (0 on an axis where v is the last voxel) and the weights f.
+struct Corners { uint v; uvec3 d; vec3 f; };
+
+Corners corners_at(vec3 t) {
+    ivec3 n = textureSize(scalars, 0);
+    vec3 x = clamp(t * vec3(n) - 0.5, vec3(0.0), vec3(n - 1));
+    ivec3 i = min(ivec3(x), n - 1);
+    Corners c;
+    c.f = x - vec3(i);
+    c.d = uvec3(i.x + 1 < n.x ? 1u : 0u, i.y + 1 < n.y ? uint(n.x) : 0u,
+                i.z + 1 < n.z ? uint(n.x * n.y) : 0u);
+    c.v = uint(i.x) + uint(n.x) * (uint(i.y) + uint(n.y) * uint(i.z));
+    return c;
+}
+
+#define TRILINEAR(c, read) \
+    mix(mix(mix(read(c.v), read(c.v + c.d.x), c.f.x), \
+            mix(read(c.v + c.d.y), read(c.v + c.d.x + c.d.y), c.f.x), c.f.y), \
+        mix(mix(read(c.v + c.d.z), read(c.v + c.d.x + c.d.z), c.f.x), \
+            mix(read(c.v + c.d.y + c.d.z), read(c.v + c.d.x + c.d.y + c.d.z), c.f.x), c.f.y), \
+        c.f.z)
+
+// V_AO at texture coordinates t.
+float ambient_at(vec3 t) {
+    AoWords b = AoWords(frame.ao_words.xy);
+    Corners c = corners_at(t);
+#define AO_READ(i) unorm16_value(uint(b.ao_words[i]))
+    return TRILINEAR(c, AO_READ);
+#undef AO_READ
+}
+
+// The bleeding colour E at texture coordinates t.
+vec3 bleeding_at(vec3 t) {
+    BleedingWords b = BleedingWords(frame.ao_words.zw);
+    Corners c = corners_at(t);
+#define E_READ(i) unpackUnorm4x8(b.e_words[i]).rgb
+    return TRILINEAR(c, E_READ);
+#undef E_READ
 }
 
 // Whether some tool reaches index-space point v (it may hide it: no skipping there).
@@ -561,12 +609,13 @@ void main() {
                 // A pre-integrated step is shaded where its light comes from (its extinction's
                 // mean position), not at the back sample.
                 vec3 q = pre_mid ? o + (t - (1.0 - texture(preint_at, pre_uv).r) * dt) * d : p;
-                float occl = frame.background.a > 0.5 ? texture(ambient, q).r : 1.0;
+                float occl = frame.background.a > 0.5 ? ambient_at(q) : 1.0;
+                vec3 e = frame.bleeding.x > 0.0 || frame.bleeding.y > 0.0 ? bleeding_at(q)
+                                                                          : vec3(0.0);
                 // Colour bleeding (Ropinski et al.): towards the neighbourhood's colour E, the
                 // more the neighbourhood occludes (O_env = 1 - A).
                 if (frame.bleeding.x > 0.0) {
-                    premult = mix(premult, texture(bleeding, q).rgb * a,
-                                  frame.bleeding.x * (1.0 - occl));
+                    premult = mix(premult, e * a, frame.bleeding.x * (1.0 - occl));
                 }
                 // The normal: the tool's within the cut layer, else the data's gradient, which
                 // lights only where it is steep enough to mean a surface.
@@ -604,7 +653,7 @@ void main() {
                 // one's at a border, scattered towards the eye.
                 vec3 scattered = vec3(0.0);
                 if (frame.bleeding.y > 0.0) {
-                    scattered = frame.phong.x * frame.bleeding.y * phase * texture(bleeding, q).rgb;
+                    scattered = frame.phong.x * frame.bleeding.y * phase * e;
                 }
                 color += (1.0 - alpha) * (premult * shade + a * (spec + scattered));
                 alpha += (1.0 - alpha) * a;

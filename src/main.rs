@@ -745,8 +745,10 @@ struct LaoArgs {
     #[arg(long, default_value_t = HistParams::default().clusters)]
     clusters: usize,
     /// Two hemispheres per voxel split by the scalar's gradient: the local histograms' AO and
-    /// colour from the one facing down the gradient, away from the higher values.
-    #[arg(long)]
+    /// colour from the one facing down the gradient, away from the higher values. On by
+    /// default; `--hist-hemispheres=false` takes one sphere per voxel.
+    #[arg(long, default_value_t = HistParams::default().hemispheres, num_args = 0..=1,
+          default_missing_value = "true", require_equals = true, value_name = "BOOL")]
     hist_hemispheres: bool,
     /// Colour bleeding weight W of --ao histogram: the TF colour moves towards the
     /// neighbourhood's colour by W times its occlusion (0: off).

@@ -26,4 +26,7 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     uvec4 protect[2];        // bit id: the structure is protected from the carving tools
     vec4 light;              // xyz: towards a light fixed in the world, in the gradient's frame
                              // (along i, j, k, in mm, unit); w: 1 = that light, 0 = headlight
+    uvec4 ao_words;          // xy: V_AO's address (16-bit unorm words, x fastest), read when
+                             // background.a = 1; zw: the bleeding colour E's (RGBA8 words),
+                             // read when bleeding.x or .y > 0
 } frame;

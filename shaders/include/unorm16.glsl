@@ -3,7 +3,7 @@
 // and O_c, and the filters' density. A computed value is rounded to nearest (`x[i] =
 // uint16_t(unorm16_word(a))`); a copy (restore, an unclipped voxel, the outside of a tool's box)
 // moves the stored word as it is, so CAO and its full recompute store the same bits. The ray
-// caster reads AO through an R16_UNORM image. (With 16-bit storage alone, 16-bit values exist
+// caster reads V_AO's words by address and filters them itself. (With 16-bit storage alone, 16-bit values exist
 // only in buffers and in the conversion that stores them, hence words as uint here.)
 #ifndef CAO_XR_UNORM16
 #define CAO_XR_UNORM16

@@ -33,13 +33,14 @@ pub struct HistParams {
 
 impl Default for HistParams {
     /// r = 12 mm (the paper's head used 12 to 24 voxels of about 1 mm); 64 bins (64 HU each on
-    /// CT, which keeps air, fat, soft tissue and bone apart); the paper's 2048 clusters.
+    /// CT, which keeps air, fat, soft tissue and bone apart); the paper's 2048 clusters; its two
+    /// hemispheres.
     fn default() -> Self {
         HistParams {
             radius_mm: 12.0,
             bins: 64,
             clusters: 2048,
-            hemispheres: false,
+            hemispheres: true,
         }
     }
 }

@@ -18,7 +18,7 @@ pub fn pack(a: f32) -> u16 {
     (a.clamp(0.0, 1.0) * UNORM16_MAX + 0.5) as u16
 }
 
-/// The AO value of stored word `q`: q / 65535 (what the ray caster's R16_UNORM image reads).
+/// The AO value of stored word `q`: q / 65535 (what the ray caster reads, `unorm16_value`).
 pub fn unpack(q: u16) -> f32 {
     q as f32 / UNORM16_MAX
 }

@@ -64,9 +64,11 @@ fn pictures(
                 model: world_from_tex(vol, &placement),
                 clip: None,
                 sh: None,
+                ao: Some(ao),
+                bleeding: None,
             };
             let size = (VIEW_SIZE, VIEW_SIZE);
-            let img = hr.render(tex, Some(ao), &frame, size, &RenderSettings::default())?;
+            let img = hr.render(tex, &frame, size, &RenderSettings::default())?;
             Ok(luma(&img.rgba[0]))
         })
         .collect()

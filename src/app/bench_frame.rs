@@ -28,7 +28,6 @@ pub struct PassMedians {
     pub restore: f64,
     pub clip: f64,
     pub update: f64,
-    pub texture: f64,
     pub eyes: [f64; 2],
     pub overlay: f64,
     pub copy: f64,
@@ -42,7 +41,6 @@ impl PassMedians {
             restore: m(&|s| s.metrics.restore_ms),
             clip: m(&|s| s.metrics.clip_ms),
             update: m(&|s| s.metrics.update_ms),
-            texture: m(&|s| s.passes.texture_ms),
             eyes: [m(&|s| s.passes.eye_ms[0]), m(&|s| s.passes.eye_ms[1])],
             overlay: m(&|s| s.passes.overlay_ms),
             copy: m(&|s| s.passes.copy_ms),
@@ -56,13 +54,13 @@ impl PassMedians {
 
     /// Every pass, both eyes.
     pub fn two_eyes(&self) -> f64 {
-        self.ao() + self.texture + self.eyes[0] + self.eyes[1] + self.overlay + self.copy
+        self.ao() + self.eyes[0] + self.eyes[1] + self.overlay + self.copy
     }
 
     /// The frame with the left eye alone: the shared AO work, that eye's ray cast and half of
     /// the overlay and the copy (both draw or copy each eye alike).
     pub fn one_eye(&self) -> f64 {
-        self.ao() + self.texture + self.eyes[0] + 0.5 * (self.overlay + self.copy)
+        self.ao() + self.eyes[0] + 0.5 * (self.overlay + self.copy)
     }
 }
 
@@ -240,7 +238,6 @@ pub fn bench_frame(
         ("restore", p.restore),
         ("clip + mask", p.clip),
         ("AO update", p.update),
-        ("AO into the texture", p.texture),
         ("ray cast, left eye", p.eyes[0]),
         ("ray cast, right eye", p.eyes[1]),
         ("overlay", p.overlay),

@@ -59,8 +59,6 @@ pub struct MethodRow {
     pub voxels_recomputed: u64,
     /// Median GPU ms of one eye's ray cast.
     pub eye_ms: f64,
-    /// Median GPU ms of copying the changed AO into the ray caster's texture.
-    pub texture_ms: f64,
 }
 
 /// Starts the process's peak resident memory (VmHWM) again from what it holds now (Linux 4.0+);
@@ -91,7 +89,7 @@ pub fn bench_scale(gpu: &Gpu, opts: &ScaleOptions, dir: &std::path::Path) -> Res
         opts.frames,
     );
     println!(
-        "{:<14} {:>8} {:>7} {:>9} {:<14} {:>10} {:>9} {:>8} {:>9} {:>10} {:>7} {:>9}",
+        "{:<14} {:>8} {:>7} {:>9} {:<14} {:>10} {:>9} {:>8} {:>9} {:>10} {:>9}",
         "volume",
         "Mvoxels",
         "load s",
@@ -102,7 +100,6 @@ pub fn bench_scale(gpu: &Gpu, opts: &ScaleOptions, dir: &std::path::Path) -> Res
         "RSS GiB",
         "CAO ms",
         "recomputed",
-        "tex ms",
         "eye ms"
     );
     let mut rows = Vec::new();
@@ -149,11 +146,10 @@ pub fn bench_scale(gpu: &Gpu, opts: &ScaleOptions, dir: &std::path::Path) -> Res
                 cao_passes_ms: [p.restore, p.clip, p.update],
                 voxels_recomputed: steady.last().map_or(0, |s| s.metrics.recomputed),
                 eye_ms: 0.5 * (p.eyes[0] + p.eyes[1]),
-                texture_ms: p.texture,
             };
             let first = row.methods.is_empty();
             println!(
-                "{:<14} {:>8} {:>7} {:>9} {:<14} {:>10.1} {:>9.1} {:>8.2} {:>9.1} {:>10} {:>7.1} {:>9.0}",
+                "{:<14} {:>8} {:>7} {:>9} {:<14} {:>10.1} {:>9.1} {:>8.2} {:>9.1} {:>10} {:>9.0}",
                 if first {
                     format!("{}x{}x{}", dims[0], dims[1], dims[2])
                 } else {
@@ -180,7 +176,6 @@ pub fn bench_scale(gpu: &Gpu, opts: &ScaleOptions, dir: &std::path::Path) -> Res
                 m.peak_rss as f64 / (1u64 << 30) as f64,
                 m.cao_ms,
                 m.voxels_recomputed,
-                m.texture_ms,
                 m.eye_ms
             );
             row.methods.push(m);

@@ -9,7 +9,7 @@ use crate::ao::histogram_gpu::HistogramGpu;
 use crate::ao::lao::{directions, LaoTiming};
 pub use crate::ao::method::{histogram_tables, AoVolume, HistogramTables};
 use crate::ao::{filtered, AoConfig, AoMethod, LaoGpu, LaoParams};
-use crate::gpu::{Buffer, Gpu, GpuError, OutOfMemory};
+use crate::gpu::{Gpu, GpuError, OutOfMemory};
 use crate::render::png_out::PngError;
 use crate::render::{
     FrameViews, RenderSettings, Renderer, StereoImage, StereoTarget, VolumeTextures,
@@ -372,11 +372,10 @@ impl HeadlessRenderer {
         })
     }
 
-    /// Renders both eyes of `frame` with the given AO buffer (or no AO) in one command buffer.
+    /// Renders both eyes of `frame` (with its AO buffer, or no AO) in one command buffer.
     pub fn render(
         &mut self,
         tex: &VolumeTextures,
-        ao: Option<&Buffer>,
         frame: &FrameViews,
         size: (u32, u32),
         settings: &RenderSettings,
@@ -385,10 +384,10 @@ impl HeadlessRenderer {
         tex.prepare(settings)?;
         let renderer = &mut self.renderer;
         let mut rec = Ok(());
-        self.gpu.submit_and_wait(|cmd| {
-            if let Some(ao) = ao {
-                tex.cmd_update_ambient(cmd, ao, &tex.whole());
-            }
+        let gpu = &self.gpu;
+        gpu.submit_and_wait(|cmd| {
+            // V_AO was written by earlier submissions' compute passes.
+            gpu.barrier(cmd);
             rec = renderer
                 .record(cmd, &target, tex, frame, settings)
                 .map(|()| target.cmd_finish(cmd));
@@ -465,8 +464,8 @@ fn gpu_report(vol: &Volume) -> String {
 }
 
 /// The volumes the GPU holds for `vol` under `method` (LAO with `lao`'s reach), in bytes per
-/// voxel by name: what every method holds (the scalar and AO images, O, O_c, CAO's mask, V_PAO,
-/// V_AO, and with labels their ids and the margins' glow) and the method's own. A frame's images
+/// voxel by name: what every method holds (the scalar image, O, O_c, CAO's mask, V_PAO, V_AO
+/// (which the ray caster reads itself), and with labels their ids and the margins' glow) and the method's own. A frame's images
 /// and tables and the staging copies while loading come on top (the peak `render` prints).
 pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'static str, f64)> {
     let scalar = match vol.voxels {
@@ -477,7 +476,6 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
     let ao = crate::ao::stored::BYTES_PER_VOXEL as f64;
     let mut v = vec![
         ("scalars", scalar),
-        ("AO image", ao),
         ("mask", 0.25),
         ("V_PAO", ao),
         ("V_AO", ao),
@@ -501,7 +499,7 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
         AoMethod::Histogram(h) => {
             v.extend([("O", 2.0), ("O_c", 2.0)]);
             v.push(("bins", 4.0));
-            v.push(("E (precomputed, current, image)", 12.0));
+            v.push(("E (precomputed, current)", 8.0));
             if h.clusters > 0 {
                 v.push(("cluster ids", 4.0 * (1 + h.hemispheres as u8) as f64));
             }

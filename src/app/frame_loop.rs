@@ -1,5 +1,5 @@
 //! The one frame loop: FrameInput -> interaction -> Scene -> one GPU command buffer (CAO clip +
-//! mask + update, AO into the texture, both eyes) -> images and metrics. Replay drives it from a
+//! mask + update, both eyes reading V_AO where it lies) -> images and metrics. Replay drives it from a
 //! pose stream; the desktop window and OpenXR feed it the same FrameInput.
 //!
 //! A transfer-function switch (`scene.tf_index` changed by the menu button) is progressive
@@ -76,8 +76,6 @@ pub struct FrameStats {
 /// [`FrameMetrics`], the SH update in [`ShStats`]).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct PassTimes {
-    /// V_AO (and the bleeding colour) into the ray caster's textures.
-    pub texture_ms: f64,
     /// Each eye's ray cast (left, right).
     pub eye_ms: [f64; 2],
     /// The tools and hands over the volume, both eyes.
@@ -355,8 +353,6 @@ impl FrameLoop {
                 Some(&crate::volume::distance::glow(&margins, vol.dims)),
             )?;
         }
-        let histogram = methods.iter().any(|m| matches!(m, AoMethod::Histogram(_)));
-        tex.set_bleeding(gpu, histogram)?;
         let settings = RenderSettings {
             bleeding: config.bleeding,
             iso,
@@ -700,7 +696,6 @@ impl FrameLoop {
         let times = slot.timer.read()?;
         let ms = |name: &str| times.iter().find(|t| t.0 == name).map_or(0.0, |t| t.1);
         let passes = PassTimes {
-            texture_ms: ms(PASS_TEXTURE),
             eye_ms: PASS_EYES.map(ms),
             overlay_ms: ms(PASS_OVERLAY),
             copy_ms: ms(PASS_COPY),
@@ -709,12 +704,8 @@ impl FrameLoop {
         let render_ms = passes.eye_ms[0] + passes.eye_ms[1];
         let step_factor = match self.budget.as_mut() {
             Some(b) => {
-                let other = metrics.gpu_ms()
-                    + sh.gpu_ms
-                    + tf_ms
-                    + passes.texture_ms
-                    + passes.overlay_ms
-                    + passes.copy_ms;
+                let other =
+                    metrics.gpu_ms() + sh.gpu_ms + tf_ms + passes.overlay_ms + passes.copy_ms;
                 b.control.observe(render_ms, other)
             }
             None => 1.0,
@@ -827,18 +818,6 @@ impl FrameLoop {
             let slab = tfs.record_slab(cmd, volume);
             let pending = cao.record_frame(cmd, &scene.tools, &scene.volume, *mode)?;
             timer.begin(cmd);
-            // Only where this frame's passes may have changed V_AO (and E): the copy follows the
-            // tools, not the volume.
-            let changed: Vec<_> = cao
-                .changed
-                .iter()
-                .map(|b| (b.min.map(|v| v as u32), b.max.map(|v| v as u32)))
-                .collect();
-            tex.cmd_update_ambient(cmd, &cao.ao, &changed);
-            if let Some(e) = cao.method().bleeding() {
-                tex.cmd_update_bleeding(cmd, e, &changed);
-            }
-            timer.mark(cmd, PASS_TEXTURE);
             let sh = lighting.as_mut().map(|l| l.record_frame(gpu, cmd, cao));
             timer.mark(cmd, PASS_SH);
             let (tools, maps, bricks) = cao.clip_buffers();
@@ -853,18 +832,17 @@ impl FrameLoop {
                     reach: &cao.reach_boxes,
                 }),
                 sh: lighting.as_ref().map(|l| l.binding()),
+                ao: Some(&cao.ao),
+                bleeding: cao.method().bleeding(),
             };
-            // The bleeding volume is the local histograms' alone.
             let mut settings = *settings;
             settings.iso = scene.iso;
-            if !cao.method().has_bleeding() {
-                settings.bleeding = 0.0;
-                settings.scattering = 0.0;
-            }
             let eyes = EyeSlot {
                 slot: index,
                 after_eye: &mut |cmd, eye| timer.mark(cmd, PASS_EYES[eye]),
             };
+            // The eyes read what this frame's passes wrote (V_AO, E, the clip state).
+            gpu.barrier(cmd);
             renderer.record_eyes(cmd, eyes, target, tex, &frame, &settings)?;
             // Tools and tracked hands over the volume, depth-tested against it (not in a still
             // render of the cut), and the markups always.
@@ -959,7 +937,6 @@ pub struct Retired {
 }
 
 /// The timer marks of a frame's passes after CAO's own.
-const PASS_TEXTURE: &str = "texture";
 const PASS_SH: &str = "sh";
 const PASS_EYES: [&str; 2] = ["left eye", "right eye"];
 const PASS_OVERLAY: &str = "overlay";

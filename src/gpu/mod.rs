@@ -8,8 +8,8 @@ mod slabs;
 mod timer;
 
 pub use resources::{
-    address_bytes, cmd_blit_color, cmd_image_barrier, push_set_layout, shader_module, BoxRegion,
-    Buffer, ComputePipeline, Image, ImageDesc, Reach,
+    address_bytes, cmd_blit_color, cmd_image_barrier, push_set_layout, shader_module,
+    sparse_set_layout, Buffer, ComputePipeline, Image, ImageDesc, Reach,
 };
 pub use slabs::{SlabBuffer, MAX_BUFFER_ENV};
 pub use timer::GpuTimer;

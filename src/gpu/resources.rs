@@ -5,9 +5,6 @@ use ash::vk;
 use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 use gpu_allocator::MemoryLocation;
 
-/// A box of texels `[min, max)` per axis.
-pub type BoxRegion = ([u32; 3], [u32; 3]);
-
 pub struct Buffer {
     gpu: Gpu,
     pub raw: vk::Buffer,
@@ -405,51 +402,6 @@ impl Image {
         }
     }
 
-    /// [`Image::cmd_copy_from`] of the boxes `[min, max)` (texels; a tightly packed buffer of
-    /// the whole image, x fastest) only; the boxes must not overlap.
-    pub fn cmd_copy_boxes_from(&self, cmd: vk::CommandBuffer, src: &Buffer, boxes: &[BoxRegion]) {
-        let e = self.desc.extent;
-        let texel = texel_bytes(self.desc.format);
-        let regions: Vec<vk::BufferImageCopy> = boxes
-            .iter()
-            .filter(|(lo, hi)| (0..3).all(|a| hi[a] > lo[a]))
-            .map(|(lo, hi)| {
-                let first =
-                    lo[0] as u64 + e.width as u64 * (lo[1] as u64 + e.height as u64 * lo[2] as u64);
-                vk::BufferImageCopy::default()
-                    .buffer_offset(first * texel)
-                    .buffer_row_length(e.width)
-                    .buffer_image_height(e.height)
-                    .image_subresource(self.layers_all())
-                    .image_offset(vk::Offset3D {
-                        x: lo[0] as i32,
-                        y: lo[1] as i32,
-                        z: lo[2] as i32,
-                    })
-                    .image_extent(vk::Extent3D {
-                        width: hi[0] - lo[0],
-                        height: hi[1] - lo[1],
-                        depth: hi[2] - lo[2],
-                    })
-            })
-            .collect();
-        if regions.is_empty() {
-            return;
-        }
-        // SAFETY: `cmd` is recording with the image in TRANSFER_DST_OPTIMAL (this method's
-        // contract); `src` holds the whole image tightly packed, so each non-empty box inside the
-        // image reads rows inside `src`.
-        unsafe {
-            self.gpu.device.cmd_copy_buffer_to_image(
-                cmd,
-                src.raw,
-                self.raw,
-                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-                &regions,
-            );
-        }
-    }
-
     /// Records a copy of the whole image (layout TRANSFER_SRC) into a tightly packed buffer.
     pub fn cmd_copy_to(&self, cmd: vk::CommandBuffer, dst: &Buffer) {
         let region = [vk::BufferImageCopy::default()
@@ -634,7 +586,7 @@ pub fn push_set_layout(
 }
 
 /// [`push_set_layout`] with no descriptor at the bindings that are None.
-fn sparse_set_layout(
+pub fn sparse_set_layout(
     gpu: &Gpu,
     bindings: &[Option<vk::DescriptorType>],
     stages: vk::ShaderStageFlags,
@@ -823,16 +775,5 @@ impl Drop for ComputePipeline {
                 .device
                 .destroy_descriptor_set_layout(self.set_layout, None);
         }
-    }
-}
-
-/// Bytes per texel of the (uncompressed, colour) formats the images here use.
-pub fn texel_bytes(format: vk::Format) -> u64 {
-    match format {
-        vk::Format::R8_UNORM => 1,
-        vk::Format::R16_UNORM => 2,
-        vk::Format::R32G32B32A32_SFLOAT => 16,
-        vk::Format::R32G32B32_SFLOAT => 12,
-        _ => 4,
     }
 }

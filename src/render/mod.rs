@@ -9,7 +9,7 @@ pub mod png_out;
 pub mod preintegration;
 pub mod text;
 
-use crate::gpu::{pipeline, BoxRegion, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
+use crate::gpu::{pipeline, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
 use crate::shader_constants::MAX_TOOLS;
 use crate::space::View;
 use crate::volume::transfer::TransferFunction;
@@ -119,13 +119,13 @@ pub struct RenderSettings {
     /// the textures hold a variance volume ([`VolumeTextures::set_variance`]).
     pub variance_max: f32,
     /// The local-histogram method's bleeding weight W: the TF colour moves towards the
-    /// bleeding colour E by W * O_env. Takes effect where the textures hold a bleeding volume
-    /// ([`VolumeTextures::set_bleeding`]); 0 = off.
+    /// bleeding colour E by W * O_env. Takes effect where the frame has a bleeding volume
+    /// ([`FrameViews::bleeding`]); 0 = off.
     pub bleeding: f32,
     /// The local-histogram method's scattering weight: the bleeding colour E scattered towards
     /// the eye by the Henyey-Greenstein phase function between the light and the view
-    /// direction (docs/design.md, "Local-histogram AO"); 0 = off. Takes effect where the textures
-    /// hold a bleeding volume.
+    /// direction (docs/design.md, "Local-histogram AO"); 0 = off. Takes effect where the frame
+    /// has a bleeding volume.
     pub scattering: f32,
     /// The phase function's anisotropy g in (-1, 1): > 0 scatters forwards (tissue glows
     /// when lit from behind), 0 evenly.
@@ -255,11 +255,10 @@ impl RenderSettings {
     }
 }
 
-/// The volume as the ray caster samples it: scalars (full precision, R32F), the AO volume and the
-/// transfer function's lookup table.
+/// The volume as the ray caster samples it: scalars (full precision, R32F) and the transfer
+/// function's lookup table (the AO it reads from the method's V_AO itself, [`FrameViews::ao`]).
 pub struct VolumeTextures {
     pub scalars: Image,
-    pub ambient: Image,
     pub lut: Image,
     /// The pre-integrated TF ([`preintegration`]) for the step in `preint_step`, and where in
     /// each step its light comes from (R32F, 0 front .. 1 back).
@@ -282,8 +281,6 @@ pub struct VolumeTextures {
     tf_version: std::cell::Cell<u64>,
     /// var_s of variance opacity modulation (R32F, data units squared), when it is on.
     pub variance: Option<Image>,
-    /// The local-histogram method's bleeding colour E (RGBA8 per voxel), when it is the method.
-    pub bleeding: Option<Image>,
     /// The safety margins' glow (R8 unorm per voxel, [`crate::volume::distance::glow`]), when a
     /// structure has one.
     pub glow: Option<Image>,
@@ -380,9 +377,9 @@ impl VolumeLimits {
 }
 
 /// GPU bytes per voxel, at least: the scalar image (4 bytes for f32 data; an integer scalar
-/// takes 2 or 1), and O, O_c, the AO image, V_PAO and V_AO (2 each, `ao::stored`; the filters
-/// hold O and O_c in f32), before the method's own volumes.
-pub const GPU_BYTES_PER_VOXEL: u64 = 4 + 5 * crate::ao::stored::BYTES_PER_VOXEL;
+/// takes 2 or 1), and O, O_c, V_PAO and V_AO (2 each, `ao::stored`; the filters hold O and O_c
+/// in f32), before the method's own volumes.
+pub const GPU_BYTES_PER_VOXEL: u64 = 4 + 4 * crate::ao::stored::BYTES_PER_VOXEL;
 
 /// The shaders index a volume's voxels with 32-bit signed integers.
 pub const MAX_VOXELS: u64 = (1 << 31) - 1;
@@ -472,21 +469,6 @@ fn check_linear_filter(gpu: &Gpu, format: vk::Format) -> Result<()> {
     Ok(())
 }
 
-/// Records a copy of `src` into a sampled image, which stays in SHADER_READ_ONLY_OPTIMAL.
-fn cmd_refill(img: &Image, cmd: vk::CommandBuffer, src: &Buffer, boxes: &[BoxRegion]) {
-    img.transition(
-        cmd,
-        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-    );
-    img.cmd_copy_boxes_from(cmd, src, boxes);
-    img.transition(
-        cmd,
-        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-    );
-}
-
 /// A sampled 3D image of `dims` voxels in `format`, within the device's 3D image limit.
 fn volume_image(gpu: &Gpu, dims: [usize; 3], format: vk::Format, name: &str) -> Result<Image> {
     let max = gpu.limits.max_image_dimension3_d as usize;
@@ -515,12 +497,11 @@ fn volume_image(gpu: &Gpu, dims: [usize; 3], format: vk::Format, name: &str) -> 
 }
 
 impl VolumeTextures {
-    /// Uploads the scalars and the transfer function; the AO volume starts at 1 (unoccluded).
+    /// Uploads the scalars and the transfer function.
     pub fn new(gpu: &Gpu, vol: &Volume, tf: &TransferFunction) -> Result<VolumeTextures> {
         check_volume_fits_gpu(gpu, vol)?;
         check_linear_filter(gpu, vk::Format::R32_SFLOAT)?;
         check_linear_filter(gpu, vk::Format::R32G32B32A32_SFLOAT)?;
-        let n = vol.voxel_count();
         let (format, stored, scalar_map) = scalar_storage(&vol.voxels);
         check_linear_filter(gpu, format)?;
         let scalars = volume_image(gpu, vol.dims, format, "scalars")?;
@@ -548,13 +529,6 @@ impl VolumeTextures {
         // Nothing empty until [`VolumeTextures::prepare`] says otherwise.
         skip.upload(
             &vec![0u8; ranges.ranges.len()],
-            vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-        )?;
-        // V_AO's own 16-bit unorm words (`ao::stored`), copied in as they are.
-        check_linear_filter(gpu, vk::Format::R16_UNORM)?;
-        let ambient = volume_image(gpu, vol.dims, vk::Format::R16_UNORM, "ao")?;
-        ambient.upload(
-            bytemuck::cast_slice(&vec![crate::ao::stored::pack(1.0); n]),
             vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
         )?;
         let lut = Image::new(
@@ -625,7 +599,6 @@ impl VolumeTextures {
             structure_table,
             protect,
             scalars,
-            ambient,
             lut,
             preint,
             preint_at,
@@ -638,7 +611,6 @@ impl VolumeTextures {
             empty: Default::default(),
             tf_version: Default::default(),
             variance: None,
-            bleeding: None,
             glow: None,
             dims: vol.dims,
             spacing: vol.spacing,
@@ -678,45 +650,6 @@ impl VolumeTextures {
             None => None,
         };
         Ok(())
-    }
-
-    /// Allocates (or, with `on` false, drops) the bleeding texture that
-    /// [`VolumeTextures::cmd_update_bleeding`] fills.
-    pub fn set_bleeding(&mut self, gpu: &Gpu, on: bool) -> Result<()> {
-        self.bleeding = match on {
-            true => {
-                let img = Image::new(
-                    gpu,
-                    ImageDesc {
-                        image_type: vk::ImageType::TYPE_3D,
-                        view_type: vk::ImageViewType::TYPE_3D,
-                        format: vk::Format::R8G8B8A8_UNORM,
-                        extent: vk::Extent3D {
-                            width: self.dims[0] as u32,
-                            height: self.dims[1] as u32,
-                            depth: self.dims[2] as u32,
-                        },
-                        layers: 1,
-                        usage: vk::ImageUsageFlags::SAMPLED | vk::ImageUsageFlags::TRANSFER_DST,
-                        aspect: vk::ImageAspectFlags::COLOR,
-                    },
-                    "bleeding",
-                )?;
-                let n = self.dims.iter().product::<usize>();
-                img.upload(&vec![0u8; n * 4], vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
-                Some(img)
-            }
-            false => None,
-        };
-        Ok(())
-    }
-
-    /// Records a copy of a bleeding buffer (RGBA8 per voxel) into the bleeding texture, when
-    /// there is one.
-    pub fn cmd_update_bleeding(&self, cmd: vk::CommandBuffer, e: &Buffer, boxes: &[BoxRegion]) {
-        if let Some(img) = &self.bleeding {
-            cmd_refill(img, cmd, e, boxes);
-        }
     }
 
     pub fn set_transfer_function(&self, tf: &TransferFunction) -> Result<()> {
@@ -812,16 +745,6 @@ impl VolumeTextures {
         *self.preint_alpha.borrow_mut() = table.iter().map(|c| c[3]).collect();
         self.preint_step.set(step);
         Ok(())
-    }
-
-    /// Records a copy of an AO buffer (f32, x fastest) into the AO texture.
-    pub fn cmd_update_ambient(&self, cmd: vk::CommandBuffer, ao: &Buffer, boxes: &[BoxRegion]) {
-        cmd_refill(&self.ambient, cmd, ao, boxes);
-    }
-
-    /// The whole volume as the one box of [`VolumeTextures::cmd_update_ambient`].
-    pub fn whole(&self) -> [BoxRegion; 1] {
-        [([0; 3], self.dims.map(|d| d as u32))]
     }
 
     /// Coordinate in a lookup table of `n` texels over the value range = texel * scale +
@@ -1026,12 +949,13 @@ struct FrameUniforms {
     structures: [[f32; 4]; 256],
     protect: [[u32; 4]; 2],
     light: [f32; 4],
+    ao_words: [u32; 4],
 }
-crate::gpu::glsl_layout!(FrameUniforms, 5152,
+crate::gpu::glsl_layout!(FrameUniforms, 5168,
     inv_view_proj: 0, view_proj: 128, tex_from_world: 256, extent_mm: 320, value_map: 336,
     background: 352, viewport: 368, phong: 384, surface: 400, cut_tint: 416, jitter: 432,
     lighting: 448, bleeding: 464, glow: 480, sh_light: 496, tool_reach: 752, structures: 1008,
-    protect: 5104, light: 5136);
+    protect: 5104, light: 5136, ao_words: 5152);
 
 /// The features the ray caster is specialised on (raycast.frag FLAGS, constant_id 0).
 const FLAG_PREINTEGRATED: u32 = 1;
@@ -1118,6 +1042,12 @@ pub struct FrameViews<'a> {
     pub clip: Option<ClipBinding<'a>>,
     /// The SH visibility volume and the environment light, when the frame is lit by it.
     pub sh: Option<ShBinding<'a>>,
+    /// V_AO, the method's 16-bit words ([`crate::ao::stored`]), which the ray caster reads by
+    /// address, filtering them itself; None: no AO (as `use_ao = false`).
+    pub ao: Option<&'a Buffer>,
+    /// The local-histogram method's bleeding colour E (RGBA8 words), read as V_AO is; None: no
+    /// bleeding or scattering.
+    pub bleeding: Option<&'a Buffer>,
 }
 
 /// An SH visibility volume ([`crate::ao::sh::ShVolume::images`]) and the environment light
@@ -1239,34 +1169,18 @@ impl Renderer {
         // them.
         unsafe {
             let d = &gpu.device;
-            let sampled = vk::DescriptorType::COMBINED_IMAGE_SAMPLER;
-            let set_layout = crate::gpu::push_set_layout(
-                gpu,
-                &[
-                    vk::DescriptorType::UNIFORM_BUFFER,
-                    sampled,
-                    sampled,
-                    sampled,
-                    vk::DescriptorType::STORAGE_BUFFER,
-                    vk::DescriptorType::STORAGE_BUFFER,
-                    sampled,
-                    sampled,
-                    sampled,
-                    sampled,
-                    sampled,
-                    sampled,
-                    sampled,
-                    sampled,
-                    sampled,
-                    sampled,
-                    sampled,
-                    sampled,
-                    sampled,
-                    sampled,
-                    vk::DescriptorType::STORAGE_BUFFER,
-                ],
-                vk::ShaderStageFlags::FRAGMENT,
-            )?;
+            let sampled = Some(vk::DescriptorType::COMBINED_IMAGE_SAMPLER);
+            let storage = Some(vk::DescriptorType::STORAGE_BUFFER);
+            // No bindings 2 and 11: the ray caster reads V_AO and E by address (FrameViews).
+            let mut bindings = [sampled; 21];
+            bindings[0] = Some(vk::DescriptorType::UNIFORM_BUFFER);
+            for b in [4, 5, 20] {
+                bindings[b] = storage;
+            }
+            bindings[2] = None;
+            bindings[11] = None;
+            let set_layout =
+                crate::gpu::sparse_set_layout(gpu, &bindings, vk::ShaderStageFlags::FRAGMENT)?;
             let eye_push = [vk::PushConstantRange::default()
                 .stage_flags(vk::ShaderStageFlags::FRAGMENT)
                 .size(std::mem::size_of::<EyePush>() as u32)];
@@ -1397,7 +1311,11 @@ impl Renderer {
                 settings.background[0],
                 settings.background[1],
                 settings.background[2],
-                if settings.use_ao { 1.0 } else { 0.0 },
+                if settings.use_ao && frame.ao.is_some() {
+                    1.0
+                } else {
+                    0.0
+                },
             ],
             viewport: [
                 target.width as f32,
@@ -1449,7 +1367,7 @@ impl Renderer {
                     None => [0.0, 0.0, 0.0, inv_vmax],
                 }
             },
-            bleeding: match &tex.bleeding {
+            bleeding: match frame.bleeding {
                 Some(_) => [
                     settings.bleeding,
                     settings.scattering,
@@ -1490,6 +1408,10 @@ impl Renderer {
                 }
                 None => [0.0; 4],
             },
+            ao_words: {
+                let [a, e] = [frame.ao, frame.bleeding].map(|b| b.map_or(0, |b| b.address));
+                [a as u32, (a >> 32) as u32, e as u32, (e >> 32) as u32]
+            },
         };
         self.uniforms[slot].write(0, bytemuck::bytes_of(&u))?;
         let uniforms = &self.uniforms[slot];
@@ -1512,7 +1434,7 @@ impl Renderer {
         };
         // Four SH slots; unused ones (4 coefficients, or no SH) repeat a bound image unread.
         let sh_views: [vk::ImageView; 4] = std::array::from_fn(|g| {
-            frame.sh.map_or(tex.ambient.view, |sh| {
+            frame.sh.map_or(tex.scalars.view, |sh| {
                 sh.images.get(g).unwrap_or(&sh.images[0]).view
             })
         });
@@ -1543,20 +1465,18 @@ impl Renderer {
         let sampled_views = |coarse: (vk::ImageView, vk::ImageView)| {
             [
                 (1, tex.scalars.view),
-                (2, tex.ambient.view),
                 (3, tex.lut.view),
                 (6, sh_views[0]),
                 (7, sh_views[1]),
                 (8, sh_views[2]),
                 (9, sh_views[3]),
-                (10, tex.variance.as_ref().unwrap_or(&tex.ambient).view),
-                (11, tex.bleeding.as_ref().unwrap_or(&tex.ambient).view),
+                (10, tex.variance.as_ref().unwrap_or(&tex.scalars).view),
                 (12, tex.preint.view),
                 (13, self.blue_noise.view),
                 (14, tex.skip.view),
                 (15, tex.preint_at.view),
                 (16, tex.structures.view),
-                (17, tex.glow.as_ref().unwrap_or(&tex.ambient).view),
+                (17, tex.glow.as_ref().unwrap_or(&tex.scalars).view),
                 (18, coarse.0),
                 (19, coarse.1),
             ]
@@ -1756,7 +1676,7 @@ mod tests {
 
     #[test]
     fn too_many_bytes_are_refused_with_a_downsample_hint() {
-        // 1024^3 voxels x 14 bytes = 14 GiB > 8 GiB; / 2 per axis = 1.75 GiB fits.
+        // 1024^3 voxels x 12 bytes = 12 GiB > 8 GiB; / 2 per axis = 1.5 GiB fits.
         let limits = VolumeLimits {
             max_buffer_bytes: u64::MAX,
             ..LIMITS
@@ -1764,7 +1684,7 @@ mod tests {
         let e = check_volume_fits("big", [1024, 1024, 1024], &limits, "gpu").unwrap_err();
         assert!(
             e.contains("volume big (1024 x 1024 x 1024)")
-                && e.contains("14336 MiB")
+                && e.contains("12288 MiB")
                 && e.contains("8192 MiB device-local heap")
                 && e.contains("--downsample 2"),
             "{e}"

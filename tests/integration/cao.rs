@@ -77,15 +77,11 @@ fn render(
         model,
         clip: Some(clip),
         sh: None,
+        ao: Some(&cao.ao),
+        bleeding: cao.method().bleeding(),
     };
-    hr.render(
-        &tex,
-        Some(&cao.ao),
-        &frame,
-        (64, 64),
-        &RenderSettings::default(),
-    )
-    .unwrap()
+    hr.render(&tex, &frame, (64, 64), &RenderSettings::default())
+        .unwrap()
 }
 
 /// A stored AO volume (V_AO, V_PAO: 16-bit unorm) as values.

@@ -443,6 +443,7 @@ fn ao_command_histogram_agrees_with_an_independent_implementation_and_the_cpu_re
             "ct-skin",
             "--ao",
             "histogram",
+            "--hist-hemispheres=false",
             "--clusters",
             "0",
             "--hist-radius-mm",
@@ -472,6 +473,7 @@ fn ao_command_histogram_agrees_with_an_independent_implementation_and_the_cpu_re
     assert_eq!(side["radius_mm"], 25.0);
     assert_eq!(side["bins"], 32);
     assert_eq!(side["clusters"], 0);
+    assert_eq!(side["hemispheres"], false);
     for key in ["spacing_mm", "dims"] {
         assert!(side.get(key).is_some(), "sidecar lacks {key}");
     }
@@ -688,7 +690,6 @@ fn ao_command_hemispheres_agree_with_an_independent_implementation() {
         tf.to_str().unwrap(),
         "--ao",
         "histogram",
-        "--hist-hemispheres",
         "--clusters",
         "0",
         "--hist-radius-mm",
@@ -707,6 +708,7 @@ fn ao_command_hemispheres_agree_with_an_independent_implementation() {
     );
     let side: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(a.with_extension("json")).unwrap()).unwrap();
+    // The hemispheres are the default.
     assert_eq!(side["hemispheres"], true);
     let (got_dims, _, got) = read_nrrd_f32(&a);
     assert_eq!(got_dims, dims);
@@ -1852,7 +1854,7 @@ fn bench_frame_prints_every_pass_and_every_ratio() {
     );
     let text = String::from_utf8_lossy(&out.stdout);
     // The number after a row's label (ms, a ratio "1.23x" or fps), finite and not negative
-    // (a copy of a 16^3 texture may print 0.00 ms).
+    // (a pass over a 16^3 volume may print 0.00 ms).
     let value = |label: &str| -> f64 {
         let line = text
             .lines()
@@ -1872,7 +1874,6 @@ fn bench_frame_prints_every_pass_and_every_ratio() {
         "restore",
         "clip + mask",
         "AO update",
-        "AO into the texture",
         "ray cast, left eye",
         "ray cast, right eye",
         "copy",

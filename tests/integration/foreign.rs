@@ -210,14 +210,14 @@ fn render(vol: &Volume, tf: &TransferFunction, size: u32) -> StereoImage {
         model: world_from_tex(vol, &placement),
         clip: None,
         sh: None,
+        ao: None,
+        bleeding: None,
     };
     let settings = RenderSettings {
         use_ao: false,
         ..RenderSettings::default()
     };
-    let img = hr
-        .render(&tex, None, &frame, (size, size), &settings)
-        .unwrap();
+    let img = hr.render(&tex, &frame, (size, size), &settings).unwrap();
     drop((tex, hr));
     common::assert_no_validation_messages(&gpu);
     img

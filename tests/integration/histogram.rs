@@ -132,7 +132,8 @@ fn analytic_cases_empty_opaque_and_one_coloured_voxel() {
         radius_mm: 4.0,
         bins: 4,
         clusters: 0,
-        ..Default::default()
+        // One sphere: the definitions this test checks.
+        hemispheres: false,
     };
     // Empty: every voxel open, no colour.
     let (cao, _) = setup(
@@ -194,7 +195,8 @@ fn the_clustering_is_close_to_the_direct_sums_and_its_cache_is_reused_and_checke
         radius_mm: 24.0,
         bins: 32,
         clusters: 0,
-        ..Default::default()
+        // One sphere: the definitions this test checks.
+        hemispheres: false,
     };
     let clustered = HistParams {
         clusters: 512,
@@ -641,7 +643,8 @@ fn the_direct_sums_follow_the_structures_shown_and_their_colours() {
         radius_mm: 30.0,
         bins: 16,
         clusters: 0,
-        ..Default::default()
+        // One sphere: the definitions this test checks.
+        hemispheres: false,
     };
     let (mut cao, _) = setup(&gpu, &vol, &tf, p, "labels");
     let check = |cao: &Cao, shown: &[f32], what: &str| {
@@ -688,7 +691,8 @@ fn the_clustered_values_follow_the_structures_shown() {
         radius_mm: 30.0,
         bins: 16,
         clusters: 512,
-        ..Default::default()
+        // One sphere: the definitions this test checks.
+        hemispheres: false,
     };
     let (mut cao, _) = setup(&gpu, &vol, &tf, p, "labels-clustered");
     let near = |cao: &Cao, shown: &[f32], what: &str| {

@@ -54,6 +54,8 @@ fn render(gpu: &Gpu, overlays: &[Vec<OverlayItem>]) -> Vec<StereoImage> {
         model: world_from_tex(&vol, &Placement::default()),
         clip: None,
         sh: None,
+        ao: None,
+        bleeding: None,
     };
     let settings = RenderSettings::default();
     tex.prepare(&settings).unwrap();

@@ -42,8 +42,10 @@ fn render(vol: &Volume, settings: &RenderSettings) -> (StereoImage, [View; 2]) {
         model: cao_xr::space::world_from_tex(vol, &placement),
         clip: None,
         sh: None,
+        ao: None,
+        bleeding: None,
     };
-    let img = hr.render(&tex, None, &frame, (W, W), settings).unwrap();
+    let img = hr.render(&tex, &frame, (W, W), settings).unwrap();
     drop((tex, hr));
     common::assert_no_validation_messages(&gpu);
     (img, v)

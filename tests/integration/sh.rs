@@ -356,6 +356,8 @@ fn constant_environment_lights_with_albedo_times_light() {
         model,
         clip: None,
         sh: None,
+        ao: None,
+        bleeding: None,
     };
     // Albedo alone: ambient 1, no diffuse or specular term, no AO; point samples, so that
     // the two renders' colours go through the same arithmetic.
@@ -371,7 +373,7 @@ fn constant_environment_lights_with_albedo_times_light() {
         use_ao: false,
         ..black
     };
-    let albedo = hr.render(&tex, None, &frame, (48, 48), &flat).unwrap();
+    let albedo = hr.render(&tex, &frame, (48, 48), &flat).unwrap();
     frame.sh = Some(ShBinding {
         images: &shv.images,
         light: &light,
@@ -381,9 +383,7 @@ fn constant_environment_lights_with_albedo_times_light() {
         sh_weight: 1.0,
         ..flat
     };
-    let lit = hr
-        .render(&tex, None, &frame, (48, 48), &lit_settings)
-        .unwrap();
+    let lit = hr.render(&tex, &frame, (48, 48), &lit_settings).unwrap();
     let mut covered = 0;
     for eye in 0..2 {
         for (a, l) in albedo.rgba[eye].chunks(4).zip(lit.rgba[eye].chunks(4)) {
