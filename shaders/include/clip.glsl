@@ -19,39 +19,48 @@ layout(std430, set = CLIP_SET, binding = CLIP_MAPS_BINDING) readonly buffer Clip
     vec4 clip_maps[];
 };
 
+// The texel that tool-local point `local` projects to in a map of extent m.x, m.y texels per
+// local unit and m.z texels a side (a tool's `map` or `sh_map`), or -1 off the map.
+int map_texel(vec4 m, vec3 local) {
+    ivec2 px = ivec2(floor((local.xy + m.x) * m.y));
+    int res = int(m.z);
+    if (any(lessThan(px, ivec2(0))) || any(greaterThanEqual(px, ivec2(res)))) return -1;
+    return px.y * res + px.x;
+}
+
+int tool_texel(uint t, vec3 local) {
+    return map_texel(tools[t].map, local);
+}
+
+// Whether `z` lies in one of a clip-map texel's two intervals (the shape's inside along z).
+bool in_shape(vec4 c, float z) {
+    return (z >= c.x && z <= c.y) || (z >= c.z && z <= c.w);
+}
+
 // bit 0: inside the tool's shape; bit 1: inside its dilated shape.
 uint tool_test(uint t, vec3 local) {
-    ClipTool tool = tools[t];
-    ivec2 px = ivec2(floor((local.xy + tool.map.x) * tool.map.y));
-    int res = int(tool.map.z);
-    if (any(lessThan(px, ivec2(0))) || any(greaterThanEqual(px, ivec2(res)))) return 0u;
-    uint texel = uint(px.y * res + px.x);
-    vec4 c = clip_maps[tool.offsets.x + texel];
-    vec4 d = clip_maps[tool.offsets.y + texel];
+    int texel = tool_texel(t, local);
+    if (texel < 0) return 0u;
+    vec4 c = clip_maps[tools[t].offsets.x + uint(texel)];
+    vec4 d = clip_maps[tools[t].offsets.y + uint(texel)];
     uint r = 0u;
-    if ((local.z >= c.x && local.z <= c.y) || (local.z >= c.z && local.z <= c.w)) r |= 1u;
+    if (in_shape(c, local.z)) r |= 1u;
     if (local.z >= d.x && local.z <= d.y) r |= 2u;
     return r;
 }
 
 // Whether a tool-local point is inside the tool's shape: tool_test's bit 0, one map read.
 bool tool_inside(uint t, vec3 local) {
-    ClipTool tool = tools[t];
-    ivec2 px = ivec2(floor((local.xy + tool.map.x) * tool.map.y));
-    int res = int(tool.map.z);
-    if (any(lessThan(px, ivec2(0))) || any(greaterThanEqual(px, ivec2(res)))) return false;
-    vec4 c = clip_maps[tool.offsets.x + uint(px.y * res + px.x)];
-    return (local.z >= c.x && local.z <= c.y) || (local.z >= c.z && local.z <= c.w);
+    int texel = tool_texel(t, local);
+    return texel >= 0 && in_shape(clip_maps[tools[t].offsets.x + uint(texel)], local.z);
 }
 
 // Whether a tool-local point is inside the tool's shape contracted by the dilation radius (z, w
 // of its dilation map; src/clip/mod.rs `dilate`): a probe's cut is out of its reach there.
 bool tool_contracted(uint t, vec3 local) {
-    ClipTool tool = tools[t];
-    ivec2 px = ivec2(floor((local.xy + tool.map.x) * tool.map.y));
-    int res = int(tool.map.z);
-    if (any(lessThan(px, ivec2(0))) || any(greaterThanEqual(px, ivec2(res)))) return false;
-    vec4 d = clip_maps[tool.offsets.y + uint(px.y * res + px.x)];
+    int texel = tool_texel(t, local);
+    if (texel < 0) return false;
+    vec4 d = clip_maps[tools[t].offsets.y + uint(texel)];
     return local.z >= d.z && local.z <= d.w;
 }
 
@@ -81,10 +90,9 @@ bool sh_affected_index(vec3 p) {
         ClipTool tool = tools[t];
         if (tool.map.w > 0.5) return true;
         vec3 local = (tool.local_from_index * vec4(p, 1.0)).xyz;
-        ivec2 px = ivec2(floor((local.xy + tool.sh_map.x) * tool.sh_map.y));
-        int res = int(tool.sh_map.z);
-        if (any(lessThan(px, ivec2(0))) || any(greaterThanEqual(px, ivec2(res)))) continue;
-        vec4 d = clip_maps[tool.offsets.z + uint(px.y * res + px.x)];
+        int texel = map_texel(tool.sh_map, local);
+        if (texel < 0) continue;
+        vec4 d = clip_maps[tool.offsets.z + uint(texel)];
         if (local.z >= d.x && local.z <= d.y) return true;
     }
     return false;
