@@ -250,10 +250,12 @@ impl FrameLoop {
         Self::new_lit(gpu, vol, tfs, built, None, show_progress)
     }
 
-    /// [`FrameLoop::new`], then lit as `lighting` says ([`FrameLoop::set_lighting`]). Running
-    /// out of GPU memory in either is told with [`fit_advice`] and the `--downsample N`
-    /// that fits: [`downsample_estimate`]'s, checked by setting the downsampled volume
-    /// up the same way (a few larger N are tried where it does not fit).
+    /// [`FrameLoop::new`], then lit as `lighting` says ([`FrameLoop::set_lighting`]). A volume
+    /// that runs out of GPU memory in either is not refused: it is shown downsampled by the
+    /// smallest N that fits ([`downsample_estimate`]'s, checked by setting the downsampled
+    /// volume up the same way; a few larger N are tried where it does not fit), told on stderr
+    /// with what did not fit, and named `-dsN` on the stats line. Only where no N fits is it
+    /// refused ([`fit_advice`]).
     pub fn new_lit(
         gpu: &Gpu,
         vol: Arc<Volume>,
@@ -278,15 +280,33 @@ impl FrameLoop {
             r => return r,
         };
         // the failed set-up is dropped: its memory is free for the tries
-        let fits = downsample_estimate(&vol, &m).and_then(|first| {
-            (first..=(first + FIT_TRIES - 1).min(MAX_DOWNSAMPLE))
-                .find(|&n| setup(Arc::new(vol.downsample(n)), false).is_ok())
+        let fitted = downsample_estimate(&vol, &m).and_then(|first| {
+            (first..=(first + FIT_TRIES - 1).min(MAX_DOWNSAMPLE)).find_map(|n| {
+                let coarse = Arc::new(vol.downsample(n));
+                setup(coarse.clone(), show_progress)
+                    .ok()
+                    .map(|fl| (coarse, fl))
+            })
         });
-        Err(fit_advice(
-            &vol,
-            AppError::Gpu(GpuError::OutOfMemory(m)),
-            fits,
-        ))
+        match fitted {
+            Some((coarse, fl)) => {
+                let [x, y, z] = vol.dims;
+                let [cx, cy, cz] = coarse.dims;
+                eprintln!(
+                    "volume {} ({x} x {y} x {z}) does not fit beside everything else on the GPU: \
+                     {m}; shown downsampled by {} ({cx} x {cy} x {cz}, {}), the finest that fits",
+                    vol.name,
+                    coarse.downsampled_by(),
+                    coarse.name
+                );
+                Ok(fl)
+            }
+            None => Err(fit_advice(
+                &vol,
+                AppError::Gpu(GpuError::OutOfMemory(m)),
+                None,
+            )),
+        }
     }
 
     fn build(

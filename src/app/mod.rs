@@ -70,7 +70,8 @@ pub fn render_to_dir(
     fl.show_overlay = false;
     fl.markups = spec.markups.clone();
     fl.scene.tools = tools.to_vec();
-    let views = default_stereo_views(vol, &fl.scene.volume, DEFAULT_IPD);
+    // Framed on the volume shown (downsampled where the full one did not fit).
+    let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
     let frame = fl.frame(&FrameInput::without_hands(0.0, views))?;
     if let Some(w) = fl.margin_warning(&frame.stats.margins) {
         println!("{w}");
