@@ -38,6 +38,8 @@ if command -v rustup >/dev/null 2>&1; then
 fi
 cargo fmt --check
 cargo clippy --all-targets -- -D warnings
+# The API docs build without a broken link.
+RUSTDOCFLAGS="-D warnings" cargo doc --no-deps --lib
 # The OpenXR test (tests/integration/xr.rs) runs against Monado in a Debian trixie root, built once and
 # cached (scripts/xr-root.sh); without it that test fails with the reason rather than skipping.
 scripts/xr-root.sh >/dev/null || echo "test.sh: the Monado test root could not be built; tests/integration/xr.rs will fail" >&2

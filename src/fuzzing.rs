@@ -5,7 +5,7 @@
 //! Each takes arbitrary bytes, runs the real parser, and checks what a parser of untrusted input
 //! promises: it returns (never panics), and what it accepts is whole and consistent (a volume's
 //! voxel count matches its sizes and every value is finite; a transfer function evaluates to
-//! colours and opacities in [0,1]). A broken promise panics, which the fuzzer reports.
+//! colours and opacities in \[0,1]). A broken promise panics, which the fuzzer reports.
 
 use crate::clip::TriMesh;
 use crate::light::EquirectImage;

@@ -143,7 +143,7 @@ impl Default for Placement {
     }
 }
 
-/// The model matrix taking volume texture coordinates [0,1]^3 (tex = index / dims) to the world.
+/// The model matrix taking volume texture coordinates \[0,1]^3 (tex = index / dims) to the world.
 pub fn world_from_tex(vol: &Volume, placement: &Placement) -> Mat4 {
     let ext = vol.extent_mm();
     let axes_from_tex = DMat4::from_scale(ext) * DMat4::from_translation(DVec3::splat(-0.5));

@@ -124,7 +124,7 @@ pub struct Cao {
     /// Where the last recorded frame may have changed V_AO (and the bleeding colour): its
     /// restore and tool boxes, merged (no two overlap). What the textures copy: the first frame
     /// after [`Cao::set_method`] or [`Cao::replace_precomputed`] restores, and so copies, the
-    /// whole volume, and so does a new state's first frame ([`Cao::unshown`]).
+    /// whole volume, and so does a new state's first frame (`Cao::unshown`).
     pub changed: Vec<VoxelBox>,
     /// V_AO holds values no texture was given yet (a new state's V_PAO): the next frame's
     /// changed box is the whole volume.
@@ -329,8 +329,8 @@ impl Cao {
         Ok(())
     }
 
-    /// Where voxel v of O_c lies: [`Cao::clipped`][0] + v.x + [1] v.y + [2] v.z, inside LAO's
-    /// zero border while the method is LAO; [3] is 1 where O and O_c are f32 (the filters'
+    /// Where voxel v of O_c lies: [`Cao::clipped`] at \[0] + v.x + \[1] v.y + \[2] v.z, inside LAO's
+    /// zero border while the method is LAO; \[3] is 1 where O and O_c are f32 (the filters'
     /// density, whose gradients 16 bits would coarsen), 0 where they are 16-bit.
     pub fn clipped_stride(&self) -> [i32; 4] {
         self.method.clipped_stride(self.dims)
@@ -681,7 +681,7 @@ impl Cao {
     /// The frame's tool table, maps, counters and timer are the next of
     /// [`MAX_FRAMES_IN_FLIGHT`] slots: the frame recorded that many frames ago must have
     /// finished. The device-side state (O_c, the mask, V_AO) is one copy, so `cmd` must order
-    /// this frame after the one before (a barrier first: [`Gpu::barrier`]).
+    /// this frame after the one before (a barrier first: `Gpu::barrier`).
     pub fn record_frame(
         &mut self,
         cmd: vk::CommandBuffer,

@@ -151,8 +151,8 @@ impl MethodGpu {
         matches!(self, MethodGpu::Filter(_))
     }
 
-    /// Where voxel v of O_c lies for this method: [0] + v.x + [1] v.y + [2] v.z (inside LAO's
-    /// zero border for LAO); [3] is 1 where O_c is f32 ([`MethodGpu::float_density`]).
+    /// Where voxel v of O_c lies for this method: \[0] + v.x + \[1] v.y + \[2] v.z (inside LAO's
+    /// zero border for LAO); \[3] is 1 where O_c is f32 ([`MethodGpu::float_density`]).
     pub fn clipped_stride(&self, dims: [usize; 3]) -> [i32; 4] {
         let [x, y, z, _] = match self {
             MethodGpu::Lao(l) => l.stride(),

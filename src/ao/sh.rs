@@ -572,7 +572,7 @@ impl ShVolume {
     }
 
     /// Records the whole pyramid of `opacity` (O or O_c at full resolution), whose voxel v lies
-    /// at `stride`[0] + v.x + `stride`[1] v.y + `stride`[2] v.z; `stride`[3] 1: f32, 0: 16-bit
+    /// at `stride`\[0] + v.x + `stride`\[1] v.y + `stride`\[2] v.z; `stride`\[3] 1: f32, 0: 16-bit
     /// ([`Cao::clipped_stride`]).
     pub fn record_pyramid(&self, cmd: vk::CommandBuffer, opacity: &Buffer, stride: [i32; 4]) {
         let offsets = self.grid.offsets();

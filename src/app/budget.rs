@@ -39,7 +39,7 @@ impl FrameBudget {
 
     /// Whether the frames to come are foveated: on once a frame is over budget at the longest
     /// step, off again once one at the configured step would fit without it (it is taken to
-    /// have saved [`FOVEATION_GAIN`]), so that it does not flicker on and off.
+    /// have saved `FOVEATION_GAIN`), so that it does not flicker on and off.
     pub fn foveate(&self) -> bool {
         self.foveate
     }
@@ -52,7 +52,7 @@ impl FrameBudget {
     /// Takes one frame's GPU times, the ray cast and everything else, and returns the step
     /// factor for the frames to come: the one at which the ray cast fits the room the rest
     /// leaves (at least a tenth of the target), approached halfway (in ratio) per frame, and
-    /// only when the frame is more than [`DEADBAND`] off.
+    /// only when the frame is more than `DEADBAND` off.
     pub fn observe(&mut self, ray_ms: f64, other_ms: f64) -> f64 {
         if !(ray_ms > 0.0 && other_ms >= 0.0 && self.target_ms > 0.0) {
             return self.factor;

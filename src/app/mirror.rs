@@ -14,7 +14,7 @@ use winit::window::{Window, WindowId};
 
 /// A desktop window that shows the left eye of frames another loop rendered (`cao-xr xr
 /// --mirror`). That loop is not a winit event loop, so the window's events are pumped once per
-/// frame ([`Mirror::show`]); closing the window ends the mirror, not the session.
+/// frame (`Mirror::show`); closing the window ends the mirror, not the session.
 pub struct Mirror {
     event_loop: EventLoop<()>,
     state: MirrorWindow,
@@ -31,7 +31,7 @@ struct MirrorWindow {
 }
 
 impl Mirror {
-    /// Connects to the display; the window opens on the first [`Mirror::show`]. `gpu` must have
+    /// Connects to the display; the window opens on the first `Mirror::show`. `gpu` must have
     /// been created with [`crate::gpu::GpuOptions::present`].
     pub fn new(gpu: &Gpu, size: (u32, u32)) -> Result<Mirror> {
         let event_loop = EventLoop::new().map_err(|e| {

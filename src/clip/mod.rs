@@ -22,7 +22,7 @@ use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-/// A clipping tool's shape, in tool-local metres scaled by [`Tool::size`] (unit size = 1):
+/// A clipping tool's shape, in tool-local metres scaled by `Tool::size` (unit size = 1):
 /// sphere of radius 1, cube of half-edge 1, cylinder of radius 1 and half-height 1 along local Z,
 /// torus of major radius 1 and minor radius [`TORUS_MINOR`] around local Z, or a loaded mesh.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]

@@ -66,7 +66,7 @@ impl From<vk::Result> for GpuError {
 }
 
 /// Seconds a wait for the GPU may last before it is reported as [`GpuError::Stalled`]
-/// ([`Gpu::wait_fences`]); unset: 60 s on a GPU (drivers reset a hung GPU well within), 30 min on
+/// (`Gpu::wait_fences`); unset: 60 s on a GPU (drivers reset a hung GPU well within), 30 min on
 /// a CPU device (where one submission of a large volume's precompute takes minutes).
 pub const GPU_TIMEOUT_ENV: &str = "CAO_XR_GPU_TIMEOUT_S";
 
@@ -649,7 +649,7 @@ impl Core {
         self.memory.lock().map_or(0, |m| m.peak)
     }
 
-    /// Starts [`Gpu::memory_peak`] again from what is held now (a benchmark measures one set-up
+    /// Starts `Gpu::memory_peak` again from what is held now (a benchmark measures one set-up
     /// after another).
     pub fn reset_memory_peak(&self) {
         if let Ok(mut m) = self.memory.lock() {
@@ -740,7 +740,7 @@ impl Core {
         self.device_type == vk::PhysicalDeviceType::CPU
     }
 
-    /// How long [`Gpu::wait_fences`] waits ([`GPU_TIMEOUT_ENV`]).
+    /// How long `Gpu::wait_fences` waits ([`GPU_TIMEOUT_ENV`]).
     pub fn timeout(&self) -> std::time::Duration {
         let default = if self.is_cpu() { 1800.0 } else { 60.0 };
         let s = std::env::var(GPU_TIMEOUT_ENV)
@@ -751,13 +751,13 @@ impl Core {
         std::time::Duration::from_secs_f64(s)
     }
 
-    /// Waits for all of `fences`, within [`Gpu::timeout`]: a device that stops answering is an
+    /// Waits for all of `fences`, within `Gpu::timeout`: a device that stops answering is an
     /// error ([`GpuError::Stalled`], [`GpuError::DeviceLost`]), not a silent freeze.
     pub fn wait_fences(&self, fences: &[vk::Fence]) -> Result<()> {
         self.wait_fences_within(fences, self.timeout())
     }
 
-    /// [`Gpu::wait_fences`] with the bound given.
+    /// `Gpu::wait_fences` with the bound given.
     pub fn wait_fences_within(
         &self,
         fences: &[vk::Fence],

@@ -915,7 +915,7 @@ pub struct EyeSlot<'a> {
     pub after_eye: &'a mut dyn FnMut(vk::CommandBuffer, usize),
 }
 
-/// Both eyes on the host: RGBA8 (alpha = accumulated opacity) and depth in [0,1], rows top-down.
+/// Both eyes on the host: RGBA8 (alpha = accumulated opacity) and depth in \[0,1], rows top-down.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StereoImage {
     pub width: u32,
@@ -1033,7 +1033,7 @@ pub struct Renderer {
     no_coarse: Image,
 }
 
-/// What one stereo frame looks at: both views, the volume's model matrix ([`world_from_tex`])
+/// What one stereo frame looks at: both views, the volume's model matrix (`world_from_tex`)
 /// and the tools that clip it.
 #[derive(Clone, Copy)]
 pub struct FrameViews<'a> {

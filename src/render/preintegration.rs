@@ -34,7 +34,7 @@ pub fn table(lut: &[[f32; 4]], step_mm: f32, size: usize) -> Vec<[f32; 4]> {
 /// opacity in front of it, from 0 at the front sample to 1 at the back (0.5 where the step adds
 /// nothing). With T(x) the transmittance from the front to x, that density is -T'(x) / alpha,
 /// so the mean is (integral_0^1 T dx - T(1)) / (1 - T(1)); T comes from the prefix integral of
-/// the extinction, exact at every point, and the integral takes [`POSITION_STEPS`] trapezoids.
+/// the extinction, exact at every point, and the integral takes `POSITION_STEPS` trapezoids.
 /// The ray caster shades the step there (gradient, AO, SH): at the surface a sharp TF puts
 /// inside the step, rather than at its middle.
 pub fn tables(lut: &[[f32; 4]], step_mm: f32, size: usize) -> (Vec<[f32; 4]>, Vec<f32>) {

@@ -10,7 +10,7 @@ use super::overlay::{OverlayItem, OverlayMesh};
 use crate::space::Pose;
 use glam::{Mat4, Vec3};
 
-/// The first and last character with a glyph; anything else is drawn as [`FALLBACK`].
+/// The first and last character with a glyph; anything else is drawn as `FALLBACK`.
 pub const FIRST: u8 = b' ';
 pub const LAST: u8 = b'~';
 const FALLBACK: u8 = b'?';

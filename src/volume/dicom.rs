@@ -99,7 +99,7 @@ pub struct Series {
     pub description: String,
     pub number: Option<i64>,
     /// (t, P): volume t (1-based) of a series that holds P volumes at the same positions
-    /// (cardiac phases, time points, echoes), split by [`split_phases`].
+    /// (cardiac phases, time points, echoes), split by `split_phases`.
     pub phase: Option<(usize, usize)>,
     slices: Vec<Slice>,
 }

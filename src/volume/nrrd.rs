@@ -782,7 +782,7 @@ pub fn write(path: &Path, grid: &Grid, data: NrrdData, gzip: bool) -> Result<(),
     write_components(path, 1, grid, data, gzip)
 }
 
-/// [`write`] for an RGB volume: `data` holds r, g, b per voxel (x fastest after the colour),
+/// [`write()`] for an RGB volume: `data` holds r, g, b per voxel (x fastest after the colour),
 /// written as a 4-D NRRD whose first axis is "RGB-color" (as Slicer and teem read it).
 pub fn write_rgb(path: &Path, grid: &Grid, data: &[f32]) -> Result<(), VolumeError> {
     let dims = grid.dims;
@@ -887,7 +887,7 @@ fn write_components(
     })
 }
 
-/// Writes `vol` with [`write`].
+/// Writes `vol` with [`write()`].
 pub fn write_volume(path: &Path, vol: &Volume, gzip: bool) -> Result<(), VolumeError> {
     let data = match &vol.voxels {
         Voxels::U8(v) => NrrdData::U8(v),

@@ -19,9 +19,9 @@ pub enum Domain {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ControlPoint {
     pub value: f32,
-    /// Linear RGB in [0,1].
+    /// Linear RGB in \[0,1].
     pub color: [f32; 3],
-    /// Opacity per 1 mm of path, in [0,1].
+    /// Opacity per 1 mm of path, in \[0,1].
     pub alpha: f32,
 }
 
