@@ -110,6 +110,30 @@ fn find_file(dir: &Path, name: &str, depth: usize) -> Option<PathBuf> {
     None
 }
 
+/// Removes the working folders (`.fetch-PID-STAMP`) of fetches whose process is gone (killed or
+/// interrupted: their own clean-up never ran). Only where /proc tells which processes live.
+fn remove_abandoned_fetches(cache: &Path) {
+    if !Path::new("/proc/self").exists() {
+        return;
+    }
+    let Ok(entries) = fs::read_dir(cache) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let pid = name
+            .to_str()
+            .and_then(|n| n.strip_prefix(".fetch-"))
+            .and_then(|rest| rest.split('-').next())
+            .and_then(|pid| pid.parse::<u32>().ok());
+        if let Some(pid) = pid {
+            if !Path::new(&format!("/proc/{pid}")).exists() {
+                let _ = fs::remove_dir_all(e.path());
+            }
+        }
+    }
+}
+
 /// Downloads the Debian package `invesalius-examples` with `apt-get download`, extracts the
 /// Cranium CT, converts it and writes it (gzip NRRD) to [`cached_path`]. Returns that path.
 /// `progress` receives one short line per step.
@@ -117,6 +141,7 @@ pub fn fetch(progress: &mut dyn FnMut(&str)) -> Result<PathBuf, VolumeError> {
     let dest = cached_path();
     let cache = cache_dir();
     fs::create_dir_all(&cache).map_err(|e| VolumeError::io(&cache, e))?;
+    remove_abandoned_fetches(&cache);
     let stamp = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_nanos())
@@ -526,6 +551,22 @@ mod tests {
         );
         assert_eq!(v.get("e"), Some(&plist::Value::Other));
         assert!(plist::parse("<plist><dict><key>a</key>").is_err());
+    }
+
+    #[test]
+    fn abandoned_fetch_folders_go_and_live_ones_stay() {
+        let cache = std::env::temp_dir().join(format!("cao-fetches-{}", std::process::id()));
+        // A PID above the kernel's pid_max limit (4194304) names no process.
+        let dead = cache.join(".fetch-4194305-1");
+        let live = cache.join(format!(".fetch-{}-2", std::process::id()));
+        let other = cache.join("ct-head.nrrd.d");
+        for d in [&dead, &live, &other] {
+            fs::create_dir_all(d.join("pkg")).unwrap();
+        }
+        remove_abandoned_fetches(&cache);
+        assert!(!dead.exists(), "a dead fetch's folder stayed");
+        assert!(live.exists() && other.exists());
+        fs::remove_dir_all(&cache).unwrap();
     }
 
     #[test]
