@@ -31,7 +31,7 @@ layout(push_constant) uniform Push {
     ClippedF clipped_f_buf;
     ivec4 dims;      // w: 1 = some structure is protected
     ivec4 box_min;   // w: tool count
-    ivec4 box_max;   // exclusive
+    ivec4 box_max;   // exclusive; w: where the box's O starts in the frame's O, in voxels
     ivec4 stride;    // where voxel v of O_c lies: x + v.x + y v.y + z v.z (LAO's zero border);
                      // w: 1 = f32
 } pc;
@@ -71,6 +71,8 @@ bool spared(int i) {
     return ((protect_bits[id >> 5] >> (id & 31u)) & 1u) != 0u;
 }
 
+#include "box_opacity.glsl"
+
 void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
     if (any(greaterThanEqual(v, pc.box_max.xyz))) return;
@@ -88,7 +90,8 @@ void main() {
         affected += (r >> 1) & 1u;
     }
     bool f32 = pc.stride.w != 0;
-    float o = f32 ? opacity_f[i] : unorm16_value(uint(opacity[i]));
+    int oi = box_opacity_index(v);
+    float o = f32 ? opacity_f[oi] : unorm16_value(uint(opacity[oi]));
     bool whole = visible == 9u;
     float oc = whole ? o : 0.0;
     if (visible != 0u && !whole) {
@@ -104,7 +107,7 @@ void main() {
         clipped_f[at] = oc;
     } else {
         // Unclipped, O's own word; else O times the coverage, rounded.
-        clipped[at] = whole ? opacity[i] : uint16_t(unorm16_word(oc));
+        clipped[at] = whole ? opacity[oi] : uint16_t(unorm16_word(oc));
     }
     uint category = affected == 0u ? 2u : (visible > 0u ? 1u : 0u);
     mask_set(i, category);

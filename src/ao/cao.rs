@@ -79,7 +79,8 @@ crate::gpu::glsl_layout!(ClipToolGpu, 176,
     local_from_index: 0, local_from_world: 64, map: 128, offsets: 144, sh_map: 160);
 
 /// Push constants of cao_restore.comp and clip_mask.comp: a box, and where its voxels lie in
-/// O_c ([`Cao::clipped_stride`]).
+/// O_c ([`Cao::clipped_stride`]). `box_max[3]` is where the box's O starts in the frame's O
+/// (the box's voxels x fastest, [`Cao::stage_opacity`]), in voxels.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct ClipPush {
@@ -100,7 +101,10 @@ pub struct Cao {
     /// The volume's geometry (no voxels), for its model matrix.
     geometry: Volume,
     max_spacing_mm: f64,
-    opacity: Buffer,
+    /// O as the GPU stored it (16-bit words, or f32 for the filters' density), held on the
+    /// host: a frame's restore and clip passes read only their boxes' O, which each frame
+    /// stages ([`Cao::stage_opacity`]), so the GPU holds no whole O.
+    opacity: Vec<u8>,
     /// O_c: the anti-aliased clipped opacity, laid out as the method reads it
     /// ([`MethodGpu::clipped_stride`]: for LAO inside the zero border its kernel reads, which
     /// stays 0). Stored in 16 bits ([`super::stored`]), but for the filters' f32 density.
@@ -185,7 +189,8 @@ fn label_buffers(gpu: &Gpu, vol: &Volume) -> Result<(Buffer, Buffer, bool)> {
 }
 
 impl Cao {
-    /// `opacity` is O (device buffer), `pao` its AO under `method` (V_PAO).
+    /// `opacity` is O (device buffer, read back and dropped: the host keeps it), `pao` its AO
+    /// under `method` (V_PAO).
     pub fn new(
         gpu: &Gpu,
         vol: &Volume,
@@ -193,8 +198,14 @@ impl Cao {
         pao: Buffer,
         method: MethodGpu,
     ) -> Result<Cao> {
-        // Before anything else is allocated: what only the precompute reads goes.
+        // Before anything else is allocated: what only the precompute reads goes, and so does
+        // O from the GPU.
         let method = method.for_update()?;
+        let opacity = {
+            let bytes = opacity.read_back()?;
+            drop(opacity);
+            bytes
+        };
         let (dims, spacing) = (vol.dims, vol.spacing);
         let geometry = vol.clone_geometry();
         let (labels, protect, any_protected) = label_buffers(gpu, vol)?;
@@ -296,8 +307,14 @@ impl Cao {
             })?;
         } else {
             // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere.
+            let o = Buffer::from_slice(
+                gpu,
+                &cao.opacity,
+                vk::BufferUsageFlags::STORAGE_BUFFER,
+                "cao-opacity-whole",
+            )?;
             cao.gpu
-                .submit_and_wait(|cmd| cao.record_restore(cmd, &[all], false))?;
+                .submit_and_wait(|cmd| cao.record_restore(cmd, &[all], false, &o, &[0]))?;
         }
         if cao.method.has_bleeding() {
             // The first frame's restore writes the local histograms' bleeding volume too.
@@ -323,7 +340,7 @@ impl Cao {
                 self.geometry.name, opacity.size, pao.size, self.dims
             )));
         }
-        self.opacity = opacity;
+        self.opacity = opacity.read_back()?;
         self.pao = pao;
         self.prev_boxes = vec![VoxelBox::whole(self.dims)];
         Ok(())
@@ -641,22 +658,30 @@ impl Cao {
         ]
     }
 
-    /// Puts the voxels of `boxes` in the background state: unclipped, or clipped away.
-    fn record_restore(&self, cmd: vk::CommandBuffer, boxes: &[VoxelBox], clipped: bool) {
-        for b in boxes {
+    /// Puts the voxels of `boxes` in the background state: unclipped, or clipped away. Box k's
+    /// O starts at voxel `at[k]` of `o` ([`Cao::stage_opacity`]).
+    fn record_restore(
+        &self,
+        cmd: vk::CommandBuffer,
+        boxes: &[VoxelBox],
+        clipped: bool,
+        o: &Buffer,
+        at: &[i32],
+    ) {
+        for (b, &at) in boxes.iter().zip(at) {
             let push = ClipPush {
                 dims: self.dims4(),
                 box_min: [b.min[0], b.min[1], b.min[2], clipped as i32],
-                box_max: [b.max[0], b.max[1], b.max[2], 0],
+                box_max: [b.max[0], b.max[1], b.max[2], at],
                 stride: self.clipped_stride(),
             };
             let bufs = [
-                &self.opacity,
+                o,
                 &self.clipped,
                 &self.mask,
                 &self.pao,
                 &self.ao,
-                &self.opacity,
+                o,
                 &self.clipped,
             ];
             self.restore.bind(cmd, &bufs, bytemuck::bytes_of(&push));
@@ -730,7 +755,12 @@ impl Cao {
             }
         }
         slot.timer.begin(cmd);
-        self.record_restore(cmd, &restore, clipped);
+        let at = self.stage_opacity(&restore, &boxes)?;
+        let o = self.slots[self.slot]
+            .opacity
+            .as_ref()
+            .expect("staged above");
+        self.record_restore(cmd, &restore, clipped, o, &at[..restore.len()]);
         let bufs = MethodBuffers {
             density: &self.clipped,
             mask: &self.mask,
@@ -744,16 +774,17 @@ impl Cao {
         self.slots[self.slot].timer.mark(cmd, "restore");
         let slot = &self.slots[self.slot];
         let (tools, maps, _) = slot.clip_buffers();
-        for b in &boxes {
+        let o = slot.opacity.as_ref().expect("staged above");
+        for (b, &at) in boxes.iter().zip(&at[restore.len()..]) {
             let [x, y, z, _] = self.dims4();
             let push = ClipPush {
                 dims: [x, y, z, self.any_protected as i32],
                 box_min: [b.min[0], b.min[1], b.min[2], count as i32],
-                box_max: [b.max[0], b.max[1], b.max[2], 0],
+                box_max: [b.max[0], b.max[1], b.max[2], at],
                 stride: self.clipped_stride(),
             };
             let bufs = [
-                &self.opacity,
+                o,
                 &self.clipped,
                 &self.mask,
                 tools,
@@ -761,7 +792,7 @@ impl Cao {
                 &slot.counts,
                 &self.labels,
                 &self.protect,
-                &self.opacity,
+                o,
                 &self.clipped,
             ];
             self.clip.bind(cmd, &bufs, bytemuck::bytes_of(&push));
@@ -790,7 +821,14 @@ impl Cao {
 
     /// Metrics of a recorded frame, after its command buffer finished (and before its slot
     /// is recorded again).
-    pub fn read_metrics(&self, pending: PendingFrame) -> Result<FrameMetrics> {
+    pub fn read_metrics(&mut self, pending: PendingFrame) -> Result<FrameMetrics> {
+        let n = self.dims.iter().product::<usize>() as u64;
+        let slot = &mut self.slots[pending.slot];
+        // The frame has finished: O staged for a whole-volume restore (a first frame, a switch)
+        // goes now, not when the slot comes round again.
+        if slot.opacity.as_ref().is_some_and(|o| o.size >= n) {
+            slot.opacity = None;
+        }
         let slot = &self.slots[pending.slot];
         let c: &[u32] = bytemuck::cast_slice(&slot.counts.mapped()?[..12]);
         let total = (self.dims[0] * self.dims[1] * self.dims[2]) as u64;
@@ -836,11 +874,69 @@ impl Cao {
         self.read_metrics(pending?)
     }
 
-    /// O, the unclipped opacity the precomputed volumes were computed from, and where its
-    /// voxels lie (in [`Cao::clipped_stride`]'s form: no border).
-    pub fn opacity(&self) -> (&Buffer, [i32; 4]) {
+    /// O, the unclipped opacity the precomputed volumes were computed from, uploaded whole
+    /// (host-visible: the GPU keeps no whole O), and where its voxels lie (in
+    /// [`Cao::clipped_stride`]'s form: no border).
+    pub fn opacity(&self) -> Result<(Buffer, [i32; 4])> {
         let [x, y, z, _] = LaoLayout::unpadded_stride(self.dims);
-        (&self.opacity, [x, y, z, self.method.float_density() as i32])
+        let o = Buffer::from_slice(
+            &self.gpu,
+            &self.opacity,
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "opacity",
+        )?;
+        Ok((o, [x, y, z, self.method.float_density() as i32]))
+    }
+
+    /// Stages this frame's O: the voxels of every box of `restore`, then of `boxes`, each x
+    /// fastest, into this frame slot's staging buffer (made anew where it is too small or more
+    /// than four times too large; dropped once a frame that staged a whole volume has finished,
+    /// [`Cao::read_metrics`]). Returns where each box starts, in voxels.
+    fn stage_opacity(&mut self, restore: &[VoxelBox], boxes: &[VoxelBox]) -> Result<Vec<i32>> {
+        let es = if self.method.float_density() { 4 } else { 2 };
+        let nx = self.dims[0];
+        let ny = self.dims[1];
+        let mut at = Vec::with_capacity(restore.len() + boxes.len());
+        let mut staged: Vec<u8> = Vec::new();
+        for b in restore.iter().chain(boxes) {
+            let start = staged.len() / es;
+            at.push(i32::try_from(start).map_err(|_| {
+                GpuError::Other(format!(
+                    "{}: a frame's boxes hold more than 2^31 voxels",
+                    self.geometry.name
+                ))
+            })?);
+            let [x0, y0, z0] = b.min.map(|v| v as usize);
+            let [x1, y1, z1] = b.max.map(|v| v as usize);
+            for z in z0..z1 {
+                for y in y0..y1 {
+                    let row = (x0 + nx * (y + ny * z)) * es;
+                    staged.extend_from_slice(&self.opacity[row..row + (x1 - x0) * es]);
+                }
+            }
+        }
+        let gpu = self.gpu.clone();
+        let slot = &mut self.slots[self.slot];
+        let need = (staged.len() as u64).max(4);
+        if slot
+            .opacity
+            .as_ref()
+            .is_none_or(|b| b.size < need || b.size > 4 * need.max(1 << 20))
+        {
+            // A power of two: boxes that change size frame by frame do not make it anew (nor
+            // let the GPU's holdings creep).
+            slot.opacity = Some(Buffer::new(
+                &gpu,
+                need.next_power_of_two().max(1 << 16),
+                vk::BufferUsageFlags::STORAGE_BUFFER,
+                MemoryLocation::CpuToGpu,
+                "cao-opacity-boxes",
+            )?);
+        }
+        if let Some(o) = slot.opacity.as_mut() {
+            o.write(0, &staged)?;
+        }
+        Ok(at)
     }
 
     /// The last frame's voxel categories read back, one per voxel (0: clipped, 1: affected,
@@ -873,6 +969,8 @@ struct FrameSlot {
     /// The ray caster's clip state per brick ([`bricks::classify`]).
     bricks: Buffer,
     counts: Buffer,
+    /// This frame's O, box by box ([`Cao::stage_opacity`]).
+    opacity: Option<Buffer>,
     timer: GpuTimer,
 }
 
@@ -902,6 +1000,7 @@ impl FrameSlot {
                 MemoryLocation::GpuToCpu,
                 "cao-counts",
             )?,
+            opacity: None,
             timer: GpuTimer::new(gpu, 8)?,
         })
     }

@@ -464,7 +464,7 @@ fn gpu_report(vol: &Volume) -> String {
 }
 
 /// The volumes the GPU holds for `vol` under `method` (LAO with `lao`'s reach), in bytes per
-/// voxel by name: what every method holds (the scalar image, O, O_c, CAO's mask, V_PAO, V_AO
+/// voxel by name: what every method holds (the scalar image, O_c, CAO's mask, V_PAO, V_AO
 /// (which the ray caster reads itself), and with labels their ids and the margins' glow) and the method's own. A frame's images
 /// and tables and the staging copies while loading come on top (the peak `render` prints).
 pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'static str, f64)> {
@@ -490,14 +490,14 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
     match method {
         AoMethod::Lao => {
             let layout = crate::ao::lao::LaoLayout::new(lao, vol.spacing, vol.dims);
-            // O_c inside LAO's zero border; the other methods hold it without one.
-            v.push(("O", 2.0));
+            // O_c inside LAO's zero border; the other methods hold it without one. (O is
+            // the host's: a frame stages only its boxes'.)
             v.push(("O_c (padded)", 2.0 * layout.padded_len() as f64 / n));
             v.push(("clear bits", 1.0 / 8.0));
         }
-        AoMethod::Filter(_) => v.extend([("O", 4.0), ("O_c", 4.0), ("box statistics", 32.0)]),
+        AoMethod::Filter(_) => v.extend([("O_c", 4.0), ("box statistics", 32.0)]),
         AoMethod::Histogram(h) => {
-            v.extend([("O", 2.0), ("O_c", 2.0)]);
+            v.push(("O_c", 2.0));
             v.push(("bins", 4.0));
             v.push(("E (precomputed, current)", 8.0));
             if h.clusters > 0 {

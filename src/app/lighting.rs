@@ -207,7 +207,8 @@ impl ShLighting {
         let mut volume = ShVolume::new(gpu, vol, opts.sh)?;
         let slices = volume.grid.dims[2] as u64;
         let bar = show_progress.then(|| progress_bar(slices, "SH visibility"));
-        volume.precompute(cao.opacity(), &mut |done, _| {
+        let (o, stride) = cao.opacity()?;
+        volume.precompute((&o, stride), &mut |done, _| {
             if let Some(b) = &bar {
                 b.set_position(done as u64)
             }

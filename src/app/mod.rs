@@ -73,6 +73,12 @@ pub fn render_to_dir(
     // Framed on the volume shown (downsampled where the full one did not fit).
     let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
     let frame = fl.frame(&FrameInput::without_hands(0.0, views))?;
+    // What the frame loop holds once set up (the peak, printed by the caller, may be a
+    // precompute's).
+    println!(
+        "GPU memory held after the frame: {:.1} bytes per voxel",
+        gpu.memory_in_use() as f64 / fl.volume().voxel_count().max(1) as f64
+    );
     if let Some(w) = fl.margin_warning(&frame.stats.margins) {
         println!("{w}");
     }

@@ -27,9 +27,11 @@ impl Buffer {
     ) -> Result<Buffer> {
         // Every storage buffer can be reached by address: that is how the volume passes read
         // buffers past `maxStorageBufferRange`, which limits a descriptor, not a buffer.
+        // And read back (the CAO state keeps O on the host, read back from whichever pass
+        // made it).
         let by_address = usage.contains(vk::BufferUsageFlags::STORAGE_BUFFER);
         let usage = if by_address {
-            usage | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS
+            usage | vk::BufferUsageFlags::SHADER_DEVICE_ADDRESS | vk::BufferUsageFlags::TRANSFER_SRC
         } else {
             usage
         };
