@@ -51,7 +51,9 @@ pub struct ScaleRow {
 pub struct MethodRow {
     pub method: String,
     pub precompute_s: f64,
+    /// GPU bytes per voxel at peak (set-up included) and held while the tool carves.
     pub gpu_bytes_per_voxel: f64,
+    pub gpu_held_bytes_per_voxel: f64,
     pub peak_rss: u64,
     /// Median GPU ms of restore + clip + update with the tool fixed, and of each.
     pub cao_ms: f64,
@@ -89,14 +91,15 @@ pub fn bench_scale(gpu: &Gpu, opts: &ScaleOptions, dir: &std::path::Path) -> Res
         opts.frames,
     );
     println!(
-        "{:<14} {:>8} {:>7} {:>9} {:<14} {:>10} {:>9} {:>8} {:>9} {:>10} {:>9}",
+        "{:<14} {:>8} {:>7} {:>9} {:<14} {:>10} {:>9} {:>9} {:>8} {:>9} {:>10} {:>9}",
         "volume",
         "Mvoxels",
         "load s",
         "first s",
         "method",
         "precomp s",
-        "GPU B/vx",
+        "peak B/vx",
+        "held B/vx",
         "RSS GiB",
         "CAO ms",
         "recomputed",
@@ -141,6 +144,7 @@ pub fn bench_scale(gpu: &Gpu, opts: &ScaleOptions, dir: &std::path::Path) -> Res
                 method: method.name(),
                 precompute_s,
                 gpu_bytes_per_voxel: gpu.memory_peak() as f64 / vol.voxel_count() as f64,
+                gpu_held_bytes_per_voxel: gpu.memory_in_use() as f64 / vol.voxel_count() as f64,
                 peak_rss: peak_rss_bytes(),
                 cao_ms: p.ao(),
                 cao_passes_ms: [p.restore, p.clip, p.update],
@@ -149,7 +153,7 @@ pub fn bench_scale(gpu: &Gpu, opts: &ScaleOptions, dir: &std::path::Path) -> Res
             };
             let first = row.methods.is_empty();
             println!(
-                "{:<14} {:>8} {:>7} {:>9} {:<14} {:>10.1} {:>9.1} {:>8.2} {:>9.1} {:>10} {:>9.0}",
+                "{:<14} {:>8} {:>7} {:>9} {:<14} {:>10.1} {:>9.1} {:>9.1} {:>8.2} {:>9.1} {:>10} {:>9.0}",
                 if first {
                     format!("{}x{}x{}", dims[0], dims[1], dims[2])
                 } else {
@@ -173,6 +177,7 @@ pub fn bench_scale(gpu: &Gpu, opts: &ScaleOptions, dir: &std::path::Path) -> Res
                 m.method,
                 m.precompute_s,
                 m.gpu_bytes_per_voxel,
+                m.gpu_held_bytes_per_voxel,
                 m.peak_rss as f64 / (1u64 << 30) as f64,
                 m.cao_ms,
                 m.voxels_recomputed,
