@@ -30,7 +30,8 @@ layout(push_constant) uniform Push {
     uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;
     ivec4 box_min;   // w: 1 = clipped away
-    ivec4 box_max;   // exclusive; w: where the box's O starts in the frame's O, in voxels
+    ivec4 box_max;   // exclusive; w: where the box's O and V_PAO start in the frame's staged
+                     // boxes, in voxels
     ivec4 stride;    // where voxel v of O_c lies: x + v.x + y v.y + z v.z (LAO's zero border);
                      // w: 1 = f32
 } pc;
@@ -44,7 +45,7 @@ layout(push_constant) uniform Push {
 #define opacity_f pc.opacity_f_buf.opacity_f
 #define clipped_f pc.clipped_f_buf.clipped_f
 
-#include "box_opacity.glsl"
+#include "staged.glsl"
 
 void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
@@ -52,12 +53,12 @@ void main() {
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
     bool away = pc.box_min.w != 0;
     int c = pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z;
-    int o = box_opacity_index(v);
+    int o = staged_index(v);
     if (pc.stride.w != 0) {
         clipped_f[c] = away ? 0.0 : opacity_f[o];
     } else {
         clipped[c] = away ? uint16_t(0) : opacity[o];
     }
     mask_set(i, away ? 0u : 2u);
-    ao[i] = away ? uint16_t(AO_OPEN) : pao[i];
+    ao[i] = away ? uint16_t(AO_OPEN) : pao[o];
 }

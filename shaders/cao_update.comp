@@ -1,7 +1,7 @@
 #version 460
 #extension GL_EXT_buffer_reference : require
 // CAO per frame, step 2: the AO of every voxel of a box from its category: a (clipped) -> 1,
-// c (unaffected) -> the precomputed V_PAO, b -> LAO recomputed on the clipped opacity O_c.
+// c (unaffected) -> the precomputed V_PAO (staged with the box), b -> LAO recomputed on the clipped opacity O_c.
 // With `naive` set, c voxels are recomputed too (the full-LAO baseline).
 #extension GL_GOOGLE_include_directive : require
 #include "unorm16.glsl"
@@ -35,7 +35,7 @@ layout(push_constant) uniform Push {
     float exponent;
     uint naive;
     ivec4 box_min;
-    ivec4 box_max;   // exclusive
+    ivec4 box_max;   // exclusive; w: where the box's V_PAO starts in the staged boxes
 } pc;
 #define opacity pc.opacity_buf.opacity
 #define ao pc.ao_buf.ao
@@ -46,6 +46,7 @@ layout(push_constant) uniform Push {
 
 #include "opacity.glsl"
 #include "lao.glsl"
+#include "staged.glsl"
 
 void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
@@ -55,7 +56,7 @@ void main() {
     if (category == 0u) {
         ao[i] = uint16_t(AO_OPEN);
     } else if (category == 2u && pc.naive == 0u) {
-        ao[i] = pao[i];
+        ao[i] = pao[staged_index(v)];
     } else {
         // The clear mask comes from the unclipped O; clipping only lowers opacity, so it stays
         // exact for O_c.

@@ -71,7 +71,7 @@ bool spared(int i) {
     return ((protect_bits[id >> 5] >> (id & 31u)) & 1u) != 0u;
 }
 
-#include "box_opacity.glsl"
+#include "staged.glsl"
 
 void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
@@ -90,7 +90,7 @@ void main() {
         affected += (r >> 1) & 1u;
     }
     bool f32 = pc.stride.w != 0;
-    int oi = box_opacity_index(v);
+    int oi = staged_index(v);
     float o = f32 ? opacity_f[oi] : unorm16_value(uint(opacity[oi]));
     bool whole = visible == 9u;
     float oc = whole ? o : 0.0;

@@ -28,7 +28,7 @@ layout(push_constant) uniform Push {
     uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;      // w: estimator (0 cdf, 1 gauss, 2 penner, 3 exact)
     ivec4 box_min;   // w: mode (0: every voxel, no mask; 1: CAO by category; 2: naive, a -> 1)
-    ivec4 box_max;   // exclusive
+    ivec4 box_max;   // exclusive; w: where the box's V_PAO starts in `pre` (staged boxes)
     ivec4 hw;        // xyz: half-widths h_a; w: N = prod(2 h_a + 1)
     vec4 spacing;    // xyz: mm per voxel; w: R in mm
 } pc;
@@ -37,6 +37,7 @@ layout(push_constant) uniform Push {
 #define mask pc.mask_buf.mask
 #include "mask.glsl"
 #define pre pc.pre_buf.pre
+#include "staged.glsl"
 
 float d_at(ivec3 p) {
     if (any(lessThan(p, ivec3(0))) || any(greaterThanEqual(p, pc.dims.xyz))) return 0.0;
@@ -106,7 +107,7 @@ void main() {
     if (category == 0u) {
         ao[i] = uint16_t(AO_OPEN);
     } else if (category == 2u && mode == 1) {
-        ao[i] = pre[i];
+        ao[i] = pre[staged_index(v)];
     } else {
         ao[i] = uint16_t(unorm16_word(openness(v, density[i])));
     }

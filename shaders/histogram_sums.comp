@@ -41,7 +41,7 @@ layout(push_constant) uniform Push {
     ivec4 dims;     // w: number of neighbours
     ivec4 box_min;  // w: mode (0: direct sums, no mask; 1: CAO by category; 2: naive, a -> 1;
                     //          3: restore the precomputed values; 4: the clustered values)
-    ivec4 box_max;  // exclusive
+    ivec4 box_max;  // exclusive; w: where the box's V_PAO starts in pre_a (staged boxes)
     ivec4 reach;    // xyz: S_r's largest offset per axis
 } pc;
 #define q pc.q_buf.q
@@ -49,6 +49,7 @@ layout(push_constant) uniform Push {
 #define mask pc.mask_buf.mask
 #include "mask.glsl"
 #define pre_a pc.pre_a_buf.pre_a
+#include "staged.glsl"
 #define pre_e pc.pre_e_buf.pre_e
 #define out_a pc.out_a_buf.out_a
 #define out_e pc.out_e_buf.out_e
@@ -101,7 +102,7 @@ void main() {
     }
     uint category = mode == 0 ? 1u : mask_get(i);
     if (mode == 3 || (mode == 1 && category == 2u)) {
-        out_a[i] = pre_a[i];
+        out_a[i] = pre_a[staged_index(v)];
         out_e[i] = pre_e[i];
     } else if (category == 0u) {
         out_a[i] = uint16_t(AO_OPEN);

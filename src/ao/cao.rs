@@ -79,8 +79,8 @@ crate::gpu::glsl_layout!(ClipToolGpu, 176,
     local_from_index: 0, local_from_world: 64, map: 128, offsets: 144, sh_map: 160);
 
 /// Push constants of cao_restore.comp and clip_mask.comp: a box, and where its voxels lie in
-/// O_c ([`Cao::clipped_stride`]). `box_max[3]` is where the box's O starts in the frame's O
-/// (the box's voxels x fastest, [`Cao::stage_opacity`]), in voxels.
+/// O_c ([`Cao::clipped_stride`]). `box_max[3]` is where the box's O and V_PAO start in the
+/// frame's staged boxes (the box's voxels x fastest, [`Cao::stage`]), in voxels.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct ClipPush {
@@ -103,14 +103,16 @@ pub struct Cao {
     max_spacing_mm: f64,
     /// O as the GPU stored it (16-bit words, or f32 for the filters' density), held on the
     /// host: a frame's restore and clip passes read only their boxes' O, which each frame
-    /// stages ([`Cao::stage_opacity`]), so the GPU holds no whole O.
+    /// stages ([`Cao::stage`]), so the GPU holds no whole O.
     opacity: Vec<u8>,
     /// O_c: the anti-aliased clipped opacity, laid out as the method reads it
     /// ([`MethodGpu::clipped_stride`]: for LAO inside the zero border its kernel reads, which
     /// stays 0). Stored in 16 bits ([`super::stored`]), but for the filters' f32 density.
     clipped: Buffer,
     mask: Buffer,
-    pao: Buffer,
+    /// V_PAO's 16-bit words, held on the host like O: a frame's passes read it only in the
+    /// boxes they restore or update, staged with O ([`Cao::stage`]).
+    pao: Vec<u8>,
     /// V_AO: this frame's ambient occlusion.
     pub ao: Buffer,
     /// What the host writes or reads back per frame, one set per frame in flight, so the next
@@ -189,8 +191,8 @@ fn label_buffers(gpu: &Gpu, vol: &Volume) -> Result<(Buffer, Buffer, bool)> {
 }
 
 impl Cao {
-    /// `opacity` is O (device buffer, read back and dropped: the host keeps it), `pao` its AO
-    /// under `method` (V_PAO).
+    /// `opacity` is O and `pao` its AO under `method` (V_PAO): device buffers, read back and
+    /// dropped (the host keeps both).
     pub fn new(
         gpu: &Gpu,
         vol: &Volume,
@@ -206,6 +208,7 @@ impl Cao {
             drop(opacity);
             bytes
         };
+        let pao_words = pao.read_back()?;
         let (dims, spacing) = (vol.dims, vol.spacing);
         let geometry = vol.clone_geometry();
         let (labels, protect, any_protected) = label_buffers(gpu, vol)?;
@@ -256,7 +259,7 @@ impl Cao {
         let slots = (0..MAX_FRAMES_IN_FLIGHT)
             .map(|_| FrameSlot::new(gpu, dims))
             .collect::<Result<Vec<_>>>()?;
-        let mut cao = Cao {
+        let cao = Cao {
             gpu: gpu.clone(),
             restore,
             clip,
@@ -267,7 +270,7 @@ impl Cao {
             opacity,
             clipped,
             mask,
-            pao,
+            pao: pao_words,
             ao,
             slots,
             slot: 0,
@@ -303,22 +306,28 @@ impl Cao {
                 let region = vk::BufferCopy::default().size(cao.ao.size);
                 cao.gpu
                     .device
-                    .cmd_copy_buffer(cmd, cao.pao.raw, cao.ao.raw, &[region]);
+                    .cmd_copy_buffer(cmd, pao.raw, cao.ao.raw, &[region]);
             })?;
         } else {
-            // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere.
+            // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere (and
+            // the local histograms' bleeding volume its precomputed one), read from O and V_PAO
+            // whole (a whole box's voxels lie where the volume's do).
             let o = Buffer::from_slice(
                 gpu,
                 &cao.opacity,
                 vk::BufferUsageFlags::STORAGE_BUFFER,
                 "cao-opacity-whole",
             )?;
-            cao.gpu
-                .submit_and_wait(|cmd| cao.record_restore(cmd, &[all], false, &o, &[0]))?;
-        }
-        if cao.method.has_bleeding() {
-            // The first frame's restore writes the local histograms' bleeding volume too.
-            cao.prev_boxes = vec![all];
+            cao.gpu.submit_and_wait(|cmd| {
+                cao.record_restore(cmd, &[all], false, (&o, &pao), &[0]);
+                let bufs = MethodBuffers {
+                    density: &cao.clipped,
+                    mask: &cao.mask,
+                    pre_a: &pao,
+                    out_a: &cao.ao,
+                };
+                cao.method.record_restore(cmd, &bufs, &[all], &[0], false);
+            })?;
         }
         Ok(cao)
     }
@@ -341,7 +350,7 @@ impl Cao {
             )));
         }
         self.opacity = opacity.read_back()?;
-        self.pao = pao;
+        self.pao = pao.read_back()?;
         self.prev_boxes = vec![VoxelBox::whole(self.dims)];
         Ok(())
     }
@@ -659,13 +668,13 @@ impl Cao {
     }
 
     /// Puts the voxels of `boxes` in the background state: unclipped, or clipped away. Box k's
-    /// O starts at voxel `at[k]` of `o` ([`Cao::stage_opacity`]).
+    /// O and V_PAO start at voxel `at[k]` of `o` and `pao` ([`Cao::stage`]).
     fn record_restore(
         &self,
         cmd: vk::CommandBuffer,
         boxes: &[VoxelBox],
         clipped: bool,
-        o: &Buffer,
+        (o, pao): (&Buffer, &Buffer),
         at: &[i32],
     ) {
         for (b, &at) in boxes.iter().zip(at) {
@@ -679,7 +688,7 @@ impl Cao {
                 o,
                 &self.clipped,
                 &self.mask,
-                &self.pao,
+                pao,
                 &self.ao,
                 o,
                 &self.clipped,
@@ -755,27 +764,26 @@ impl Cao {
             }
         }
         slot.timer.begin(cmd);
-        let at = self.stage_opacity(&restore, &boxes)?;
-        let o = self.slots[self.slot]
-            .opacity
-            .as_ref()
-            .expect("staged above");
-        self.record_restore(cmd, &restore, clipped, o, &at[..restore.len()]);
+        // Held out of the slot while recording, and put back below.
+        let (staged, at) = self.stage(&restore, &boxes)?;
+        let (o, pao) = (&staged.opacity, &staged.pao);
+        let (at_restore, at_boxes) = at.split_at(restore.len());
+        self.record_restore(cmd, &restore, clipped, (o, pao), at_restore);
         let bufs = MethodBuffers {
             density: &self.clipped,
             mask: &self.mask,
-            pre_a: &self.pao,
+            pre_a: pao,
             out_a: &self.ao,
         };
         // The method's own restore (the local histograms' bleeding colour of last frame's
         // boxes, restored like V_AO).
-        self.method.record_restore(cmd, &bufs, &restore, clipped);
+        self.method
+            .record_restore(cmd, &bufs, &restore, at_restore, clipped);
         self.gpu.barrier(cmd);
         self.slots[self.slot].timer.mark(cmd, "restore");
         let slot = &self.slots[self.slot];
         let (tools, maps, _) = slot.clip_buffers();
-        let o = slot.opacity.as_ref().expect("staged above");
-        for (b, &at) in boxes.iter().zip(&at[restore.len()..]) {
+        for (b, &at) in boxes.iter().zip(at_boxes) {
             let [x, y, z, _] = self.dims4();
             let push = ClipPush {
                 dims: [x, y, z, self.any_protected as i32],
@@ -800,9 +808,11 @@ impl Cao {
         }
         self.gpu.barrier(cmd);
         self.slots[self.slot].timer.mark(cmd, "clip");
-        self.method.record_update(cmd, &bufs, &boxes, mode);
+        self.method
+            .record_update(cmd, &bufs, &boxes, at_boxes, mode);
         self.gpu.barrier(cmd);
         self.slots[self.slot].timer.mark(cmd, "update");
+        self.slots[self.slot].staged = Some(staged);
         let visited = boxes.iter().map(|b| b.voxels()).sum();
         let touched = restore.into_iter().chain(boxes.iter().copied());
         self.changed = if std::mem::take(&mut self.unshown) {
@@ -824,10 +834,10 @@ impl Cao {
     pub fn read_metrics(&mut self, pending: PendingFrame) -> Result<FrameMetrics> {
         let n = self.dims.iter().product::<usize>() as u64;
         let slot = &mut self.slots[pending.slot];
-        // The frame has finished: O staged for a whole-volume restore (a first frame, a switch)
-        // goes now, not when the slot comes round again.
-        if slot.opacity.as_ref().is_some_and(|o| o.size >= n) {
-            slot.opacity = None;
+        // The frame has finished: O and V_PAO staged for a whole-volume restore (a switch, a
+        // probe coming or going) go now, not when the slot comes round again.
+        if slot.staged.as_ref().is_some_and(|s| s.pao.size >= n) {
+            slot.staged = None;
         }
         let slot = &self.slots[pending.slot];
         let c: &[u32] = bytemuck::cast_slice(&slot.counts.mapped()?[..12]);
@@ -888,18 +898,20 @@ impl Cao {
         Ok((o, [x, y, z, self.method.float_density() as i32]))
     }
 
-    /// Stages this frame's O: the voxels of every box of `restore`, then of `boxes`, each x
-    /// fastest, into this frame slot's staging buffer (made anew where it is too small or more
-    /// than four times too large; dropped once a frame that staged a whole volume has finished,
-    /// [`Cao::read_metrics`]). Returns where each box starts, in voxels.
-    fn stage_opacity(&mut self, restore: &[VoxelBox], boxes: &[VoxelBox]) -> Result<Vec<i32>> {
+    /// Stages this frame's O and V_PAO: the voxels of every box of `restore`, then of `boxes`,
+    /// each x fastest, into this frame slot's staging buffers, taken out of the slot (each made
+    /// anew where it is too small or more than four times too large; dropped once a frame
+    /// that staged a whole volume has finished, [`Cao::read_metrics`]). Returns them and where
+    /// each box starts, in voxels.
+    fn stage(&mut self, restore: &[VoxelBox], boxes: &[VoxelBox]) -> Result<(Staged, Vec<i32>)> {
         let es = if self.method.float_density() { 4 } else { 2 };
+        let pes = super::stored::BYTES_PER_VOXEL as usize;
         let nx = self.dims[0];
         let ny = self.dims[1];
         let mut at = Vec::with_capacity(restore.len() + boxes.len());
-        let mut staged: Vec<u8> = Vec::new();
+        let (mut o, mut pao): (Vec<u8>, Vec<u8>) = (Vec::new(), Vec::new());
         for b in restore.iter().chain(boxes) {
-            let start = staged.len() / es;
+            let start = pao.len() / pes;
             at.push(i32::try_from(start).map_err(|_| {
                 GpuError::Other(format!(
                     "{}: a frame's boxes hold more than 2^31 voxels",
@@ -910,33 +922,19 @@ impl Cao {
             let [x1, y1, z1] = b.max.map(|v| v as usize);
             for z in z0..z1 {
                 for y in y0..y1 {
-                    let row = (x0 + nx * (y + ny * z)) * es;
-                    staged.extend_from_slice(&self.opacity[row..row + (x1 - x0) * es]);
+                    let row = x0 + nx * (y + ny * z);
+                    o.extend_from_slice(&self.opacity[row * es..(row + x1 - x0) * es]);
+                    pao.extend_from_slice(&self.pao[row * pes..(row + x1 - x0) * pes]);
                 }
             }
         }
-        let gpu = self.gpu.clone();
-        let slot = &mut self.slots[self.slot];
-        let need = (staged.len() as u64).max(4);
-        if slot
-            .opacity
-            .as_ref()
-            .is_none_or(|b| b.size < need || b.size > 4 * need.max(1 << 20))
-        {
-            // A power of two: boxes that change size frame by frame do not make it anew (nor
-            // let the GPU's holdings creep).
-            slot.opacity = Some(Buffer::new(
-                &gpu,
-                need.next_power_of_two().max(1 << 16),
-                vk::BufferUsageFlags::STORAGE_BUFFER,
-                MemoryLocation::CpuToGpu,
-                "cao-opacity-boxes",
-            )?);
-        }
-        if let Some(o) = slot.opacity.as_mut() {
-            o.write(0, &staged)?;
-        }
-        Ok(at)
+        let old = self.slots[self.slot].staged.take();
+        let (old_o, old_pao) = old.map_or((None, None), |s| (Some(s.opacity), Some(s.pao)));
+        let staged = Staged {
+            opacity: staging(&self.gpu, old_o, &o, "cao-opacity-boxes")?,
+            pao: staging(&self.gpu, old_pao, &pao, "cao-pao-boxes")?,
+        };
+        Ok((staged, at))
     }
 
     /// The last frame's voxel categories read back, one per voxel (0: clipped, 1: affected,
@@ -969,9 +967,34 @@ struct FrameSlot {
     /// The ray caster's clip state per brick ([`bricks::classify`]).
     bricks: Buffer,
     counts: Buffer,
-    /// This frame's O, box by box ([`Cao::stage_opacity`]).
-    opacity: Option<Buffer>,
+    /// This frame's O and V_PAO, box by box ([`Cao::stage`]).
+    staged: Option<Staged>,
     timer: GpuTimer,
+}
+
+/// A frame's O and V_PAO in its boxes ([`Cao::stage`]).
+struct Staged {
+    opacity: Buffer,
+    pao: Buffer,
+}
+
+/// `bytes` in a host-visible storage buffer: `old` where it fits, else one made anew. Its size
+/// is a power of two (at least 64 KiB), so boxes that change size frame by frame do not make
+/// it anew, nor let the GPU's holdings creep; one over four times too large goes.
+fn staging(gpu: &Gpu, old: Option<Buffer>, bytes: &[u8], name: &str) -> Result<Buffer> {
+    let need = (bytes.len() as u64).max(4);
+    let mut buf = match old {
+        Some(b) if b.size >= need && b.size <= 4 * need.max(1 << 20) => b,
+        _ => Buffer::new(
+            gpu,
+            need.next_power_of_two().max(1 << 16),
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            MemoryLocation::CpuToGpu,
+            name,
+        )?,
+    };
+    buf.write(0, bytes)?;
+    Ok(buf)
 }
 
 impl FrameSlot {
@@ -1000,7 +1023,7 @@ impl FrameSlot {
                 MemoryLocation::GpuToCpu,
                 "cao-counts",
             )?,
-            opacity: None,
+            staged: None,
             timer: GpuTimer::new(gpu, 8)?,
         })
     }

@@ -96,32 +96,34 @@ impl FilterGpu {
     }
 
     /// Records the openness of the voxels of `boxes` from `bufs.density` into `bufs.out_a`,
-    /// CAO's categories (`bufs.mask`, `bufs.pre_a`) as `mode` says.
+    /// CAO's categories (`bufs.mask`, `bufs.pre_a`) as `mode` says
+    /// ([`super::method::MethodGpu::record_update`]).
     pub fn record(
         &self,
         cmd: vk::CommandBuffer,
         bufs: &MethodBuffers,
         boxes: &[VoxelBox],
+        at: &[i32],
         mode: Mode,
     ) {
         let pass = match mode {
             Mode::Contextual => Pass::Contextual,
             Mode::Naive => Pass::Naive,
         };
-        self.dispatch(cmd, bufs, boxes, pass);
+        self.dispatch(cmd, bufs, (boxes, at), pass);
     }
 
     /// Records the openness of every voxel of the unclipped `density` into `out` (V_PAO).
     pub fn record_precompute(&self, cmd: vk::CommandBuffer, density: &Buffer, out: &Buffer) {
         let bufs = MethodBuffers::precompute(density, out);
-        self.dispatch(cmd, &bufs, &[VoxelBox::whole(self.dims)], Pass::All);
+        self.dispatch(cmd, &bufs, (&[VoxelBox::whole(self.dims)], &[0]), Pass::All);
     }
 
     fn dispatch(
         &self,
         cmd: vk::CommandBuffer,
         bufs: &MethodBuffers,
-        boxes: &[VoxelBox],
+        (boxes, at): (&[VoxelBox], &[i32]),
         mode: Pass,
     ) {
         let density = bufs.density;
@@ -156,11 +158,11 @@ impl FilterGpu {
             }
         }
         let n: usize = h.iter().map(|x| 2 * x + 1).product();
-        for b in boxes {
+        for (b, &at) in boxes.iter().zip(at) {
             let push = AoPush {
                 dims: self.dims4(self.params.estimator.code() as i32),
                 box_min: [b.min[0], b.min[1], b.min[2], mode as i32],
-                box_max: [b.max[0], b.max[1], b.max[2], 0],
+                box_max: [b.max[0], b.max[1], b.max[2], at],
                 hw: [h[0] as i32, h[1] as i32, h[2] as i32, n as i32],
                 spacing: [
                     self.spacing[0] as f32,

@@ -610,34 +610,38 @@ impl HistogramGpu {
             Pass::Direct
         };
         let bufs = MethodBuffers::precompute(q, pre_a);
-        self.dispatch(cmd, &bufs, &self.pre_e, &[VoxelBox::whole(self.dims)], mode);
+        let all = [VoxelBox::whole(self.dims)];
+        self.dispatch(cmd, &bufs, &self.pre_e, (&all, &[0]), mode);
     }
 
     /// Records this method's values for the voxels of `boxes` into `bufs.out_a` and
     /// [`HistogramGpu::e`], from the clipped q (`bufs.density`) and CAO's categories as `mode`
-    /// says.
+    /// says ([`super::method::MethodGpu::record_update`]).
     pub fn record(
         &self,
         cmd: vk::CommandBuffer,
         bufs: &MethodBuffers,
         boxes: &[VoxelBox],
+        at: &[i32],
         mode: Mode,
     ) {
         let pass = match mode {
             Mode::Contextual => Pass::Contextual,
             Mode::Naive => Pass::Naive,
         };
-        self.dispatch(cmd, bufs, &self.e, boxes, pass);
+        self.dispatch(cmd, bufs, &self.e, (boxes, at), pass);
     }
 
     /// Records the bleeding colour (and V_AO) of the voxels of `boxes` back to the background
     /// state, as CAO's restore leaves V_AO: the precomputed values, or while `clipped` (a probe
-    /// is active) those of category a, from the mask the restore just wrote.
+    /// is active) those of category a, from the mask the restore just wrote
+    /// ([`super::method::MethodGpu::record_restore`]).
     pub fn record_restore(
         &self,
         cmd: vk::CommandBuffer,
         bufs: &MethodBuffers,
         boxes: &[VoxelBox],
+        at: &[i32],
         clipped: bool,
     ) {
         if clipped {
@@ -648,7 +652,7 @@ impl HistogramGpu {
         } else {
             Pass::Restore
         };
-        self.dispatch(cmd, bufs, &self.e, boxes, pass);
+        self.dispatch(cmd, bufs, &self.e, (boxes, at), pass);
     }
 
     fn dispatch(
@@ -656,14 +660,14 @@ impl HistogramGpu {
         cmd: vk::CommandBuffer,
         bufs: &MethodBuffers,
         out_e: &Buffer,
-        boxes: &[VoxelBox],
+        (boxes, at): (&[VoxelBox], &[i32]),
         mode: Pass,
     ) {
-        for bx in boxes {
+        for (bx, &at) in boxes.iter().zip(at) {
             let push = SumsPush {
                 dims: self.dims4(self.nb.offsets.len() as i32),
                 box_min: [bx.min[0], bx.min[1], bx.min[2], mode as i32],
-                box_max: [bx.max[0], bx.max[1], bx.max[2], 0],
+                box_max: [bx.max[0], bx.max[1], bx.max[2], at],
                 reach: self.reach4(),
             };
             let bufs = [

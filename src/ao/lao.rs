@@ -690,10 +690,11 @@ impl LaoMethod {
         cmd: vk::CommandBuffer,
         bufs: &MethodBuffers,
         boxes: &[VoxelBox],
+        at: &[i32],
         mode: Mode,
     ) {
         let d = self.dims;
-        for b in boxes {
+        for (b, &at) in boxes.iter().zip(at) {
             let push = UpdatePush {
                 dims: [d[0] as i32, d[1] as i32, d[2] as i32, 0],
                 stride: self.stride,
@@ -702,7 +703,7 @@ impl LaoMethod {
                 exponent: self.params.step_mm,
                 naive: (mode == Mode::Naive) as u32,
                 box_min: [b.min[0], b.min[1], b.min[2], 0],
-                box_max: [b.max[0], b.max[1], b.max[2], 0],
+                box_max: [b.max[0], b.max[1], b.max[2], at],
             };
             let bufs = [
                 bufs.density,

@@ -27,7 +27,8 @@ pub struct MethodBuffers<'a> {
     pub density: &'a Buffer,
     /// CAO's voxel categories (shaders/include/mask.glsl).
     pub mask: &'a Buffer,
-    /// V_PAO: the method's AO of the unclipped volume.
+    /// V_PAO: the method's AO of the unclipped volume, in a frame's boxes as CAO stages them
+    /// (the host keeps it whole): each pass is told where each box starts.
     pub pre_a: &'a Buffer,
     /// Where the pass writes its AO: V_AO, or V_PAO for a precompute.
     pub out_a: &'a Buffer,
@@ -184,32 +185,38 @@ impl MethodGpu {
 
     /// Records what the method restores beside CAO's restore of V_AO (which comes first): its
     /// bleeding volume over `boxes`, as the background is (`clipped`: a probe is active).
+    /// `at[k]`: where box k's V_PAO starts in `bufs.pre_a`, in voxels (the frame's staged
+    /// boxes, [`super::cao::Cao`]'s restore and update).
     pub fn record_restore(
         &self,
         cmd: vk::CommandBuffer,
         bufs: &MethodBuffers,
         boxes: &[VoxelBox],
+        at: &[i32],
         clipped: bool,
     ) {
         if let MethodGpu::Histogram(h) = self {
-            h.record_restore(cmd, bufs, boxes, clipped);
+            h.record_restore(cmd, bufs, boxes, at, clipped);
         }
     }
 
     /// Records the region recompute: the AO of the voxels of `boxes` from O_c into V_AO, CAO's
     /// categories as `mode` says.
+    /// `at[k]`: where box k's V_PAO starts in `bufs.pre_a`, in voxels (the frame's staged
+    /// boxes, [`super::cao::Cao`]'s restore and update).
     pub fn record_update(
         &self,
         cmd: vk::CommandBuffer,
         bufs: &MethodBuffers,
         boxes: &[VoxelBox],
+        at: &[i32],
         mode: Mode,
     ) {
         match self {
             MethodGpu::Open => {}
-            MethodGpu::Lao(l) => l.record(cmd, bufs, boxes, mode),
-            MethodGpu::Filter(f) => f.record(cmd, bufs, boxes, mode),
-            MethodGpu::Histogram(h) => h.record(cmd, bufs, boxes, mode),
+            MethodGpu::Lao(l) => l.record(cmd, bufs, boxes, at, mode),
+            MethodGpu::Filter(f) => f.record(cmd, bufs, boxes, at, mode),
+            MethodGpu::Histogram(h) => h.record(cmd, bufs, boxes, at, mode),
         }
     }
 

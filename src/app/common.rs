@@ -453,7 +453,7 @@ fn gpu_report(vol: &Volume) -> String {
     };
     format!(
         "{} bytes per voxel ({} GiB) held once set up (loading's staging, the clustering's \
-         batches and a frame's images come on top)",
+         batches, a frame's images and its tools' staged boxes come on top)",
         per_voxel
             .iter()
             .map(|(name, b)| format!("{name} {b:.1}"))
@@ -464,9 +464,10 @@ fn gpu_report(vol: &Volume) -> String {
 }
 
 /// The volumes the GPU holds for `vol` under `method` (LAO with `lao`'s reach), in bytes per
-/// voxel by name: what every method holds (the scalar image, O_c, CAO's mask, V_PAO, V_AO
-/// (which the ray caster reads itself), and with labels their ids and the margins' glow) and the method's own. A frame's images
-/// and tables and the staging copies while loading come on top (the peak `render` prints).
+/// voxel by name: what every method holds (the scalar image, O_c, CAO's mask, V_AO, which the
+/// ray caster reads itself, and with labels their ids and the margins' glow) and the method's
+/// own. O and V_PAO are the host's once CAO is set up. A frame's images, tables and staged
+/// boxes and the staging copies while loading come on top (the peak `render` prints).
 pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'static str, f64)> {
     let scalar = match vol.voxels {
         crate::volume::Voxels::U8(_) => 1.0,
@@ -474,12 +475,7 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
         crate::volume::Voxels::F32(_) => 4.0,
     };
     let ao = crate::ao::stored::BYTES_PER_VOXEL as f64;
-    let mut v = vec![
-        ("scalars", scalar),
-        ("mask", 0.25),
-        ("V_PAO", ao),
-        ("V_AO", ao),
-    ];
+    let mut v = vec![("scalars", scalar), ("mask", 0.25), ("V_AO", ao)];
     if let Some(l) = vol.labels.as_deref() {
         v.push(("structure ids (ray caster, CAO)", 2.0));
         if l.structures.iter().any(|s| s.margin_mm.is_some()) {
@@ -490,8 +486,8 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
     match method {
         AoMethod::Lao => {
             let layout = crate::ao::lao::LaoLayout::new(lao, vol.spacing, vol.dims);
-            // O_c inside LAO's zero border; the other methods hold it without one. (O is
-            // the host's: a frame stages only its boxes'.)
+            // O_c inside LAO's zero border; the other methods hold it without one. (O and
+            // V_PAO are the host's: a frame stages only its boxes'.)
             v.push(("O_c (padded)", 2.0 * layout.padded_len() as f64 / n));
             v.push(("clear bits", 1.0 / 8.0));
         }

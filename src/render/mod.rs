@@ -377,9 +377,9 @@ impl VolumeLimits {
 }
 
 /// GPU bytes per voxel, at least: the scalar image (4 bytes for f32 data; an integer scalar
-/// takes 2 or 1), and O_c, V_PAO and V_AO (2 each, `ao::stored`; the filters hold O_c in f32;
-/// O stays on the host), before the method's own volumes.
-pub const GPU_BYTES_PER_VOXEL: u64 = 4 + 3 * crate::ao::stored::BYTES_PER_VOXEL;
+/// takes 2 or 1), and O_c and V_AO (2 each, `ao::stored`; the filters hold O_c in f32; O and
+/// V_PAO stay on the host), before the method's own volumes.
+pub const GPU_BYTES_PER_VOXEL: u64 = 4 + 2 * crate::ao::stored::BYTES_PER_VOXEL;
 
 /// The shaders index a volume's voxels with 32-bit signed integers.
 pub const MAX_VOXELS: u64 = (1 << 31) - 1;
@@ -1676,14 +1676,14 @@ mod tests {
 
     #[test]
     fn too_many_bytes_are_refused_with_a_downsample_hint() {
-        // 1024^3 voxels x 10 bytes = 10 GiB > 8 GiB; / 2 per axis = 1.25 GiB fits.
+        // 1280 x 1024^2 voxels x 8 bytes = 10 GiB > 8 GiB; / 2 per axis = 1.25 GiB fits.
         let limits = VolumeLimits {
             max_buffer_bytes: u64::MAX,
             ..LIMITS
         };
-        let e = check_volume_fits("big", [1024, 1024, 1024], &limits, "gpu").unwrap_err();
+        let e = check_volume_fits("big", [1280, 1024, 1024], &limits, "gpu").unwrap_err();
         assert!(
-            e.contains("volume big (1024 x 1024 x 1024)")
+            e.contains("volume big (1280 x 1024 x 1024)")
                 && e.contains("10240 MiB")
                 && e.contains("8192 MiB device-local heap")
                 && e.contains("--downsample 2"),
