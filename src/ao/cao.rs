@@ -203,12 +203,22 @@ impl Cao {
         // Before anything else is allocated: what only the precompute reads goes, and so does
         // O from the GPU.
         let method = method.for_update()?;
-        let opacity = {
-            let bytes = opacity.read_back()?;
-            drop(opacity);
-            bytes
+        let open = matches!(method, MethodGpu::Open);
+        // No method yet: O is 0 and V_PAO 1 (every word all ones, `AoVolume::open`), written
+        // here rather than read back (a first picture waits for this).
+        let words = if open {
+            (
+                vec![0; opacity.size as usize],
+                vec![u8::MAX; pao.size as usize],
+            )
+        } else {
+            (opacity.read_back()?, pao.read_back()?)
         };
-        let pao_words = pao.read_back()?;
+        drop(opacity);
+        let (opacity, pao_words) = words;
+        // An open state copies V_PAO into V_AO on the GPU; a computed method restores from
+        // the host's words (Cao::restore_whole).
+        let pao = open.then_some(pao);
         let (dims, spacing) = (vol.dims, vol.spacing);
         let geometry = vol.clone_geometry();
         let (labels, protect, any_protected) = label_buffers(gpu, vol)?;
@@ -259,7 +269,7 @@ impl Cao {
         let slots = (0..MAX_FRAMES_IN_FLIGHT)
             .map(|_| FrameSlot::new(gpu, dims))
             .collect::<Result<Vec<_>>>()?;
-        let cao = Cao {
+        let mut cao = Cao {
             gpu: gpu.clone(),
             restore,
             clip,
@@ -294,42 +304,70 @@ impl Cao {
             protect_pending: None,
             protect_bits: vol.labels.as_deref().map_or([0; 8], |l| l.protected_bits()),
         };
-        let all = VoxelBox::whole(cao.dims);
-        if matches!(cao.method, MethodGpu::Open) {
+        match pao {
             // No method yet: V_AO = V_PAO = 1, copied; O_c and the mask are first read after
             // the first switch, whose whole restore writes them (a restore of a large volume
             // takes seconds on a CPU device, and the first picture waits for it).
             // SAFETY: `cmd` is recording (submit_and_wait); `ao` and `pao` are stored volumes
             // of `dims` voxels (stored::buffer: TRANSFER_SRC/DST; `pao` the caller's), so the
             // copy of `ao.size` bytes stays inside both, and both outlive the waited submission.
-            cao.gpu.submit_and_wait(|cmd| unsafe {
+            Some(pao) => cao.gpu.submit_and_wait(|cmd| unsafe {
                 let region = vk::BufferCopy::default().size(cao.ao.size);
                 cao.gpu
                     .device
                     .cmd_copy_buffer(cmd, pao.raw, cao.ao.raw, &[region]);
-            })?;
-        } else {
+            })?,
             // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere (and
-            // the local histograms' bleeding volume its precomputed one), read from O and V_PAO
-            // whole (a whole box's voxels lie where the volume's do).
-            let o = Buffer::from_slice(
-                gpu,
-                &cao.opacity,
-                vk::BufferUsageFlags::STORAGE_BUFFER,
-                "cao-opacity-whole",
-            )?;
-            cao.gpu.submit_and_wait(|cmd| {
-                cao.record_restore(cmd, &[all], false, (&o, &pao), &[0]);
-                let bufs = MethodBuffers {
-                    density: &cao.clipped,
-                    mask: &cao.mask,
-                    pre_a: &pao,
-                    out_a: &cao.ao,
-                };
-                cao.method.record_restore(cmd, &bufs, &[all], &[0], false);
-            })?;
+            // the local histograms' bleeding volume its precomputed one).
+            None => cao.restore_whole()?,
         }
         Ok(cao)
+    }
+
+    /// Restores the whole volume now (O_c = O, V_AO = V_PAO, or clipped away while a probe is
+    /// active; the method's own restore too), in slabs of z-slices each submitted and waited,
+    /// so that at most [`RESTORE_SLAB_BYTES`] of O and V_PAO are staged at once, not the
+    /// whole of both. The next frame then restores only its own boxes, and tells the whole
+    /// volume changed. Call it only when no submitted command buffer still uses the CAO state
+    /// (after [`Cao::new`]'s setup, or after a switch's [`Cao::set_method`] or
+    /// [`Cao::replace_precomputed`]); without it the next frame restores the whole volume at
+    /// once.
+    pub fn restore_whole(&mut self) -> Result<()> {
+        self.restore_whole_by(RESTORE_SLAB_BYTES)
+    }
+
+    /// [`Cao::restore_whole`] staging at most `slab_bytes` at once (at least one z-slice).
+    pub fn restore_whole_by(&mut self, slab_bytes: u64) -> Result<()> {
+        if matches!(self.method, MethodGpu::Open) {
+            return Ok(());
+        }
+        let [nx, ny, nz] = self.dims;
+        let es = if self.method.float_density() { 4 } else { 2 };
+        let per_slice = (nx * ny * (es + super::stored::BYTES_PER_VOXEL as usize)) as u64;
+        let slices = ((slab_bytes / per_slice) as usize).clamp(1, nz.max(1));
+        let clipped = self.background_clipped;
+        let mut staged = None;
+        for z0 in (0..nz).step_by(slices) {
+            let b = VoxelBox {
+                min: [0, 0, z0 as i32],
+                max: [nx as i32, ny as i32, (z0 + slices).min(nz) as i32],
+            };
+            let (s, at) = self.stage_into(staged.take(), std::iter::once(&b))?;
+            self.gpu.submit_and_wait(|cmd| {
+                self.record_restore(cmd, &[b], clipped, (&s.opacity, &s.pao), &at);
+                let bufs = MethodBuffers {
+                    density: &self.clipped,
+                    mask: &self.mask,
+                    pre_a: &s.pao,
+                    out_a: &self.ao,
+                };
+                self.method.record_restore(cmd, &bufs, &[b], &at, clipped);
+            })?;
+            staged = Some(s);
+        }
+        self.prev_boxes.clear();
+        self.unshown = true;
+        Ok(())
     }
 
     /// Swaps in a new O and its V_PAO (a transfer-function switch) and makes the
@@ -904,13 +942,23 @@ impl Cao {
     /// that staged a whole volume has finished, [`Cao::read_metrics`]). Returns them and where
     /// each box starts, in voxels.
     fn stage(&mut self, restore: &[VoxelBox], boxes: &[VoxelBox]) -> Result<(Staged, Vec<i32>)> {
+        let old = self.slots[self.slot].staged.take();
+        self.stage_into(old, restore.iter().chain(boxes))
+    }
+
+    /// [`Cao::stage`] into `old`'s buffers where they fit.
+    fn stage_into<'a>(
+        &self,
+        old: Option<Staged>,
+        boxes: impl Iterator<Item = &'a VoxelBox>,
+    ) -> Result<(Staged, Vec<i32>)> {
         let es = if self.method.float_density() { 4 } else { 2 };
         let pes = super::stored::BYTES_PER_VOXEL as usize;
         let nx = self.dims[0];
         let ny = self.dims[1];
-        let mut at = Vec::with_capacity(restore.len() + boxes.len());
+        let mut at = Vec::new();
         let (mut o, mut pao): (Vec<u8>, Vec<u8>) = (Vec::new(), Vec::new());
-        for b in restore.iter().chain(boxes) {
+        for b in boxes {
             let start = pao.len() / pes;
             at.push(i32::try_from(start).map_err(|_| {
                 GpuError::Other(format!(
@@ -928,7 +976,6 @@ impl Cao {
                 }
             }
         }
-        let old = self.slots[self.slot].staged.take();
         let (old_o, old_pao) = old.map_or((None, None), |s| (Some(s.opacity), Some(s.pao)));
         let staged = Staged {
             opacity: staging(&self.gpu, old_o, &o, "cao-opacity-boxes")?,
@@ -958,6 +1005,10 @@ impl Cao {
         self.slots[self.slot].clip_buffers()
     }
 }
+
+/// The most O and V_PAO bytes [`Cao::restore_whole`] stages at once (at least one z-slice):
+/// small beside a clinical CT's volumes, and few enough submissions for a quick restore.
+pub const RESTORE_SLAB_BYTES: u64 = 32 << 20;
 
 /// What one frame in flight writes from the host or reads back: the tools' table and maps, the
 /// category counters and the pass timer.

@@ -418,6 +418,8 @@ impl TfSwitcher {
             if let MethodGpu::Histogram(h) = cao.set_method(method)? {
                 self.parked = Some(h);
             }
+            // Now, slab by slab, rather than whole in the next frame (fewer bytes staged).
+            cao.restore_whole()?;
             if let (Some((mut v, _)), Some(l)) = (sh, lighting) {
                 self.gpu.submit_and_wait(|cmd| v.record_publish(cmd))?;
                 l.volume = v;
@@ -456,6 +458,7 @@ impl TfSwitcher {
                 cao.set_method(MethodGpu::Histogram(h))?;
             }
         }
+        cao.restore_whole()?;
         tex.set_transfer_function(tf)?;
         tex.set_structure_opacities(&want.structures);
         self.shown = want;

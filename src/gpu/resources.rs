@@ -17,6 +17,10 @@ pub struct Buffer {
     held: u64,
 }
 
+/// The most bytes an upload or a read-back stages at once: a whole volume's staging copy would
+/// add a few bytes per voxel to the GPU's peak.
+pub const STAGING_CHUNK: u64 = 32 << 20;
+
 impl Buffer {
     pub fn new(
         gpu: &Gpu,
@@ -121,8 +125,6 @@ impl Buffer {
         name: &str,
     ) -> Result<Buffer> {
         let bytes: &[u8] = bytemuck::cast_slice(data);
-        let staging =
-            Buffer::from_slice(gpu, bytes, vk::BufferUsageFlags::TRANSFER_SRC, "staging")?;
         let b = Buffer::new(
             gpu,
             bytes.len() as u64,
@@ -131,13 +133,33 @@ impl Buffer {
             MemoryLocation::GpuOnly,
             name,
         )?;
-        // SAFETY: `cmd` is recording (submit_and_wait); `staging` (TRANSFER_SRC) and `b`
-        // (TRANSFER_DST) were both created with `bytes.len().max(4)` bytes (Buffer::new rounds up
-        // to 4) and outlive the waited submission.
-        gpu.submit_and_wait(|cmd| unsafe {
-            let region = [vk::BufferCopy::default().size(bytes.len().max(4) as u64)];
-            gpu.device.cmd_copy_buffer(cmd, staging.raw, b.raw, &region);
-        })?;
+        // Buffer::new rounds a size up to 4 bytes: so does the staging and the copy.
+        let mut padded = bytes.to_vec();
+        let bytes = if bytes.len() < 4 {
+            padded.resize(4, 0);
+            &padded[..]
+        } else {
+            bytes
+        };
+        let mut staging = Buffer::new(
+            gpu,
+            (bytes.len() as u64).min(STAGING_CHUNK),
+            vk::BufferUsageFlags::TRANSFER_SRC,
+            MemoryLocation::CpuToGpu,
+            "staging",
+        )?;
+        for (k, chunk) in bytes.chunks(STAGING_CHUNK as usize).enumerate() {
+            staging.write(0, chunk)?;
+            // SAFETY: `cmd` is recording (submit_and_wait); `staging` (TRANSFER_SRC) holds the
+            // chunk from 0 and `b` (TRANSFER_DST) the whole of `bytes`, so the region lies in
+            // both; both outlive the waited submission.
+            gpu.submit_and_wait(|cmd| unsafe {
+                let region = [vk::BufferCopy::default()
+                    .dst_offset(k as u64 * STAGING_CHUNK)
+                    .size(chunk.len() as u64)];
+                gpu.device.cmd_copy_buffer(cmd, staging.raw, b.raw, &region);
+            })?;
+        }
         Ok(b)
     }
 
@@ -194,23 +216,31 @@ impl Buffer {
 
     /// Copies the whole buffer back to the host (through a staging buffer).
     pub fn read_back(&self) -> Result<Vec<u8>> {
+        let size = self.size.max(4);
         let staging = Buffer::new(
             &self.gpu,
-            self.size,
+            size.min(STAGING_CHUNK),
             vk::BufferUsageFlags::TRANSFER_DST,
             MemoryLocation::GpuToCpu,
             "readback",
         )?;
-        // SAFETY: `cmd` is recording; `staging` (TRANSFER_DST) was created with `self.size.max(4)`
-        // bytes like `self`, both outlive the waited submission; `self` must have been made with
-        // TRANSFER_SRC, which its owners do (Buffer does not record its usage).
-        self.gpu.submit_and_wait(|cmd| unsafe {
-            let region = [vk::BufferCopy::default().size(self.size.max(4))];
-            self.gpu
-                .device
-                .cmd_copy_buffer(cmd, self.raw, staging.raw, &region);
-        })?;
-        Ok(staging.mapped()?.to_vec())
+        let mut out = Vec::with_capacity(size as usize);
+        for at in (0..size).step_by(STAGING_CHUNK as usize) {
+            let len = (size - at).min(STAGING_CHUNK);
+            // SAFETY: `cmd` is recording; the region lies in `self` (`at + len <= size`, which
+            // Buffer::new rounded up to 4) and in `staging` (at least `len` bytes from 0); both
+            // outlive the waited submission; `self` must have been made with TRANSFER_SRC, which
+            // its owners do (Buffer does not record its usage).
+            self.gpu.submit_and_wait(|cmd| unsafe {
+                let region = [vk::BufferCopy::default().src_offset(at).size(len)];
+                self.gpu
+                    .device
+                    .cmd_copy_buffer(cmd, self.raw, staging.raw, &region);
+            })?;
+            out.extend_from_slice(&staging.mapped()?[..len as usize]);
+        }
+        out.truncate(self.size as usize);
+        Ok(out)
     }
 
     pub fn descriptor(&self) -> vk::DescriptorBufferInfo {
@@ -422,23 +452,60 @@ impl Image {
         }
     }
 
-    /// Uploads tightly packed texels and leaves the image in `final_layout`.
+    /// Uploads tightly packed texels and leaves the image in `final_layout`, staging at most
+    /// [`STAGING_CHUNK`] bytes (or one z-slice) at a time.
     pub fn upload(&self, bytes: &[u8], final_layout: vk::ImageLayout) -> Result<()> {
-        let staging = Buffer::from_slice(
+        let e = self.desc.extent;
+        let slice = (bytes.len() / e.depth.max(1) as usize).max(1);
+        let slices = (STAGING_CHUNK as usize / slice).clamp(1, e.depth.max(1) as usize);
+        let mut staging = Buffer::new(
             &self.gpu,
-            bytes,
+            (slice * slices) as u64,
             vk::BufferUsageFlags::TRANSFER_SRC,
+            MemoryLocation::CpuToGpu,
             "staging",
         )?;
-        self.gpu.submit_and_wait(|cmd| {
-            self.transition(
-                cmd,
-                vk::ImageLayout::UNDEFINED,
-                vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-            );
-            self.cmd_copy_from(cmd, &staging);
-            self.transition(cmd, vk::ImageLayout::TRANSFER_DST_OPTIMAL, final_layout);
-        })
+        let last = e.depth.div_ceil(slices as u32);
+        for (k, chunk) in bytes.chunks(slice * slices).enumerate() {
+            staging.write(0, chunk)?;
+            let z0 = (k * slices) as u32;
+            let region = [vk::BufferImageCopy::default()
+                .image_subresource(self.layers_all())
+                .image_offset(vk::Offset3D {
+                    x: 0,
+                    y: 0,
+                    z: z0 as i32,
+                })
+                .image_extent(vk::Extent3D {
+                    depth: (chunk.len() / slice) as u32,
+                    ..e
+                })];
+            self.gpu.submit_and_wait(|cmd| {
+                if k == 0 {
+                    self.transition(
+                        cmd,
+                        vk::ImageLayout::UNDEFINED,
+                        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                    );
+                }
+                // SAFETY: `cmd` is recording with the image in TRANSFER_DST_OPTIMAL (made so
+                // above, in the first chunk's submission); `staging` holds the region's
+                // slices tightly packed from 0; both outlive the waited submission.
+                unsafe {
+                    self.gpu.device.cmd_copy_buffer_to_image(
+                        cmd,
+                        staging.raw,
+                        self.raw,
+                        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
+                        &region,
+                    );
+                }
+                if k as u32 + 1 == last {
+                    self.transition(cmd, vk::ImageLayout::TRANSFER_DST_OPTIMAL, final_layout);
+                }
+            })?;
+        }
+        Ok(())
     }
 }
 

@@ -221,6 +221,39 @@ fn cao_equals_naive_lao_bit_for_bit_every_frame() {
     common::assert_no_validation_messages(&gpu);
 }
 
+/// A whole restore in slabs of three z-slices (`Cao::restore_whole_by`, what a switch and a
+/// new state do) leaves exactly the state the frames' own restores make: before every frame
+/// of the scripted sequence (a probe included), one state is restored whole in slabs and the
+/// other not, and after the frame both hold the same V_AO and O_c bits.
+#[test]
+fn a_whole_restore_in_slabs_leaves_the_frames_state() {
+    let gpu = common::gpu();
+    let vol = phantom::head(40);
+    let (mut slabbed, _, _) = setup(&gpu, &vol);
+    let (mut framed, _, _) = setup(&gpu, &vol);
+    let placement = Placement::default();
+    // O and V_PAO are 2 bytes each per voxel under LAO.
+    let three_slices = 3 * 40 * 40 * 4;
+    for (i, tools) in frames(placement.center).iter().enumerate() {
+        slabbed.restore_whole_by(three_slices).unwrap();
+        slabbed
+            .run_frame(tools, &placement, Mode::Contextual)
+            .unwrap();
+        framed
+            .run_frame(tools, &placement, Mode::Contextual)
+            .unwrap();
+        let (a, b) = (read_ao(&slabbed.ao), read_ao(&framed.ao));
+        let diff = common::first_bit_difference(&a, &b);
+        assert!(diff.is_none(), "frame {i}: V_AO differs at voxel {diff:?}");
+        assert_eq!(
+            slabbed.read_clipped().unwrap(),
+            framed.read_clipped().unwrap(),
+            "frame {i}: clipped opacity"
+        );
+    }
+    common::assert_no_validation_messages(&gpu);
+}
+
 #[test]
 fn the_cut_is_where_the_tools_are() {
     let gpu = common::gpu();
