@@ -4,7 +4,8 @@
 #include "unorm16.glsl"
 // CAO per frame, step 0: voxels the previous frame's tools touched go back to the background state
 // before this frame's tools are applied: unclipped (O_c = O, AO = V_PAO, category c), or with a
-// probe active, clipped away (O_c = 0, AO = 1, category a).
+// probe active, clipped away (O_c = 0, AO = 1, category a). Where CAO holds only the slices of O_c
+// a frame's LAO update reads, filled anew each frame, O_c is not written here.
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
@@ -29,7 +30,7 @@ layout(push_constant) uniform Push {
     ClippedF clipped_f_buf;
     uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;
-    ivec4 box_min;   // w: 1 = clipped away
+    ivec4 box_min;   // w: bit 0 = clipped away, bit 1 = leave O_c alone
     ivec4 box_max;   // exclusive; w: where the box's O and V_PAO start in the frame's staged
                      // boxes, in voxels
     ivec4 stride;    // where voxel v of O_c lies: x + v.x + y v.y + z v.z (LAO's zero border);
@@ -51,10 +52,12 @@ void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
     if (any(greaterThanEqual(v, pc.box_max.xyz))) return;
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
-    bool away = pc.box_min.w != 0;
+    bool away = (pc.box_min.w & 1) != 0;
     int c = pc.stride.x + v.x + pc.stride.y * v.y + pc.stride.z * v.z;
     int o = staged_index(v);
-    if (pc.stride.w != 0) {
+    if ((pc.box_min.w & 2) != 0) {
+        // O_c is the frame's window (src/ao/cao.rs Cao::windowed).
+    } else if (pc.stride.w != 0) {
         clipped_f[c] = away ? 0.0 : opacity_f[o];
     } else {
         clipped[c] = away ? uint16_t(0) : opacity[o];

@@ -108,7 +108,11 @@ pub struct Cao {
     /// O_c: the anti-aliased clipped opacity, laid out as the method reads it
     /// ([`MethodGpu::clipped_stride`]: for LAO inside the zero border its kernel reads, which
     /// stays 0). Stored in 16 bits ([`super::stored`]), but for the filters' f32 density.
+    /// Only the z-slices `clipped_slices` of that grid: all of them, kept by the restores, or
+    /// while [`Cao::windowed`] the slices this frame's LAO update reads, filled anew each
+    /// frame from the host's O (the GPU then holds no whole O_c).
     clipped: Buffer,
+    clipped_slices: [usize; 2],
     mask: Buffer,
     /// V_PAO's 16-bit words, held on the host like O: a frame's passes read it only in the
     /// boxes they restore or update, staged with O ([`Cao::stage`]).
@@ -265,7 +269,7 @@ impl Cao {
             MemoryLocation::GpuOnly,
             "cao-mask",
         )?;
-        let clipped = clipped_buffer(gpu, dims, &method)?;
+        let (clipped, clipped_slices) = initial_clipped(gpu, dims, &method)?;
         let slots = (0..MAX_FRAMES_IN_FLIGHT)
             .map(|_| FrameSlot::new(gpu, dims))
             .collect::<Result<Vec<_>>>()?;
@@ -279,6 +283,7 @@ impl Cao {
             max_spacing_mm: spacing.iter().cloned().fold(0.0, f64::max),
             opacity,
             clipped,
+            clipped_slices,
             mask,
             pao: pao_words,
             ao,
@@ -346,6 +351,11 @@ impl Cao {
         let per_slice = (nx * ny * (es + super::stored::BYTES_PER_VOXEL as usize)) as u64;
         let slices = ((slab_bytes / per_slice) as usize).clamp(1, nz.max(1));
         let clipped = self.background_clipped;
+        let gpu = self.gpu.clone();
+        let mut made = Ok(None);
+        gpu.submit_and_wait(|cmd| made = self.make_whole(cmd))?;
+        // No submitted work reads the old O_c (this method's contract).
+        drop(made?);
         let mut staged = None;
         for z0 in (0..nz).step_by(slices) {
             let b = VoxelBox {
@@ -357,6 +367,7 @@ impl Cao {
                 self.record_restore(cmd, &[b], clipped, (&s.opacity, &s.pao), &at);
                 let bufs = MethodBuffers {
                     density: &self.clipped,
+                    density_stride: self.clipped_stride(),
                     mask: &self.mask,
                     pre_a: &s.pao,
                     out_a: &self.ao,
@@ -397,7 +408,104 @@ impl Cao {
     /// zero border while the method is LAO; \[3] is 1 where O and O_c are f32 (the filters'
     /// density, whose gradients 16 bits would coarsen), 0 where they are 16-bit.
     pub fn clipped_stride(&self) -> [i32; 4] {
-        self.method.clipped_stride(self.dims)
+        let mut s = self.method.clipped_stride(self.dims);
+        s[0] -= s[2] * self.clipped_slices[0] as i32;
+        s
+    }
+
+    /// Whether O_c is held only in the z-slices each frame's update reads (`Cao::clipped`):
+    /// under LAO, unless the SH visibility, which reads the whole O_c, is on.
+    pub fn windowed(&self) -> bool {
+        matches!(self.method, MethodGpu::Lao(_)) && self.sh_radius_mm.is_none()
+    }
+
+    /// The z-slices of O_c's grid (LAO's zero border included) the GPU holds now, [from, to).
+    pub fn clipped_slices(&self) -> [usize; 2] {
+        self.clipped_slices
+    }
+
+    /// The z-slices of the whole grid O_c lies in (LAO's zero border included).
+    fn whole_slices(&self) -> [usize; 2] {
+        [0, self.dims[2] + 2 * self.method.clipped_pad()[2]]
+    }
+
+    /// Bytes of O_c's z-slices `slices`.
+    fn clipped_bytes(&self, slices: [usize; 2]) -> u64 {
+        let es = if self.method.float_density() { 4 } else { 2 };
+        let [_, _, sz, _] = self.method.clipped_stride(self.dims);
+        sz as u64 * (slices[1] - slices[0]) as u64 * es
+    }
+
+    /// Where O_c must be whole but is a window (the SH visibility came on, or a new method's
+    /// empty one): a whole zero O_c replaces it, zeroed in `cmd`, to be filled by a whole
+    /// restore recorded after it. Returns the old one, which frames in flight may still read.
+    fn make_whole(&mut self, cmd: vk::CommandBuffer) -> Result<Option<Buffer>> {
+        let whole = self.whole_slices();
+        if self.windowed() || self.clipped_slices == whole {
+            return Ok(None);
+        }
+        let new = Buffer::new(
+            &self.gpu,
+            self.clipped_bytes(whole).next_multiple_of(4),
+            clipped_usage(),
+            MemoryLocation::GpuOnly,
+            "cao-clipped",
+        )?;
+        // SAFETY: `cmd` is recording outside a render pass (the callers' contract); `new` has
+        // TRANSFER_DST and a size in whole words, so a WHOLE_SIZE fill stays inside it; the
+        // caller keeps it (in `self`) past the submission.
+        unsafe {
+            self.gpu
+                .device
+                .cmd_fill_buffer(cmd, new.raw, 0, vk::WHOLE_SIZE, 0);
+        }
+        self.gpu.barrier(cmd);
+        self.clipped_slices = whole;
+        Ok(Some(std::mem::replace(&mut self.clipped, new)))
+    }
+
+    /// The z-slices of O_c this frame's LAO update over `boxes` reads: theirs and the zero
+    /// border's depth beyond them on both sides (the farthest sample's footprint).
+    fn window_of(&self, boxes: &[VoxelBox]) -> [usize; 2] {
+        let pad = self.method.clipped_pad()[2];
+        let mut z = boxes
+            .iter()
+            .filter(|b| b.voxels() > 0)
+            .map(|b| b.min[2]..b.max[2]);
+        let Some(first) = z.next() else {
+            return [0, 0];
+        };
+        let (lo, hi) = z.fold((first.start, first.end), |(lo, hi), r| {
+            (lo.min(r.start), hi.max(r.end))
+        });
+        // Voxel z lies at z + pad in the padded grid and reads pad slices either side.
+        [lo as usize, hi as usize + 2 * pad]
+    }
+
+    /// O_c's background (O, or 0 while a probe is active) over the padded grid's z-slices
+    /// `slices`, inside LAO's zero border: what a window starts as before the clip pass.
+    fn window_bytes(&self, slices: [usize; 2]) -> Vec<u8> {
+        use rayon::prelude::*;
+        let es = if self.method.float_density() { 4 } else { 2 };
+        let [px, py, pz] = self.method.clipped_pad();
+        let [nx, ny, nz] = self.dims;
+        let plane = (nx + 2 * px) * (ny + 2 * py) * es;
+        let mut out = vec![0u8; plane * (slices[1] - slices[0])];
+        if self.background_clipped {
+            return out;
+        }
+        out.par_chunks_mut(plane.max(1))
+            .zip(slices[0]..slices[1])
+            .filter(|(_, s)| (pz..pz + nz).contains(s))
+            .for_each(|(slice, s)| {
+                let z = s - pz;
+                for y in 0..ny {
+                    let dst = ((y + py) * (nx + 2 * px) + px) * es;
+                    let src = (nx * (y + ny * z)) * es;
+                    slice[dst..dst + nx * es].copy_from_slice(&self.opacity[src..src + nx * es]);
+                }
+            });
+        out
     }
 
     /// O_c, laid out by [`Cao::clipped_stride`].
@@ -406,22 +514,33 @@ impl Cao {
     }
 
     /// O_c read back, x fastest, without a border.
+    /// Outside a window ([`Cao::windowed`]) it is the background: O, or 0 while a probe is
+    /// active.
     pub fn read_clipped(&self) -> Result<Vec<f32>> {
-        let [o, sy, sz, f32] = self.clipped_stride().map(|s| s as usize);
-        let all = if f32 == 1 {
-            let bytes = self.clipped.read_back()?;
-            bytes
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect()
-        } else {
-            super::stored::read(&self.clipped, self.clipped.size as usize / 2)?
+        let [o, sy, sz, f32] = self.clipped_stride().map(|s| s as i64);
+        let held =
+            (self.clipped_bytes(self.clipped_slices) / if f32 == 1 { 4 } else { 2 }) as usize;
+        let value = |bytes: &[u8], i: usize| match f32 {
+            1 => f32::from_le_bytes(bytes[4 * i..4 * i + 4].try_into().unwrap()),
+            _ => super::stored::unpack(u16::from_le_bytes([bytes[2 * i], bytes[2 * i + 1]])),
         };
+        let all = self.clipped.read_back()?;
         let [nx, ny, nz] = self.dims;
-        Ok((0..nz)
-            .flat_map(|z| (0..ny).map(move |y| o + sy * y + sz * z))
-            .flat_map(|row| all[row..row + nx].iter().copied())
-            .collect())
+        let mut out = Vec::with_capacity(nx * ny * nz);
+        for z in 0..nz {
+            for y in 0..ny {
+                let row = o + sy * y as i64 + sz * z as i64;
+                let background = nx * (y + ny * z);
+                for x in 0..nx {
+                    out.push(match usize::try_from(row + x as i64) {
+                        Ok(i) if i < held => value(&all, i),
+                        _ if self.background_clipped => 0.0,
+                        _ => value(&self.opacity, background + x),
+                    });
+                }
+            }
+        }
+        Ok(out)
     }
 
     /// Sets the AO method and returns the one it replaces. V_PAO must already hold the new
@@ -430,11 +549,8 @@ impl Cao {
     /// lays O_c out otherwise gets a new one.
     pub fn set_method(&mut self, method: MethodGpu) -> Result<MethodGpu> {
         let method = method.for_update()?;
-        let layout = |m: &MethodGpu| (m.clipped_voxels(self.dims), m.float_density());
-        if layout(&method) != layout(&self.method) {
-            // The next frame's whole restore fills it.
-            self.clipped = clipped_buffer(&self.gpu, self.dims, &method)?;
-        }
+        // The next frame's whole restore fills it, or its windows.
+        (self.clipped, self.clipped_slices) = initial_clipped(&self.gpu, self.dims, &method)?;
         // The next frame restores the whole volume from the new method's values (its bleeding
         // volume included).
         self.prev_boxes = vec![VoxelBox::whole(self.dims)];
@@ -706,7 +822,8 @@ impl Cao {
     }
 
     /// Puts the voxels of `boxes` in the background state: unclipped, or clipped away. Box k's
-    /// O and V_PAO start at voxel `at[k]` of `o` and `pao` ([`Cao::stage`]).
+    /// O and V_PAO start at voxel `at[k]` of `o` and `pao` ([`Cao::stage`]). A window of O_c
+    /// ([`Cao::windowed`]) is left alone: each frame fills its own.
     fn record_restore(
         &self,
         cmd: vk::CommandBuffer,
@@ -715,10 +832,11 @@ impl Cao {
         (o, pao): (&Buffer, &Buffer),
         at: &[i32],
     ) {
+        let flags = clipped as i32 | (self.windowed() as i32) << 1;
         for (b, &at) in boxes.iter().zip(at) {
             let push = ClipPush {
                 dims: self.dims4(),
-                box_min: [b.min[0], b.min[1], b.min[2], clipped as i32],
+                box_min: [b.min[0], b.min[1], b.min[2], flags],
                 box_max: [b.max[0], b.max[1], b.max[2], at],
                 stride: self.clipped_stride(),
             };
@@ -784,7 +902,49 @@ impl Cao {
         if mode == Mode::Naive {
             restore.clear();
         }
+        // O_c made whole again is filled by a whole restore; a window, by a copy of the
+        // background over the slices this frame's update reads.
+        let mut retired = self.make_whole(cmd)?;
+        if retired.is_some() && mode == Mode::Contextual {
+            restore = vec![VoxelBox::whole(self.dims)];
+        }
+        if self.windowed() {
+            let slices = self.window_of(&boxes);
+            let bytes = self.window_bytes(slices);
+            let need = self.clipped_bytes(slices).max(4);
+            if !fits(&self.clipped, need) {
+                let whole = self.clipped_bytes(self.whole_slices()).max(4);
+                let new = Buffer::new(
+                    &self.gpu,
+                    grown(need).min(whole),
+                    clipped_usage(),
+                    MemoryLocation::GpuOnly,
+                    "cao-clipped",
+                )?;
+                retired = Some(std::mem::replace(&mut self.clipped, new));
+            }
+            self.clipped_slices = slices;
+            let slot = &mut self.slots[self.slot];
+            let window = staging(&self.gpu, slot.window.take(), &bytes, "cao-clipped-window")?;
+            if !bytes.is_empty() {
+                // SAFETY: `cmd` is recording outside a render pass (this method's contract);
+                // both buffers hold `bytes.len()` bytes from 0 (`fits`, `staging`), `window`
+                // has TRANSFER_SRC, `clipped` TRANSFER_DST, and both are kept (the slot,
+                // `self`) until the frame has finished; the barrier below orders the copy
+                // before the clip pass, and the caller's one before it orders it after the
+                // last frame's update.
+                unsafe {
+                    let region = [vk::BufferCopy::default().size(bytes.len() as u64)];
+                    self.gpu
+                        .device
+                        .cmd_copy_buffer(cmd, window.raw, self.clipped.raw, &region);
+                }
+            }
+            slot.window = Some(window);
+        }
         let slot = &mut self.slots[self.slot];
+        // What frames in flight may still read goes when this slot's frame has finished.
+        slot.retired = retired;
         // SAFETY: `cmd` is recording outside a render pass (this method's contract); `counts` (16
         // bytes, TRANSFER_DST) is this frame slot's, whose last frame has finished; `protect` was
         // made from the same 8 words with TRANSFER_DST, and 32 bytes is a valid inline update.
@@ -809,6 +969,7 @@ impl Cao {
         self.record_restore(cmd, &restore, clipped, (o, pao), at_restore);
         let bufs = MethodBuffers {
             density: &self.clipped,
+            density_stride: self.clipped_stride(),
             mask: &self.mask,
             pre_a: pao,
             out_a: &self.ao,
@@ -876,6 +1037,9 @@ impl Cao {
         // probe coming or going) go now, not when the slot comes round again.
         if slot.staged.as_ref().is_some_and(|s| s.pao.size >= n) {
             slot.staged = None;
+        }
+        if slot.window.as_ref().is_some_and(|w| w.size >= n) {
+            slot.window = None;
         }
         let slot = &self.slots[pending.slot];
         let c: &[u32] = bytemuck::cast_slice(&slot.counts.mapped()?[..12]);
@@ -1020,6 +1184,10 @@ struct FrameSlot {
     counts: Buffer,
     /// This frame's O and V_PAO, box by box ([`Cao::stage`]).
     staged: Option<Staged>,
+    /// This frame's O_c background over its window's slices ([`Cao::windowed`]).
+    window: Option<Buffer>,
+    /// An O_c this frame replaced, which earlier frames still in flight may read.
+    retired: Option<Buffer>,
     timer: GpuTimer,
 }
 
@@ -1029,17 +1197,16 @@ struct Staged {
     pao: Buffer,
 }
 
-/// `bytes` in a host-visible storage buffer: `old` where it fits, else one made anew. Its size
-/// is a power of two (at least 64 KiB), so boxes that change size frame by frame do not make
-/// it anew, nor let the GPU's holdings creep; one over four times too large goes.
+/// `bytes` in a host-visible storage buffer: `old` where it [`fits`], else one made anew
+/// ([`grown`]).
 fn staging(gpu: &Gpu, old: Option<Buffer>, bytes: &[u8], name: &str) -> Result<Buffer> {
     let need = (bytes.len() as u64).max(4);
     let mut buf = match old {
-        Some(b) if b.size >= need && b.size <= 4 * need.max(1 << 20) => b,
+        Some(b) if fits(&b, need) => b,
         _ => Buffer::new(
             gpu,
-            need.next_power_of_two().max(1 << 16),
-            vk::BufferUsageFlags::STORAGE_BUFFER,
+            grown(need),
+            vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC,
             MemoryLocation::CpuToGpu,
             name,
         )?,
@@ -1075,6 +1242,8 @@ impl FrameSlot {
                 "cao-counts",
             )?,
             staged: None,
+            window: None,
+            retired: None,
             timer: GpuTimer::new(gpu, 8)?,
         })
     }
@@ -1090,6 +1259,45 @@ impl FrameSlot {
     }
 }
 
+/// Whether `b` holds `need` bytes and is not more than four times too large (a reused buffer,
+/// so that boxes changing size frame by frame neither make it anew nor let it creep).
+fn fits(b: &Buffer, need: u64) -> bool {
+    b.size >= need && b.size <= 4 * need.max(1 << 20)
+}
+
+/// The size a reused buffer is made with for `need` bytes: a quarter more, in 64 KiB steps, so
+/// that boxes growing a little frame by frame do not make it anew each time.
+fn grown(need: u64) -> u64 {
+    (need + need / 4).next_multiple_of(1 << 16)
+}
+
+fn clipped_usage() -> vk::BufferUsageFlags {
+    vk::BufferUsageFlags::STORAGE_BUFFER
+        | vk::BufferUsageFlags::TRANSFER_SRC
+        | vk::BufferUsageFlags::TRANSFER_DST
+}
+
+/// O_c as a CAO state under `method` starts, and the z-slices it holds: for LAO an empty window
+/// ([`Cao::windowed`]; made whole at the first restore or frame where the SH visibility needs
+/// it), else the whole volume, zero (a whole restore fills it).
+fn initial_clipped(
+    gpu: &Gpu,
+    dims: [usize; 3],
+    method: &MethodGpu,
+) -> Result<(Buffer, [usize; 2])> {
+    if matches!(method, MethodGpu::Lao(_)) {
+        let b = Buffer::new(
+            gpu,
+            4,
+            clipped_usage(),
+            MemoryLocation::GpuOnly,
+            "cao-clipped",
+        )?;
+        return Ok((b, [0, 0]));
+    }
+    Ok((clipped_buffer(gpu, dims, method)?, [0, dims[2]]))
+}
+
 /// O_c for `method`, zero throughout (LAO's zero border stays so).
 fn clipped_buffer(gpu: &Gpu, dims: [usize; 3], method: &MethodGpu) -> Result<Buffer> {
     let voxels = method.clipped_voxels(dims) as u64;
@@ -1098,10 +1306,13 @@ fn clipped_buffer(gpu: &Gpu, dims: [usize; 3], method: &MethodGpu) -> Result<Buf
         true => voxels * 4,
         false => super::stored::bytes(voxels).next_multiple_of(4),
     };
-    let usage = vk::BufferUsageFlags::STORAGE_BUFFER
-        | vk::BufferUsageFlags::TRANSFER_SRC
-        | vk::BufferUsageFlags::TRANSFER_DST;
-    let b = Buffer::new(gpu, bytes, usage, MemoryLocation::GpuOnly, "cao-clipped")?;
+    let b = Buffer::new(
+        gpu,
+        bytes,
+        clipped_usage(),
+        MemoryLocation::GpuOnly,
+        "cao-clipped",
+    )?;
     // SAFETY: `cmd` is recording (submit_and_wait); `b` has TRANSFER_DST and a size in whole words,
     // so a WHOLE_SIZE fill stays inside it; it outlives the waited submission.
     gpu.submit_and_wait(|cmd| unsafe {

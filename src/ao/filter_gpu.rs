@@ -115,7 +115,7 @@ impl FilterGpu {
 
     /// Records the openness of every voxel of the unclipped `density` into `out` (V_PAO).
     pub fn record_precompute(&self, cmd: vk::CommandBuffer, density: &Buffer, out: &Buffer) {
-        let bufs = MethodBuffers::precompute(density, out);
+        let bufs = MethodBuffers::precompute(density, self.dims, out);
         self.dispatch(cmd, &bufs, (&[VoxelBox::whole(self.dims)], &[0]), Pass::All);
     }
 

@@ -609,7 +609,7 @@ impl HistogramGpu {
         } else {
             Pass::Direct
         };
-        let bufs = MethodBuffers::precompute(q, pre_a);
+        let bufs = MethodBuffers::precompute(q, self.dims, pre_a);
         let all = [VoxelBox::whole(self.dims)];
         self.dispatch(cmd, &bufs, &self.pre_e, (&all, &[0]), mode);
     }

@@ -604,9 +604,11 @@ pub struct LaoMethod {
     /// The skipping data of O (the whole precompute's set until [`LaoMethod::for_update`]).
     pub skip: SkipBuffers,
     pub dims: [usize; 3],
-    /// [`LaoLayout::stride`] and [`LaoLayout::padded_len`] of the padded grid.
+    /// [`LaoLayout::stride`], [`LaoLayout::padded_len`] and [`LaoLayout::pad`] of the padded
+    /// grid.
     stride: [i32; 4],
     padded_len: usize,
+    pad: [usize; 3],
 }
 
 impl LaoMethod {
@@ -635,6 +637,7 @@ impl LaoMethod {
             dims,
             stride,
             padded_len: layout.padded_len(),
+            pad: layout.pad,
         })
     }
 
@@ -677,14 +680,19 @@ impl LaoMethod {
         self.padded_len
     }
 
+    /// The padded grid's zero border on each axis.
+    pub fn pad(&self) -> [usize; 3] {
+        self.pad
+    }
+
     /// GPU memory the method holds beyond the volumes every method has (the skipping data the
     /// update reads, and the bricks).
     pub fn resident_bytes(&self) -> u64 {
         self.skip.clear.size + self.skip.bricks.size
     }
 
-    /// Records the LAO of the voxels of `boxes` from O_c (`bufs.density`, in the padded grid)
-    /// into `bufs.out_a`, CAO's categories as `mode` says. Records no barrier.
+    /// Records the LAO of the voxels of `boxes` from O_c (`bufs.density`, in the padded grid or
+    /// the z-slices of it that CAO holds: `bufs.density_stride`) into `bufs.out_a`, CAO's categories as `mode` says. Records no barrier.
     pub fn record(
         &self,
         cmd: vk::CommandBuffer,
@@ -697,7 +705,7 @@ impl LaoMethod {
         for (b, &at) in boxes.iter().zip(at) {
             let push = UpdatePush {
                 dims: [d[0] as i32, d[1] as i32, d[2] as i32, 0],
-                stride: self.stride,
+                stride: bufs.density_stride,
                 rays: self.params.rays,
                 steps: self.params.steps,
                 exponent: self.params.step_mm,

@@ -25,6 +25,9 @@ pub struct MethodBuffers<'a> {
     /// for a precompute the unclipped O (for the local histograms q, for the filters their
     /// density).
     pub density: &'a Buffer,
+    /// Where voxel v of `density` lies: \[0] + v.x + \[1] v.y + \[2] v.z (\[3]: 1 where it is
+    /// f32), as [`super::cao::Cao::clipped_stride`] says; a precompute's O has no border.
+    pub density_stride: [i32; 4],
     /// CAO's voxel categories (shaders/include/mask.glsl).
     pub mask: &'a Buffer,
     /// V_PAO: the method's AO of the unclipped volume, in a frame's boxes as CAO stages them
@@ -36,9 +39,10 @@ pub struct MethodBuffers<'a> {
 
 impl<'a> MethodBuffers<'a> {
     /// A precompute's roles: `density` read, `out` written, nothing else read.
-    pub fn precompute(density: &'a Buffer, out: &'a Buffer) -> MethodBuffers<'a> {
+    pub fn precompute(density: &'a Buffer, dims: [usize; 3], out: &'a Buffer) -> MethodBuffers<'a> {
         MethodBuffers {
             density,
+            density_stride: LaoLayout::unpadded_stride(dims),
             mask: density,
             pre_a: out,
             out_a: out,
@@ -167,6 +171,14 @@ impl MethodGpu {
         match self {
             MethodGpu::Lao(l) => l.padded_len(),
             _ => dims.iter().product(),
+        }
+    }
+
+    /// The zero border around O_c on each axis (LAO's; none for the others).
+    pub fn clipped_pad(&self) -> [usize; 3] {
+        match self {
+            MethodGpu::Lao(l) => l.pad(),
+            _ => [0; 3],
         }
     }
 

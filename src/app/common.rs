@@ -433,7 +433,6 @@ pub fn info_report(v: &Volume, tf: &TransferFunction) -> String {
 /// "lao 22.6, filters 49.0, histogram 37.0 bytes per voxel (2.5, 5.7, 4.3 GiB) ...": what the GPU
 /// holds of `vol` under each method with its default parameters ([`gpu_volumes`]).
 fn gpu_report(vol: &Volume) -> String {
-    let lao = LaoParams::default();
     let methods = [
         ("lao", AoMethod::Lao),
         ("filters", AoMethod::Filter(Default::default())),
@@ -441,7 +440,7 @@ fn gpu_report(vol: &Volume) -> String {
     ];
     let per_voxel: Vec<(&str, f64)> = methods
         .iter()
-        .map(|(name, m)| (*name, gpu_volumes(vol, m, &lao).iter().map(|x| x.1).sum()))
+        .map(|(name, m)| (*name, gpu_volumes(vol, m).iter().map(|x| x.1).sum()))
         .collect();
     let n = vol.voxel_count() as f64;
     let each = |f: &dyn Fn(f64) -> String| {
@@ -453,7 +452,8 @@ fn gpu_report(vol: &Volume) -> String {
     };
     format!(
         "{} bytes per voxel ({} GiB) held once set up (loading's staging, the clustering's \
-         batches, a frame's images and its tools' staged boxes come on top)",
+         batches, a frame's images, its tools' staged boxes and LAO's O_c over the slices its \
+         tools reach come on top)",
         per_voxel
             .iter()
             .map(|(name, b)| format!("{name} {b:.1}"))
@@ -463,12 +463,14 @@ fn gpu_report(vol: &Volume) -> String {
     )
 }
 
-/// The volumes the GPU holds for `vol` under `method` (LAO with `lao`'s reach), in bytes per
+/// The volumes the GPU holds for `vol` under `method`, in bytes per
 /// voxel by name: what every method holds (the scalar image, O_c, CAO's mask, V_AO, which the
 /// ray caster reads itself, and with labels their ids and the margins' glow) and the method's
-/// own. O and V_PAO are the host's once CAO is set up. A frame's images, tables and staged
-/// boxes and the staging copies while loading come on top (the peak `render` prints).
-pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'static str, f64)> {
+/// own. O and V_PAO are the host's once CAO is set up, and so is O under LAO's O_c, which the GPU
+/// holds only over the z-slices a frame's tools reach ([`crate::ao::cao::Cao::windowed`]; whole
+/// with the SH visibility on). A frame's images, tables, staged boxes and O_c slices and the
+/// staging copies while loading come on top (the peak `render` prints).
+pub fn gpu_volumes(vol: &Volume, method: &AoMethod) -> Vec<(&'static str, f64)> {
     let scalar = match vol.voxels {
         crate::volume::Voxels::U8(_) => 1.0,
         crate::volume::Voxels::U16(_) | crate::volume::Voxels::I16(_) => 2.0,
@@ -482,15 +484,10 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod, lao: &LaoParams) -> Vec<(&'s
             v.push(("margin glow", 1.0));
         }
     }
-    let n = vol.voxel_count().max(1) as f64;
     match method {
-        AoMethod::Lao => {
-            let layout = crate::ao::lao::LaoLayout::new(lao, vol.spacing, vol.dims);
-            // O_c inside LAO's zero border; the other methods hold it without one. (O and
-            // V_PAO are the host's: a frame stages only its boxes'.)
-            v.push(("O_c (padded)", 2.0 * layout.padded_len() as f64 / n));
-            v.push(("clear bits", 1.0 / 8.0));
-        }
+        // O_c only over the slices a frame's tools reach (O and V_PAO are the host's: a frame
+        // stages only its boxes').
+        AoMethod::Lao => v.push(("clear bits", 1.0 / 8.0)),
         AoMethod::Filter(_) => v.extend([("O_c", 4.0), ("box statistics", 32.0)]),
         AoMethod::Histogram(h) => {
             v.push(("O_c", 2.0));

@@ -254,6 +254,58 @@ fn a_whole_restore_in_slabs_leaves_the_frames_state() {
     common::assert_no_validation_messages(&gpu);
 }
 
+/// Under LAO the GPU holds O_c only over the z-slices a frame's tools reach (`Cao::windowed`),
+/// filled anew each frame, and whole while the SH visibility (which reads all of it) is on:
+/// through the scripted sequence, with the SH radius set and cleared on the way, a windowed
+/// state holds the same V_AO and O_c bits as one whose O_c is whole throughout, and a small
+/// tool's window is a few slices.
+#[test]
+fn lao_holds_clipped_opacity_only_where_the_tools_reach() {
+    let gpu = common::gpu();
+    let vol = phantom::head(64);
+    let (mut windowed, _, _) = setup(&gpu, &vol);
+    let (mut whole, _, _) = setup(&gpu, &vol);
+    whole.sh_radius_mm = Some(10.0);
+    let placement = Placement::default();
+    let c = placement.center;
+    let small = vec![tool(
+        Shape::Sphere,
+        c,
+        Quat::IDENTITY,
+        0.01,
+        ToolMode::Carve,
+    )];
+    let mut sequence = frames(c);
+    sequence.push(small);
+    for (i, tools) in sequence.iter().enumerate() {
+        // Whole for two frames in the middle, as when the SH lighting is switched on and off.
+        windowed.sh_radius_mm = (i == 4 || i == 5).then_some(10.0);
+        for cao in [&mut windowed, &mut whole] {
+            cao.run_frame(tools, &placement, Mode::Contextual).unwrap();
+        }
+        assert_eq!(windowed.windowed(), !(i == 4 || i == 5), "frame {i}");
+        assert!(!whole.windowed());
+        let (a, b) = (read_ao(&windowed.ao), read_ao(&whole.ao));
+        let diff = common::first_bit_difference(&a, &b);
+        assert!(diff.is_none(), "frame {i}: V_AO differs at voxel {diff:?}");
+        assert_eq!(
+            windowed.read_clipped().unwrap(),
+            whole.read_clipped().unwrap(),
+            "frame {i}: clipped opacity"
+        );
+        let (held, all) = (windowed.clipped().size, whole.clipped().size);
+        assert!(held <= all, "frame {i}: {held} bytes of O_c, {all} whole");
+    }
+    // The small sphere's slices: its own, the dilation's and the LAO reach's either side.
+    let [from, to] = windowed.clipped_slices();
+    let all = whole.clipped_slices()[1];
+    assert!(
+        from > 0 && to < all && 2 * (to - from) < all,
+        "slices {from}..{to} of {all} held"
+    );
+    common::assert_no_validation_messages(&gpu);
+}
+
 #[test]
 fn the_cut_is_where_the_tools_are() {
     let gpu = common::gpu();

@@ -174,19 +174,20 @@ fn a_gpu_that_stops_answering_is_an_error_not_a_freeze() {
 }
 
 /// `info`'s bytes per voxel of each method ([`cao_xr::app::gpu_volumes`]) are what the GPU
-/// then holds: at most what `render` measures held after its frame, and within 2 bytes per
-/// voxel of it (a frame's images and tables and the O and V_PAO staged in its tool's boxes
-/// come on top) on a 2 Mi-voxel volume carved by a 20 mm sphere, for LAO, a filter and the
+/// then holds: at most what `render` measures held after its frame, and within 3 bytes per
+/// voxel of it (a frame's images and tables, the O and V_PAO staged in its tool's boxes and
+/// under LAO O_c over the slices the tool reaches come on top; a whole O_c would be 2.6 more)
+/// on a 2 Mi-voxel volume carved by a 20 mm sphere, for LAO, a filter and the
 /// local histograms' direct definition (a precompute's transient volumes may make the peak
 /// higher).
 #[test]
 fn info_tells_the_gpu_bytes_per_voxel_each_method_holds() {
     use cao_xr::ao::histogram::HistParams;
-    use cao_xr::ao::{AoMethod, LaoParams};
+    use cao_xr::ao::AoMethod;
     let dir = tmp("info");
     let vol = cao_xr::volume::phantom::head(128);
     let predicted = |m: AoMethod| -> f64 {
-        let v = cao_xr::app::gpu_volumes(&vol, &m, &LaoParams::default());
+        let v = cao_xr::app::gpu_volumes(&vol, &m);
         v.iter().map(|x| x.1).sum()
     };
     let info = crate::common::run_cao_ok(&["info", "phantom:128"]);
@@ -242,7 +243,7 @@ fn info_tells_the_gpu_bytes_per_voxel_each_method_holds() {
             .unwrap_or_else(|| panic!("{extra:?}: nothing held told in {stdout}"));
         let p = predicted(method);
         assert!(
-            p <= measured && measured <= p + 2.0,
+            p <= measured && measured <= p + 3.0,
             "{extra:?}: {p:.1} bytes per voxel told, {measured} measured"
         );
     }
