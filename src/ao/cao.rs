@@ -195,31 +195,35 @@ fn label_buffers(gpu: &Gpu, vol: &Volume) -> Result<(Buffer, Buffer, bool)> {
 }
 
 impl Cao {
-    /// `opacity` is O and `pao` its AO under `method` (V_PAO): device buffers, read back and
-    /// dropped (the host keeps both).
+    /// `opacity` is O as the GPU reads it (16-bit words, or f32 for the filters' density: the
+    /// host keeps it) and `pao` its AO under `method` (V_PAO), a device buffer read back and
+    /// dropped (the host keeps it too).
     pub fn new(
         gpu: &Gpu,
         vol: &Volume,
-        opacity: Buffer,
+        opacity: Vec<u8>,
         pao: Buffer,
         method: MethodGpu,
     ) -> Result<Cao> {
-        // Before anything else is allocated: what only the precompute reads goes, and so does
-        // O from the GPU.
+        // Before anything else is allocated: what only the precompute reads goes.
         let method = method.for_update()?;
         let open = matches!(method, MethodGpu::Open);
-        // No method yet: O is 0 and V_PAO 1 (every word all ones, `AoVolume::open`), written
-        // here rather than read back (a first picture waits for this).
-        let words = if open {
-            (
-                vec![0; opacity.size as usize],
-                vec![u8::MAX; pao.size as usize],
-            )
+        let es = if method.float_density() { 4 } else { 2 };
+        if opacity.len() < vol.voxel_count() * es {
+            return Err(GpuError::Other(format!(
+                "{}: O of {} bytes for {} voxels",
+                vol.name,
+                opacity.len(),
+                vol.voxel_count()
+            )));
+        }
+        // No method yet: V_PAO is 1 (every word all ones, `AoVolume::open`), written here
+        // rather than read back (a first picture waits for this).
+        let pao_words = if open {
+            vec![u8::MAX; pao.size as usize]
         } else {
-            (opacity.read_back()?, pao.read_back()?)
+            pao.read_back()?
         };
-        drop(opacity);
-        let (opacity, pao_words) = words;
         // An open state copies V_PAO into V_AO on the GPU; a computed method restores from
         // the host's words (Cao::restore_whole).
         let pao = open.then_some(pao);
@@ -1172,7 +1176,7 @@ impl Cao {
 
 /// The most O and V_PAO bytes [`Cao::restore_whole`] stages at once (at least one z-slice):
 /// small beside a clinical CT's volumes, and few enough submissions for a quick restore.
-pub const RESTORE_SLAB_BYTES: u64 = 32 << 20;
+pub const RESTORE_SLAB_BYTES: u64 = 8 << 20;
 
 /// What one frame in flight writes from the host or reads back: the tools' table and maps, the
 /// category counters and the pass timer.

@@ -8,7 +8,7 @@ use super::filter_gpu::FilterGpu;
 use super::filtered::FilterParams;
 use super::histogram_gpu::HistogramGpu;
 use super::lao::{
-    LaoGpu, LaoLayout, LaoMethod, LaoParams, LaoTiming, SkipBuffers, SkipData, SlabInput,
+    LaoGpu, LaoKernel, LaoLayout, LaoMethod, LaoParams, LaoTiming, SkipBuffers, SkipData, SlabInput,
 };
 use super::voxel_box::VoxelBox;
 use super::AoMethod;
@@ -315,7 +315,6 @@ pub struct AoVolume {
     /// O of docs/design.md, on the host (for the filters: the density they filter, O or the
     /// normalised scalar; for the local histograms q).
     pub opacity: Vec<f32>,
-    pub opacity_buf: Buffer,
     /// V_PAO: the AO method's openness of the unclipped volume (stored, x fastest).
     pub ao_buf: Buffer,
     pub timing: LaoTiming,
@@ -330,7 +329,6 @@ impl AoVolume {
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
         Ok(AoVolume {
             opacity: self.opacity.clone(),
-            opacity_buf: self.opacity_buf.duplicate(usage, "opacity")?,
             ao_buf: self.ao_buf.duplicate(usage, "pao")?,
             timing: self.timing.clone(),
             method: self.method.duplicate()?,
@@ -339,7 +337,19 @@ impl AoVolume {
 
     /// Hands O, V_PAO and the method to a CAO state for per-frame clipping.
     pub fn into_cao(self, gpu: &Gpu, vol: &Volume) -> Result<Cao> {
-        Cao::new(gpu, vol, self.opacity_buf, self.ao_buf, self.method)
+        let words = self.stored_opacity(vol.voxel_count() as u64);
+        drop(self.opacity);
+        Cao::new(gpu, vol, words, self.ao_buf, self.method)
+    }
+
+    /// O as the GPU reads it ([`Cao::clipped_stride`]): the filters' f32 density, else 16-bit
+    /// words ([`super::stored`]); zero before a method is computed.
+    fn stored_opacity(&self, voxels: u64) -> Vec<u8> {
+        match &self.method {
+            MethodGpu::Open => vec![0; super::stored::bytes(voxels) as usize],
+            m if m.float_density() => bytemuck::cast_slice(&self.opacity).to_vec(),
+            _ => bytemuck::cast_slice(&super::stored::words(&self.opacity)).to_vec(),
+        }
     }
 
     /// LAO's precompute of `opacity` (O of `vol`, host) with `params`, `progress(done, total)`
@@ -352,14 +362,22 @@ impl AoVolume {
         params: &LaoParams,
         progress: &mut dyn FnMut(usize, usize),
     ) -> Result<AoVolume> {
-        let usage = vk::BufferUsageFlags::STORAGE_BUFFER;
-        let opacity_buf = super::stored::upload(gpu, &opacity, usage, "opacity")?;
         let skip = lao.skip_buffers(&opacity, vol.dims, vol.spacing, params)?;
-        let (ao_buf, timing) =
-            lao.compute(&opacity_buf, &skip, vol.dims, vol.spacing, params, progress)?;
+        // Only the old kernel reads O without its border: the default one reads the skipping
+        // data's padded copy, and the CAO state takes O from the host.
+        let unpadded = match lao.kernel {
+            LaoKernel::Old => Some(super::stored::upload(
+                gpu,
+                &opacity,
+                vk::BufferUsageFlags::STORAGE_BUFFER,
+                "opacity",
+            )?),
+            LaoKernel::New => None,
+        };
+        let o = unpadded.as_ref().unwrap_or(&skip.padded);
+        let (ao_buf, timing) = lao.compute(o, &skip, vol.dims, vol.spacing, params, progress)?;
         Ok(AoVolume {
             opacity,
-            opacity_buf,
             ao_buf,
             timing,
             method: MethodGpu::lao(gpu, vol, *params, skip)?,
@@ -384,9 +402,9 @@ impl AoVolume {
             wall_ms: t0.elapsed().as_secs_f64() * 1e3,
             ..Default::default()
         };
+        drop(opacity_buf);
         Ok(AoVolume {
             opacity: density,
-            opacity_buf,
             ao_buf,
             timing,
             method: MethodGpu::Filter(filter),
@@ -411,26 +429,16 @@ impl AoVolume {
         };
         Ok(AoVolume {
             opacity: t.q,
-            opacity_buf: t.opacity,
             ao_buf: t.pao,
             timing,
             method: MethodGpu::Histogram(h),
         })
     }
 
-    /// The AO of no method yet ([`MethodGpu::Open`]): V_PAO 1 everywhere and O zero, both
-    /// filled on the GPU, so a first picture waits for no classification, upload or
-    /// precompute (the switch to a method classifies and computes its own).
+    /// The AO of no method yet ([`MethodGpu::Open`]): V_PAO 1 everywhere, filled on the GPU,
+    /// and O zero, so a first picture waits for no classification, upload or precompute (the
+    /// switch to a method classifies and computes its own).
     pub fn open(gpu: &Gpu, vol: &Volume) -> Result<AoVolume> {
-        let n = vol.voxel_count() as u64;
-        let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST;
-        let opacity_buf = Buffer::new(
-            gpu,
-            super::stored::bytes(n).next_multiple_of(4),
-            usage,
-            gpu_allocator::MemoryLocation::GpuOnly,
-            "opacity",
-        )?;
         let ao_buf = super::stored::buffer(gpu, vol.dims, "pao")?;
         // A fill writes whole 4-byte words: the last 16-bit word of an odd count is copied in.
         let tail = Buffer::device_local(
@@ -442,7 +450,6 @@ impl AoVolume {
         gpu.submit_and_wait(|cmd| unsafe {
             // SAFETY: the buffers were just made with these usages, and nothing else uses them.
             let d = &gpu.device;
-            d.cmd_fill_buffer(cmd, opacity_buf.raw, 0, vk::WHOLE_SIZE, 0);
             // Every 16-bit word all ones: AO_OPEN, AO 1.
             d.cmd_fill_buffer(cmd, ao_buf.raw, 0, vk::WHOLE_SIZE, u32::MAX);
             gpu.barrier(cmd);
@@ -452,7 +459,6 @@ impl AoVolume {
         })?;
         Ok(AoVolume {
             opacity: Vec::new(),
-            opacity_buf,
             ao_buf,
             timing: LaoTiming::default(),
             method: MethodGpu::Open,

@@ -362,6 +362,9 @@ impl FrameLoop {
             Start::Open => (open_ao(gpu, &vol)?, 0),
         };
         let lao_dirs = lao.directions_buffer(&params, vol.spacing)?;
+        // The CAO state first: it lets go of what only the precompute read (LAO's padded O)
+        // and of V_PAO's GPU copy before the scalars are uploaded, so the peak holds not both.
+        let cao = ao.into_cao(gpu, &vol)?;
         let mut tex = VolumeTextures::new(gpu, &vol, tf)?;
         let margins = vol
             .labels
@@ -380,7 +383,7 @@ impl FrameLoop {
         };
         Ok(FrameLoop {
             gpu: gpu.clone(),
-            cao: ao.into_cao(gpu, &vol)?,
+            cao,
             tex,
             renderer: Renderer::new(gpu)?,
             overlay: OverlayRenderer::new(gpu)?,

@@ -19,7 +19,7 @@ pub struct Buffer {
 
 /// The most bytes an upload or a read-back stages at once: a whole volume's staging copy would
 /// add a few bytes per voxel to the GPU's peak.
-pub const STAGING_CHUNK: u64 = 32 << 20;
+pub const STAGING_CHUNK: u64 = 8 << 20;
 
 impl Buffer {
     pub fn new(

@@ -41,7 +41,7 @@ pub(crate) fn setup(gpu: &Gpu, vol: &Volume) -> (Cao, Vec<f32>, Vec<f32>) {
         Cao::new(
             gpu,
             vol,
-            obuf,
+            obuf.read_back().unwrap(),
             pao,
             MethodGpu::lao(gpu, vol, PARAMS, skip).unwrap(),
         )

@@ -45,12 +45,12 @@ fn a_volume_beyond_the_gpu_memory_budget_is_shown_at_the_finest_downsample_that_
     // the same budget (which fits as it is: no notice), while `--downsample N - 1` does not fit
     // (its notice downsamples further). N moves with every buffer the frame loop gains, so it
     // is not written down here.
-    // Budgets of 4 MiB and up: below that the ray caster's fixed 1 MiB pre-integration table
+    // Budgets of 3 MiB and up: below that the ray caster's fixed 1 MiB pre-integration table
     // (and its staging) leaves no room for any downsampled volume.
     let cases: [(&str, &[&str]); 5] = [
         ("4", &[]),
         ("12", &[]),
-        ("20", &[]),
+        ("14", &[]),
         ("12", &["--ao", "filter-gauss"]),
         ("5", &["--lighting", "sh"]),
     ];
@@ -98,7 +98,7 @@ fn a_volume_beyond_the_gpu_memory_budget_is_shown_at_the_finest_downsample_that_
         }
     }
     // a volume downsampled already: the factor counts from the file (2 then 2 is 4 at once)
-    let out = render("4", &["--downsample", "2"], &dir.join("twice"));
+    let out = render("3", &["--downsample", "2"], &dir.join("twice"));
     let stderr = ok(&out, "twice");
     assert!(
         stderr.contains("volume phantom-128-ds2 (64 x 64 x 64) does not fit"),

@@ -204,7 +204,7 @@ fn cao_for(gpu: &Gpu, vol: &Volume, params: LaoParams) -> (Cao, Buffer) {
         Cao::new(
             gpu,
             vol,
-            obuf,
+            obuf.read_back().unwrap(),
             pao,
             MethodGpu::lao(gpu, vol, params, skip).unwrap(),
         )
