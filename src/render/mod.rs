@@ -376,9 +376,10 @@ impl VolumeLimits {
     }
 }
 
-/// GPU bytes per voxel, at least: the scalar image (4 bytes for f32 data; an integer scalar
-/// takes 2 or 1), and O_c and V_AO (2 each, `ao::stored`; the filters hold O_c in f32; O and
-/// V_PAO stay on the host), before the method's own volumes.
+/// GPU bytes per voxel a volume is checked against: the scalar image at its largest (4 bytes
+/// for f32 data; an integer scalar takes 2 or 1), and O_c and V_AO (2 each, `ao::stored`; the
+/// filters hold O_c in f32, LAO only over the slices its tools reach; O and V_PAO stay on the
+/// host), before the method's own volumes.
 pub const GPU_BYTES_PER_VOXEL: u64 = 4 + 2 * crate::ao::stored::BYTES_PER_VOXEL;
 
 /// The shaders index a volume's voxels with 32-bit signed integers.
