@@ -453,9 +453,23 @@ impl Image {
     }
 
     /// Uploads tightly packed texels and leaves the image in `final_layout`, staging at most
-    /// [`STAGING_CHUNK`] bytes (or one z-slice) at a time.
+    /// `STAGING_CHUNK` bytes (or one z-slice) at a time.
     pub fn upload(&self, bytes: &[u8], final_layout: vk::ImageLayout) -> Result<()> {
         let e = self.desc.extent;
+        let texels = [e.width, e.height, e.depth, self.desc.layers]
+            .iter()
+            .map(|&n| n as usize)
+            .product::<usize>();
+        if texels == 0 || bytes.is_empty() || bytes.len() % texels != 0 {
+            return Err(GpuError::Other(format!(
+                "{} bytes do not fill a {}x{}x{} image of {} layer(s) with whole texels",
+                bytes.len(),
+                e.width,
+                e.height,
+                e.depth,
+                self.desc.layers
+            )));
+        }
         let slice = (bytes.len() / e.depth.max(1) as usize).max(1);
         let slices = (STAGING_CHUNK as usize / slice).clamp(1, e.depth.max(1) as usize);
         let mut staging = Buffer::new(
