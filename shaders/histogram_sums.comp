@@ -42,7 +42,8 @@ layout(push_constant) uniform Push {
     ivec4 box_min;  // w: mode (0: direct sums, no mask; 1: CAO by category; 2: naive, a -> 1;
                     //          3: restore the precomputed values; 4: the clustered values)
     ivec4 box_max;  // exclusive; w: where the box's V_PAO starts in pre_a (staged boxes)
-    ivec4 reach;    // xyz: S_r's largest offset per axis
+    ivec4 reach;    // xyz: S_r's largest offset per axis; w: where voxel 0 of q lies in the
+                    // buffer (the z-slices CAO holds: src/ao/cao.rs Cao::clipped_stride)
 } pc;
 #define q pc.q_buf.q
 #define bins pc.bins_buf.bins
@@ -80,7 +81,7 @@ void direct(ivec3 v, out float a, out vec3 e) {
             if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
         }
         int j = i0 + o.x + row * o.y + slice * o.z;
-        float wq = nb.w * unorm16_value(uint(q[j]));
+        float wq = nb.w * unorm16_value(uint(q[j + pc.reach.w]));
         occ += wq;
         rgb += wq * bin_table[bins[j]].rgb;
     }

@@ -418,9 +418,10 @@ impl Cao {
     }
 
     /// Whether O_c is held only in the z-slices each frame's update reads (`Cao::clipped`):
-    /// under LAO, unless the SH visibility, which reads the whole O_c, is on.
+    /// under LAO and the local histograms ([`MethodGpu::window_reach`]), unless the SH
+    /// visibility, which reads the whole O_c, is on.
     pub fn windowed(&self) -> bool {
-        matches!(self.method, MethodGpu::Lao(_)) && self.sh_radius_mm.is_none()
+        self.method.window_reach().is_some() && self.sh_radius_mm.is_none()
     }
 
     /// The z-slices of O_c's grid (LAO's zero border included) the GPU holds now, [from, to).
@@ -468,10 +469,12 @@ impl Cao {
         Ok(Some(std::mem::replace(&mut self.clipped, new)))
     }
 
-    /// The z-slices of O_c this frame's LAO update over `boxes` reads: theirs and the zero
-    /// border's depth beyond them on both sides (the farthest sample's footprint).
+    /// The z-slices of O_c this frame's update over `boxes` reads: theirs and the method's
+    /// reach beyond them on both sides (LAO's farthest sample's footprint, its zero border;
+    /// the local histograms' S_r), within the grid.
     fn window_of(&self, boxes: &[VoxelBox]) -> [usize; 2] {
         let pad = self.method.clipped_pad()[2];
+        let reach = self.method.window_reach().unwrap_or(0);
         let mut z = boxes
             .iter()
             .filter(|b| b.voxels() > 0)
@@ -482,8 +485,12 @@ impl Cao {
         let (lo, hi) = z.fold((first.start, first.end), |(lo, hi), r| {
             (lo.min(r.start), hi.max(r.end))
         });
-        // Voxel z lies at z + pad in the padded grid and reads pad slices either side.
-        [lo as usize, hi as usize + 2 * pad]
+        // Voxel z lies at z + pad in the padded grid and reads `reach` slices either side.
+        let whole = self.whole_slices()[1];
+        [
+            (lo as usize + pad).saturating_sub(reach),
+            (hi as usize + pad + reach).min(whole),
+        ]
     }
 
     /// O_c's background (O, or 0 while a probe is active) over the padded grid's z-slices
@@ -1281,15 +1288,15 @@ fn clipped_usage() -> vk::BufferUsageFlags {
         | vk::BufferUsageFlags::TRANSFER_DST
 }
 
-/// O_c as a CAO state under `method` starts, and the z-slices it holds: for LAO an empty window
-/// ([`Cao::windowed`]; made whole at the first restore or frame where the SH visibility needs
-/// it), else the whole volume, zero (a whole restore fills it).
+/// O_c as a CAO state under `method` starts, and the z-slices it holds: for LAO and the local
+/// histograms an empty window ([`Cao::windowed`]; made whole at the first restore or frame
+/// where the SH visibility needs it), else the whole volume, zero (a whole restore fills it).
 fn initial_clipped(
     gpu: &Gpu,
     dims: [usize; 3],
     method: &MethodGpu,
 ) -> Result<(Buffer, [usize; 2])> {
-    if matches!(method, MethodGpu::Lao(_)) {
+    if method.window_reach().is_some() {
         let b = Buffer::new(
             gpu,
             4,

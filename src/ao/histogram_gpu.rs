@@ -386,6 +386,12 @@ impl HistogramGpu {
         1 + self.params.hemispheres as usize
     }
 
+    /// S_r's largest offset on each axis, in voxels.
+    pub fn reach_voxels(&self) -> [usize; 3] {
+        let [x, y, z, _] = self.reach4();
+        [x, y, z].map(|r| r as usize)
+    }
+
     /// S_r's largest offset per axis.
     fn reach4(&self) -> [i32; 4] {
         let m = |a: usize| {
@@ -663,12 +669,13 @@ impl HistogramGpu {
         (boxes, at): (&[VoxelBox], &[i32]),
         mode: Pass,
     ) {
+        let r = self.reach4();
         for (bx, &at) in boxes.iter().zip(at) {
             let push = SumsPush {
                 dims: self.dims4(self.nb.offsets.len() as i32),
                 box_min: [bx.min[0], bx.min[1], bx.min[2], mode as i32],
                 box_max: [bx.max[0], bx.max[1], bx.max[2], at],
-                reach: self.reach4(),
+                reach: [r[0], r[1], r[2], bufs.density_stride[0]],
             };
             let bufs = [
                 bufs.density,

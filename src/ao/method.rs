@@ -174,6 +174,17 @@ impl MethodGpu {
         }
     }
 
+    /// How many z-slices either side of a voxel the method's region recompute reads O_c (LAO's
+    /// border, the local histograms' S_r), where CAO holds O_c only in the slices a frame reads
+    /// ([`super::cao::Cao::windowed`]); None where it holds O_c whole.
+    pub fn window_reach(&self) -> Option<usize> {
+        match self {
+            MethodGpu::Lao(l) => Some(l.pad()[2]),
+            MethodGpu::Histogram(h) => Some(h.reach_voxels()[2]),
+            _ => None,
+        }
+    }
+
     /// The zero border around O_c on each axis (LAO's; none for the others).
     pub fn clipped_pad(&self) -> [usize; 3] {
         match self {

@@ -452,8 +452,8 @@ fn gpu_report(vol: &Volume) -> String {
     };
     format!(
         "{} bytes per voxel ({} GiB) held once set up (loading's staging, the clustering's \
-         batches, a frame's images, its tools' staged boxes and LAO's O_c over the slices its \
-         tools reach come on top)",
+         batches, a frame's images, its tools' staged boxes and O_c over the slices its tools \
+         reach come on top)",
         per_voxel
             .iter()
             .map(|(name, b)| format!("{name} {b:.1}"))
@@ -466,8 +466,8 @@ fn gpu_report(vol: &Volume) -> String {
 /// The volumes the GPU holds for `vol` under `method`, in bytes per
 /// voxel by name: what every method holds (the scalar image, O_c, CAO's mask, V_AO, which the
 /// ray caster reads itself, and with labels their ids and the margins' glow) and the method's
-/// own. O and V_PAO are the host's once CAO is set up, and so is O under LAO's O_c, which the GPU
-/// holds only over the z-slices a frame's tools reach ([`crate::ao::cao::Cao::windowed`]; whole
+/// own. O and V_PAO are the host's once CAO is set up, and so is O under the O_c of LAO and the
+/// local histograms, which the GPU holds only over the z-slices a frame's tools reach ([`crate::ao::cao::Cao::windowed`]; whole
 /// with the SH visibility on). A frame's images, tables, staged boxes and O_c slices and the
 /// staging copies while loading come on top (the peak `render` prints).
 pub fn gpu_volumes(vol: &Volume, method: &AoMethod) -> Vec<(&'static str, f64)> {
@@ -485,12 +485,11 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod) -> Vec<(&'static str, f64)> 
         }
     }
     match method {
-        // O_c only over the slices a frame's tools reach (O and V_PAO are the host's: a frame
-        // stages only its boxes').
+        // O_c only over the slices a frame's tools reach, under LAO and the local histograms
+        // (O and V_PAO are the host's: a frame stages only its boxes').
         AoMethod::Lao => v.push(("clear bits", 1.0 / 8.0)),
         AoMethod::Filter(_) => v.extend([("O_c", 4.0), ("box statistics", 32.0)]),
         AoMethod::Histogram(h) => {
-            v.push(("O_c", 2.0));
             v.push(("bins", 4.0));
             v.push(("E (precomputed, current)", 8.0));
             if h.clusters > 0 {

@@ -175,9 +175,10 @@ fn a_gpu_that_stops_answering_is_an_error_not_a_freeze() {
 
 /// `info`'s bytes per voxel of each method ([`cao_xr::app::gpu_volumes`]) are what the GPU
 /// then holds: at most what `render` measures held after its frame, and within 3 bytes per
-/// voxel of it (a frame's images and tables, the O and V_PAO staged in its tool's boxes and
-/// under LAO O_c over the slices the tool reaches come on top; a whole O_c would be 2.6 more)
-/// on a 2 Mi-voxel volume carved by a 20 mm sphere, for LAO, a filter and the
+/// voxel of it (a frame's images and tables, the O and V_PAO staged in its tool's boxes and,
+/// under LAO and the local histograms, O_c over the slices the tool reaches come on top; a
+/// whole O_c would be 2 to 2.6 more) on a 2 Mi-voxel volume carved by a 10 mm sphere, for LAO,
+/// a filter and the
 /// local histograms' direct definition (a precompute's transient volumes may make the peak
 /// higher).
 #[test]
@@ -229,7 +230,7 @@ fn info_tells_the_gpu_bytes_per_voxel_each_method_holds() {
             "--size",
             "32x32",
             "--tool",
-            "sphere:20",
+            "sphere:10",
         ];
         args.extend(extra);
         args.extend(["--out", dir.to_str().unwrap()]);
