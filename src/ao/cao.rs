@@ -208,7 +208,7 @@ impl Cao {
         // Before anything else is allocated: what only the precompute reads goes.
         let method = method.for_update()?;
         let open = matches!(method, MethodGpu::Open);
-        let es = if method.float_density() { 4 } else { 2 };
+        let es = method.density_bytes();
         if opacity.len() < vol.voxel_count() * es {
             return Err(GpuError::Other(format!(
                 "{}: O of {} bytes for {} voxels",
@@ -351,7 +351,7 @@ impl Cao {
             return Ok(());
         }
         let [nx, ny, nz] = self.dims;
-        let es = if self.method.float_density() { 4 } else { 2 };
+        let es = self.method.density_bytes();
         let per_slice = (nx * ny * (es + super::stored::BYTES_PER_VOXEL as usize)) as u64;
         let slices = ((slab_bytes / per_slice) as usize).clamp(1, nz.max(1));
         let clipped = self.background_clipped;
@@ -436,9 +436,9 @@ impl Cao {
 
     /// Bytes of O_c's z-slices `slices`.
     fn clipped_bytes(&self, slices: [usize; 2]) -> u64 {
-        let es = if self.method.float_density() { 4 } else { 2 };
+        let es = self.method.density_bytes();
         let [_, _, sz, _] = self.method.clipped_stride(self.dims);
-        sz as u64 * (slices[1] - slices[0]) as u64 * es
+        sz as u64 * (slices[1] - slices[0]) as u64 * es as u64
     }
 
     /// Where O_c must be whole but is a window (the SH visibility came on, or a new method's
@@ -497,7 +497,7 @@ impl Cao {
     /// `slices`, inside LAO's zero border: what a window starts as before the clip pass.
     fn window_bytes(&self, slices: [usize; 2]) -> Vec<u8> {
         use rayon::prelude::*;
-        let es = if self.method.float_density() { 4 } else { 2 };
+        let es = self.method.density_bytes();
         let [px, py, pz] = self.method.clipped_pad();
         let [nx, ny, nz] = self.dims;
         let plane = (nx + 2 * px) * (ny + 2 * py) * es;
@@ -529,8 +529,7 @@ impl Cao {
     /// active.
     pub fn read_clipped(&self) -> Result<Vec<f32>> {
         let [o, sy, sz, f32] = self.clipped_stride().map(|s| s as i64);
-        let held =
-            (self.clipped_bytes(self.clipped_slices) / if f32 == 1 { 4 } else { 2 }) as usize;
+        let held = self.clipped_bytes(self.clipped_slices) as usize / self.method.density_bytes();
         let value = |bytes: &[u8], i: usize| match f32 {
             1 => f32::from_le_bytes(bytes[4 * i..4 * i + 4].try_into().unwrap()),
             _ => super::stored::unpack(u16::from_le_bytes([bytes[2 * i], bytes[2 * i + 1]])),
@@ -922,7 +921,7 @@ impl Cao {
         if self.windowed() {
             let slices = self.window_of(&boxes);
             let bytes = self.window_bytes(slices);
-            let need = self.clipped_bytes(slices).max(4);
+            let need = (bytes.len() as u64).max(4);
             if !fits(&self.clipped, need) {
                 let whole = self.clipped_bytes(self.whole_slices()).max(4);
                 let new = Buffer::new(
@@ -1127,7 +1126,7 @@ impl Cao {
         old: Option<Staged>,
         boxes: impl Iterator<Item = &'a VoxelBox>,
     ) -> Result<(Staged, Vec<i32>)> {
-        let es = if self.method.float_density() { 4 } else { 2 };
+        let es = self.method.density_bytes();
         let pes = super::stored::BYTES_PER_VOXEL as usize;
         let nx = self.dims[0];
         let ny = self.dims[1];
@@ -1313,10 +1312,7 @@ fn initial_clipped(
 fn clipped_buffer(gpu: &Gpu, dims: [usize; 3], method: &MethodGpu) -> Result<Buffer> {
     let voxels = method.clipped_voxels(dims) as u64;
     // Whole 4-byte words: the fill below writes whole words.
-    let bytes = match method.float_density() {
-        true => voxels * 4,
-        false => super::stored::bytes(voxels).next_multiple_of(4),
-    };
+    let bytes = (voxels.max(1) * method.density_bytes() as u64).next_multiple_of(4);
     let b = Buffer::new(
         gpu,
         bytes,

@@ -156,6 +156,16 @@ impl MethodGpu {
         matches!(self, MethodGpu::Filter(_))
     }
 
+    /// Bytes per voxel of O and O_c: 4 where they are f32 ([`MethodGpu::float_density`]), else
+    /// 2 (16-bit words, [`super::stored`]).
+    pub fn density_bytes(&self) -> usize {
+        if self.float_density() {
+            4
+        } else {
+            2
+        }
+    }
+
     /// Where voxel v of O_c lies for this method: \[0] + v.x + \[1] v.y + \[2] v.z (inside LAO's
     /// zero border for LAO); \[3] is 1 where O_c is f32 ([`MethodGpu::float_density`]).
     pub fn clipped_stride(&self, dims: [usize; 3]) -> [i32; 4] {

@@ -416,12 +416,33 @@ impl Image {
 
     /// [`Image::cmd_copy_from`] starting `offset` bytes into `src`.
     pub fn cmd_copy_from_offset(&self, cmd: vk::CommandBuffer, src: &Buffer, offset: u64) {
+        self.cmd_copy_slices_from(cmd, src, offset, 0..self.desc.extent.depth);
+    }
+
+    /// Records a copy of z-slices `z` of the image (layout TRANSFER_DST_OPTIMAL) from `src`,
+    /// where they lie tightly packed from `offset` on (the callers size it so).
+    fn cmd_copy_slices_from(
+        &self,
+        cmd: vk::CommandBuffer,
+        src: &Buffer,
+        offset: u64,
+        z: std::ops::Range<u32>,
+    ) {
+        let e = self.desc.extent;
         let region = [vk::BufferImageCopy::default()
             .buffer_offset(offset)
             .image_subresource(self.layers_all())
-            .image_extent(self.desc.extent)];
+            .image_offset(vk::Offset3D {
+                x: 0,
+                y: 0,
+                z: z.start as i32,
+            })
+            .image_extent(vk::Extent3D {
+                depth: z.end - z.start,
+                ..e
+            })];
         // SAFETY: `cmd` is recording with the image in TRANSFER_DST_OPTIMAL (this method's
-        // contract); `src` holds the whole image, tightly packed, from `offset` on (the callers
+        // contract); `src` holds the slices, tightly packed, from `offset` on (the callers
         // size it so).
         unsafe {
             self.gpu.device.cmd_copy_buffer_to_image(
@@ -470,8 +491,9 @@ impl Image {
                 self.desc.layers
             )));
         }
-        let slice = (bytes.len() / e.depth.max(1) as usize).max(1);
-        let slices = (STAGING_CHUNK as usize / slice).clamp(1, e.depth.max(1) as usize);
+        // Every side is at least 1 and the bytes whole texels (above): a slice is not empty.
+        let slice = bytes.len() / e.depth as usize;
+        let slices = (STAGING_CHUNK as usize / slice).clamp(1, e.depth as usize);
         let mut staging = Buffer::new(
             &self.gpu,
             (slice * slices) as u64,
@@ -483,17 +505,7 @@ impl Image {
         for (k, chunk) in bytes.chunks(slice * slices).enumerate() {
             staging.write(0, chunk)?;
             let z0 = (k * slices) as u32;
-            let region = [vk::BufferImageCopy::default()
-                .image_subresource(self.layers_all())
-                .image_offset(vk::Offset3D {
-                    x: 0,
-                    y: 0,
-                    z: z0 as i32,
-                })
-                .image_extent(vk::Extent3D {
-                    depth: (chunk.len() / slice) as u32,
-                    ..e
-                })];
+            let z = z0..z0 + (chunk.len() / slice) as u32;
             self.gpu.submit_and_wait(|cmd| {
                 if k == 0 {
                     self.transition(
@@ -502,18 +514,9 @@ impl Image {
                         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
                     );
                 }
-                // SAFETY: `cmd` is recording with the image in TRANSFER_DST_OPTIMAL (made so
-                // above, in the first chunk's submission); `staging` holds the region's
-                // slices tightly packed from 0; both outlive the waited submission.
-                unsafe {
-                    self.gpu.device.cmd_copy_buffer_to_image(
-                        cmd,
-                        staging.raw,
-                        self.raw,
-                        vk::ImageLayout::TRANSFER_DST_OPTIMAL,
-                        &region,
-                    );
-                }
+                // The image is in TRANSFER_DST_OPTIMAL (made so in the first chunk's
+                // submission); `staging` holds the chunk's slices tightly packed from 0.
+                self.cmd_copy_slices_from(cmd, &staging, 0, z);
                 if k as u32 + 1 == last {
                     self.transition(cmd, vk::ImageLayout::TRANSFER_DST_OPTIMAL, final_layout);
                 }

@@ -242,16 +242,20 @@ fn a_whole_restore_in_slabs_leaves_the_frames_state() {
         framed
             .run_frame(tools, &placement, Mode::Contextual)
             .unwrap();
-        let (a, b) = (read_ao(&slabbed.ao), read_ao(&framed.ao));
-        let diff = common::first_bit_difference(&a, &b);
-        assert!(diff.is_none(), "frame {i}: V_AO differs at voxel {diff:?}");
-        assert_eq!(
-            slabbed.read_clipped().unwrap(),
-            framed.read_clipped().unwrap(),
-            "frame {i}: clipped opacity"
-        );
+        assert_same_state(&slabbed, &framed, i);
     }
     common::assert_no_validation_messages(&gpu);
+}
+
+/// Two CAO states after frame `i` hold the same V_AO and O_c bits.
+fn assert_same_state(a: &Cao, b: &Cao, i: usize) {
+    let diff = common::first_bit_difference(&read_ao(&a.ao), &read_ao(&b.ao));
+    assert!(diff.is_none(), "frame {i}: V_AO differs at voxel {diff:?}");
+    assert_eq!(
+        a.read_clipped().unwrap(),
+        b.read_clipped().unwrap(),
+        "frame {i}: clipped opacity"
+    );
 }
 
 /// Under LAO the GPU holds O_c only over the z-slices a frame's tools reach (`Cao::windowed`),
@@ -285,14 +289,7 @@ fn lao_holds_clipped_opacity_only_where_the_tools_reach() {
         }
         assert_eq!(windowed.windowed(), !(i == 4 || i == 5), "frame {i}");
         assert!(!whole.windowed());
-        let (a, b) = (read_ao(&windowed.ao), read_ao(&whole.ao));
-        let diff = common::first_bit_difference(&a, &b);
-        assert!(diff.is_none(), "frame {i}: V_AO differs at voxel {diff:?}");
-        assert_eq!(
-            windowed.read_clipped().unwrap(),
-            whole.read_clipped().unwrap(),
-            "frame {i}: clipped opacity"
-        );
+        assert_same_state(&windowed, &whole, i);
         let (held, all) = (windowed.clipped().size, whole.clipped().size);
         assert!(held <= all, "frame {i}: {held} bytes of O_c, {all} whole");
     }
