@@ -7,6 +7,8 @@
 // (Winitzki's erf) or penner estimator from that box's statistics (filter_box.comp), or the
 // exact fraction of members no denser than the voxel. As an AO method of CAO it writes, per
 // category, a (clipped) -> 1, c (unaffected) -> the precomputed openness, b -> recomputed.
+// The statistics are held over a window of z-slices (src/ao/filter_gpu.rs), the density over
+// O_c's window (src/ao/cao.rs).
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
@@ -26,10 +28,12 @@ layout(push_constant) uniform Push {
     Mask mask_buf;
     Pre pre_buf;
     uvec2 addresses_pad;   // the block below starts 16-aligned
-    ivec4 dims;      // w: estimator (0 cdf, 1 gauss, 2 penner, 3 exact)
-    ivec4 box_min;   // w: mode (0: every voxel, no mask; 1: CAO by category; 2: naive, a -> 1)
+    ivec4 dims;      // w: where voxel 0 of the density lies
+    // w: mode (0: every voxel, no mask; 1: CAO by category; 2: naive, a -> 1)
+    //    + 4 x estimator (0 cdf, 1 gauss, 2 penner, 3 exact)
+    ivec4 box_min;
     ivec4 box_max;   // exclusive; w: where the box's V_PAO starts in `pre` (staged boxes)
-    ivec4 hw;        // xyz: half-widths h_a; w: N = prod(2 h_a + 1)
+    ivec4 hw;        // xyz: half-widths h_a; w: the first z-slice of the statistics
     vec4 spacing;    // xyz: mm per voxel; w: R in mm
 } pc;
 #define density pc.density_buf.density
@@ -41,7 +45,7 @@ layout(push_constant) uniform Push {
 
 float d_at(ivec3 p) {
     if (any(lessThan(p, ivec3(0))) || any(greaterThanEqual(p, pc.dims.xyz))) return 0.0;
-    return density[p.x + pc.dims.x * (p.y + pc.dims.y * p.z)];
+    return density[pc.dims.w + p.x + pc.dims.x * (p.y + pc.dims.y * p.z)];
 }
 
 // Rounds half away from zero, as docs/design.md's centre does.
@@ -67,8 +71,9 @@ float openness(ivec3 v, float dv) {
                         round_away(-pc.spacing.w * g.z / len / pc.spacing.z));
         c = clamp(v + ivec3(off), ivec3(0), pc.dims.xyz - 1);
     }
-    int estimator = pc.dims.w;
-    float n = float(pc.hw.w);
+    int estimator = pc.box_min.w / 4;
+    ivec3 w = 2 * pc.hw.xyz + 1;
+    float n = float(w.x * w.y * w.z);
     if (estimator == 3) {
         uint below = 0u;
         for (int z = c.z - pc.hw.z; z <= c.z + pc.hw.z; z++)
@@ -77,7 +82,7 @@ float openness(ivec3 v, float dv) {
                     below += uint(d_at(ivec3(x, y, z)) <= dv);
         return float(below) / n;
     }
-    ivec2 at = slab_at(pc.stats_buf, c, pc.dims.xyz);
+    ivec2 at = slab_at(pc.stats_buf, c - ivec3(0, 0, pc.hw.w), pc.dims.xyz);
     vec4 s = Stats(pc.stats_buf.slab[at.x]).stats[at.y];
     float lo = s.z, hi = s.w;
     // (mean, M2) from filter_box.comp; a box of one value has that mean and no variance exactly.
@@ -102,13 +107,13 @@ void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
     if (any(greaterThanEqual(v, pc.box_max.xyz))) return;
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
-    int mode = pc.box_min.w;
+    int mode = pc.box_min.w % 4;
     uint category = mode == 0 ? 1u : mask_get(i);
     if (category == 0u) {
         ao[i] = uint16_t(AO_OPEN);
     } else if (category == 2u && mode == 1) {
         ao[i] = pre[staged_index(v)];
     } else {
-        ao[i] = uint16_t(unorm16_word(openness(v, density[i])));
+        ao[i] = uint16_t(unorm16_word(openness(v, d_at(v))));
     }
 }

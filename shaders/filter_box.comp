@@ -7,7 +7,9 @@
 // density; the previous passes' box in y and z), with the pairwise update of Chan et al.: f32
 // sums of d and d^2 would cancel catastrophically in m2 - mu^2 for nearly homogeneous boxes.
 // Members outside the grid count as d = 0. Every output is combined in the same order whatever
-// region is dispatched, so a region's values equal the whole volume's bit for bit.
+// region is dispatched, so a region's values equal the whole volume's bit for bit. The
+// statistics are held over a window of z-slices (src/ao/filter_gpu.rs), the density over
+// O_c's window (src/ao/cao.rs).
 layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
@@ -25,6 +27,7 @@ layout(push_constant) uniform Push {
     ivec4 dims;      // w: axis (0 = x, reading the density; 1 = y, 2 = z)
     ivec4 box_min;   // w: half-width h along the axis
     ivec4 box_max;   // exclusive; w: voxels per member (count)
+    ivec4 window;    // x: where voxel 0 of the density lies; y: the first z-slice of the statistics
 } pc;
 #define density pc.density_buf.density
 
@@ -32,10 +35,10 @@ vec4 member(ivec3 p) {
     if (any(lessThan(p, ivec3(0))) || any(greaterThanEqual(p, pc.dims.xyz))) return vec4(0.0);
     int i = p.x + pc.dims.x * (p.y + pc.dims.y * p.z);
     if (pc.dims.w == 0) {
-        float d = density[i];
+        float d = density[pc.window.x + i];
         return vec4(d, 0.0, d, d);
     }
-    ivec2 at = slab_at(pc.src_buf, p, pc.dims.xyz);
+    ivec2 at = slab_at(pc.src_buf, p - ivec3(0, 0, pc.window.y), pc.dims.xyz);
     return Stats(pc.src_buf.slab[at.x]).stats[at.y];
 }
 
@@ -56,6 +59,6 @@ void main() {
         acc.zw = vec2(min(acc.z, m.z), max(acc.w, m.w));
         na = n;
     }
-    ivec2 at = slab_at(pc.dst_buf, v, pc.dims.xyz);
+    ivec2 at = slab_at(pc.dst_buf, v - ivec3(0, 0, pc.window.y), pc.dims.xyz);
     Stats(pc.dst_buf.slab[at.x]).stats[at.y] = acc;
 }

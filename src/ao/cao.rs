@@ -418,7 +418,7 @@ impl Cao {
     }
 
     /// Whether O_c is held only in the z-slices each frame's update reads (`Cao::clipped`):
-    /// under LAO and the local histograms ([`MethodGpu::window_reach`]), unless the SH
+    /// under every method that reads it ([`MethodGpu::window_reach`]), unless the SH
     /// visibility, which reads the whole O_c, is on.
     pub fn windowed(&self) -> bool {
         self.method.window_reach().is_some() && self.sh_radius_mm.is_none()

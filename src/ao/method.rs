@@ -185,13 +185,15 @@ impl MethodGpu {
     }
 
     /// How many z-slices either side of a voxel the method's region recompute reads O_c (LAO's
-    /// border, the local histograms' S_r), where CAO holds O_c only in the slices a frame reads
-    /// ([`super::cao::Cao::windowed`]); None where it holds O_c whole.
+    /// border, the local histograms' S_r, the filters' box centre and half-width), where CAO
+    /// holds O_c only in the slices a frame reads ([`super::cao::Cao::windowed`]); None where
+    /// it holds O_c whole (no method reads it).
     pub fn window_reach(&self) -> Option<usize> {
         match self {
             MethodGpu::Lao(l) => Some(l.pad()[2]),
             MethodGpu::Histogram(h) => Some(h.reach_voxels()[2]),
-            _ => None,
+            MethodGpu::Filter(f) => Some(f.reach_slices()),
+            MethodGpu::Open => None,
         }
     }
 

@@ -466,9 +466,9 @@ fn gpu_report(vol: &Volume) -> String {
 /// The volumes the GPU holds for `vol` under `method`, in bytes per
 /// voxel by name: what every method holds (the scalar image, O_c, CAO's mask, V_AO, which the
 /// ray caster reads itself, and with labels their ids and the margins' glow) and the method's
-/// own. O and V_PAO are the host's once CAO is set up, and so is O under the O_c of LAO and the
-/// local histograms, which the GPU holds only over the z-slices a frame's tools reach ([`crate::ao::cao::Cao::windowed`]; whole
-/// with the SH visibility on). A frame's images, tables, staged boxes and O_c slices and the
+/// own. O and V_PAO are the host's once CAO is set up, and the GPU holds O_c only over the
+/// z-slices a frame's tools reach ([`crate::ao::cao::Cao::windowed`]; whole with the SH
+/// visibility on). A frame's images, tables, staged boxes and O_c slices and the
 /// staging copies while loading come on top (the peak `render` prints).
 pub fn gpu_volumes(vol: &Volume, method: &AoMethod) -> Vec<(&'static str, f64)> {
     let scalar = match vol.voxels {
@@ -485,10 +485,16 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod) -> Vec<(&'static str, f64)> 
         }
     }
     match method {
-        // O_c only over the slices a frame's tools reach, under LAO and the local histograms
-        // (O and V_PAO are the host's: a frame stages only its boxes').
+        // O_c only over the slices a frame's tools reach (O and V_PAO are the host's: a frame
+        // stages only its boxes'); the box statistics over a window of slices.
         AoMethod::Lao => v.push(("clear bits", 1.0 / 8.0)),
-        AoMethod::Filter(_) => v.extend([("O_c", 4.0), ("box statistics", 32.0)]),
+        AoMethod::Filter(p) => {
+            let (_, window) = crate::ao::filter_gpu::stats_window(vol.dims, vol.spacing, p, None);
+            v.push((
+                "box statistics",
+                32.0 * window as f64 / vol.dims[2].max(1) as f64,
+            ));
+        }
         AoMethod::Histogram(h) => {
             v.push(("bins", 4.0));
             v.push(("E (precomputed, current)", 8.0));

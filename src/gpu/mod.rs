@@ -214,6 +214,9 @@ pub struct Core {
     /// The largest slab of a [`SlabBuffer`] ([`MAX_BUFFER_ENV`], or less for a test); 0: the
     /// device's largest buffer.
     slab_limit: std::sync::atomic::AtomicU64,
+    /// Z-slices of scratch volumes computed at once (the filters' box statistics), forced by a
+    /// test; 0: each method's own choice.
+    scratch_slices: std::sync::atomic::AtomicU64,
     pub device_name: String,
     pub device_type: vk::PhysicalDeviceType,
     /// Whether the context can present to windows (GpuOptions::present).
@@ -486,6 +489,7 @@ impl Gpu {
             memory: Mutex::new(MemoryUse::default()),
             memory_budget: budget,
             slab_limit: std::sync::atomic::AtomicU64::new(slab_limit),
+            scratch_slices: std::sync::atomic::AtomicU64::new(0),
             device_name,
             device_type: props.device_type,
             present: opts.present,
@@ -614,6 +618,24 @@ impl Core {
     pub fn set_max_slab_bytes(&self, bytes: u64) {
         self.slab_limit
             .store(bytes.max(1), std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Makes every scratch volume made from now on (the filters' box statistics) computed
+    /// `slices` z-slices at a time (tests compare a chunked volume with a whole one).
+    pub fn set_scratch_slices(&self, slices: usize) {
+        self.scratch_slices
+            .store(slices.max(1) as u64, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// The z-slices of a scratch volume computed at once, where a test forced it.
+    pub fn forced_scratch_slices(&self) -> Option<usize> {
+        match self
+            .scratch_slices
+            .load(std::sync::atomic::Ordering::Relaxed)
+        {
+            0 => None,
+            n => Some(n as usize),
+        }
     }
 
     /// The largest device-local heap. A CPU device's memory is the host's: Mesa 22's lavapipe

@@ -89,7 +89,7 @@ pub(crate) fn read_ao(b: &Buffer) -> Vec<f32> {
     cao_xr::ao::stored::read(b, b.size as usize / 2).unwrap()
 }
 
-fn tool(shape: Shape, position: Vec3, rotation: Quat, size: f32, mode: ToolMode) -> Tool {
+pub fn tool(shape: Shape, position: Vec3, rotation: Quat, size: f32, mode: ToolMode) -> Tool {
     Tool {
         shape,
         pose: Pose {
@@ -248,7 +248,7 @@ fn a_whole_restore_in_slabs_leaves_the_frames_state() {
 }
 
 /// Two CAO states after frame `i` hold the same V_AO and O_c bits.
-fn assert_same_state(a: &Cao, b: &Cao, i: usize) {
+pub fn assert_same_state(a: &Cao, b: &Cao, i: usize) {
     let diff = common::first_bit_difference(&read_ao(&a.ao), &read_ao(&b.ao));
     assert!(diff.is_none(), "frame {i}: V_AO differs at voxel {diff:?}");
     assert_eq!(

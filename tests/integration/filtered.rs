@@ -126,6 +126,44 @@ fn statistics_split_into_slabs_equal_one_buffer_bit_for_bit_every_frame() {
 }
 
 #[test]
+fn statistics_in_chunks_and_a_window_of_opacity_equal_whole_ones_bit_for_bit_every_frame() {
+    // The box statistics computed 3 slices at a time (a window of 3 + 2 x 4 margin slices of
+    // 40), O_c held only over the slices a frame's tools reach, against whole statistics and a
+    // whole O_c (SH on): the precompute and every clip update of a carving sequence, a small
+    // sphere last, are the same bits.
+    let (whole, chunked) = (common::gpu(), common::gpu());
+    chunked.set_scratch_slices(3);
+    let vol = phantom::head(40);
+    let placement = Placement::default();
+    let ao = config(Estimator::Gauss, FilterInput::Opacity, 11.0);
+    let (mut one, _) = setup(&whole, &vol, &ao);
+    let (mut many, _) = setup(&chunked, &vol, &ao);
+    one.sh_radius_mm = Some(10.0);
+    let slices = |c: &Cao| c.filter().unwrap().stats_slices();
+    assert_eq!((slices(&one), slices(&many)), (40, 11));
+    assert!(common::first_bit_difference(&read_ao(&one.ao), &read_ao(&many.ao)).is_none());
+    let c = placement.center;
+    let mut sequence = frames(c);
+    sequence.push(vec![crate::cao::tool(
+        cao_xr::clip::Shape::Sphere,
+        c,
+        glam::Quat::IDENTITY,
+        0.01,
+        ToolMode::Carve,
+    )]);
+    for (i, tools) in sequence.iter().enumerate() {
+        one.run_frame(tools, &placement, Mode::Contextual).unwrap();
+        many.run_frame(tools, &placement, Mode::Contextual).unwrap();
+        assert!(many.windowed() && !one.windowed());
+        crate::cao::assert_same_state(&one, &many, i);
+    }
+    // The small sphere's slices, and the filters' reach either side: not the whole volume.
+    let [from, to] = many.clipped_slices();
+    assert!(from > 0 && to < 40, "slices {from}..{to} of 40 held");
+    common::assert_no_validation_messages(&chunked);
+}
+
+#[test]
 fn a_tf_switch_refilters_to_the_new_tfs_filtered_ao() {
     use cao_xr::app::frame_loop::FrameLoop;
     use cao_xr::input::{FrameInput, InteractionSettings};

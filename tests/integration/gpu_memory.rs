@@ -175,12 +175,11 @@ fn a_gpu_that_stops_answering_is_an_error_not_a_freeze() {
 
 /// `info`'s bytes per voxel of each method ([`cao_xr::app::gpu_volumes`]) are what the GPU
 /// then holds: at most what `render` measures held after its frame, and within 3 bytes per
-/// voxel of it (a frame's images and tables, the O and V_PAO staged in its tool's boxes and,
-/// under LAO and the local histograms, O_c over the slices the tool reaches come on top; a
-/// whole O_c would be 2 to 2.6 more) on a 2 Mi-voxel volume carved by a 10 mm sphere, for LAO,
-/// a filter and the
-/// local histograms' direct definition (a precompute's transient volumes may make the peak
-/// higher).
+/// voxel of it, 5 for the filters (a frame's images and tables, the O and V_PAO staged in its
+/// tool's boxes and O_c over the slices the tool reaches come on top, f32 under the filters; a
+/// whole O_c would be 2 to 4 more) on a 2 Mi-voxel volume carved by a 10 mm sphere, for LAO, a
+/// filter and the local histograms' direct definition (a precompute's transient volumes may
+/// make the peak higher).
 #[test]
 fn info_tells_the_gpu_bytes_per_voxel_each_method_holds() {
     use cao_xr::ao::histogram::HistParams;
@@ -205,14 +204,18 @@ fn info_tells_the_gpu_bytes_per_voxel_each_method_holds() {
         radius_mm: 6.0,
         ..HistParams::default()
     };
-    let cases: [(AoMethod, &[&str]); 3] = [
-        (AoMethod::Lao, &["--ao", "lao"]),
+    // The frame's own memory on top, in bytes per voxel: its images and O_c over the sphere's
+    // slices with the filters' reach (f32 for the filters, 16-bit words else) and its staging.
+    let cases: [(AoMethod, f64, &[&str]); 3] = [
+        (AoMethod::Lao, 3.0, &["--ao", "lao"]),
         (
             AoMethod::Filter(Default::default()),
+            5.0,
             &["--ao", "filter-gauss"],
         ),
         (
             AoMethod::Histogram(direct),
+            3.0,
             &[
                 "--ao",
                 "histogram",
@@ -223,7 +226,7 @@ fn info_tells_the_gpu_bytes_per_voxel_each_method_holds() {
             ],
         ),
     ];
-    for (method, extra) in cases {
+    for (method, on_top, extra) in cases {
         let mut args = vec![
             "render",
             "phantom:128",
@@ -244,7 +247,7 @@ fn info_tells_the_gpu_bytes_per_voxel_each_method_holds() {
             .unwrap_or_else(|| panic!("{extra:?}: nothing held told in {stdout}"));
         let p = predicted(method);
         assert!(
-            p <= measured && measured <= p + 3.0,
+            p <= measured && measured <= p + on_top,
             "{extra:?}: {p:.1} bytes per voxel told, {measured} measured"
         );
     }
