@@ -7,12 +7,14 @@
 // the sums go straight into it, in the order of S_r. With the two hemispheres a voxel has two
 // rows, H_f's then H_b's, each over its own W_h (docs/design.md); a flat voxel's are both S_r's.
 #extension GL_GOOGLE_include_directive : require
+#extension GL_EXT_shader_16bit_storage : require
 #include "constants.glsl"
 layout(local_size_x = 64) in;
 
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Bins { uint bins[]; };
+// Each voxel's shade, a 16-bit word.
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer Bins { uint16_t bins[]; };
 layout(std430, binding = 1) readonly buffer Neighbours { vec4 neighbours[]; };
 layout(std430, binding = 2) readonly buffer List { uint list[]; };
 layout(std430, binding = 3) buffer Rows { float rows[]; };
@@ -53,7 +55,7 @@ void main() {
             if (b) total_b += nb.w; else total_f += nb.w;
             ivec3 u = v + o;
             if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
-            rows[(b ? back : base) + bins[u.x + row * u.y + slice * u.z]] += nb.w;
+            rows[(b ? back : base) + uint(bins[u.x + row * u.y + slice * u.z])] += nb.w;
         }
         float sf = total_f > 0.0 ? 1.0 / total_f : 0.0, sb = total_b > 0.0 ? 1.0 / total_b : 0.0;
         for (uint k = 0u; k < shades; k++) {
@@ -66,14 +68,14 @@ void main() {
         for (int n = 0; n < pc.dims.w; n++) {
             vec4 nb = neighbours[n];
             ivec3 o = ivec3(nb.xyz);
-            rows[base + bins[i0 + o.x + row * o.y + slice * o.z]] += nb.w;
+            rows[base + uint(bins[i0 + o.x + row * o.y + slice * o.z])] += nb.w;
         }
     } else {
         for (int n = 0; n < pc.dims.w; n++) {
             vec4 nb = neighbours[n];
             ivec3 u = v + ivec3(nb.xyz);
             if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
-            rows[base + bins[u.x + row * u.y + slice * u.z]] += nb.w;
+            rows[base + uint(bins[u.x + row * u.y + slice * u.z])] += nb.w;
         }
     }
     // A flat voxel's H_b is its H_f: its second row is only marked (its first entry negative),

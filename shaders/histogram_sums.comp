@@ -12,13 +12,15 @@ layout(local_size_x = 4, local_size_y = 4, local_size_z = 4) in;
 // The volume-sized buffers by address, in binding order (src/gpu/resources.rs
 // ComputePipeline::with_addresses): no maxStorageBufferRange limits a volume.
 layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer Q { uint16_t q[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Bins { uint bins[]; };
+// Each voxel's shade, and with clusters its (front) cluster: 16-bit words.
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer Bins { uint16_t bins[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Mask { uint mask[]; };
 layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer PreA { uint16_t pre_a[]; };
+// E of the unclipped volume, held without clusters (with them it is the voxel's cluster's).
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer PreE { uint pre_e[]; };
 layout(buffer_reference, std430, buffer_reference_align = 2) writeonly buffer OutA { uint16_t out_a[]; };
 layout(buffer_reference, std430, buffer_reference_align = 4) writeonly buffer OutE { uint out_e[]; };
-layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Ids { uint ids[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer Ids { uint16_t ids[]; };
 // The shade table: per shade (a bin with the structure folded in: src/ao/histogram.rs Shades),
 // rgb and the opacity a (unused here: q already holds it).
 layout(std430, binding = 2) readonly buffer BinTable { vec4 bin_table[]; };
@@ -40,7 +42,9 @@ layout(push_constant) uniform Push {
     Ids ids_buf;
     ivec4 dims;     // w: number of neighbours
     ivec4 box_min;  // w: mode (0: direct sums, no mask; 1: CAO by category; 2: naive, a -> 1;
-                    //          3: restore the precomputed values; 4: the clustered values)
+                    //          3: restore the precomputed values; 4: the clustered values;
+                    //          5: the precomputed E alone)
+                    //    + 8 where the precomputed values are the clusters'
     ivec4 box_max;  // exclusive; w: where the box's V_PAO starts in pre_a (staged boxes)
     ivec4 reach;    // xyz: S_r's largest offset per axis; w: where voxel 0 of q lies in the
                     // buffer (the z-slices CAO holds: src/ao/cao.rs Cao::clipped_stride)
@@ -83,28 +87,38 @@ void direct(ivec3 v, out float a, out vec3 e) {
         int j = i0 + o.x + row * o.y + slice * o.z;
         float wq = nb.w * unorm16_value(uint(q[j + pc.reach.w]));
         occ += wq;
-        rgb += wq * bin_table[bins[j]].rgb;
+        rgb += wq * bin_table[uint(bins[j])].rgb;
     }
     a = 1.0 - (split ? (total > 0.0 ? occ / total : 0.0) : occ);
     e = occ > 0.0 ? rgb / occ : vec3(0.0);
+}
+
+// The precomputed E: the voxel's (front) cluster's, as the clustered precompute's word, or the
+// direct sums' held in pre_e.
+uint precomputed_e(int i, bool clustered) {
+    return clustered ? packUnorm4x8(vec4(clusters[uint(ids[i])].rgb, 1.0)) : pre_e[i];
 }
 
 void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
     if (any(greaterThanEqual(v, pc.box_max.xyz))) return;
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
-    int mode = pc.box_min.w;
+    int mode = pc.box_min.w % 8;
+    bool clustered = pc.box_min.w >= 8;
     if (mode == 4) {
-        // With hemispheres a voxel has two ids, the front's first.
-        vec4 c = clusters[ids[split_on != 0u ? 2 * i : i]];
-        out_a[i] = uint16_t(unorm16_word(c.a));
-        out_e[i] = packUnorm4x8(vec4(c.rgb, 1.0));
+        // V_PAO from the front hemisphere's cluster, with hemispheres (its E is the cluster's,
+        // read where it is restored).
+        out_a[i] = uint16_t(unorm16_word(clusters[uint(ids[i])].a));
+        return;
+    }
+    if (mode == 5) {
+        out_e[i] = precomputed_e(i, clustered);
         return;
     }
     uint category = mode == 0 ? 1u : mask_get(i);
     if (mode == 3 || (mode == 1 && category == 2u)) {
         out_a[i] = pre_a[staged_index(v)];
-        out_e[i] = pre_e[i];
+        out_e[i] = precomputed_e(i, clustered);
     } else if (category == 0u) {
         out_a[i] = uint16_t(AO_OPEN);
         out_e[i] = packUnorm4x8(vec4(0.0, 0.0, 0.0, 1.0));

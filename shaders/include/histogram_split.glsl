@@ -1,22 +1,32 @@
 // The local histograms' two hemispheres (docs/design.md, "Local-histogram AO"): the scalar per
-// voxel, whether to split, whether the scalars are integers (then o . Δ is exact in int),
-// 1 / (2 s) per axis and, in w, the square of the flat threshold in scalar units per mm
-// (src/ao/histogram_gpu.rs writes it). The including shader defines SPLIT_BINDING.
+// voxel's address, whether to split, whether the scalars are integers, 1 / (2 s) per axis and,
+// in w, the square of the flat threshold in scalar units per mm (src/ao/histogram_gpu.rs
+// writes it). Integer scalars are 16-bit words, the value less the data's least (every integer
+// type cao-xr reads spans at most 65536 values): their differences, and so Δ, are those of the
+// values exactly, and o . Δ is exact in int; other scalars are f32. The including shader
+// defines SPLIT_BINDING.
+#extension GL_EXT_buffer_reference_uvec2 : require
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer Scalars { float s[]; };
+layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer ScalarWords { uint16_t w[]; };
 layout(std430, binding = SPLIT_BINDING) readonly buffer Split {
-    Scalars scalars;
+    uvec2 scalars_address;
     uint split_on;
     uint integer_scalars;
     vec4 half_inv_spacing;
 };
 
+float scalar_at(int i) {
+    if (integer_scalars != 0u) return float(uint(ScalarWords(scalars_address).w[i]));
+    return Scalars(scalars_address).s[i];
+}
+
 // Δ(v): the scalar's central differences, neighbours clamped into the grid.
 vec3 split_delta(ivec3 v, ivec3 dims) {
     int row = dims.x, slice = dims.x * dims.y;
     ivec3 hi = min(v + 1, dims - 1), lo = max(v - 1, ivec3(0));
-    return vec3(scalars.s[hi.x + row * v.y + slice * v.z] - scalars.s[lo.x + row * v.y + slice * v.z],
-                scalars.s[v.x + row * hi.y + slice * v.z] - scalars.s[v.x + row * lo.y + slice * v.z],
-                scalars.s[v.x + row * v.y + slice * hi.z] - scalars.s[v.x + row * v.y + slice * lo.z]);
+    return vec3(scalar_at(hi.x + row * v.y + slice * v.z) - scalar_at(lo.x + row * v.y + slice * v.z),
+                scalar_at(v.x + row * hi.y + slice * v.z) - scalar_at(v.x + row * lo.y + slice * v.z),
+                scalar_at(v.x + row * v.y + slice * hi.z) - scalar_at(v.x + row * v.y + slice * lo.z));
 }
 
 // Whether v's neighbourhood splits (the gradient is steep enough), and its Δ.

@@ -17,9 +17,11 @@ use super::voxel_box::{dispatch_box, VoxelBox};
 use crate::gpu::{Buffer, ComputePipeline, Gpu, GpuTimer, Reach, Result, SlabBuffer};
 use ash::vk;
 
-/// Box statistics computed at once, at most (beyond the margins a chunk needs): on larger
-/// volumes the GPU holds them over a window of z-slices only.
-pub const STATS_CHUNK_BYTES: u64 = 64 << 20;
+/// Box statistics computed at once, at least (beyond the margins a chunk needs): on larger
+/// volumes the GPU holds them over a window of z-slices only. A chunk recomputes its margins,
+/// so a tool's update should fit one: 32 slices of 512 x 512, the 40 mm sphere of `bench
+/// scale` and its reach on a chest CT.
+pub const STATS_CHUNK_BYTES: u64 = 128 << 20;
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -61,8 +63,8 @@ fn margin(params: &FilterParams, spacing: [f64; 3]) -> usize {
 }
 
 /// The z-slices whose AO one chunk computes (`forced`, or at least [`STATS_CHUNK_BYTES`] of
-/// statistics and four margins), and the z-slices the statistics hold: the chunk and its
-/// margins, or the whole volume where that is less.
+/// statistics, eight margins and 16 slices), and the z-slices the statistics hold: the chunk
+/// and its margins, or the whole volume where that is less.
 pub fn stats_window(
     dims: [usize; 3],
     spacing: [f64; 3],
@@ -73,8 +75,8 @@ pub fn stats_window(
     let margin = margin(params, spacing);
     let chunk = forced.unwrap_or_else(|| {
         ((STATS_CHUNK_BYTES / slice) as usize)
-            .max(4 * margin)
-            .max(8)
+            .max(8 * margin)
+            .max(16)
     });
     (chunk, (chunk + 2 * margin).min(dims[2].max(1)))
 }

@@ -31,8 +31,10 @@ enum Pass {
     Naive = 2,
     /// The precomputed values (last frame's boxes, before this frame's clip).
     Restore = 3,
-    /// Every voxel its cluster's values (the clustered precompute).
+    /// Every voxel its cluster's V_PAO (the clustered precompute; its E is the cluster's).
     Clustered = 4,
+    /// The precomputed E alone ([`HistogramGpu::precomputed_e`]).
+    PrecomputedE = 5,
 }
 
 /// Voxels per batch of local histograms: rows x shades floats stay within this many bytes.
@@ -103,10 +105,17 @@ pub struct HistogramGpu {
     /// integers, and the split's parameters as histogram_sums.comp's `Split` reads them.
     scalars: (Buffer, bool),
     split: Buffer,
-    /// E of the unclipped volume, and this frame's E (RGBA8 per voxel).
+    /// E of the unclipped volume without clusters (with them a stand-in: a voxel's is its
+    /// cluster's), and this frame's E (RGBA8 per voxel).
     pub pre_e: Buffer,
     pub e: Buffer,
     pub timing: ClusterTiming,
+}
+
+/// Every `step`-th of `ids` (shades below 256 x 256, clusters below [`hist::MAX_CLUSTERS`]) as the
+/// 16-bit words the shaders read.
+fn words16(ids: &[u32], step: usize) -> Vec<u16> {
+    ids.iter().step_by(step).map(|&k| k as u16).collect()
 }
 
 fn spv(name: &str) -> &'static [u8] {
@@ -138,11 +147,17 @@ impl HistogramGpu {
         let values: Option<Vec<f32>> = params
             .hemispheres
             .then(|| (0..n).into_par_iter().map(|i| vol.voxels.get(i)).collect());
+        // Integer scalars as 16-bit words above the least value (histogram_split.glsl).
+        let integer = !matches!(vol.voxels, crate::volume::Voxels::F32(_));
         let scalars = match &values {
+            Some(v) if integer => {
+                let lo = geometry.2 .0;
+                let words: Vec<u16> = v.par_iter().map(|&x| (x - lo) as u16).collect();
+                Buffer::device_local(gpu, &words, storage, "hist-scalars")?
+            }
             Some(v) => Buffer::device_local(gpu, v, storage, "hist-scalars")?,
             None => Buffer::new(gpu, 4, storage, MemoryLocation::GpuOnly, "hist-scalars")?,
         };
-        let integer = !matches!(vol.voxels, crate::volume::Voxels::F32(_));
         let mut h = HistogramGpu::with_state(
             gpu,
             geometry,
@@ -207,7 +222,7 @@ impl HistogramGpu {
             Buffer::from_slice(gpu, &words, storage, "hist-split")?
         };
         let n = shades.ids.len();
-        let rgba8 = |name| {
+        let rgba8 = |name, n: usize| {
             Buffer::new(
                 gpu,
                 (n.max(1) * 4) as u64,
@@ -242,7 +257,7 @@ impl HistogramGpu {
             spacing,
             range,
             neighbours: Buffer::from_slice(gpu, &nb.gpu_table(), storage, "hist-neighbours")?,
-            bins: Buffer::device_local(gpu, &shades.ids, storage, "hist-bins")?,
+            bins: Buffer::device_local(gpu, &words16(&shades.ids, 1), storage, "hist-bins")?,
             bin_table: Buffer::new(
                 gpu,
                 (shades.count() * 16) as u64,
@@ -255,8 +270,8 @@ impl HistogramGpu {
             ids: Buffer::new(gpu, 4, storage, MemoryLocation::GpuOnly, "hist-ids")?,
             cluster_table: Buffer::new(gpu, 16, storage, MemoryLocation::CpuToGpu, "hist-table")?,
             last_table: Vec::new(),
-            pre_e: rgba8("hist-pre-e")?,
-            e: rgba8("hist-e")?,
+            pre_e: rgba8("hist-pre-e", if clusters.is_some() { 1 } else { n })?,
+            e: rgba8("hist-e", n)?,
             scalars,
             split,
             timing: ClusterTiming::default(),
@@ -272,7 +287,11 @@ impl HistogramGpu {
 
     fn set_clusters(&mut self, clusters: Clusters) -> Result<()> {
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
-        self.ids = Buffer::device_local(&self.gpu, &clusters.ids, storage, "hist-ids")?;
+        // The front hemisphere's ids alone: V_PAO and E are its cluster's.
+        let hemis = if self.params.hemispheres { 2 } else { 1 };
+        let front = words16(&clusters.ids, hemis);
+        self.ids = Buffer::device_local(&self.gpu, &front, storage, "hist-ids")?;
+        self.pre_e = Buffer::new(&self.gpu, 4, storage, MemoryLocation::GpuOnly, "hist-pre-e")?;
         self.cluster_table = Buffer::new(
             &self.gpu,
             (clusters.count() * 16) as u64,
@@ -620,6 +639,27 @@ impl HistogramGpu {
         self.dispatch(cmd, &bufs, &self.pre_e, (&all, &[0]), mode);
     }
 
+    /// The bleeding colour of the unclipped volume, as the precompute left it (RGBA8 per voxel):
+    /// [`HistogramGpu::pre_e`] without clusters, each voxel's (front) cluster's with them.
+    pub fn precomputed_e(&self) -> Result<Buffer> {
+        let n = self.dims.iter().product::<usize>().max(1);
+        let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
+        let out = Buffer::new(
+            &self.gpu,
+            n as u64 * 4,
+            usage,
+            MemoryLocation::GpuOnly,
+            "hist-e",
+        )?;
+        // The pass reads no density, mask or V_PAO: `out` stands in for them.
+        let bufs = MethodBuffers::precompute(&out, self.dims, &out);
+        let all = [VoxelBox::whole(self.dims)];
+        self.gpu.submit_and_wait(|cmd| {
+            self.dispatch(cmd, &bufs, &out, (&all, &[0]), Pass::PrecomputedE)
+        })?;
+        Ok(out)
+    }
+
     /// Records this method's values for the voxels of `boxes` into `bufs.out_a` and
     /// [`HistogramGpu::e`], from the clipped q (`bufs.density`) and CAO's categories as `mode`
     /// says ([`super::method::MethodGpu::record_update`]).
@@ -670,10 +710,11 @@ impl HistogramGpu {
         mode: Pass,
     ) {
         let r = self.reach4();
+        let mode = mode as i32 + 8 * self.clusters.is_some() as i32;
         for (bx, &at) in boxes.iter().zip(at) {
             let push = SumsPush {
                 dims: self.dims4(self.nb.offsets.len() as i32),
-                box_min: [bx.min[0], bx.min[1], bx.min[2], mode as i32],
+                box_min: [bx.min[0], bx.min[1], bx.min[2], mode],
                 box_max: [bx.max[0], bx.max[1], bx.max[2], at],
                 reach: [r[0], r[1], r[2], bufs.density_stride[0]],
             };

@@ -496,10 +496,12 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod) -> Vec<(&'static str, f64)> 
             ));
         }
         AoMethod::Histogram(h) => {
-            v.push(("bins", 4.0));
-            v.push(("E (precomputed, current)", 8.0));
+            v.push(("shades", 2.0));
             if h.clusters > 0 {
-                v.push(("cluster ids", 4.0 * (1 + h.hemispheres as u8) as f64));
+                // The precomputed E is the front cluster's.
+                v.extend([("E", 4.0), ("front cluster ids", 2.0)]);
+            } else {
+                v.push(("E (precomputed, current)", 8.0));
             }
             if h.hemispheres {
                 v.push(("scalars (the hemispheres' split)", 4.0));
@@ -651,7 +653,7 @@ pub fn write_ao(
             let r = precompute(gpu, &lao, vol, tf, config, true)?;
             let ao = crate::ao::stored::read(&r.ao_buf, vol.voxel_count())?;
             let e = match &r.method {
-                MethodGpu::Histogram(h) => Some(h.read_e(&h.pre_e)?),
+                MethodGpu::Histogram(h) => Some(h.read_e(&h.precomputed_e()?)?),
                 _ => None,
             };
             (ao, r.opacity, r.timing, e)

@@ -301,7 +301,22 @@ fn the_clip_update_equals_a_direct_recompute_of_the_affected_voxels_bit_for_bit_
         let (mut cao, _) = setup(&gpu, &vol, &tf, p, "frames");
         let (mut naive, _) = setup(&gpu, &vol, &tf, p, "frames");
         let pre = read_ao(&cao.ao);
-        let pre_e = cao.histogram().unwrap().pre_e.read_back().unwrap();
+        let pre_e = cao.histogram().unwrap().precomputed_e().unwrap();
+        if clusters > 0 {
+            // Each voxel's precomputed E is its (front) cluster's, in 8 bits.
+            let (_, _, table) = histogram::direct_inputs(&vol, &tf, p.bins, &[]);
+            let c = cao.histogram().unwrap().clusters().unwrap();
+            let reps = c.tf_table(&table);
+            let step = 1 + hemispheres as usize;
+            for (v, e) in e_of(&pre_e).iter().enumerate() {
+                let want = reps[c.ids[step * v] as usize];
+                assert!(
+                    (0..3).all(|k| (e[k] - want[k]).abs() <= 0.5 / 255.0 + 1e-4),
+                    "N = {clusters}, voxel {v}: E {e:?}, its cluster's {want:?}"
+                );
+            }
+        }
+        let pre_e = pre_e.read_back().unwrap();
         let mut some = false;
         for (i, tools) in frames(placement.center).iter().enumerate() {
             let m = cao.run_frame(tools, &placement, Mode::Contextual).unwrap();
