@@ -123,6 +123,10 @@ fn env_bytes(name: &str, shift: u32, unit: &str) -> Result<Option<u64>> {
     }
 }
 
+/// Forces the z-slices of scratch volumes computed at once (the filters' box statistics; at
+/// least the volume's: whole), to compare chunked and whole passes in a benchmark.
+pub const SCRATCH_SLICES_ENV: &str = "CAO_XR_SCRATCH_SLICES";
+
 /// The host's physical memory (`MemTotal` of /proc/meminfo), where the system says.
 pub fn host_memory_bytes() -> Option<u64> {
     let info = std::fs::read_to_string("/proc/meminfo").ok()?;
@@ -214,8 +218,8 @@ pub struct Core {
     /// The largest slab of a [`SlabBuffer`] ([`MAX_BUFFER_ENV`], or less for a test); 0: the
     /// device's largest buffer.
     slab_limit: std::sync::atomic::AtomicU64,
-    /// Z-slices of scratch volumes computed at once (the filters' box statistics), forced by a
-    /// test; 0: each method's own choice.
+    /// Z-slices of scratch volumes computed at once (the filters' box statistics), forced by
+    /// [`SCRATCH_SLICES_ENV`] or a test; 0: each method's own choice.
     scratch_slices: std::sync::atomic::AtomicU64,
     pub device_name: String,
     pub device_type: vk::PhysicalDeviceType,
@@ -347,6 +351,7 @@ impl Gpu {
 
     unsafe fn create(opts: &GpuOptions, factory: &mut dyn VulkanFactory) -> Result<Gpu> {
         let slab_limit = env_bytes(MAX_BUFFER_ENV, 10, "KiB")?.unwrap_or(0);
+        let scratch_slices = env_bytes(SCRATCH_SLICES_ENV, 0, "slices")?.unwrap_or(0);
         let budget = env_bytes(BUDGET_ENV, 20, "MiB")?;
         let entry = ash::Entry::load()?;
         let log = Arc::new(ValidationLog::default());
@@ -489,7 +494,7 @@ impl Gpu {
             memory: Mutex::new(MemoryUse::default()),
             memory_budget: budget,
             slab_limit: std::sync::atomic::AtomicU64::new(slab_limit),
-            scratch_slices: std::sync::atomic::AtomicU64::new(0),
+            scratch_slices: std::sync::atomic::AtomicU64::new(scratch_slices),
             device_name,
             device_type: props.device_type,
             present: opts.present,
