@@ -631,6 +631,8 @@ pub struct ComputePipeline {
     pub set_layout: vk::DescriptorSetLayout,
     /// Per buffer, in binding order: whether it is reached by address (else by descriptor).
     reach: Vec<Reach>,
+    /// The push constants' size in the layout: the addresses' and the pass's own block.
+    push_bytes: u32,
 }
 
 /// How a compute pass reaches one of its storage buffers.
@@ -781,6 +783,7 @@ impl ComputePipeline {
                 layout,
                 set_layout,
                 reach,
+                push_bytes: push_constant_bytes,
             })
         }
     }
@@ -805,6 +808,12 @@ impl ComputePipeline {
             .collect();
         bytes.resize(address_bytes(bytes.len() / 8) as usize, 0);
         bytes.extend_from_slice(push);
+        // A block of another size than the layout's leaves the shader reading stale words.
+        assert_eq!(
+            bytes.len(),
+            self.push_bytes as usize,
+            "a compute pass bound with push constants of the wrong size"
+        );
         let infos: Vec<(u32, [vk::DescriptorBufferInfo; 1])> = by(Reach::Descriptor)
             .map(|(i, (b, _))| (i as u32, [b.descriptor()]))
             .collect();
