@@ -64,13 +64,17 @@ fn margin(params: &FilterParams, spacing: [f64; 3]) -> usize {
 
 /// The z-slices whose AO one chunk computes (`forced`, or at least [`STATS_CHUNK_BYTES`] of
 /// statistics, eight margins and 16 slices), and the z-slices the statistics hold: the chunk
-/// and its margins, or the whole volume where that is less.
+/// and its margins, or the whole volume where that is less. The exact estimator reads no
+/// statistics: one chunk, one slice held.
 pub fn stats_window(
     dims: [usize; 3],
     spacing: [f64; 3],
     params: &FilterParams,
     forced: Option<usize>,
 ) -> (usize, usize) {
+    if params.estimator == super::filtered::Estimator::Exact {
+        return (dims[2].max(1), 1);
+    }
     let slice = (dims[0] * dims[1]).max(1) as u64 * 16;
     let margin = margin(params, spacing);
     let chunk = forced.unwrap_or_else(|| {
