@@ -504,7 +504,8 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod) -> Vec<(&'static str, f64)> 
                 v.push(("E (precomputed, current)", 8.0));
             }
             if h.hemispheres {
-                v.push(("scalars (the hemispheres' split)", 4.0));
+                // 16-bit words for integer data (histogram_split.glsl), else f32.
+                v.push(("scalars (the hemispheres' split)", scalar.max(2.0)));
             }
         }
     }
