@@ -186,6 +186,16 @@ fn a_scratch_folder_is_removed_when_its_test_ends() {
 }
 
 /// [`run_cao`], which must succeed: a failure fails the test with the arguments and stderr.
+/// The GPU bytes per voxel `render` told it held after its frame, from its stdout.
+pub fn held_bytes_per_voxel(stdout: &str) -> f64 {
+    stdout
+        .split("held after the frame: ")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("nothing held told in {stdout}"))
+}
+
 pub fn run_cao_ok(args: &[&str]) -> std::process::Output {
     let out = run_cao(args, &[]);
     assert!(

@@ -239,12 +239,7 @@ fn info_tells_the_gpu_bytes_per_voxel_each_method_holds() {
         args.extend(["--out", dir.to_str().unwrap()]);
         let out = crate::common::run_cao_ok(&args);
         let stdout = String::from_utf8_lossy(&out.stdout);
-        let measured: f64 = stdout
-            .split("held after the frame: ")
-            .nth(1)
-            .and_then(|s| s.split(' ').next())
-            .and_then(|s| s.parse().ok())
-            .unwrap_or_else(|| panic!("{extra:?}: nothing held told in {stdout}"));
+        let measured = crate::common::held_bytes_per_voxel(&stdout);
         let p = predicted(method);
         assert!(
             p <= measured && measured <= p + on_top,

@@ -292,12 +292,7 @@ fn a_1024_by_1024_by_300_volume_renders_at_full_resolution_under_the_filters() {
     );
     assert!(run.status.success(), "{stderr}");
     assert!(!stderr.contains("downsample"), "{stderr}");
-    let held: f64 = stdout
-        .split("held after the frame: ")
-        .nth(1)
-        .and_then(|s| s.split(' ').next())
-        .and_then(|s| s.parse().ok())
-        .unwrap_or_else(|| panic!("nothing held told in {stdout}"));
+    let held = crate::common::held_bytes_per_voxel(&stdout);
     assert!(held < 12.0, "{held} bytes per voxel held");
     let _ = std::fs::remove_dir_all(&dir);
 }
