@@ -48,6 +48,8 @@ layout(set = 0, binding = 15) uniform sampler2D preint_at;
 layout(set = 0, binding = 16) uniform sampler3D structure_ids;
 // The safety margins' glow intensity (R8 unorm; src/render/mod.rs margin_glow), when GLOW.
 layout(set = 0, binding = 17) uniform sampler3D glow;
+// The full-resolution inset's scalars (the volume is shown downsampled around it; FLAGS INSET).
+layout(set = 0, binding = 21) uniform sampler3D inset_scalars;
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 4
@@ -86,6 +88,7 @@ const uint CLIPPING = 32u;
 const uint GLOW = 64u;
 const uint ISO = 128u;
 const uint CLIP_BRICKS = 256u;
+const uint INSET = 512u;
 // Bisections that place an isosurface within 1/256 of a step.
 const int ISO_BISECTIONS = 8;
 
@@ -97,8 +100,8 @@ bool flag(uint f) { return (FLAGS & f) != 0u; }
 
 // Cubic B-spline of the scalars through eight trilinear fetches (Sigg and Hadwiger, GPU Gems 2
 // ch. 20): smooth reconstruction for small volumes and close-ups.
-float scalar_tricubic(vec3 t) {
-    vec3 size = vec3(textureSize(scalars, 0));
+float scalar_tricubic(sampler3D level, vec3 t) {
+    vec3 size = vec3(textureSize(level, 0));
     vec3 x = t * size - 0.5;
     vec3 i = floor(x);
     vec3 f = x - i;
@@ -116,13 +119,30 @@ float scalar_tricubic(vec3 t) {
     [[unroll]] for (int k = 0; k < 8; k++) {
         vec3 h = vec3((k & 1) != 0 ? h1.x : h0.x, (k & 2) != 0 ? h1.y : h0.y, (k & 4) != 0 ? h1.z : h0.z);
         vec3 g = vec3((k & 1) != 0 ? g1.x : g0.x, (k & 2) != 0 ? g1.y : g0.y, (k & 4) != 0 ? g1.z : g0.z);
-        r += g.x * g.y * g.z * texture(scalars, h).r;
+        r += g.x * g.y * g.z * texture(level, h).r;
     }
     return r;
 }
 
+float level_scalar(sampler3D level, vec3 t) {
+    return flag(TRICUBIC) ? scalar_tricubic(level, t) : texture(level, t).r;
+}
+
+// Whether texture point t lies in the full-resolution inset (frame.inset_lo/hi), where the
+// scalars and V_AO are the inset's: its own volume at full resolution, cropped with a margin of
+// the AO's reach so that its AO there is the whole volume's (docs/design.md, "The inset").
+bool in_inset(vec3 t) {
+    return flag(INSET) && all(greaterThanEqual(t, frame.inset_lo.xyz))
+        && all(lessThan(t, frame.inset_hi.xyz));
+}
+
+// The inset's texture coordinates of texture point t.
+vec3 inset_tex(vec3 t) {
+    return t * frame.inset_scale.xyz + frame.inset_offset.xyz;
+}
+
 float scalar_at(vec3 t) {
-    return flag(TRICUBIC) ? scalar_tricubic(t) : texture(scalars, t).r;
+    return in_inset(t) ? level_scalar(inset_scalars, inset_tex(t)) : level_scalar(scalars, t);
 }
 
 // The method's volumes the ray caster reads where they lie (V_AO, E: no image, no copy, no size
@@ -131,8 +151,7 @@ float scalar_at(vec3 t) {
 // voxel's index v, the offsets d (0 on an axis where v is the last voxel) and the weights f.
 struct Corners { uint v; uvec3 d; vec3 f; };
 
-Corners corners_at(vec3 t) {
-    ivec3 n = textureSize(scalars, 0);
+Corners corners_at(ivec3 n, vec3 t) {
     vec3 x = clamp(t * vec3(n) - 0.5, vec3(0.0), vec3(n - 1));
     ivec3 i = min(ivec3(x), n - 1);
     Corners c;
@@ -150,10 +169,12 @@ Corners corners_at(vec3 t) {
             mix(read(c.v + c.d.y + c.d.z), read(c.v + c.d.x + c.d.y + c.d.z), c.f.x), c.f.y), \
         c.f.z)
 
-// V_AO at texture coordinates t.
+// V_AO at texture coordinates t (the inset's within it).
 float ambient_at(vec3 t) {
-    AoWords b = AoWords(frame.ao_words.xy);
-    Corners c = corners_at(t);
+    bool fine = in_inset(t);
+    AoWords b = AoWords(fine ? frame.inset_words.xy : frame.ao_words.xy);
+    Corners c = fine ? corners_at(textureSize(inset_scalars, 0), inset_tex(t))
+                     : corners_at(textureSize(scalars, 0), t);
 #define AO_READ(i) unorm16_value(uint(b.ao_words[i]))
     return TRILINEAR(c, AO_READ);
 #undef AO_READ
@@ -162,7 +183,7 @@ float ambient_at(vec3 t) {
 // The bleeding colour E at texture coordinates t.
 vec3 bleeding_at(vec3 t) {
     BleedingWords b = BleedingWords(frame.ao_words.zw);
-    Corners c = corners_at(t);
+    Corners c = corners_at(textureSize(scalars, 0), t);
 #define E_READ(i) unpackUnorm4x8(b.e_words[i]).rgb
     return TRILINEAR(c, E_READ);
 #undef E_READ
@@ -175,6 +196,16 @@ bool in_tool_reach(vec3 v) {
             && all(lessThan(v, vec3(frame.tool_reach[2 * k + 1].xyz)))) return true;
     }
     return false;
+}
+
+// Where the ray v(t) = ov + t inv^-1 (index space) first enters box [lo, hi) at or after t (no
+// bound where it does not).
+float box_entry(vec3 lo, vec3 hi, vec3 ov, vec3 inv, float t) {
+    vec3 t0 = (lo - ov) * inv;
+    vec3 t1 = (hi - ov) * inv;
+    float enter = max(max(min(t0.x, t1.x), min(t0.y, t1.y)), min(t0.z, t1.z));
+    float leave = min(min(max(t0.x, t1.x), max(t0.y, t1.y)), max(t0.z, t1.z));
+    return enter <= leave && leave >= t ? max(enter, t) : 3.0e38;
 }
 
 // Where the ray v(t) = ov + t dv (index space) leaves brick b (an edge brick extends past the
@@ -190,11 +221,12 @@ float run_end(vec3 ov, vec3 dv, float t, ivec3 b, ivec3 last_brick, bool reach) 
     }
     vec3 inv = 1.0 / dv;
     for (int k = 0; k < (reach ? min(int(CLIP_TOOL_COUNT), MAX_TOOLS) : 0); k++) {
-        vec3 t0 = (vec3(frame.tool_reach[2 * k].xyz) - ov) * inv;
-        vec3 t1 = (vec3(frame.tool_reach[2 * k + 1].xyz) - ov) * inv;
-        float enter = max(max(min(t0.x, t1.x), min(t0.y, t1.y)), min(t0.z, t1.z));
-        float leave = min(min(max(t0.x, t1.x), max(t0.y, t1.y)), max(t0.z, t1.z));
-        if (enter <= leave && leave >= t) end = min(end, max(enter, t));
+        end = min(end, box_entry(vec3(frame.tool_reach[2 * k].xyz), vec3(frame.tool_reach[2 * k + 1].xyz), ov, inv, t));
+    }
+    // The inset's bricks are the coarse volume's: nothing is skipped inside it.
+    if (flag(INSET)) {
+        vec3 dims = vec3(textureSize(scalars, 0));
+        end = min(end, box_entry(frame.inset_lo.xyz * dims, frame.inset_hi.xyz * dims, ov, inv, t));
     }
     return end;
 }
@@ -269,13 +301,19 @@ vec4 classify_value(float s) {
 }
 
 // Gradient of the scalar field in mm (central differences, one texel apart).
-vec3 gradient_mm(vec3 t) {
-    vec3 texel = 1.0 / vec3(textureSize(scalars, 0));
-    vec3 mm = frame.extent_mm.xyz * texel;
-    float gx = scalar_at(t + vec3(texel.x, 0, 0)) - scalar_at(t - vec3(texel.x, 0, 0));
-    float gy = scalar_at(t + vec3(0, texel.y, 0)) - scalar_at(t - vec3(0, texel.y, 0));
-    float gz = scalar_at(t + vec3(0, 0, texel.z)) - scalar_at(t - vec3(0, 0, texel.z));
+vec3 level_gradient_mm(sampler3D level, vec3 t, vec3 extent_mm) {
+    vec3 texel = 1.0 / vec3(textureSize(level, 0));
+    vec3 mm = extent_mm * texel;
+    float gx = level_scalar(level, t + vec3(texel.x, 0, 0)) - level_scalar(level, t - vec3(texel.x, 0, 0));
+    float gy = level_scalar(level, t + vec3(0, texel.y, 0)) - level_scalar(level, t - vec3(0, texel.y, 0));
+    float gz = level_scalar(level, t + vec3(0, 0, texel.z)) - level_scalar(level, t - vec3(0, 0, texel.z));
     return vec3(gx, gy, gz) / (2.0 * mm);
+}
+
+// In the inset, its own texels (its margin holds the neighbours).
+vec3 gradient_mm(vec3 t) {
+    return in_inset(t) ? level_gradient_mm(inset_scalars, inset_tex(t), frame.extent_mm.xyz / frame.inset_scale.xyz)
+                       : level_gradient_mm(scalars, t, frame.extent_mm.xyz);
 }
 
 vec3 sh_dot(vec4 v, int first) {
@@ -465,16 +503,19 @@ void main() {
                     brick = b;
                 }
             }
+            // In the inset every sample is tested with its own clip maps (the bricks' states
+            // are the shown volume's, from its maps).
+            uint sample_clip = in_inset(p) ? CLIP_BRICK_CUT : clip_state;
             // A brick one tool hides whole, where no structure can be spared and no glow
             // shines: every sample is hidden by that tool, as the test would find one by one.
             // Jump to two steps before the brick's end, as below; the last two are taken here
             // one by one.
-            if (clip_bricks && clip_state != CLIP_BRICK_OPEN && clip_state != CLIP_BRICK_CUT
+            if (clip_bricks && sample_clip != CLIP_BRICK_OPEN && sample_clip != CLIP_BRICK_CUT
                 && !flag(LABELS) && !flag(GLOW)) {
                 float t_out = min(tf, run_end(o * dims, d * dims, t, brick, last_brick, false));
                 int n = int(floor((t_out - t) / dt)) - 2;
                 if (n > 0) k += n;
-                prev_tool = int(clip_state) - 1;
+                prev_tool = int(sample_clip) - 1;
                 have_prev = false;
                 prev_skippable = false;
                 continue;
@@ -482,7 +523,8 @@ void main() {
             if (skipping) {
                 vec3 v = vi;
                 bool here = brick_empty
-                    && (clip_bricks ? clip_state == CLIP_BRICK_OPEN : !in_tool_reach(v));
+                    && (clip_bricks ? clip_state == CLIP_BRICK_OPEN : !in_tool_reach(v))
+                    && !in_inset(p);
                 if (here && prev_skippable) {
                     // This sample and the one before read only values (and, pre-integrated,
                     // the segment between them) that classify as transparent, and no tool hides
@@ -502,7 +544,7 @@ void main() {
                     }
                     vec3 vn = (o + (t0 + float(k + 1) * dt) * d) * dims;
                     ivec3 bn = clamp(ivec3(floor(vn)) >> RAY_BRICK_SHIFT, ivec3(0), last_brick);
-                    if (bn != brick || (!clip_bricks && in_tool_reach(vn))) {
+                    if (bn != brick || (!clip_bricks && in_tool_reach(vn)) || in_inset(vn / dims)) {
                         s_prev = scalar_at(p);
                         have_prev = true;
                     }
@@ -520,9 +562,9 @@ void main() {
                 vec3 w = a_w + t * (b_w - a_w);
                 // A brick no tool cuts needs no test; in one a tool hides whole, that tool is
                 // the first hider unless a protected structure is spared.
-                int hider = clip_state == CLIP_BRICK_OPEN ? -1
-                          : clip_state == CLIP_BRICK_CUT || flag(LABELS) ? hiding_tool(w, p, vi)
-                          : int(clip_state) - 1;
+                int hider = sample_clip == CLIP_BRICK_OPEN ? -1
+                          : sample_clip == CLIP_BRICK_CUT || flag(LABELS) ? hiding_tool(w, p, vi)
+                          : int(sample_clip) - 1;
                 if (hider >= 0) {
                     prev_tool = hider;
                     have_prev = false;

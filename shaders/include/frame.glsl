@@ -29,4 +29,9 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     uvec4 ao_words;          // xy: V_AO's address (16-bit unorm words, x fastest), read when
                              // background.a = 1; zw: the bleeding colour E's (RGBA8 words),
                              // read when bleeding.x or .y > 0
+    vec4 inset_lo;           // xyz: the full-resolution inset's box in texture coordinates
+    vec4 inset_hi;           //   [lo, hi) (read with raycast.frag's INSET flag)
+    vec4 inset_scale;        // xyz: its scalars' texture coordinates are t * scale + offset
+    vec4 inset_offset;
+    uvec4 inset_words;       // xy: its V_AO's address (16-bit unorm words, as ao_words)
 } frame;

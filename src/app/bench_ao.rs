@@ -66,6 +66,7 @@ fn pictures(
                 sh: None,
                 ao: Some(ao),
                 bleeding: None,
+                inset: None,
             };
             let size = (VIEW_SIZE, VIEW_SIZE);
             let img = hr.render(tex, &frame, size, &RenderSettings::default())?;

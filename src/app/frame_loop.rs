@@ -13,6 +13,7 @@ use super::budget::FrameBudget;
 use super::common::{
     downsample_estimate, fit_advice, open_ao, precompute_method, AppError, Result, MAX_DOWNSAMPLE,
 };
+use super::inset::Inset;
 use super::lighting::{LightingOptions, ShLighting};
 use super::tf_switch::{default_tf_samples_per_frame, TfProgress, TfSwitcher};
 use crate::ao::cao::{Cao, FrameMetrics, Mode, PendingFrame};
@@ -140,6 +141,8 @@ pub struct FrameLoop {
     budget: Option<BudgetState>,
     /// Points and rulers drawn with the overlay (`--markups`).
     pub markups: Markups,
+    /// A downsampled volume's full-resolution box around the tools ([`Inset`]).
+    inset: Option<Inset>,
 }
 
 /// How a frame loop is set up beside its volume and transfer functions ([`FrameLoop::new`]).
@@ -280,16 +283,20 @@ impl FrameLoop {
             r => return r,
         };
         // the failed set-up is dropped: its memory is free for the tries
+        let base = gpu.memory_in_use();
         let fitted = downsample_estimate(&vol, &m).and_then(|first| {
             (first..=(first + FIT_TRIES - 1).min(MAX_DOWNSAMPLE)).find_map(|n| {
                 let coarse = Arc::new(vol.downsample(n));
+                gpu.reset_memory_peak();
                 setup(coarse.clone(), show_progress)
                     .ok()
                     .map(|fl| (coarse, fl))
             })
         });
         match fitted {
-            Some((coarse, fl)) => {
+            Some((coarse, mut fl)) => {
+                let per_voxel =
+                    (gpu.memory_peak() - base) as f64 / coarse.voxel_count().max(1) as f64;
                 let [x, y, z] = vol.dims;
                 let [cx, cy, cz] = coarse.dims;
                 eprintln!(
@@ -299,6 +306,9 @@ impl FrameLoop {
                     coarse.downsampled_by(),
                     coarse.name
                 );
+                if Inset::wanted() {
+                    fl.add_inset(vol.clone(), built.config, (m.available, per_voxel))?;
+                }
                 Ok(fl)
             }
             None => Err(fit_advice(
@@ -307,6 +317,78 @@ impl FrameLoop {
                 None,
             )),
         }
+    }
+
+    /// Shows the box around the tools at full resolution from `whole` ([`Inset`]), within
+    /// `available` bytes of GPU memory at about `per_voxel` bytes per voxel; told on stderr.
+    fn add_inset(
+        &mut self,
+        whole: Arc<Volume>,
+        config: AoConfig,
+        (available, per_voxel): (u64, f64),
+    ) -> Result<()> {
+        self.tex.show_as(&whole, self.tfs.shown())?;
+        // The first frame's pre-integrated table for the new step, as the set-up made one.
+        self.tex.prepare(&self.settings)?;
+        let (method, tf) = self.tfs.shown_ao();
+        let config = AoConfig { method, ..config };
+        let reach = self.cao.reach_mm();
+        let name = whole.name.clone();
+        let shown = self.volume.voxel_count();
+        self.inset = Inset::new(
+            &self.gpu,
+            whole,
+            (config, tf),
+            reach,
+            (available, per_voxel, shown),
+        )?;
+        match &self.inset {
+            Some(i) => eprintln!("volume {name}: {}", i.describe()),
+            None => eprintln!("volume {name}: no full-resolution inset fits beside it"),
+        }
+        Ok(())
+    }
+
+    /// Brings the inset up to the scene (no frame in flight): the shown TF and method, the box
+    /// around the tools, and its AO update for this frame's tools, submitted and waited for
+    /// on its own. Where the update runs out of GPU memory (the tools' boxes grow what a frame
+    /// holds) the box is made smaller, or given up.
+    fn update_inset(&mut self) -> Result<()> {
+        let Some(inset) = self.inset.as_mut() else {
+            return Ok(());
+        };
+        let (method, tf) = self.tfs.shown_ao();
+        let config = AoConfig {
+            method,
+            ..inset.config()
+        };
+        let (tools, placement) = (&self.scene.tools, &self.scene.volume);
+        let shown = &*self.volume;
+        if !inset.computes(&config, &tf) {
+            inset.set_method(&self.gpu, (config, tf))?;
+        }
+        if let Some(centre) = inset.wants_cut(tools, shown, placement) {
+            inset.follow(&self.gpu, centre)?;
+            eprintln!("volume {}: {}", shown.name, inset.describe());
+        }
+        loop {
+            match inset.run_frame(tools, (shown, placement), self.mode) {
+                Err(AppError::Gpu(GpuError::OutOfMemory(m))) => {
+                    if !inset.shrink(&self.gpu)? {
+                        eprintln!("volume {}: the inset is given up: {m}", shown.name);
+                        self.inset = None;
+                        return Ok(());
+                    }
+                    eprintln!("volume {}: {} ({m})", shown.name, inset.describe());
+                }
+                r => return r,
+            }
+        }
+    }
+
+    /// The full-resolution box around the tools of a downsampled volume, if it has one.
+    pub fn inset(&self) -> Option<&Inset> {
+        self.inset.as_ref()
     }
 
     fn build(
@@ -413,6 +495,7 @@ impl FrameLoop {
             margins,
             budget: None,
             markups: Markups::default(),
+            inset: None,
             volume: vol,
         })
     }
@@ -549,7 +632,7 @@ impl FrameLoop {
             self.settings.step_mm = b.configured_step;
             self.settings.foveation = b.configured_foveation;
         }
-        let base = self.settings.step_for(self.volume.spacing);
+        let base = self.settings.step_for(self.tex.step_spacing);
         self.budget = target_ms.filter(|t| *t > 0.0).map(|t| BudgetState {
             control: FrameBudget::new(t),
             configured_step: self.settings.step_mm,
@@ -675,13 +758,20 @@ impl FrameLoop {
             let foveation = b
                 .configured_foveation
                 .or(b.control.foveate().then(Foveation::default));
-            if step != self.settings.step_for(self.volume.spacing) {
+            if step != self.settings.step_for(self.tex.step_spacing) {
                 if retired.is_none() {
                     retired = self.retire()?;
                 }
                 self.settings.step_mm = step;
             }
             self.settings.foveation = foveation;
+        }
+        if self.inset.is_some() {
+            // The inset's box and V_AO, which the frame in flight reads, change now.
+            if retired.is_none() {
+                retired = self.retire()?;
+            }
+            self.update_inset()?;
         }
         self.record_and_submit(input, read_back, after, signal, (t0, margins))?;
         if retired.is_none() && self.slots.flights.len() >= self.depth {
@@ -709,6 +799,7 @@ impl FrameLoop {
         let slot = &self.slots.slots[f.slot];
         self.tfs.picture_shown();
         let metrics = self.cao.read_metrics(f.pending)?;
+
         let sh = match (f.sh, self.lighting.as_ref()) {
             (Some(m), Some(l)) => ShStats {
                 voxels: m.visited,
@@ -800,6 +891,7 @@ impl FrameLoop {
             tfs,
             lighting,
             markups,
+            inset,
             ..
         } = self;
         let model = world_from_tex(volume, &scene.volume);
@@ -840,10 +932,15 @@ impl FrameLoop {
         let recorded = (|| {
             let slab = tfs.record_slab(cmd, volume);
             let pending = cao.record_frame(cmd, &scene.tools, &scene.volume, *mode)?;
+
             timer.begin(cmd);
             let sh = lighting.as_mut().map(|l| l.record_frame(gpu, cmd, cao));
             timer.mark(cmd, PASS_SH);
             let (tools, maps, bricks) = cao.clip_buffers();
+            let (tools, maps) = inset
+                .as_ref()
+                .and_then(|i| i.clip_buffers())
+                .unwrap_or((tools, maps));
             let frame = FrameViews {
                 views: &input.views,
                 model,
@@ -857,6 +954,9 @@ impl FrameLoop {
                 sh: lighting.as_ref().map(|l| l.binding()),
                 ao: Some(&cao.ao),
                 bleeding: cao.method().bleeding(),
+                inset: inset
+                    .as_ref()
+                    .and_then(|i| i.binding(volume, &scene.volume)),
             };
             let mut settings = *settings;
             settings.iso = scene.iso;

@@ -15,6 +15,7 @@ pub mod common;
 pub mod desktop;
 pub mod frame_loop;
 pub mod headset;
+pub mod inset;
 pub mod interrupt;
 pub mod lighting;
 pub mod mirror;

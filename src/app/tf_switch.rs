@@ -252,6 +252,11 @@ impl TfSwitcher {
         &self.methods
     }
 
+    /// The AO method shown, and the TF its O was classified with (an isosurface's solid).
+    pub fn shown_ao(&self) -> (AoMethod, TransferFunction) {
+        (self.methods[self.shown.method], self.tf_of(&self.shown))
+    }
+
     /// Whether what `scene` asks for (transfer function, AO method, structures) is shown with
     /// no switch in flight: then [`TfSwitcher::advance`] replaces nothing and records no slab.
     pub fn settled(&self, scene: &Scene) -> bool {

@@ -292,6 +292,10 @@ pub struct VolumeTextures {
     labelled: bool,
     pub dims: [usize; 3],
     pub spacing: [f64; 3],
+    /// The spacing the default ray step and the cut layer follow: the volume's, or the
+    /// full-resolution one's where a downsampled volume has a full-resolution inset
+    /// ([`VolumeTextures::show_as`]).
+    pub step_spacing: [f64; 3],
     pub value_range: (f32, f32),
     /// The scalar image holds (value - lo) / span: `(lo, span)` ([`scalar_storage`]).
     scalar_map: (f32, f32),
@@ -497,17 +501,23 @@ fn volume_image(gpu: &Gpu, dims: [usize; 3], format: vk::Format, name: &str) -> 
     )
 }
 
+/// The scalars of `vol` as the ray caster samples them (integers in their own width, floats as
+/// R32F), and `(lo, span)`: value = texel * span + lo.
+pub fn scalar_image(gpu: &Gpu, vol: &Volume) -> Result<(Image, (f32, f32))> {
+    let (format, stored, scalar_map) = scalar_storage(&vol.voxels);
+    check_linear_filter(gpu, format)?;
+    let scalars = volume_image(gpu, vol.dims, format, "scalars")?;
+    scalars.upload(&stored, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
+    Ok((scalars, scalar_map))
+}
+
 impl VolumeTextures {
     /// Uploads the scalars and the transfer function.
     pub fn new(gpu: &Gpu, vol: &Volume, tf: &TransferFunction) -> Result<VolumeTextures> {
         check_volume_fits_gpu(gpu, vol)?;
         check_linear_filter(gpu, vk::Format::R32_SFLOAT)?;
         check_linear_filter(gpu, vk::Format::R32G32B32A32_SFLOAT)?;
-        let (format, stored, scalar_map) = scalar_storage(&vol.voxels);
-        check_linear_filter(gpu, format)?;
-        let scalars = volume_image(gpu, vol.dims, format, "scalars")?;
-        scalars.upload(&stored, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
-        drop(stored);
+        let (scalars, scalar_map) = scalar_image(gpu, vol)?;
         let ranges = empty_space::BrickRanges::of_samples(vol.dims, |i| vol.voxels.get(i));
         let [bx, by, bz] = ranges.bricks.map(|b| b as u32);
         let skip = Image::new(
@@ -616,6 +626,7 @@ impl VolumeTextures {
             dims: vol.dims,
             spacing: vol.spacing,
             value_range: vol.value_range(),
+            step_spacing: vol.spacing,
             scalar_map,
         };
         t.set_transfer_function(tf)?;
@@ -653,6 +664,17 @@ impl VolumeTextures {
         Ok(())
     }
 
+    /// Samples as `full`, the full-resolution volume this one was downsampled from, would be
+    /// (its value range for the lookup tables, its spacing for the step), showing `tf`: a
+    /// full-resolution inset and the rest of the volume then share one sample lattice and one
+    /// classification.
+    pub fn show_as(&mut self, full: &Volume, tf: &TransferFunction) -> Result<()> {
+        self.value_range = full.value_range();
+        self.step_spacing = full.spacing;
+        self.preint_step.set(0.0);
+        self.set_transfer_function(tf)
+    }
+
     pub fn set_transfer_function(&self, tf: &TransferFunction) -> Result<()> {
         let lut = tf.lut(self.value_range, LUT_SIZE as usize);
         self.lut.upload(
@@ -686,7 +708,7 @@ impl VolumeTextures {
     /// Makes the pre-integrated table fit `settings`' step (built once per TF and step; call
     /// before recording a frame that uses it).
     pub fn prepare(&self, settings: &RenderSettings) -> Result<()> {
-        let step = settings.step_for(self.spacing);
+        let step = settings.step_for(self.step_spacing);
         if settings.preintegrated && self.preint_step.get() != step {
             self.upload_preintegrated(step)?;
         }
@@ -713,7 +735,7 @@ impl VolumeTextures {
 
     /// What the empty bricks depend on: the TF, and the pre-integration step if any.
     fn skip_key(&self, settings: &RenderSettings) -> (u64, bool, f32) {
-        let step = settings.step_for(self.spacing);
+        let step = settings.step_for(self.step_spacing);
         (
             self.tf_version.get(),
             settings.preintegrated,
@@ -951,12 +973,18 @@ struct FrameUniforms {
     protect: [[u32; 4]; 2],
     light: [f32; 4],
     ao_words: [u32; 4],
+    inset_lo: [f32; 4],
+    inset_hi: [f32; 4],
+    inset_scale: [f32; 4],
+    inset_offset: [f32; 4],
+    inset_words: [u32; 4],
 }
-crate::gpu::glsl_layout!(FrameUniforms, 5168,
+crate::gpu::glsl_layout!(FrameUniforms, 5248,
     inv_view_proj: 0, view_proj: 128, tex_from_world: 256, extent_mm: 320, value_map: 336,
     background: 352, viewport: 368, phong: 384, surface: 400, cut_tint: 416, jitter: 432,
     lighting: 448, bleeding: 464, glow: 480, sh_light: 496, tool_reach: 752, structures: 1008,
-    protect: 5104, light: 5136, ao_words: 5152);
+    protect: 5104, light: 5136, ao_words: 5152, inset_lo: 5168, inset_hi: 5184,
+    inset_scale: 5200, inset_offset: 5216, inset_words: 5232);
 
 /// The features the ray caster is specialised on (raycast.frag FLAGS, constant_id 0).
 const FLAG_PREINTEGRATED: u32 = 1;
@@ -968,6 +996,7 @@ const FLAG_CLIPPING: u32 = 32;
 const FLAG_GLOW: u32 = 64;
 const FLAG_ISO: u32 = 128;
 const FLAG_CLIP_BRICKS: u32 = 256;
+const FLAG_INSET: u32 = 512;
 
 /// The ray caster's descriptor writes: the uniforms, the clip tools, maps and brick states
 /// (bindings 0, 4, 5, 20), then the sampled images by binding.
@@ -1049,6 +1078,24 @@ pub struct FrameViews<'a> {
     /// The local-histogram method's bleeding colour E (RGBA8 words), read as V_AO is; None: no
     /// bleeding or scattering.
     pub bleeding: Option<&'a Buffer>,
+    /// A part of the volume at full resolution, where the rest is shown downsampled.
+    pub inset: Option<InsetBinding<'a>>,
+}
+
+/// The full-resolution inset of a downsampled volume ([`crate::app::inset`]): its scalars and
+/// V_AO, and where it lies in the shown volume's texture coordinates.
+#[derive(Clone, Copy)]
+pub struct InsetBinding<'a> {
+    /// Its scalars, stored as the shown volume's are ([`scalar_image`]).
+    pub scalars: &'a Image,
+    /// Its V_AO (16-bit words), read as [`FrameViews::ao`] is.
+    pub ao: &'a Buffer,
+    /// The box \[lo, hi) of the shown volume's texture coordinates it replaces.
+    pub lo: Vec3,
+    pub hi: Vec3,
+    /// Its texture coordinates are the shown volume's times `scale` plus `offset`.
+    pub scale: Vec3,
+    pub offset: Vec3,
 }
 
 /// An SH visibility volume ([`crate::ao::sh::ShVolume::images`]) and the environment light
@@ -1173,7 +1220,7 @@ impl Renderer {
             let sampled = Some(vk::DescriptorType::COMBINED_IMAGE_SAMPLER);
             let storage = Some(vk::DescriptorType::STORAGE_BUFFER);
             // No bindings 2 and 11: the ray caster reads V_AO and E by address (FrameViews).
-            let mut bindings = [sampled; 21];
+            let mut bindings = [sampled; 22];
             bindings[0] = Some(vk::DescriptorType::UNIFORM_BUFFER);
             for b in [4, 5, 20] {
                 bindings[b] = storage;
@@ -1265,7 +1312,7 @@ impl Renderer {
         }
         let (views, world_from_tex, clip) = (frame.views, frame.model, frame.clip);
         let ext = tex.extent_mm();
-        let step = settings.step_for(tex.spacing);
+        let step = settings.step_for(tex.step_spacing);
         let preintegrated = settings.preintegrated && tex.preint_step.get() == step;
         if settings.preintegrated && !preintegrated {
             return Err(GpuError::Other(format!(
@@ -1276,7 +1323,7 @@ impl Renderer {
         }
         let (offset, scale) = tex.lut_map(LUT_SIZE as usize);
         let (pre_offset, pre_scale) = tex.lut_map(preintegration::SIZE);
-        let max_spacing = tex.spacing.iter().cloned().fold(0.0, f64::max) as f32;
+        let max_spacing = tex.step_spacing.iter().cloned().fold(0.0, f64::max) as f32;
         let (lo, hi) = tex.value_range;
         let glow = tex.glow.is_some() && settings.glow > 0.0;
         let iso = settings.iso.is_some();
@@ -1295,6 +1342,7 @@ impl Renderer {
             (clip.is_some_and(|c| c.count > 0), FLAG_CLIPPING),
             (glow, FLAG_GLOW),
             (settings.clip_bricks, FLAG_CLIP_BRICKS),
+            (frame.inset.is_some(), FLAG_INSET),
         ]
         .iter()
         .filter(|f| f.0)
@@ -1413,6 +1461,22 @@ impl Renderer {
                 let [a, e] = [frame.ao, frame.bleeding].map(|b| b.map_or(0, |b| b.address));
                 [a as u32, (a >> 32) as u32, e as u32, (e >> 32) as u32]
             },
+            inset_lo: frame
+                .inset
+                .map_or([0.0; 4], |i| i.lo.extend(1.0).to_array()),
+            inset_hi: frame
+                .inset
+                .map_or([0.0; 4], |i| i.hi.extend(0.0).to_array()),
+            inset_scale: frame
+                .inset
+                .map_or([0.0; 4], |i| i.scale.extend(0.0).to_array()),
+            inset_offset: frame
+                .inset
+                .map_or([0.0; 4], |i| i.offset.extend(0.0).to_array()),
+            inset_words: {
+                let a = frame.inset.map_or(0, |i| i.ao.address);
+                [a as u32, (a >> 32) as u32, 0, 0]
+            },
         };
         self.uniforms[slot].write(0, bytemuck::bytes_of(&u))?;
         let uniforms = &self.uniforms[slot];
@@ -1480,6 +1544,7 @@ impl Renderer {
                 (17, tex.glow.as_ref().unwrap_or(&tex.scalars).view),
                 (18, coarse.0),
                 (19, coarse.1),
+                (21, frame.inset.map_or(tex.scalars.view, |i| i.scalars.view)),
             ]
         };
         let plain = sampled_views((self.no_coarse.view, self.no_coarse.view));

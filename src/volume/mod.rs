@@ -281,6 +281,51 @@ impl Volume {
         }
     }
 
+    /// The voxels of the box `lo .. lo + dims` (clamped to the volume), with their geometry
+    /// (the origin moved to the box's first voxel); named `name[i0:i1,j0:j1,k0:k1]`. Its labels
+    /// stay behind (the shown volume's structures are drawn from the whole).
+    pub fn crop(&self, lo: [usize; 3], dims: [usize; 3]) -> Volume {
+        let lo: [usize; 3] = std::array::from_fn(|a| lo[a].min(self.dims[a]));
+        let dims: [usize; 3] = std::array::from_fn(|a| dims[a].min(self.dims[a] - lo[a]));
+        let rows = (0..dims[2]).flat_map(|k| (0..dims[1]).map(move |j| (j, k)));
+        let start = |(j, k): (usize, usize)| self.index(lo[0], lo[1] + j, lo[2] + k);
+        macro_rules! take {
+            ($v:expr, $t:ident) => {
+                Voxels::$t(
+                    rows.clone()
+                        .flat_map(|r| $v[start(r)..start(r) + dims[0]].iter().copied())
+                        .collect(),
+                )
+            };
+        }
+        let voxels = match &self.voxels {
+            Voxels::U8(v) => take!(v, U8),
+            Voxels::U16(v) => take!(v, U16),
+            Voxels::I16(v) => take!(v, I16),
+            Voxels::F32(v) => take!(v, F32),
+        };
+        let shift = DVec3::from_array(std::array::from_fn(|a| lo[a] as f64 * self.spacing[a]));
+        Volume {
+            name: format!(
+                "{}[{}:{},{}:{},{}:{}]",
+                self.name,
+                lo[0],
+                lo[0] + dims[0],
+                lo[1],
+                lo[1] + dims[1],
+                lo[2],
+                lo[2] + dims[2]
+            ),
+            dims,
+            spacing: self.spacing,
+            directions: self.directions,
+            origin: self.origin + self.directions * shift,
+            modality: self.modality,
+            voxels,
+            labels: None,
+        }
+    }
+
     /// Physical extent in mm along i, j, k.
     pub fn extent_mm(&self) -> DVec3 {
         DVec3::new(
@@ -965,6 +1010,35 @@ mod tests {
                 e.contains("dir/scan.nii") && e.contains("voxel (1,1,1)") && e.contains(shown),
                 "{e}"
             );
+        }
+    }
+
+    #[test]
+    fn crop_keeps_the_voxels_and_their_patient_positions() {
+        let vol = Volume {
+            name: "v".into(),
+            dims: [5, 4, 3],
+            spacing: [0.5, 1.0, 2.0],
+            directions: DMat3::from_rotation_z(0.4),
+            origin: DVec3::new(10.0, -5.0, 3.0),
+            modality: Modality::Ct,
+            voxels: Voxels::I16((0..60).map(|i| i as i16 * 10 - 300).collect()),
+            labels: None,
+        };
+        // The far corner is clamped to the volume.
+        let c = vol.crop([1, 2, 1], [3, 9, 1]);
+        assert_eq!(c.dims, [3, 2, 1]);
+        assert_eq!(c.name, "v[1:4,2:4,1:2]");
+        let lps = |v: &Volume, i: [usize; 3]| {
+            v.origin
+                + v.directions
+                    * DVec3::from_array(std::array::from_fn(|a| i[a] as f64 * v.spacing[a]))
+        };
+        for (i, j, k) in [(0, 0, 0), (2, 1, 0), (1, 0, 0)] {
+            let whole = vol.index(1 + i, 2 + j, 1 + k);
+            assert_eq!(c.voxels.get(c.index(i, j, k)), vol.voxels.get(whole));
+            let d = lps(&c, [i, j, k]) - lps(&vol, [1 + i, 2 + j, 1 + k]);
+            assert!(d.length() < 1e-9, "{d}");
         }
     }
 

@@ -79,6 +79,7 @@ fn render(
         sh: None,
         ao: Some(&cao.ao),
         bleeding: cao.method().bleeding(),
+        inset: None,
     };
     hr.render(&tex, &frame, (64, 64), &RenderSettings::default())
         .unwrap()

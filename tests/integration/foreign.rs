@@ -212,6 +212,7 @@ fn render(vol: &Volume, tf: &TransferFunction, size: u32) -> StereoImage {
         sh: None,
         ao: None,
         bleeding: None,
+        inset: None,
     };
     let settings = RenderSettings {
         use_ao: false,

@@ -13,6 +13,7 @@ mod filtered;
 mod foreign;
 mod gpu_memory;
 mod histogram;
+mod inset;
 mod labels;
 mod lao;
 mod large;

@@ -56,6 +56,7 @@ fn render(gpu: &Gpu, overlays: &[Vec<OverlayItem>]) -> Vec<StereoImage> {
         sh: None,
         ao: None,
         bleeding: None,
+        inset: None,
     };
     let settings = RenderSettings::default();
     tex.prepare(&settings).unwrap();

@@ -44,6 +44,7 @@ fn render(vol: &Volume, settings: &RenderSettings) -> (StereoImage, [View; 2]) {
         sh: None,
         ao: None,
         bleeding: None,
+        inset: None,
     };
     let img = hr.render(&tex, &frame, (W, W), settings).unwrap();
     drop((tex, hr));

@@ -358,6 +358,7 @@ fn constant_environment_lights_with_albedo_times_light() {
         sh: None,
         ao: None,
         bleeding: None,
+        inset: None,
     };
     // Albedo alone: ambient 1, no diffuse or specular term, no AO; point samples, so that
     // the two renders' colours go through the same arithmetic.

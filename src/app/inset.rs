@@ -1,0 +1,362 @@
+//! The full-resolution inset: where a volume does not fit the GPU at full resolution and is
+//! shown downsampled, the box around the carving tools is shown at full resolution, with its
+//! own CAO state. The box is cropped from the full-resolution volume with a margin of the AO
+//! method's reach on every side (where the volume goes on), so that the AO inside it is the
+//! whole full-resolution volume's, voxel for voxel (docs/design.md, "The inset"). It follows the
+//! tools: when their centre moves a quarter of the box away, the box is cut again around it and
+//! its AO computed anew.
+
+use super::common::{precompute_method, Result};
+use crate::ao::cao::{Cao, Mode};
+use crate::ao::{AoConfig, LaoGpu};
+use crate::gpu::{Gpu, GpuError, Image};
+use crate::render::InsetBinding;
+use crate::scene::Tool;
+use crate::space::{lps_from_local_mm, world_from_lps_point, world_from_tex, Placement};
+use crate::volume::transfer::TransferFunction;
+use crate::volume::Volume;
+use glam::{Vec3, Vec4Swizzles};
+use std::sync::Arc;
+
+/// Turns the inset off when "0" (to compare with the downsampled volume alone).
+pub const INSET_ENV: &str = "CAO_XR_INSET";
+
+/// Smallest side (voxels) of an inset worth showing.
+pub const MIN_SIDE: usize = 16;
+
+/// What a CAO frame holds beside its set-up, per voxel, where a tool's boxes span the whole
+/// volume (LAO: the boxes' staged O and V_PAO, 4 bytes; the window of O_c and its staging
+/// copy, 4 more; the filters' f32 density needs more, and a frame that runs out of GPU memory
+/// is an error, as without an inset).
+pub const FRAME_BYTES_PER_VOXEL: f64 = 8.0;
+
+/// Tries at smaller sizes where an inset does not fit after all.
+const FIT_TRIES: usize = 4;
+
+/// The full-resolution volume, and the part of it on the GPU.
+pub struct Inset {
+    whole: Arc<Volume>,
+    /// The method the part's AO is computed with and the TF its O is classified with.
+    config: AoConfig,
+    tf: TransferFunction,
+    lao: LaoGpu,
+    /// The inner box's size and the margin on each side (full-resolution voxels).
+    inner: [usize; 3],
+    margin: [usize; 3],
+    part: Option<Part>,
+}
+
+/// The box on the GPU: the crop (inner box and margin) with its CAO state and scalars.
+struct Part {
+    /// The inner box's first voxel, and the crop's (full-resolution indices).
+    inner_lo: [usize; 3],
+    crop_lo: [usize; 3],
+    /// The crop's geometry (its voxels are on the GPU only).
+    crop: Volume,
+    cao: Cao,
+    scalars: Image,
+}
+
+impl Inset {
+    /// Whether insets are wanted ([`INSET_ENV`]).
+    pub fn wanted() -> bool {
+        std::env::var(INSET_ENV).map_or(true, |v| v.trim() != "0")
+    }
+
+    /// The largest inset beside what the GPU holds now that fits `available` bytes in all,
+    /// costing about `bytes_per_voxel` (the shown volume's set-up peak per voxel) and
+    /// [`FRAME_BYTES_PER_VOXEL`] for its frames, as the `shown_voxels` of the shown volume's
+    /// frames do: its inner box as
+    /// near a cube in mm as the volume allows, cut first around the volume's centre. None
+    /// where not even a [`MIN_SIDE`] box fits.
+    pub fn new(
+        gpu: &Gpu,
+        whole: Arc<Volume>,
+        (config, tf): (AoConfig, TransferFunction),
+        reach_mm: f64,
+        (available, bytes_per_voxel, shown_voxels): (u64, f64, usize),
+    ) -> Result<Option<Inset>> {
+        // What is free once the shown volume's frames have what they hold beside its set-up.
+        let frames = FRAME_BYTES_PER_VOXEL * shown_voxels as f64;
+        let free = available.saturating_sub(gpu.memory_in_use()) as f64 - frames;
+        let bytes_per_voxel = bytes_per_voxel + FRAME_BYTES_PER_VOXEL;
+        let margin = margin_for(&whole, reach_mm);
+        let dims_for = |side_mm: f64| -> [usize; 3] {
+            std::array::from_fn(|a| {
+                ((side_mm / whole.spacing[a]).round() as usize).clamp(1, whole.dims[a])
+            })
+        };
+        let crop_voxels = |inner: [usize; 3]| -> f64 {
+            (0..3)
+                .map(|a| (inner[a] + 2 * margin[a]).min(whole.dims[a]) as f64)
+                .product()
+        };
+        // The largest side (mm) whose crop fits the estimate, by bisection.
+        let longest = (0..3)
+            .map(|a| whole.dims[a] as f64 * whole.spacing[a])
+            .fold(0.0, f64::max);
+        let (mut lo, mut hi) = (0.0, longest);
+        for _ in 0..40 {
+            let mid = 0.5 * (lo + hi);
+            if crop_voxels(dims_for(mid)) * bytes_per_voxel <= free {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        let centre = whole.dims.map(|d| d as f64 * 0.5);
+        let inner = dims_for(lo);
+        let mut inset = Inset {
+            whole,
+            config,
+            tf,
+            lao: LaoGpu::new(gpu)?,
+            inner,
+            margin,
+            part: None,
+        };
+        for _ in 0..FIT_TRIES {
+            if inset.inner.iter().any(|&n| n < MIN_SIDE) {
+                return Ok(None);
+            }
+            match inset.cut(gpu, centre) {
+                Ok(()) => return Ok(Some(inset)),
+                Err(super::common::AppError::Gpu(GpuError::OutOfMemory(_))) => {
+                    inset.inner = inset.inner.map(|n| n * 4 / 5);
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(None)
+    }
+
+    /// An inset of `inner` voxels (at most the volume's) cut around full-resolution index
+    /// point `centre`, with the margin of `reach_mm`.
+    pub fn around(
+        gpu: &Gpu,
+        whole: Arc<Volume>,
+        (config, tf): (AoConfig, TransferFunction),
+        reach_mm: f64,
+        (inner, centre): ([usize; 3], [f64; 3]),
+    ) -> Result<Inset> {
+        let mut inset = Inset {
+            inner: std::array::from_fn(|a| inner[a].clamp(1, whole.dims[a])),
+            margin: margin_for(&whole, reach_mm),
+            whole,
+            config,
+            tf,
+            lao: LaoGpu::new(gpu)?,
+            part: None,
+        };
+        inset.cut(gpu, centre)?;
+        Ok(inset)
+    }
+
+    /// The inner box's first voxel for a centre at full-resolution index point `centre`.
+    fn inner_lo(&self, centre: [f64; 3]) -> [usize; 3] {
+        std::array::from_fn(|a| {
+            let lo = (centre[a] - 0.5 * self.inner[a] as f64).round().max(0.0) as usize;
+            lo.min(self.whole.dims[a] - self.inner[a])
+        })
+    }
+
+    /// Crops the box around `centre` and computes its AO (the old box goes first: its memory
+    /// is the new one's).
+    fn cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
+        self.part = None;
+        let inner_lo = self.inner_lo(centre);
+        let crop_lo: [usize; 3] =
+            std::array::from_fn(|a| inner_lo[a].saturating_sub(self.margin[a]));
+        let crop_hi: [usize; 3] = std::array::from_fn(|a| {
+            (inner_lo[a] + self.inner[a] + self.margin[a]).min(self.whole.dims[a])
+        });
+        let crop = self
+            .whole
+            .crop(crop_lo, std::array::from_fn(|a| crop_hi[a] - crop_lo[a]));
+        let ao = precompute_method(gpu, &self.lao, &crop, &self.tf, &self.config, false)?;
+        let cao = ao.into_cao(gpu, &crop)?;
+        let (scalars, _) = crate::render::scalar_image(gpu, &crop)?;
+        let mut crop = crop;
+        crop.voxels = crate::volume::Voxels::U8(Vec::new());
+        self.part = Some(Part {
+            inner_lo,
+            crop_lo,
+            crop,
+            cao,
+            scalars,
+        });
+        Ok(())
+    }
+
+    /// "inset 160 x 160 x 64 at [176:336,...] (+ margin 24 x 24 x 8)" for the stats and stderr.
+    pub fn describe(&self) -> String {
+        let [x, y, z] = self.inner;
+        let [mx, my, mz] = self.margin;
+        let at = self.part.as_ref().map_or(String::new(), |p| {
+            let r = |a: usize| format!("{}:{}", p.inner_lo[a], p.inner_lo[a] + self.inner[a]);
+            format!(" at [{},{},{}]", r(0), r(1), r(2))
+        });
+        format!("inset {x} x {y} x {z}{at} (+ margin {mx} x {my} x {mz}) at full resolution")
+    }
+
+    /// The inner box (full-resolution voxel indices, \[lo, hi)), where one is on the GPU.
+    pub fn inner_box(&self) -> Option<([usize; 3], [usize; 3])> {
+        let p = self.part.as_ref()?;
+        Some((
+            p.inner_lo,
+            std::array::from_fn(|a| p.inner_lo[a] + self.inner[a]),
+        ))
+    }
+
+    /// The placement of `part`, a grid sharing the patient space of `shown` placed at `p`:
+    /// its box centre where `shown`'s places that patient point.
+    fn placed(part: &Volume, shown: &Volume, p: &Placement) -> Placement {
+        let centre = lps_from_local_mm(part, Vec3::ZERO);
+        Placement {
+            center: world_from_lps_point(shown, p, centre),
+            ..*p
+        }
+    }
+
+    /// Where the box should be for `tools` (the cutting tools' mean position) over `shown` at
+    /// `p`, when a quarter of the box or more from where it is; None otherwise (or no tool).
+    pub fn wants_cut(&self, tools: &[Tool], shown: &Volume, p: &Placement) -> Option<[f64; 3]> {
+        let cutting: Vec<Vec3> = tools
+            .iter()
+            .filter(|t| t.cuts())
+            .map(|t| t.pose.position)
+            .collect();
+        if cutting.is_empty() {
+            return None;
+        }
+        let mean = cutting.iter().sum::<Vec3>() / cutting.len() as f32;
+        let whole = &*self.whole;
+        let tex = world_from_tex(whole, &Self::placed(whole, shown, p))
+            .inverse()
+            .transform_point3(mean);
+        let centre: [f64; 3] = std::array::from_fn(|a| tex[a] as f64 * whole.dims[a] as f64);
+        let want = self.inner_lo(centre);
+        let moved = match &self.part {
+            None => true,
+            Some(part) => (0..3).any(|a| {
+                (want[a] as f64 - part.inner_lo[a] as f64).abs() > 0.25 * self.inner[a] as f64
+            }),
+        };
+        moved.then_some(centre)
+    }
+
+    /// Cuts the box around `centre` ([`Inset::wants_cut`]); no frame may be in flight.
+    pub fn follow(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
+        self.cut(gpu, centre)
+    }
+
+    /// The method configuration the box's AO is computed with.
+    pub fn config(&self) -> AoConfig {
+        self.config
+    }
+
+    /// Whether the box's AO is `config`'s method on O classified with `tf`.
+    pub fn computes(&self, config: &AoConfig, tf: &TransferFunction) -> bool {
+        self.config.method == config.method && self.tf == *tf
+    }
+
+    /// Classifies with `tf` and computes with `config` from now on (a TF or method switch),
+    /// cutting the box again where it is; no frame may be in flight.
+    pub fn set_method(
+        &mut self,
+        gpu: &Gpu,
+        (config, tf): (AoConfig, TransferFunction),
+    ) -> Result<()> {
+        if self.computes(&config, &tf) {
+            return Ok(());
+        }
+        self.config = config;
+        self.tf = tf;
+        self.cut(gpu, self.centre())
+    }
+
+    /// Records, submits and waits for one frame's update of the box ([`Cao::run_frame`]).
+    pub fn run_frame(
+        &mut self,
+        tools: &[Tool],
+        (shown, p): (&Volume, &Placement),
+        mode: Mode,
+    ) -> Result<()> {
+        if let Some(part) = self.part.as_mut() {
+            let placement = Self::placed(&part.crop, shown, p);
+            part.cao.run_frame(tools, &placement, mode)?;
+        }
+        Ok(())
+    }
+
+    /// The crop on the GPU (the inner box and its margin): its first voxel and its size.
+    pub fn crop_box(&self) -> Option<([usize; 3], [usize; 3])> {
+        self.part.as_ref().map(|p| (p.crop_lo, p.crop.dims))
+    }
+
+    /// Makes the box a fifth smaller on each side, cut again where it is; false (and no box)
+    /// where it would be smaller than [`MIN_SIDE`].
+    pub fn shrink(&mut self, gpu: &Gpu) -> Result<bool> {
+        let centre = self.centre();
+        self.part = None;
+        self.inner = self.inner.map(|n| n * 4 / 5);
+        if self.inner.iter().any(|&n| n < MIN_SIDE) {
+            return Ok(false);
+        }
+        self.cut(gpu, centre)?;
+        Ok(true)
+    }
+
+    /// The inner box's centre (full-resolution index point), or the volume's with no box.
+    fn centre(&self) -> [f64; 3] {
+        self.part
+            .as_ref()
+            .map_or(self.whole.dims.map(|d| d as f64 * 0.5), |p| {
+                std::array::from_fn(|a| p.inner_lo[a] as f64 + 0.5 * self.inner[a] as f64)
+            })
+    }
+
+    /// The box as the ray caster reads it over `shown` placed at `p`.
+    pub fn binding<'a>(&'a self, shown: &Volume, p: &Placement) -> Option<InsetBinding<'a>> {
+        let part = self.part.as_ref()?;
+        let crop = &part.crop;
+        // The crop's texture coordinates from the shown volume's: the same axes, so a scale and
+        // an offset per axis.
+        let m = world_from_tex(crop, &Self::placed(crop, shown, p)).inverse()
+            * world_from_tex(shown, p);
+        let scale = Vec3::new(m.x_axis.x, m.y_axis.y, m.z_axis.z);
+        let offset = m.w_axis.xyz();
+        let inner = |lo: usize, a: usize| (lo - part.crop_lo[a]) as f32 / crop.dims[a] as f32;
+        let lo = Vec3::from_array(std::array::from_fn(|a| inner(part.inner_lo[a], a)));
+        let hi = Vec3::from_array(std::array::from_fn(|a| {
+            inner(part.inner_lo[a] + self.inner[a], a)
+        }));
+        Some(InsetBinding {
+            scalars: &part.scalars,
+            ao: &part.cao.ao,
+            lo: (lo - offset) / scale,
+            hi: (hi - offset) / scale,
+            scale,
+            offset,
+        })
+    }
+
+    /// The box's clip tools and maps for this frame ([`Cao::clip_buffers`]): the ray caster's
+    /// shadow test uses them, so that a cut lies where it lies at full resolution (the maps'
+    /// texels follow the dilation radius, which follows the voxel size).
+    pub fn clip_buffers(&self) -> Option<(&crate::gpu::Buffer, &crate::gpu::Buffer)> {
+        let (tools, maps, _) = self.part.as_ref()?.cao.clip_buffers();
+        Some((tools, maps))
+    }
+
+    /// The box's CAO state, where one is on the GPU.
+    pub fn cao(&self) -> Option<&Cao> {
+        self.part.as_ref().map(|p| &p.cao)
+    }
+}
+
+/// The margin (voxels per axis) that holds every voxel an AO of reach `reach_mm` reads around
+/// the inner box: the reach, and two voxels for the trilinear footprint and rounding.
+fn margin_for(whole: &Volume, reach_mm: f64) -> [usize; 3] {
+    whole.spacing.map(|s| (reach_mm / s).ceil() as usize + 2)
+}

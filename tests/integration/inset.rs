@@ -1,0 +1,210 @@
+//! Issue 25, item 4: a volume larger than the GPU budget is shown downsampled with the box
+//! around the tools at full resolution (the inset, `cao_xr::app::inset`). Its AO inside the box
+//! is the whole full-resolution volume's, bit for bit, on every frame of a carving; its picture
+//! where only the box is seen is the full-resolution one; and with the budget for the whole
+//! volume the picture is the full one.
+
+use crate::cao::{frames, read_ao};
+use crate::common;
+
+use cao_xr::ao::cao::Mode;
+use cao_xr::ao::filtered::{Estimator, FilterInput, FilterParams};
+use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
+use cao_xr::app::inset::Inset;
+use cao_xr::app::precompute;
+use cao_xr::space::Placement;
+use cao_xr::volume::phantom;
+use cao_xr::volume::transfer::TransferFunction;
+use std::sync::Arc;
+
+#[test]
+fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
+    let gpu = common::gpu();
+    // 48^3 voxels of 4.6 mm; the box sits against the volume's x = 0 face (its margin cut
+    // there) and well inside on y and z.
+    let vol = Arc::new(phantom::head(48));
+    let tf = TransferFunction::preset("ct-skin").unwrap();
+    let lao_params = LaoParams {
+        rays: 14,
+        steps: 5,
+        step_mm: 4.0,
+    };
+    let gauss = AoMethod::Filter(FilterParams {
+        radius_mm: 11.0,
+        estimator: Estimator::Gauss,
+        input: FilterInput::Opacity,
+    });
+    let placement = Placement::default();
+    let lao = LaoGpu::new(&gpu).unwrap();
+    for method in [AoMethod::Lao, gauss] {
+        let ao = AoConfig::new(method, lao_params);
+        let mut whole = precompute(&gpu, &lao, &vol, &tf, &ao, false)
+            .unwrap()
+            .into_cao(&gpu, &vol)
+            .unwrap();
+        let reach = whole.reach_mm();
+        let mut inset = Inset::around(
+            &gpu,
+            vol.clone(),
+            (ao, tf.clone()),
+            reach,
+            ([20, 16, 24], [12.0, 30.0, 24.0]),
+        )
+        .unwrap();
+        let (lo, hi) = inset.inner_box().unwrap();
+        let (crop_lo, crop) = inset.crop_box().unwrap();
+        assert_eq!(
+            crop_lo[0], 0,
+            "{method:?}: the margin is cut by the volume's face"
+        );
+        assert!(crop_lo[1] > 0 && crop_lo[2] > 0, "{method:?}: {crop_lo:?}");
+        let mut carved = 0;
+        for (f, tools) in frames(placement.center).iter().enumerate() {
+            whole
+                .run_frame(tools, &placement, Mode::Contextual)
+                .unwrap();
+            inset
+                .run_frame(tools, (&vol, &placement), Mode::Contextual)
+                .unwrap();
+            let want = read_ao(&whole.ao);
+            let got = read_ao(&inset.cao().unwrap().ao);
+            let mut changed = 0;
+            for k in lo[2]..hi[2] {
+                for j in lo[1]..hi[1] {
+                    for i in lo[0]..hi[0] {
+                        let w = want[vol.index(i, j, k)];
+                        let c = [i - crop_lo[0], j - crop_lo[1], k - crop_lo[2]];
+                        let g = got[c[0] + crop[0] * (c[1] + crop[1] * c[2])];
+                        assert_eq!(
+                            g.to_bits(),
+                            w.to_bits(),
+                            "{method:?} frame {f}: voxel ({i}, {j}, {k}): {g} against {w}"
+                        );
+                        changed += (w < 1.0) as usize;
+                    }
+                }
+            }
+            carved += (changed > 0) as usize;
+        }
+        // The box holds occluded voxels on the frames (the comparison is not of open space).
+        assert!(carved > 0, "{method:?}");
+    }
+    common::assert_no_validation_messages(&gpu);
+}
+
+/// `render phantom:192` with a probe (only its inside stays) into `out`, under `env`: what it
+/// told.
+fn render(out: &std::path::Path, env: &[(&str, &str)]) -> String {
+    let args = [
+        "render",
+        "phantom:192",
+        "--size",
+        "256x256",
+        "--rays",
+        "6",
+        "--steps",
+        "4",
+        "--tool",
+        "probe-sphere:20",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let run = common::run_cao(&args, env);
+    let stderr = String::from_utf8_lossy(&run.stderr).into_owned();
+    assert!(run.status.success(), "{env:?}: {stderr}");
+    // The notices (stderr) and the statistics (stdout) together.
+    stderr + &String::from_utf8_lossy(&run.stdout)
+}
+
+/// The PSNR (dB) of picture `b` against `a` (`cao-xr compare`).
+fn psnr(a: &std::path::Path, b: &std::path::Path) -> f64 {
+    let out = common::run_cao_ok(&["compare", a.to_str().unwrap(), b.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    let at = text
+        .find("PSNR ")
+        .unwrap_or_else(|| panic!("no PSNR in {text}"));
+    let v = text[at + 5..].split_whitespace().next().unwrap();
+    if v == "inf" {
+        f64::INFINITY
+    } else {
+        v.parse().unwrap()
+    }
+}
+
+#[test]
+fn under_a_quarter_of_the_budget_the_tools_neighbourhood_is_shown_at_full_resolution() {
+    let dir = common::scratch("inset", "quarter");
+    let full = dir.join("full");
+    let stderr = render(&full, &[]);
+    // The whole set-up's peak, as `render` tells it.
+    let at = stderr.find("GPU memory: peak ").expect("the peak is told");
+    let peak: u64 = stderr[at + 17..]
+        .split_whitespace()
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    let quarter = (peak / 4).to_string();
+    let budget = [("CAO_XR_GPU_BUDGET_MB", quarter.as_str())];
+    let inset = dir.join("inset");
+    let told = render(&inset, &budget);
+    assert!(told.contains("shown downsampled by"), "{told}");
+    // The box followed the probe (30 mm up, 70 mm to the front: not the volume's centre).
+    let last = told
+        .lines()
+        .rfind(|l| l.contains(" at full resolution"))
+        .unwrap_or_else(|| panic!("no inset told: {told}"));
+    assert!(
+        last.contains("phantom-192-ds"),
+        "the box was not cut again: {told}"
+    );
+    let coarse = dir.join("coarse");
+    render(&coarse, &[budget[0], ("CAO_XR_INSET", "0")]);
+    let pic = |d: &std::path::Path| d.join("left.png");
+    let (with, without) = (
+        psnr(&pic(&full), &pic(&inset)),
+        psnr(&pic(&full), &pic(&coarse)),
+    );
+    assert!(
+        with >= 60.0,
+        "with the inset {with} dB (without {without} dB)"
+    );
+    // Only the probe's inside is seen, all of it in the box: the full-resolution picture but for
+    // rounding (the box's texture coordinates are the shown volume's scaled and offset): within
+    // 2/255 per channel.
+    let read = |d: &std::path::Path| cao_xr::render::compare::read_png(&pic(d)).unwrap();
+    let (f, i, c) = (read(&full), read(&inset), read(&coarse));
+    let px = |p: &cao_xr::render::compare::Picture, k: usize| p.rgba[4 * k..4 * k + 4].to_vec();
+    let background = px(&f, 0);
+    let seen: Vec<usize> = (0..f.width * f.height)
+        .filter(|&k| px(&f, k) != background)
+        .collect();
+    assert!(
+        seen.len() > 400,
+        "{} pixels of the probe's inside",
+        seen.len()
+    );
+    let same = |p: &cao_xr::render::compare::Picture| {
+        let near = |k: usize| {
+            px(p, k)
+                .iter()
+                .zip(px(&f, k))
+                .all(|(a, b)| a.abs_diff(b) <= 2)
+        };
+        seen.iter().filter(|&&k| near(k)).count() as f64 / seen.len() as f64
+    };
+    let (same_with, same_without) = (same(&i), same(&c));
+    assert!(
+        same_with >= 0.99 && same_without < 0.5,
+        "pixels as at full resolution: {same_with} with the inset, {same_without} without"
+    );
+    // With the budget of the whole volume, the picture is the full one.
+    let all = (2 * peak).to_string();
+    let enough = dir.join("enough");
+    let told = render(&enough, &[("CAO_XR_GPU_BUDGET_MB", all.as_str())]);
+    assert!(!told.contains("downsampled"), "{told}");
+    assert_eq!(
+        std::fs::read(pic(&enough)).unwrap(),
+        std::fs::read(pic(&full)).unwrap()
+    );
+}
