@@ -205,6 +205,11 @@ enum Start {
 /// Downsampling factors tried, from the estimate up, for the one that fits.
 const FIT_TRIES: usize = 4;
 
+/// The least share of the volume's side (on every axis) a full-resolution inset is wanted at:
+/// smaller ones show the rest of the volume coarser, at most [`INSET_COARSER`] times.
+const INSET_SHARE: f64 = 0.25;
+const INSET_COARSER: usize = 2;
+
 /// `loaded` and after them the marks a session placed ([`crate::scene::Scene::marks`]) as
 /// markups in patient space, named as 3D Slicer names new ones: points "F-1", "F-2", ...,
 /// rulers "L-1", "L-2", ... (numbered on from the loaded ones).
@@ -306,8 +311,28 @@ impl FrameLoop {
                     coarse.downsampled_by(),
                     coarse.name
                 );
-                if Inset::wanted() {
-                    fl.add_inset(vol.clone(), built.config, (m.available, per_voxel))?;
+                if !Inset::wanted() {
+                    return Ok(fl);
+                }
+                // Full resolution around the tools: where the box that fits beside this
+                // downsample is small, the rest of the volume is shown coarser for a larger one.
+                let mut n = coarse.downsampled_by();
+                let mut per_voxel = per_voxel;
+                for coarser in 0..=INSET_COARSER {
+                    if coarser > 0 {
+                        n += 1;
+                        let c = Arc::new(vol.downsample(n));
+                        drop(fl);
+                        gpu.reset_memory_peak();
+                        fl = setup(c.clone(), show_progress)?;
+                        per_voxel =
+                            (gpu.memory_peak() - base) as f64 / c.voxel_count().max(1) as f64;
+                    }
+                    let share =
+                        fl.add_inset(vol.clone(), built.config, (m.available, per_voxel))?;
+                    if share >= INSET_SHARE || n >= MAX_DOWNSAMPLE {
+                        break;
+                    }
                 }
                 Ok(fl)
             }
@@ -321,12 +346,13 @@ impl FrameLoop {
 
     /// Shows the box around the tools at full resolution from `whole` ([`Inset`]), within
     /// `available` bytes of GPU memory at about `per_voxel` bytes per voxel; told on stderr.
+    /// Returns the box's least share of the volume's side (0: none fits).
     fn add_inset(
         &mut self,
         whole: Arc<Volume>,
         config: AoConfig,
         (available, per_voxel): (u64, f64),
-    ) -> Result<()> {
+    ) -> Result<f64> {
         self.tex.show_as(&whole, self.tfs.shown())?;
         // The first frame's pre-integrated table for the new step, as the set-up made one.
         self.tex.prepare(&self.settings)?;
@@ -343,10 +369,15 @@ impl FrameLoop {
             (available, per_voxel, shown),
         )?;
         match &self.inset {
-            Some(i) => eprintln!("volume {name}: {}", i.describe()),
-            None => eprintln!("volume {name}: no full-resolution inset fits beside it"),
+            Some(i) => {
+                eprintln!("volume {name}: {}", i.describe());
+                Ok(i.share())
+            }
+            None => {
+                eprintln!("volume {name}: no full-resolution inset fits beside it");
+                Ok(0.0)
+            }
         }
-        Ok(())
     }
 
     /// Brings the inset up to the scene (no frame in flight): the shown TF and method, the box

@@ -24,11 +24,12 @@ pub const INSET_ENV: &str = "CAO_XR_INSET";
 /// Smallest side (voxels) of an inset worth showing.
 pub const MIN_SIDE: usize = 16;
 
-/// What a CAO frame holds beside its set-up, per voxel, where a tool's boxes span the whole
-/// volume (LAO: the boxes' staged O and V_PAO, 4 bytes; the window of O_c and its staging
-/// copy, 4 more; the filters' f32 density needs more, and a frame that runs out of GPU memory
-/// is an error, as without an inset).
-pub const FRAME_BYTES_PER_VOXEL: f64 = 8.0;
+/// What a CAO frame holds beside its set-up, per voxel, at most (measured: the first frame's
+/// whole restore stages O and V_PAO, then the tools' boxes and the window of O_c and its
+/// staging copy stay in the frame slots; a frame that runs out of GPU memory is an error, as
+/// without an inset), and a MiB more for the tools' maps and tables.
+pub const FRAME_BYTES_PER_VOXEL: f64 = 12.0;
+const FRAME_BYTES: f64 = (1 << 20) as f64;
 
 /// Tries at smaller sizes where an inset does not fit after all.
 const FIT_TRIES: usize = 4;
@@ -64,11 +65,11 @@ impl Inset {
     }
 
     /// The largest inset beside what the GPU holds now that fits `available` bytes in all,
-    /// costing about `bytes_per_voxel` (the shown volume's set-up peak per voxel) and
-    /// [`FRAME_BYTES_PER_VOXEL`] for its frames, as the `shown_voxels` of the shown volume's
-    /// frames do: its inner box as
-    /// near a cube in mm as the volume allows, cut first around the volume's centre. None
-    /// where not even a [`MIN_SIDE`] box fits.
+    /// leaving [`FRAME_BYTES_PER_VOXEL`] for each of the `shown_voxels` of the shown volume's
+    /// frames: its inner box as near a cube in mm as the volume allows, cut first around the
+    /// volume's centre. The first box is sized at `bytes_per_voxel` (the shown volume's set-up
+    /// peak per voxel, its fixed costs included: too much), the next at what the first cost,
+    /// while that makes it larger. None where not even a [`MIN_SIDE`] box fits.
     pub fn new(
         gpu: &Gpu,
         whole: Arc<Volume>,
@@ -76,58 +77,81 @@ impl Inset {
         reach_mm: f64,
         (available, bytes_per_voxel, shown_voxels): (u64, f64, usize),
     ) -> Result<Option<Inset>> {
-        // What is free once the shown volume's frames have what they hold beside its set-up.
-        let frames = FRAME_BYTES_PER_VOXEL * shown_voxels as f64;
+        let frames = FRAME_BYTES_PER_VOXEL * shown_voxels as f64 + 2.0 * FRAME_BYTES;
         let free = available.saturating_sub(gpu.memory_in_use()) as f64 - frames;
-        let bytes_per_voxel = bytes_per_voxel + FRAME_BYTES_PER_VOXEL;
-        let margin = margin_for(&whole, reach_mm);
+        let centre = whole.dims.map(|d| d as f64 * 0.5);
+        let mut inset = Inset {
+            margin: margin_for(&whole, reach_mm),
+            whole,
+            config,
+            tf,
+            lao: LaoGpu::new(gpu)?,
+            inner: [0; 3],
+            part: None,
+        };
+        let mut cost = bytes_per_voxel + FRAME_BYTES_PER_VOXEL;
+        let mut shown: Option<[usize; 3]> = None;
+        for _ in 0..FIT_TRIES {
+            let want = inset.fitting(free, cost);
+            let grows = shown.is_none_or(|s| (0..3).any(|a| want[a] * 20 > s[a] * 23));
+            if !grows || want.iter().any(|&n| n < MIN_SIDE) {
+                break;
+            }
+            inset.part = None;
+            let before = gpu.memory_in_use();
+            gpu.reset_memory_peak();
+            inset.inner = want;
+            match inset.cut(gpu, centre) {
+                Ok(()) => {
+                    let voxels = inset.crop_voxels(want);
+                    cost = (gpu.memory_peak() - before) as f64 / voxels + FRAME_BYTES_PER_VOXEL;
+                    shown = Some(want);
+                }
+                Err(super::common::AppError::Gpu(GpuError::OutOfMemory(_))) => match shown {
+                    // Back to the box that fitted.
+                    Some(s) => {
+                        inset.inner = s;
+                        inset.cut(gpu, centre)?;
+                        break;
+                    }
+                    None => cost *= 1.5,
+                },
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(shown.map(|_| inset))
+    }
+
+    /// Voxels of the crop of an `inner` box (its margin included, as far as the volume goes).
+    fn crop_voxels(&self, inner: [usize; 3]) -> f64 {
+        (0..3)
+            .map(|a| (inner[a] + 2 * self.margin[a]).min(self.whole.dims[a]) as f64)
+            .product()
+    }
+
+    /// The largest inner box, as near a cube in mm as the volume allows, whose crop costs at
+    /// most `free` bytes at `cost` per voxel.
+    fn fitting(&self, free: f64, cost: f64) -> [usize; 3] {
+        let whole = &*self.whole;
         let dims_for = |side_mm: f64| -> [usize; 3] {
             std::array::from_fn(|a| {
                 ((side_mm / whole.spacing[a]).round() as usize).clamp(1, whole.dims[a])
             })
         };
-        let crop_voxels = |inner: [usize; 3]| -> f64 {
-            (0..3)
-                .map(|a| (inner[a] + 2 * margin[a]).min(whole.dims[a]) as f64)
-                .product()
-        };
-        // The largest side (mm) whose crop fits the estimate, by bisection.
         let longest = (0..3)
             .map(|a| whole.dims[a] as f64 * whole.spacing[a])
             .fold(0.0, f64::max);
+        // The largest side (mm) that fits, by bisection.
         let (mut lo, mut hi) = (0.0, longest);
         for _ in 0..40 {
             let mid = 0.5 * (lo + hi);
-            if crop_voxels(dims_for(mid)) * bytes_per_voxel <= free {
+            if self.crop_voxels(dims_for(mid)) * cost <= free {
                 lo = mid;
             } else {
                 hi = mid;
             }
         }
-        let centre = whole.dims.map(|d| d as f64 * 0.5);
-        let inner = dims_for(lo);
-        let mut inset = Inset {
-            whole,
-            config,
-            tf,
-            lao: LaoGpu::new(gpu)?,
-            inner,
-            margin,
-            part: None,
-        };
-        for _ in 0..FIT_TRIES {
-            if inset.inner.iter().any(|&n| n < MIN_SIDE) {
-                return Ok(None);
-            }
-            match inset.cut(gpu, centre) {
-                Ok(()) => return Ok(Some(inset)),
-                Err(super::common::AppError::Gpu(GpuError::OutOfMemory(_))) => {
-                    inset.inner = inset.inner.map(|n| n * 4 / 5);
-                }
-                Err(e) => return Err(e),
-            }
-        }
-        Ok(None)
+        dims_for(lo)
     }
 
     /// An inset of `inner` voxels (at most the volume's) cut around full-resolution index
@@ -197,6 +221,13 @@ impl Inset {
             format!(" at [{},{},{}]", r(0), r(1), r(2))
         });
         format!("inset {x} x {y} x {z}{at} (+ margin {mx} x {my} x {mz}) at full resolution")
+    }
+
+    /// The inner box's least share of the volume's side.
+    pub fn share(&self) -> f64 {
+        (0..3)
+            .map(|a| self.inner[a] as f64 / self.whole.dims[a] as f64)
+            .fold(1.0, f64::min)
     }
 
     /// The inner box (full-resolution voxel indices, \[lo, hi)), where one is on the GPU.
