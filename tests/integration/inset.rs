@@ -208,3 +208,38 @@ fn under_a_quarter_of_the_budget_the_tools_neighbourhood_is_shown_at_full_resolu
         std::fs::read(pic(&full)).unwrap()
     );
 }
+
+#[test]
+fn the_inset_follows_a_moving_tool_through_a_transfer_function_switch() {
+    let dir = common::scratch("inset", "replay");
+    let script = dir.join("tf-switch.jsonl");
+    let script_arg = script.to_str().unwrap();
+    common::run_cao_ok(&["script", "tf-switch", "--frames", "24", "--out", script_arg]);
+    let out = dir.join("replay");
+    let args = [
+        "replay",
+        script_arg,
+        "phantom:160",
+        "--size",
+        "96x64",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let run = common::run_cao(&args, &[("CAO_XR_GPU_BUDGET_MB", "14")]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{stderr}");
+    // The sphere sweeps from left to right: the box is cut again where it goes, further right
+    // each time.
+    let firsts: Vec<usize> = stderr
+        .lines()
+        .filter(|l| l.contains("phantom-160-ds") && l.contains(" at full resolution"))
+        .map(|l| {
+            let at = l.find(" at [").unwrap_or_else(|| panic!("no box in {l}"));
+            l[at + 5..].split(':').next().unwrap().parse().unwrap()
+        })
+        .collect();
+    assert!(firsts.len() >= 3, "{stderr}");
+    assert!(firsts.windows(2).all(|w| w[1] >= w[0]), "{firsts:?}");
+    let csv = std::fs::read_to_string(out.join("metrics.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 25, "a header and a row per frame");
+}
