@@ -187,8 +187,13 @@ impl App {
                 .chain(self.fl.structure_menu())
                 .map(|w| format!(" | {w}"))
                 .collect::<String>();
+            // A downsampled volume's full-resolution box around the tools.
+            let inset = self.fl.inset().map_or(String::new(), |i| {
+                let [x, y, z] = i.inner_size();
+                format!(" | inset {x}x{y}x{z}")
+            });
             w.set_title(&format!(
-                "cao-xr | {:.1} fps | AO {} {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}{step}{margin}",
+                "cao-xr | {:.1} fps | AO {} {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}{step}{inset}{margin}",
                 self.fps,
                 self.fl.cao.method_name(),
                 m.gpu_ms(),

@@ -223,6 +223,11 @@ impl Inset {
         format!("inset {x} x {y} x {z}{at} (+ margin {mx} x {my} x {mz}) at full resolution")
     }
 
+    /// The inner box's size (full-resolution voxels).
+    pub fn inner_size(&self) -> [usize; 3] {
+        self.inner
+    }
+
     /// The inner box's least share of the volume's side.
     pub fn share(&self) -> f64 {
         (0..3)
