@@ -399,7 +399,7 @@ impl FrameLoop {
             inset.set_method(&self.gpu, (config, tf))?;
         }
         if let Some(centre) = inset.wants_cut(tools, shown, placement) {
-            inset.follow(&self.gpu, centre)?;
+            inset.cut(&self.gpu, centre)?;
             eprintln!("volume {}: {}", shown.name, inset.describe());
         }
         loop {

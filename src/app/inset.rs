@@ -184,9 +184,10 @@ impl Inset {
         })
     }
 
-    /// Crops the box around `centre` and computes its AO (the old box goes first: its memory
-    /// is the new one's).
-    fn cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
+    /// Crops the box around full-resolution index point `centre` ([`Inset::wants_cut`]) and
+    /// computes its AO; the old box goes first (its memory is the new one's), so no frame that
+    /// reads it may be in flight.
+    pub fn cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
         self.part = None;
         let inner_lo = self.inner_lo(centre);
         let crop_lo: [usize; 3] =
@@ -212,7 +213,8 @@ impl Inset {
         Ok(())
     }
 
-    /// "inset 160 x 160 x 64 at [176:336,...] (+ margin 24 x 24 x 8)" for the stats and stderr.
+    /// "inset 160 x 160 x 64 at [176:336,...] (+ margin 24 x 24 x 8) at full resolution", as
+    /// stderr tells it.
     pub fn describe(&self) -> String {
         let [x, y, z] = self.inner;
         let [mx, my, mz] = self.margin;
@@ -279,11 +281,6 @@ impl Inset {
             }),
         };
         moved.then_some(centre)
-    }
-
-    /// Cuts the box around `centre` ([`Inset::wants_cut`]); no frame may be in flight.
-    pub fn follow(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
-        self.cut(gpu, centre)
     }
 
     /// The method configuration the box's AO is computed with.
