@@ -375,6 +375,9 @@ impl FrameLoop {
             }
             None => {
                 eprintln!("volume {name}: no full-resolution inset fits beside it");
+                let shown = self.volume.clone();
+                self.tex.show_as(&shown, self.tfs.shown())?;
+                self.tex.prepare(&self.settings)?;
                 Ok(0.0)
             }
         }
@@ -408,6 +411,9 @@ impl FrameLoop {
                     if !inset.shrink(&self.gpu)? {
                         eprintln!("volume {}: the inset is given up: {m}", shown.name);
                         self.inset = None;
+                        // The downsampled volume alone samples as itself again.
+                        let shown = self.volume.clone();
+                        self.tex.show_as(&shown, self.tfs.shown())?;
                         return Ok(());
                     }
                     eprintln!("volume {}: {} ({m})", shown.name, inset.describe());

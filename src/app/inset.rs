@@ -256,23 +256,26 @@ impl Inset {
         }
     }
 
-    /// Where the box should be for `tools` (the cutting tools' mean position) over `shown` at
-    /// `p`, when a quarter of the box or more from where it is; None otherwise (or no tool).
+    /// Where the box should be for `tools` over `shown` at `p`, when a quarter of the box or
+    /// more from where it is; None otherwise. It goes where the cutting tools are (their mean
+    /// position), else where the tools the hands hold inside the volume are; with neither it
+    /// stays.
     pub fn wants_cut(&self, tools: &[Tool], shown: &Volume, p: &Placement) -> Option<[f64; 3]> {
-        let cutting: Vec<Vec3> = tools
-            .iter()
-            .filter(|t| t.cuts())
-            .map(|t| t.pose.position)
-            .collect();
-        if cutting.is_empty() {
+        let whole = &*self.whole;
+        let tex_from_world = world_from_tex(whole, &Self::placed(whole, shown, p)).inverse();
+        let tex = |t: &Tool| tex_from_world.transform_point3(t.pose.position);
+        let inside = |t: &Vec3| t.cmpge(Vec3::ZERO).all() && t.cmple(Vec3::ONE).all();
+        let cutting: Vec<Vec3> = tools.iter().filter(|t| t.cuts()).map(tex).collect();
+        let points = if cutting.is_empty() {
+            tools.iter().map(tex).filter(inside).collect()
+        } else {
+            cutting
+        };
+        if points.is_empty() {
             return None;
         }
-        let mean = cutting.iter().sum::<Vec3>() / cutting.len() as f32;
-        let whole = &*self.whole;
-        let tex = world_from_tex(whole, &Self::placed(whole, shown, p))
-            .inverse()
-            .transform_point3(mean);
-        let centre: [f64; 3] = std::array::from_fn(|a| tex[a] as f64 * whole.dims[a] as f64);
+        let mean = points.iter().sum::<Vec3>() / points.len() as f32;
+        let centre: [f64; 3] = std::array::from_fn(|a| mean[a] as f64 * whole.dims[a] as f64);
         let want = self.inner_lo(centre);
         let moved = match &self.part {
             None => true,

@@ -4,7 +4,7 @@
 //! where only the box is seen is the full-resolution one; and with the budget for the whole
 //! volume the picture is the full one.
 
-use crate::cao::{frames, read_ao};
+use crate::cao::{frames, read_ao, tool};
 use crate::common;
 
 use cao_xr::ao::cao::Mode;
@@ -12,9 +12,12 @@ use cao_xr::ao::filtered::{Estimator, FilterInput, FilterParams};
 use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
 use cao_xr::app::inset::Inset;
 use cao_xr::app::precompute;
+use cao_xr::clip::Shape;
+use cao_xr::scene::ToolMode;
 use cao_xr::space::Placement;
 use cao_xr::volume::phantom;
 use cao_xr::volume::transfer::TransferFunction;
+use glam::{Quat, Vec3};
 use std::sync::Arc;
 
 #[test]
@@ -89,6 +92,35 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         // The box holds occluded voxels on the frames (the comparison is not of open space).
         assert!(carved > 0, "{method:?}");
     }
+    // With no tool cutting, the box goes to a tool a hand holds inside the volume (off by
+    // more than a quarter of the box here), and stays for one outside it.
+    let inset = Inset::around(
+        &gpu,
+        vol.clone(),
+        (AoConfig::new(AoMethod::Lao, lao_params), tf),
+        4.0 * 4.0,
+        ([16, 16, 16], [24.0; 3]),
+    )
+    .unwrap();
+    let held = |offset: Vec3| {
+        let mut t = tool(
+            Shape::Sphere,
+            placement.center + offset,
+            Quat::IDENTITY,
+            0.02,
+            ToolMode::Carve,
+        );
+        t.active = false;
+        t
+    };
+    let near_corner = inset.wants_cut(&[held(Vec3::splat(0.07))], &vol, &placement);
+    let centre = near_corner.expect("a held tool inside the volume moves the box");
+    assert!(
+        centre.iter().all(|&c| !(12.0..=36.0).contains(&c)),
+        "{centre:?}"
+    );
+    let outside = inset.wants_cut(&[held(Vec3::new(0.4, 0.0, 0.0))], &vol, &placement);
+    assert_eq!(outside, None);
     common::assert_no_validation_messages(&gpu);
 }
 
