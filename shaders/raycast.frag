@@ -198,8 +198,8 @@ bool in_tool_reach(vec3 v) {
     return false;
 }
 
-// Where the ray v(t) = ov + t inv^-1 (index space) first enters box [lo, hi) at or after t (no
-// bound where it does not).
+// Where the ray v(t) = ov + t dv (index space; inv = 1 / dv) first enters box [lo, hi) at or
+// after t (no bound where it does not).
 float box_entry(vec3 lo, vec3 hi, vec3 ov, vec3 inv, float t) {
     vec3 t0 = (lo - ov) * inv;
     vec3 t1 = (hi - ov) * inv;

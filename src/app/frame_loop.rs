@@ -316,22 +316,36 @@ impl FrameLoop {
                 }
                 // Full resolution around the tools: where the box that fits beside this
                 // downsample is small, the rest of the volume is shown coarser for a larger one.
+                let at = |n: usize| -> Result<(FrameLoop, f64)> {
+                    let c = Arc::new(vol.downsample(n));
+                    gpu.reset_memory_peak();
+                    let fl = setup(c.clone(), show_progress)?;
+                    let per_voxel = (gpu.memory_peak() - base) as f64 / c.voxel_count() as f64;
+                    Ok((fl, per_voxel))
+                };
+                let inset = |fl: &mut FrameLoop, per_voxel| {
+                    fl.add_inset(vol.clone(), built.config, (m.available, per_voxel))
+                };
+                // The downsample with the largest box (share of the side), the finest first.
                 let mut n = coarse.downsampled_by();
-                let mut per_voxel = per_voxel;
-                for coarser in 0..=INSET_COARSER {
-                    if coarser > 0 {
-                        n += 1;
-                        let c = Arc::new(vol.downsample(n));
-                        drop(fl);
-                        gpu.reset_memory_peak();
-                        fl = setup(c.clone(), show_progress)?;
-                        per_voxel =
-                            (gpu.memory_peak() - base) as f64 / c.voxel_count().max(1) as f64;
+                let last = (n + INSET_COARSER).min(MAX_DOWNSAMPLE);
+                let mut best = (n, inset(&mut fl, per_voxel)?);
+                while best.1 < INSET_SHARE && n < last {
+                    n += 1;
+                    drop(fl);
+                    let (next, per_voxel) = at(n)?;
+                    fl = next;
+                    let share = inset(&mut fl, per_voxel)?;
+                    if share > best.1 {
+                        best = (n, share);
                     }
-                    let share =
-                        fl.add_inset(vol.clone(), built.config, (m.available, per_voxel))?;
-                    if share >= INSET_SHARE || n >= MAX_DOWNSAMPLE {
-                        break;
+                }
+                if best.0 != n {
+                    drop(fl);
+                    let (next, per_voxel) = at(best.0)?;
+                    fl = next;
+                    if best.1 > 0.0 {
+                        inset(&mut fl, per_voxel)?;
                     }
                 }
                 Ok(fl)
@@ -375,9 +389,7 @@ impl FrameLoop {
             }
             None => {
                 eprintln!("volume {name}: no full-resolution inset fits beside it");
-                let shown = self.volume.clone();
-                self.tex.show_as(&shown, self.tfs.shown())?;
-                self.tex.prepare(&self.settings)?;
+                self.drop_inset()?;
                 Ok(0.0)
             }
         }
@@ -410,17 +422,23 @@ impl FrameLoop {
                 Err(AppError::Gpu(GpuError::OutOfMemory(m))) => {
                     if !inset.shrink(&self.gpu)? {
                         eprintln!("volume {}: the inset is given up: {m}", shown.name);
-                        self.inset = None;
-                        // The downsampled volume alone samples as itself again.
-                        let shown = self.volume.clone();
-                        self.tex.show_as(&shown, self.tfs.shown())?;
-                        return Ok(());
+                        return self.drop_inset();
                     }
                     eprintln!("volume {}: {} ({m})", shown.name, inset.describe());
                 }
                 r => return r,
             }
         }
+    }
+
+    /// No inset: the downsampled volume alone, sampled as itself again (its step, its value
+    /// range), with the pre-integrated table the next frame reads.
+    fn drop_inset(&mut self) -> Result<()> {
+        self.inset = None;
+        let shown = self.volume.clone();
+        self.tex.show_as(&shown, self.tfs.shown())?;
+        self.tex.prepare(&self.settings)?;
+        Ok(())
     }
 
     /// The full-resolution box around the tools of a downsampled volume, if it has one.
@@ -836,7 +854,6 @@ impl FrameLoop {
         let slot = &self.slots.slots[f.slot];
         self.tfs.picture_shown();
         let metrics = self.cao.read_metrics(f.pending)?;
-
         let sh = match (f.sh, self.lighting.as_ref()) {
             (Some(m), Some(l)) => ShStats {
                 voxels: m.visited,
@@ -969,7 +986,6 @@ impl FrameLoop {
         let recorded = (|| {
             let slab = tfs.record_slab(cmd, volume);
             let pending = cao.record_frame(cmd, &scene.tools, &scene.volume, *mode)?;
-
             timer.begin(cmd);
             let sh = lighting.as_mut().map(|l| l.record_frame(gpu, cmd, cao));
             timer.mark(cmd, PASS_SH);

@@ -664,13 +664,13 @@ impl VolumeTextures {
         Ok(())
     }
 
-    /// Samples as `full`, the full-resolution volume this one was downsampled from, would be
-    /// (its value range for the lookup tables, its spacing for the step), showing `tf`: a
-    /// full-resolution inset and the rest of the volume then share one sample lattice and one
-    /// classification.
-    pub fn show_as(&mut self, full: &Volume, tf: &TransferFunction) -> Result<()> {
-        self.value_range = full.value_range();
-        self.step_spacing = full.spacing;
+    /// Samples as `vol` would be sampled (its value range for the lookup tables, its spacing for
+    /// the step and the cut layer), showing `tf`. With the full-resolution volume this one was
+    /// downsampled from, a full-resolution inset and the rest of the volume share one sample
+    /// lattice and one classification; with this volume itself, it samples as itself again.
+    pub fn show_as(&mut self, vol: &Volume, tf: &TransferFunction) -> Result<()> {
+        self.value_range = vol.value_range();
+        self.step_spacing = vol.spacing;
         self.preint_step.set(0.0);
         self.set_transfer_function(tf)
     }

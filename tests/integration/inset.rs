@@ -275,3 +275,38 @@ fn the_inset_follows_a_moving_tool_through_a_transfer_function_switch() {
     let csv = std::fs::read_to_string(out.join("metrics.csv")).unwrap();
     assert_eq!(csv.lines().count(), 25, "a header and a row per frame");
 }
+
+#[test]
+fn where_no_inset_fits_the_picture_is_the_finest_downsample_alone() {
+    // The filters' wide reach makes every box's margin large: under 19 MiB none fits beside
+    // the volume downsampled by 3, 4 or 5, and the volume is shown as without insets.
+    let dir = common::scratch("inset", "none");
+    let render = |out: &std::path::Path, inset: &str| {
+        let args = [
+            "render",
+            "phantom:192",
+            "--size",
+            "128x128",
+            "--ao",
+            "filter-gauss",
+            "--tool",
+            "sphere:40",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        let env = [("CAO_XR_GPU_BUDGET_MB", "19"), ("CAO_XR_INSET", inset)];
+        let run = common::run_cao(&args, &env);
+        let stderr = String::from_utf8_lossy(&run.stderr).into_owned();
+        assert!(run.status.success(), "{stderr}");
+        stderr
+    };
+    let (with, without) = (dir.join("with"), dir.join("without"));
+    let told = render(&with, "1");
+    assert!(told.contains("no full-resolution inset fits"), "{told}");
+    assert!(!told.contains(" at full resolution"), "{told}");
+    render(&without, "0");
+    assert_eq!(
+        std::fs::read(with.join("stereo.png")).unwrap(),
+        std::fs::read(without.join("stereo.png")).unwrap()
+    );
+}
