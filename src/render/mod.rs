@@ -1350,6 +1350,10 @@ impl Renderer {
         let pipeline = self.pipeline(flags)?;
         let [ox, oy] = blue_noise::RIGHT_EYE_OFFSET;
         let vp = views.map(|v| v.view_proj());
+        let [inset_lo, inset_hi, inset_scale, inset_offset] =
+            frame.inset.map_or([[0.0; 4]; 4], |i| {
+                [i.lo, i.hi, i.scale, i.offset].map(|v| v.extend(0.0).to_array())
+            });
         let u = FrameUniforms {
             inv_view_proj: vp.map(|m| m.inverse().to_cols_array()),
             view_proj: vp.map(|m| m.to_cols_array()),
@@ -1461,18 +1465,10 @@ impl Renderer {
                 let [a, e] = [frame.ao, frame.bleeding].map(|b| b.map_or(0, |b| b.address));
                 [a as u32, (a >> 32) as u32, e as u32, (e >> 32) as u32]
             },
-            inset_lo: frame
-                .inset
-                .map_or([0.0; 4], |i| i.lo.extend(1.0).to_array()),
-            inset_hi: frame
-                .inset
-                .map_or([0.0; 4], |i| i.hi.extend(0.0).to_array()),
-            inset_scale: frame
-                .inset
-                .map_or([0.0; 4], |i| i.scale.extend(0.0).to_array()),
-            inset_offset: frame
-                .inset
-                .map_or([0.0; 4], |i| i.offset.extend(0.0).to_array()),
+            inset_lo,
+            inset_hi,
+            inset_scale,
+            inset_offset,
             inset_words: {
                 let a = frame.inset.map_or(0, |i| i.ao.address);
                 [a as u32, (a >> 32) as u32, 0, 0]
