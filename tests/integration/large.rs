@@ -212,26 +212,7 @@ fn a_routine_chest_ct_renders_at_full_resolution_carved_with_every_method() {
         ][..],
     ] {
         let out = dir.join(method[1]);
-        let mut args = vec![
-            "render",
-            raw.to_str().unwrap(),
-            "--raw-dims",
-            "512,512,133",
-            "--raw-type",
-            "i16",
-            "--raw-spacing",
-            "0.7,0.7,2.5",
-            "--tf",
-            "ct-bone",
-            "--size",
-            "48x48",
-            "--tool",
-            "sphere:60",
-            "--out",
-            out.to_str().unwrap(),
-        ];
-        args.extend_from_slice(method);
-        let run = crate::common::run_cao(&args, &[]);
+        let run = render_ct(&raw, dims, ("sphere:60", &out), method);
         let stderr = String::from_utf8_lossy(&run.stderr);
         assert!(run.status.success(), "{}: {stderr}", method[1]);
         assert!(!stderr.contains("downsample"), "{}: {stderr}", method[1]);
@@ -245,6 +226,37 @@ fn a_routine_chest_ct_renders_at_full_resolution_carved_with_every_method() {
     // Each method lit the carved chest its own way: three different pictures.
     assert!(pictures[0] != pictures[1] && pictures[1] != pictures[2] && pictures[0] != pictures[2]);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `cao-xr render` of the i16 raw CT `raw` (`dims` voxels of 0.7 x 0.7 x 2.5 mm) under ct-bone at
+/// 48 x 48, carved by `tool`, into `out`, with `extra` arguments.
+fn render_ct(
+    raw: &Path,
+    dims: [usize; 3],
+    (tool, out): (&str, &Path),
+    extra: &[&str],
+) -> std::process::Output {
+    let dims = dims.map(|d| d.to_string()).join(",");
+    let mut args = vec![
+        "render",
+        raw.to_str().unwrap(),
+        "--raw-dims",
+        &dims,
+        "--raw-type",
+        "i16",
+        "--raw-spacing",
+        "0.7,0.7,2.5",
+        "--tf",
+        "ct-bone",
+        "--size",
+        "48x48",
+        "--tool",
+        tool,
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    crate::common::run_cao(&args, &[])
 }
 
 #[test]
@@ -263,29 +275,7 @@ fn a_1024_by_1024_by_300_volume_renders_at_full_resolution_under_the_filters() {
         [487, 487, 140],
     );
     let out = dir.join("out");
-    let run = crate::common::run_cao(
-        &[
-            "render",
-            raw.to_str().unwrap(),
-            "--raw-dims",
-            "1024,1024,300",
-            "--raw-type",
-            "i16",
-            "--raw-spacing",
-            "0.7,0.7,2.5",
-            "--tf",
-            "ct-bone",
-            "--ao",
-            "filter-gauss",
-            "--size",
-            "48x48",
-            "--tool",
-            "sphere:20",
-            "--out",
-            out.to_str().unwrap(),
-        ],
-        &[],
-    );
+    let run = render_ct(&raw, dims, ("sphere:20", &out), &["--ao", "filter-gauss"]);
     let (stdout, stderr) = (
         String::from_utf8_lossy(&run.stdout),
         String::from_utf8_lossy(&run.stderr),
