@@ -25,7 +25,7 @@ layout(push_constant) uniform Push {
     Bins bins_buf;
     uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;   // w: number of neighbours
-    uvec4 job;    // x: rows, y: shades, z: first voxel of a range, w: 1 = voxels from the list
+    uvec4 job;    // x: rows, y: shades, z: first voxel of a range (with a list: its first entry), w: 1 = voxels from the list
     ivec4 reach;  // xyz: S_r's largest offset per axis
 } pc;
 #define bins pc.bins_buf.bins
@@ -33,7 +33,7 @@ layout(push_constant) uniform Push {
 void main() {
     uint r = gl_GlobalInvocationID.x;
     if (r >= pc.job.x) return;
-    uint i = pc.job.w == 1u ? list[r] : pc.job.z + r;
+    uint i = pc.job.w == 1u ? list[pc.job.z + r] : pc.job.z + r;
     ivec3 v = ivec3(int(i) % pc.dims.x, (int(i) / pc.dims.x) % pc.dims.y,
                     int(i) / (pc.dims.x * pc.dims.y));
     uint shades = pc.job.y;

@@ -37,7 +37,8 @@ enum Pass {
     PrecomputedE = 5,
 }
 
-/// Voxels per batch of local histograms: rows x shades floats stay within this many bytes.
+/// Voxels per batch of local histograms: rows x shades floats stay within this many bytes, or
+/// a fifth of what the GPU budget leaves (the rows are held twice, GPU and readable).
 const BATCH_BYTES: usize = 64 << 20;
 
 /// The training sample's size: 16 samples per cluster, at least this many.
@@ -487,21 +488,32 @@ impl HistogramGpu {
             MIN_TRAINING.max(16 * self.params.clusters) / hemis,
         );
         let list = Buffer::from_slice(&self.gpu, &sample, storage, "hist-sample")?;
-        let rows = readable(sample.len() * hemis * b * 4, "hist-sample-rows")?;
-        let gpu_rows = device_rows(sample.len() * hemis * b * 4, "hist-sample-rows-gpu")?;
-        self.local_rows(&local, (0, sample.len()), Some(&list), &gpu_rows, &rows)?;
-        let sample_rows: &[f32] = bytemuck::cast_slice(rows.mapped()?);
-        let packed: Vec<f32> = sample_rows
-            .chunks_exact(b)
-            .filter(|lh| lh[0] >= 0.0)
-            .flat_map(|lh| packing.pack(lh))
-            .collect();
+        // One batch size for the sample and the assignment, within what the budget leaves.
+        let batch_bytes = self
+            .gpu
+            .budget_left()
+            .map_or(BATCH_BYTES, |left| BATCH_BYTES.min(left as usize / 5));
+        let batch = (batch_bytes / (hemis * b * 4)).clamp(64, n.max(sample.len()).max(64));
+        let rows = readable(batch * hemis * b * 4, "hist-rows")?;
+        let gpu_rows = device_rows(batch * hemis * b * 4, "hist-rows-gpu")?;
+        let mut packed: Vec<f32> = Vec::new();
+        for first in (0..sample.len()).step_by(batch) {
+            let count = batch.min(sample.len() - first);
+            self.local_rows(&local, (first, count), Some(&list), &gpu_rows, &rows)?;
+            let sample_rows: &[f32] = bytemuck::cast_slice(rows.mapped()?);
+            packed.extend(
+                sample_rows[..count * hemis * b]
+                    .chunks_exact(b)
+                    .filter(|lh| lh[0] >= 0.0)
+                    .flat_map(|lh| packing.pack(lh)),
+            );
+        }
+        drop(list);
         let sample_ms = t0.elapsed().as_secs_f64() * 1e3;
         progress(0, 1, "training the clusters (LBG)");
         let t1 = std::time::Instant::now();
         let centroids = hist::lbg(&packed, p, self.params.clusters);
         self.timing.training_ms = t1.elapsed().as_secs_f64() * 1e3;
-        drop((rows, gpu_rows));
 
         // Assignment, batch by batch.
         let assign = ComputePipeline::new(
@@ -519,9 +531,6 @@ impl HistogramGpu {
         let group_count = groups.first.len() as u32 - 1;
         let packing_buf = Buffer::from_slice(&self.gpu, &packing.matrix, storage, "hist-packing")?;
         let centroid_buf = Buffer::from_slice(&self.gpu, &centroids, storage, "hist-centroids")?;
-        let batch = (BATCH_BYTES / (hemis * b * 4)).clamp(64, n.max(64));
-        let rows = readable(batch * hemis * b * 4, "hist-rows")?;
-        let gpu_rows = device_rows(batch * hemis * b * 4, "hist-rows-gpu")?;
         let ids_buf = readable(batch * hemis * 4, "hist-batch-ids")?;
         let k = self.params.clusters;
         let mut sums = vec![0.0f64; k * b];
@@ -583,11 +592,8 @@ impl HistogramGpu {
         );
         self.timing.histograms_ms = hist_ms;
         self.timing.assignment_ms = assign_ms;
-        self.timing.peak_host_bytes = (2 * batch * hemis * b * 4
-            + k * b * 8
-            + n * hemis * 4
-            + packed.len() * 4
-            + sample.len() * hemis * b * 4) as u64;
+        self.timing.peak_host_bytes =
+            (2 * batch * hemis * b * 4 + k * b * 8 + n * hemis * 4 + packed.len() * 4) as u64;
         let reps = sums
             .chunks_exact(b)
             .zip(&pop)

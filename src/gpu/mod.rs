@@ -147,6 +147,8 @@ struct MemoryUse {
     total: u64,
     /// The most `total` has been.
     peak: u64,
+    /// The [`BUDGET_ENV`] cap, in bytes.
+    budget: Option<u64>,
 }
 
 /// Fails the build unless a `#[repr(C)]` struct that a shader reads has the size and field
@@ -213,8 +215,6 @@ pub struct Core {
     pub allocator: Mutex<ManuallyDrop<Allocator>>,
     cmd_pool: Mutex<vk::CommandPool>,
     memory: Mutex<MemoryUse>,
-    /// The [`BUDGET_ENV`] cap, in bytes.
-    pub memory_budget: Option<u64>,
     /// The largest slab of a [`SlabBuffer`] ([`MAX_BUFFER_ENV`], or less for a test); 0: the
     /// device's largest buffer.
     slab_limit: std::sync::atomic::AtomicU64,
@@ -491,8 +491,10 @@ impl Gpu {
             queue_family,
             allocator: Mutex::new(ManuallyDrop::new(allocator)),
             cmd_pool: Mutex::new(cmd_pool),
-            memory: Mutex::new(MemoryUse::default()),
-            memory_budget: budget,
+            memory: Mutex::new(MemoryUse {
+                budget,
+                ..MemoryUse::default()
+            }),
             slab_limit: std::sync::atomic::AtomicU64::new(slab_limit),
             scratch_slices: std::sync::atomic::AtomicU64::new(scratch_slices),
             device_name,
@@ -671,6 +673,20 @@ impl Core {
         self.memory.lock().map_or(0, |m| m.total)
     }
 
+    /// Bytes the budget ([`BUDGET_ENV`]) leaves beside what is held; None without a budget.
+    pub fn budget_left(&self) -> Option<u64> {
+        let m = self.memory.lock().ok()?;
+        m.budget.map(|b| b.saturating_sub(m.total))
+    }
+
+    /// Caps the GPU memory held through Buffer and Image at `budget` bytes from now on, as
+    /// [`BUDGET_ENV`] does from the start (a test's budget, without the environment).
+    pub fn set_memory_budget(&self, budget: Option<u64>) {
+        if let Ok(mut m) = self.memory.lock() {
+            m.budget = budget;
+        }
+    }
+
     /// The most GPU memory held through Buffer and Image at once so far.
     pub fn memory_peak(&self) -> u64 {
         self.memory.lock().map_or(0, |m| m.peak)
@@ -688,7 +704,7 @@ impl Core {
     /// id returned is given back with [`Core::release`].
     pub(crate) fn reserve(&self, what: &str, bytes: u64) -> Result<u64> {
         let mut m = self.memory.lock().unwrap();
-        if let Some(budget) = self.memory_budget {
+        if let Some(budget) = m.budget {
             if m.total + bytes > budget {
                 return Err(GpuError::OutOfMemory(Box::new(OutOfMemory {
                     what: what.to_string(),

@@ -16,8 +16,14 @@ fn render(budget: &str, extra: &[&str], out: &Path) -> Output {
     ]
     .concat();
     // Without the full-resolution inset (tests/integration/inset.rs), whose box is not part of
-    // `--downsample N`'s picture.
-    let env = [("CAO_XR_GPU_BUDGET_MB", budget), ("CAO_XR_INSET", "0")];
+    // `--downsample N`'s picture; the local histograms' clusters cached beside the output, so
+    // that the clustering runs under the budget.
+    let cache = out.with_extension("cache");
+    let env = [
+        ("CAO_XR_GPU_BUDGET_MB", budget),
+        ("CAO_XR_INSET", "0"),
+        ("CAO_XR_DATA", cache.to_str().unwrap()),
+    ];
     crate::common::run_cao(&args, &env)
 }
 
@@ -42,7 +48,8 @@ fn shown_at(stderr: &str) -> usize {
 fn a_volume_beyond_the_gpu_memory_budget_is_shown_at_the_finest_downsample_that_fits() {
     let dir = tmp("budget");
     // the budget runs out at different points (the first upload's staging copy, a device
-    // buffer beside others, an image late in the set-up), with LAO, a filter and SH lighting.
+    // buffer beside others, an image late in the set-up), with LAO, a filter, the local
+    // histograms (whose clustering's batches follow the budget) and SH lighting.
     // The volume is not refused: it is shown downsampled by the smallest N that fits, told on
     // stderr with what did not fit, and the picture is the one `--downsample N` renders under
     // the same budget (which fits as it is: no notice), while `--downsample N - 1` does not fit
@@ -50,11 +57,12 @@ fn a_volume_beyond_the_gpu_memory_budget_is_shown_at_the_finest_downsample_that_
     // is not written down here.
     // Budgets of 3 MiB and up: below that the ray caster's fixed 1 MiB pre-integration table
     // (and its staging) leaves no room for any downsampled volume.
-    let cases: [(&str, &[&str]); 5] = [
+    let cases: [(&str, &[&str]); 6] = [
         ("4", &[]),
         ("12", &[]),
         ("14", &[]),
         ("12", &["--ao", "filter-gauss"]),
+        ("5", &["--ao", "histogram"]),
         ("5", &["--lighting", "sh"]),
     ];
     let ok = |out: &Output, what: &str| -> String {

@@ -286,6 +286,35 @@ fn the_clustering_is_close_to_the_direct_sums_and_its_cache_is_reused_and_checke
 }
 
 #[test]
+fn under_a_small_gpu_budget_the_clustering_runs_in_smaller_batches_to_the_same_clusters() {
+    // The clustering's transient histogram rows are sized by what the budget leaves: under half
+    // of the unbudgeted peak they come in several batches, with the same clusters bit for bit.
+    let gpu = common::gpu();
+    let vol = phantom::head(20);
+    let params = HistParams {
+        radius_mm: 24.0,
+        bins: 32,
+        clusters: 256,
+        hemispheres: true,
+    };
+    let cluster = |gpu: &Gpu| {
+        let base = gpu.memory_in_use();
+        gpu.reset_memory_peak();
+        let h = histogram_state(gpu, &vol, params, None, false).unwrap();
+        let c = h.clusters().unwrap();
+        let out = (c.ids.clone(), c.reps.clone());
+        drop(h);
+        (out, gpu.memory_peak() - base)
+    };
+    let (whole, peak) = cluster(&gpu);
+    gpu.set_memory_budget(Some(gpu.memory_in_use() + peak / 2));
+    let (batched, peak_batched) = cluster(&gpu);
+    assert!(peak_batched <= peak / 2, "{peak_batched} of {peak} bytes");
+    assert!(whole == batched, "the same clusters");
+    common::assert_no_validation_messages(&gpu);
+}
+
+#[test]
 fn the_clip_update_equals_a_direct_recompute_of_the_affected_voxels_bit_for_bit_every_frame() {
     let gpu = common::gpu();
     let vol = phantom::head(32);
