@@ -63,14 +63,15 @@ fn margin(params: &FilterParams, spacing: [f64; 3]) -> usize {
 }
 
 /// The z-slices whose AO one chunk computes (`forced`, or at least [`STATS_CHUNK_BYTES`] of
-/// statistics, eight margins and 16 slices), and the z-slices the statistics hold: the chunk
+/// statistics, eight margins and 16 slices, fewer where a GPU budget leaves `budget_left`
+/// bytes: a smaller chunk costs time, not exactness), and the z-slices the statistics hold: the chunk
 /// and its margins, or the whole volume where that is less. The exact estimator reads no
 /// statistics: one chunk, one slice held.
 pub fn stats_window(
     dims: [usize; 3],
     spacing: [f64; 3],
     params: &FilterParams,
-    forced: Option<usize>,
+    (forced, budget_left): (Option<usize>, Option<u64>),
 ) -> (usize, usize) {
     if params.estimator == super::filtered::Estimator::Exact {
         return (dims[2].max(1), 1);
@@ -78,9 +79,16 @@ pub fn stats_window(
     let slice = (dims[0] * dims[1]).max(1) as u64 * 16;
     let margin = margin(params, spacing);
     let chunk = forced.unwrap_or_else(|| {
-        ((STATS_CHUNK_BYTES / slice) as usize)
+        let most = ((STATS_CHUNK_BYTES / slice) as usize)
             .max(8 * margin)
-            .max(16)
+            .max(16);
+        // Under a GPU budget both windows take at most a quarter of what it leaves.
+        let within = budget_left.map_or(most, |left| {
+            ((left / 8 / slice) as usize)
+                .saturating_sub(2 * margin)
+                .max(1)
+        });
+        most.min(within)
     });
     (chunk, (chunk + 2 * margin).min(dims[2].max(1)))
 }
@@ -112,7 +120,12 @@ impl FilterGpu {
         let spv_ao = include_bytes!(concat!(env!("OUT_DIR"), "/filter_ao.comp.spv"));
         // (mean, M2, min, max) per voxel, 16 bytes, over a window of slices (the module's doc),
         // split into slabs where one buffer is too small.
-        let (chunk, window) = stats_window(dims, spacing, &params, gpu.forced_scratch_slices());
+        let (chunk, window) = stats_window(
+            dims,
+            spacing,
+            &params,
+            (gpu.forced_scratch_slices(), gpu.budget_left()),
+        );
         let scratch = |name| SlabBuffer::new(gpu, [dims[0], dims[1], window], 16, name);
         Ok(FilterGpu {
             gpu: gpu.clone(),

@@ -102,6 +102,18 @@ impl AoConfig {
         }
     }
 
+    /// The reach in mm of the method on a volume of `spacing`, as its GPU state tells it
+    /// ([`cao::Cao::reach_mm`]), without setting one up.
+    pub fn reach_mm(&self, spacing: [f64; 3]) -> f64 {
+        match &self.method {
+            AoMethod::Lao => self.lao.steps.saturating_sub(1) as f64 * self.lao.step_mm as f64,
+            AoMethod::Filter(f) => f.reach_mm(spacing),
+            AoMethod::Histogram(h) => {
+                histogram::Neighbourhood::new(h.radius_mm, spacing).reach_mm(spacing)
+            }
+        }
+    }
+
     /// The methods the stick click cycles through: the configured one, then LAO and the three
     /// filter estimators (with the configured radius and input), each once. `exact` is for
     /// tests and the benchmark, not for viewing; the local histograms are in the cycle only

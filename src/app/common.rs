@@ -489,7 +489,8 @@ pub fn gpu_volumes(vol: &Volume, method: &AoMethod) -> Vec<(&'static str, f64)> 
         // stages only its boxes'); the box statistics over a window of slices.
         AoMethod::Lao => v.push(("clear bits", 1.0 / 8.0)),
         AoMethod::Filter(p) => {
-            let (_, window) = crate::ao::filter_gpu::stats_window(vol.dims, vol.spacing, p, None);
+            let (_, window) =
+                crate::ao::filter_gpu::stats_window(vol.dims, vol.spacing, p, (None, None));
             v.push((
                 "box statistics",
                 32.0 * window as f64 / vol.dims[2].max(1) as f64,

@@ -278,9 +278,15 @@ impl FrameLoop {
             if let Some(l) = lighting {
                 fl.light(l, progress)?;
             }
-            // The pre-integrated table the first frame would build (its staging included), so
-            // that a set-up that fits also draws.
+            // The pre-integrated table the first frame would build (its staging included), and
+            // room for what a frame holds beside the set-up, so that a set-up that fits also
+            // draws with tools carving.
             fl.tex.prepare(&fl.settings)?;
+            let room = gpu.reserve(
+                "a frame's tools, boxes and staging",
+                super::inset::frame_reserve(fl.volume.voxel_count()),
+            )?;
+            gpu.release(room);
             Ok(fl)
         };
         let m = match setup(vol.clone(), show_progress) {
@@ -372,14 +378,12 @@ impl FrameLoop {
         self.tex.prepare(&self.settings)?;
         let (method, tf) = self.tfs.shown_ao();
         let config = AoConfig { method, ..config };
-        let reach = self.cao.reach_mm();
         let name = whole.name.clone();
         let shown = self.volume.voxel_count();
         self.inset = Inset::new(
             &self.gpu,
             whole,
             (config, tf),
-            reach,
             (available, per_voxel, shown),
         )?;
         match &self.inset {

@@ -31,6 +31,12 @@ pub const MIN_SIDE: usize = 16;
 pub const FRAME_BYTES_PER_VOXEL: f64 = 12.0;
 const FRAME_BYTES: f64 = (1 << 20) as f64;
 
+/// What the frames of a shown volume of `voxels` hold beside its set-up, at most: room a set-up
+/// must leave in the GPU budget, so that its frames do not run out.
+pub fn frame_reserve(voxels: usize) -> u64 {
+    (FRAME_BYTES_PER_VOXEL * voxels as f64 + 2.0 * FRAME_BYTES) as u64
+}
+
 /// Tries at smaller sizes where an inset does not fit after all.
 const FIT_TRIES: usize = 4;
 
@@ -68,20 +74,20 @@ impl Inset {
     /// leaving [`FRAME_BYTES_PER_VOXEL`] for each of the `shown_voxels` of the shown volume's
     /// frames: its inner box as near a cube in mm as the volume allows, cut first around the
     /// volume's centre. The first box is sized at `bytes_per_voxel` (the shown volume's set-up
-    /// peak per voxel, its fixed costs included: too much), the next at what the first cost,
-    /// while that makes it larger. None where not even a [`MIN_SIDE`] box fits.
+    /// peak per voxel, its fixed costs included: too much; at least a [`MIN_SIDE`] box is
+    /// tried), the next at what the first cost, while that makes it larger. None where not
+    /// even a [`MIN_SIDE`] box fits.
     pub fn new(
         gpu: &Gpu,
         whole: Arc<Volume>,
         (config, tf): (AoConfig, TransferFunction),
-        reach_mm: f64,
         (available, bytes_per_voxel, shown_voxels): (u64, f64, usize),
     ) -> Result<Option<Inset>> {
-        let frames = FRAME_BYTES_PER_VOXEL * shown_voxels as f64 + 2.0 * FRAME_BYTES;
+        let frames = frame_reserve(shown_voxels) as f64;
         let free = available.saturating_sub(gpu.memory_in_use()) as f64 - frames;
         let centre = whole.dims.map(|d| d as f64 * 0.5);
         let mut inset = Inset {
-            margin: margin_for(&whole, reach_mm),
+            margin: margin_for(&whole, &config),
             whole,
             config,
             tf,
@@ -92,7 +98,11 @@ impl Inset {
         let mut cost = bytes_per_voxel + FRAME_BYTES_PER_VOXEL;
         let mut shown: Option<[usize; 3]> = None;
         for _ in 0..FIT_TRIES {
-            let want = inset.fitting(free, cost);
+            let mut want = inset.fitting(free, cost);
+            if shown.is_none() {
+                // The estimate is high: try the smallest box that is worth it, and measure.
+                want = std::array::from_fn(|a| want[a].max(MIN_SIDE.min(inset.whole.dims[a])));
+            }
             let grows = shown.is_none_or(|s| (0..3).any(|a| want[a] * 20 > s[a] * 23));
             if !grows || want.iter().any(|&n| n < MIN_SIDE) {
                 break;
@@ -114,6 +124,7 @@ impl Inset {
                         inset.cut(gpu, centre)?;
                         break;
                     }
+                    None if want.iter().all(|&n| n <= MIN_SIDE) => break,
                     None => cost *= 1.5,
                 },
                 Err(e) => return Err(e),
@@ -155,17 +166,16 @@ impl Inset {
     }
 
     /// An inset of `inner` voxels (at most the volume's) cut around full-resolution index
-    /// point `centre`, with the margin of `reach_mm`.
+    /// point `centre`.
     pub fn around(
         gpu: &Gpu,
         whole: Arc<Volume>,
         (config, tf): (AoConfig, TransferFunction),
-        reach_mm: f64,
         (inner, centre): ([usize; 3], [f64; 3]),
     ) -> Result<Inset> {
         let mut inset = Inset {
             inner: std::array::from_fn(|a| inner[a].clamp(1, whole.dims[a])),
-            margin: margin_for(&whole, reach_mm),
+            margin: margin_for(&whole, &config),
             whole,
             config,
             tf,
@@ -189,6 +199,8 @@ impl Inset {
     /// reads it may be in flight.
     pub fn cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
         self.part = None;
+        // The method may have changed since the last cut (a switch), and its reach with it.
+        self.margin = margin_for(&self.whole, &self.config);
         let inner_lo = self.inner_lo(centre);
         let crop_lo: [usize; 3] =
             std::array::from_fn(|a| inner_lo[a].saturating_sub(self.margin[a]));
@@ -391,8 +403,10 @@ impl Inset {
     }
 }
 
-/// The margin (voxels per axis) that holds every voxel an AO of reach `reach_mm` reads around
-/// the inner box: the reach, and two voxels for the trilinear footprint and rounding.
-fn margin_for(whole: &Volume, reach_mm: f64) -> [usize; 3] {
+/// The margin (voxels per axis) that holds every voxel the AO of `config` reads around the
+/// inner box: its reach at full resolution, and two voxels for the trilinear footprint and
+/// rounding.
+fn margin_for(whole: &Volume, config: &AoConfig) -> [usize; 3] {
+    let reach_mm = config.reach_mm(whole.spacing);
     whole.spacing.map(|s| (reach_mm / s).ceil() as usize + 2)
 }

@@ -109,7 +109,7 @@ fn a_volume_beyond_the_gpu_memory_budget_is_shown_at_the_finest_downsample_that_
         }
     }
     // a volume downsampled already: the factor counts from the file (2 then 2 is 4 at once)
-    let out = render("3", &["--downsample", "2"], &dir.join("twice"));
+    let out = render("5", &["--downsample", "2"], &dir.join("twice"));
     let stderr = ok(&out, "twice");
     assert!(
         stderr.contains("volume phantom-128-ds2 (64 x 64 x 64) does not fit"),

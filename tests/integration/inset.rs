@@ -39,21 +39,27 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     });
     let placement = Placement::default();
     let lao = LaoGpu::new(&gpu).unwrap();
+    // Cut under LAO, then switched to the filter, whose reach (and margin) is wider.
+    let mut inset = Inset::around(
+        &gpu,
+        vol.clone(),
+        (AoConfig::new(AoMethod::Lao, lao_params), tf.clone()),
+        ([20, 16, 24], [12.0, 30.0, 24.0]),
+    )
+    .unwrap();
     for method in [AoMethod::Lao, gauss] {
         let ao = AoConfig::new(method, lao_params);
         let mut whole = precompute(&gpu, &lao, &vol, &tf, &ao, false)
             .unwrap()
             .into_cao(&gpu, &vol)
             .unwrap();
-        let reach = whole.reach_mm();
-        let mut inset = Inset::around(
-            &gpu,
-            vol.clone(),
-            (ao, tf.clone()),
-            reach,
-            ([20, 16, 24], [12.0, 30.0, 24.0]),
-        )
-        .unwrap();
+        inset.set_method(&gpu, (ao, tf.clone())).unwrap();
+        let margin = (whole.reach_mm() / vol.spacing[1]).ceil() as usize;
+        let (lo, _) = inset.inner_box().unwrap();
+        assert!(
+            lo[1] - inset.crop_box().unwrap().0[1] > margin,
+            "{method:?}: the margin holds the reach"
+        );
         let (lo, hi) = inset.inner_box().unwrap();
         let (crop_lo, crop) = inset.crop_box().unwrap();
         assert_eq!(
@@ -98,7 +104,6 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         &gpu,
         vol.clone(),
         (AoConfig::new(AoMethod::Lao, lao_params), tf),
-        4.0 * 4.0,
         ([16, 16, 16], [24.0; 3]),
     )
     .unwrap();
@@ -278,8 +283,9 @@ fn the_inset_follows_a_moving_tool_through_a_transfer_function_switch() {
 
 #[test]
 fn where_no_inset_fits_the_picture_is_the_finest_downsample_alone() {
-    // The filters' wide reach makes every box's margin large: under 19 MiB none fits beside
-    // the volume downsampled by 3, 4 or 5, and the volume is shown as without insets.
+    // Under 7 MiB the filters' wide margin leaves a frame with the sphere no room for a box
+    // beside the volume downsampled by 5 (the set-up finds none, or the first frame gives it
+    // up): the volume is shown exactly as without insets.
     let dir = common::scratch("inset", "none");
     let render = |out: &std::path::Path, inset: &str| {
         let args = [
@@ -294,7 +300,7 @@ fn where_no_inset_fits_the_picture_is_the_finest_downsample_alone() {
             "--out",
             out.to_str().unwrap(),
         ];
-        let env = [("CAO_XR_GPU_BUDGET_MB", "19"), ("CAO_XR_INSET", inset)];
+        let env = [("CAO_XR_GPU_BUDGET_MB", "7"), ("CAO_XR_INSET", inset)];
         let run = common::run_cao(&args, &env);
         let stderr = String::from_utf8_lossy(&run.stderr).into_owned();
         assert!(run.status.success(), "{stderr}");
@@ -302,11 +308,11 @@ fn where_no_inset_fits_the_picture_is_the_finest_downsample_alone() {
     };
     let (with, without) = (dir.join("with"), dir.join("without"));
     let told = render(&with, "1");
-    assert!(told.contains("no full-resolution inset fits"), "{told}");
-    assert!(!told.contains(" at full resolution"), "{told}");
-    render(&without, "0");
-    assert_eq!(
-        std::fs::read(with.join("stereo.png")).unwrap(),
-        std::fs::read(without.join("stereo.png")).unwrap()
+    assert!(
+        told.contains("no full-resolution inset fits") || told.contains("the inset is given up"),
+        "{told}"
     );
+    render(&without, "0");
+    let png = |d: &std::path::Path| std::fs::read(d.join("stereo.png")).unwrap();
+    assert!(png(&with) == png(&without), "the pictures differ: {told}");
 }
