@@ -30,7 +30,7 @@ use crate::render::{
     StereoTarget, VolumeTextures, MAX_FRAMES_IN_FLIGHT,
 };
 use crate::scene::Scene;
-use crate::space::world_from_tex;
+use crate::space::{world_from_tex, View};
 use crate::volume::distance::MarginField;
 use crate::volume::markups::Markups;
 use crate::volume::transfer::TransferFunction;
@@ -403,7 +403,7 @@ impl FrameLoop {
     /// around the tools, and its AO update for this frame's tools, submitted and waited for
     /// on its own. Where the update runs out of GPU memory (the tools' boxes grow what a frame
     /// holds) the box is made smaller, or given up.
-    fn update_inset(&mut self) -> Result<()> {
+    fn update_inset(&mut self, views: &[View; 2]) -> Result<()> {
         let Some(inset) = self.inset.as_mut() else {
             return Ok(());
         };
@@ -417,7 +417,7 @@ impl FrameLoop {
         if !inset.computes(&config, &tf) {
             inset.set_method(&self.gpu, (config, tf))?;
         }
-        if let Some(centre) = inset.wants_cut(tools, shown, placement) {
+        if let Some(centre) = inset.wants_cut((tools, views), shown, placement) {
             inset.cut(&self.gpu, centre)?;
             eprintln!("volume {}: {}", shown.name, inset.describe());
         }
@@ -830,7 +830,7 @@ impl FrameLoop {
             if retired.is_none() {
                 retired = self.retire()?;
             }
-            self.update_inset()?;
+            self.update_inset(&input.views)?;
         }
         self.record_and_submit(input, read_back, after, signal, (t0, margins))?;
         if retired.is_none() && self.slots.flights.len() >= self.depth {

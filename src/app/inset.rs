@@ -3,8 +3,8 @@
 //! own CAO state. The box is cropped from the full-resolution volume with a margin of the AO
 //! method's reach on every side (where the volume goes on), so that the AO inside it is the
 //! whole full-resolution volume's, voxel for voxel (docs/design.md, "The inset"). It follows the
-//! tools: when their centre moves a quarter of the box away, the box is cut again around it and
-//! its AO computed anew.
+//! tools (or, with none in the volume, where the eyes look): when that point moves a quarter of
+//! the box away, the box is cut again around it and its AO computed anew.
 
 use super::common::{precompute_method, Result};
 use crate::ao::cao::{Cao, Mode};
@@ -12,7 +12,7 @@ use crate::ao::{AoConfig, LaoGpu};
 use crate::gpu::{Gpu, GpuError, Image};
 use crate::render::InsetBinding;
 use crate::scene::Tool;
-use crate::space::{lps_from_local_mm, world_from_lps_point, world_from_tex, Placement};
+use crate::space::{lps_from_local_mm, world_from_lps_point, world_from_tex, Placement, View};
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use glam::{Vec3, Vec4Swizzles};
@@ -43,6 +43,8 @@ const FIT_TRIES: usize = 4;
 /// The full-resolution volume, and the part of it on the GPU.
 pub struct Inset {
     whole: Arc<Volume>,
+    /// The whole volume's value range (what `tf` classifies against), found once.
+    range: (f32, f32),
     /// The method the part's AO is computed with and the TF its O is classified with.
     config: AoConfig,
     tf: TransferFunction,
@@ -86,15 +88,7 @@ impl Inset {
         let frames = frame_reserve(shown_voxels) as f64;
         let free = available.saturating_sub(gpu.memory_in_use()) as f64 - frames;
         let centre = whole.dims.map(|d| d as f64 * 0.5);
-        let mut inset = Inset {
-            margin: margin_for(&whole, &config),
-            whole,
-            config,
-            tf,
-            lao: LaoGpu::new(gpu)?,
-            inner: [0; 3],
-            part: None,
-        };
+        let mut inset = Inset::uncut(gpu, whole, (config, tf), [0; 3])?;
         let mut cost = bytes_per_voxel + FRAME_BYTES_PER_VOXEL;
         let mut shown: Option<[usize; 3]> = None;
         for _ in 0..FIT_TRIES {
@@ -173,17 +167,29 @@ impl Inset {
         (config, tf): (AoConfig, TransferFunction),
         (inner, centre): ([usize; 3], [f64; 3]),
     ) -> Result<Inset> {
-        let mut inset = Inset {
-            inner: std::array::from_fn(|a| inner[a].clamp(1, whole.dims[a])),
+        let inner = std::array::from_fn(|a| inner[a].clamp(1, whole.dims[a]));
+        let mut inset = Inset::uncut(gpu, whole, (config, tf), inner)?;
+        inset.cut(gpu, centre)?;
+        Ok(inset)
+    }
+
+    /// An inset of `inner` voxels with nothing on the GPU yet.
+    fn uncut(
+        gpu: &Gpu,
+        whole: Arc<Volume>,
+        (config, tf): (AoConfig, TransferFunction),
+        inner: [usize; 3],
+    ) -> Result<Inset> {
+        Ok(Inset {
+            range: whole.value_range(),
             margin: margin_for(&whole, &config),
             whole,
             config,
             tf,
             lao: LaoGpu::new(gpu)?,
+            inner,
             part: None,
-        };
-        inset.cut(gpu, centre)?;
-        Ok(inset)
+        })
     }
 
     /// The inner box's first voxel for a centre at full-resolution index point `centre`.
@@ -268,11 +274,17 @@ impl Inset {
         }
     }
 
-    /// Where the box should be for `tools` over `shown` at `p`, when a quarter of the box or
-    /// more from where it is; None otherwise. It goes where the cutting tools are (their mean
-    /// position), else where the tools the hands hold inside the volume are; with neither it
-    /// stays.
-    pub fn wants_cut(&self, tools: &[Tool], shown: &Volume, p: &Placement) -> Option<[f64; 3]> {
+    /// Where the box should be for `tools` and the eyes' `views` over `shown` at `p`, when a
+    /// quarter of the box or more from where it is; None otherwise. It goes where the cutting
+    /// tools are (their mean position), else where the tools the hands hold inside the volume
+    /// are, else where the eyes' centres meet what is shown (`Inset::gaze_point`); with none
+    /// of these it stays.
+    pub fn wants_cut(
+        &self,
+        (tools, views): (&[Tool], &[View; 2]),
+        shown: &Volume,
+        p: &Placement,
+    ) -> Option<[f64; 3]> {
         let whole = &*self.whole;
         let tex_from_world = world_from_tex(whole, &Self::placed(whole, shown, p)).inverse();
         let tex = |t: &Tool| tex_from_world.transform_point3(t.pose.position);
@@ -283,10 +295,15 @@ impl Inset {
         } else {
             cutting
         };
-        if points.is_empty() {
-            return None;
-        }
-        let mean = points.iter().sum::<Vec3>() / points.len() as f32;
+        let mean = if points.is_empty() {
+            let (origin, dir) = centre_ray(views);
+            self.gaze_point(
+                tex_from_world.transform_point3(origin),
+                tex_from_world.transform_vector3(dir),
+            )?
+        } else {
+            points.iter().sum::<Vec3>() / points.len() as f32
+        };
         let centre: [f64; 3] = std::array::from_fn(|a| mean[a] as f64 * whole.dims[a] as f64);
         let want = self.inner_lo(centre);
         let moved = match &self.part {
@@ -296,6 +313,41 @@ impl Inset {
             }),
         };
         moved.then_some(centre)
+    }
+
+    /// The first point (texture coordinates) on the ray from `origin` along `dir` (texture
+    /// coordinates) where the opacity gathered through the whole volume (nearest voxels, half a
+    /// voxel apart, classified with the box's TF, its opacity per mm) reaches a half: the
+    /// surface the eyes' centres see. None where the ray misses the volume or sees through it.
+    fn gaze_point(&self, origin: Vec3, dir: Vec3) -> Option<Vec3> {
+        let whole = &*self.whole;
+        let dims = Vec3::from_array(whole.dims.map(|d| d as f32));
+        let mm = Vec3::from_array(whole.spacing.map(|s| s as f32)) * dims;
+        // Where the ray is inside [0, 1]^3 (slabs).
+        let (t0, t1) = (-origin / dir, (Vec3::ONE - origin) / dir);
+        let near = t0.min(t1).max_element().max(0.0);
+        let far = t0.max(t1).min_element();
+        let voxels = (dir * dims).length();
+        let hits = near < far; // false for NaN too
+        if !hits || voxels == 0.0 {
+            return None;
+        }
+        let dt = 0.5 / voxels;
+        let step_mm = (dir * mm).length() * dt;
+        let mut clear = 1.0f32;
+        let mut t = near;
+        while t < far {
+            let at = origin + dir * t;
+            let v = (at * dims).floor().min(dims - 1.0).max(Vec3::ZERO);
+            let i = whole.index(v.x as usize, v.y as usize, v.z as usize);
+            let a = self.tf.eval(whole.voxels.get(i), self.range)[3].clamp(0.0, 1.0);
+            clear *= (1.0 - a).powf(step_mm);
+            if clear <= 0.5 {
+                return Some(at);
+            }
+            t += dt;
+        }
+        None
     }
 
     /// The method configuration the box's AO is computed with.
@@ -401,6 +453,22 @@ impl Inset {
     pub fn cao(&self) -> Option<&Cao> {
         self.part.as_ref().map(|p| &p.cao)
     }
+}
+
+/// The ray through the centre of both eyes' pictures: their mean position and centre
+/// direction (world space).
+fn centre_ray(views: &[View; 2]) -> (Vec3, Vec3) {
+    let dir = |v: &View| {
+        let f = &v.fov;
+        let x = 0.5 * (f.angle_left.tan() + f.angle_right.tan());
+        let y = 0.5 * (f.angle_up.tan() + f.angle_down.tan());
+        v.pose.orientation * Vec3::new(x, y, -1.0).normalize()
+    };
+    let [l, r] = views;
+    (
+        0.5 * (l.pose.position + r.pose.position),
+        (dir(l) + dir(r)).normalize(),
+    )
 }
 
 /// The margin (voxels per axis) that holds every voxel the AO of `config` reads around the

@@ -13,8 +13,9 @@ use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
 use cao_xr::app::inset::Inset;
 use cao_xr::app::precompute;
 use cao_xr::clip::Shape;
+use cao_xr::input::FrameInput;
 use cao_xr::scene::ToolMode;
-use cao_xr::space::Placement;
+use cao_xr::space::{Fov, Placement, Pose};
 use cao_xr::volume::phantom;
 use cao_xr::volume::transfer::TransferFunction;
 use glam::{Quat, Vec3};
@@ -99,11 +100,12 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         assert!(carved > 0, "{method:?}");
     }
     // With no tool cutting, the box goes to a tool a hand holds inside the volume (off by
-    // more than a quarter of the box here), and stays for one outside it.
+    // more than a quarter of the box here, and before where the eyes look), and stays for one
+    // outside it while the eyes look away.
     let inset = Inset::around(
         &gpu,
         vol.clone(),
-        (AoConfig::new(AoMethod::Lao, lao_params), tf),
+        (AoConfig::new(AoMethod::Lao, lao_params), tf.clone()),
         ([16, 16, 16], [24.0; 3]),
     )
     .unwrap();
@@ -118,14 +120,56 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         t.active = false;
         t
     };
-    let near_corner = inset.wants_cut(&[held(Vec3::splat(0.07))], &vol, &placement);
+    // Eyes half a metre in front of the volume, 5 cm to its side, looking at it; and turned away.
+    let eyes = |turn: f32| {
+        let head = Pose {
+            position: placement.center + Vec3::new(0.05, 0.0, 0.5),
+            orientation: Quat::from_rotation_y(turn),
+        };
+        let fov = Fov {
+            angle_left: -0.5,
+            angle_right: 0.5,
+            angle_up: 0.5,
+            angle_down: -0.5,
+        };
+        FrameInput::head_views(head, 0.064, fov)
+    };
+    let (looking, away) = (eyes(0.0), eyes(std::f32::consts::PI));
+    let near_corner = inset.wants_cut((&[held(Vec3::splat(0.07))], &looking), &vol, &placement);
     let centre = near_corner.expect("a held tool inside the volume moves the box");
     assert!(
         centre.iter().all(|&c| !(12.0..=36.0).contains(&c)),
         "{centre:?}"
     );
-    let outside = inset.wants_cut(&[held(Vec3::new(0.4, 0.0, 0.0))], &vol, &placement);
+    let outside = inset.wants_cut((&[held(Vec3::new(0.4, 0.0, 0.0))], &away), &vol, &placement);
     assert_eq!(outside, None);
+    // With no tool inside, the box goes where the eyes' centres meet the head: a voxel the TF
+    // shows, on the centre ray, off the volume's centre by more than a quarter of the box.
+    let gaze = inset
+        .wants_cut(
+            (&[held(Vec3::new(0.4, 0.0, 0.0))], &looking),
+            &vol,
+            &placement,
+        )
+        .expect("the eyes' centres move the box");
+    let dims = vol.dims.map(|d| d as f32);
+    let tex = Vec3::from_array(std::array::from_fn(|a| gaze[a] as f32 / dims[a]));
+    let world = cao_xr::space::world_from_tex(&vol, &placement).transform_point3(tex);
+    let ray = placement.center + Vec3::new(0.05, 0.0, 0.5);
+    let off_ray = (world - ray).cross(Vec3::Z).length();
+    assert!(
+        off_ray < 0.005,
+        "{gaze:?} is {off_ray} m off the centre ray"
+    );
+    let voxel = gaze.map(|c| c as usize);
+    let value = vol.voxels.get(vol.index(voxel[0], voxel[1], voxel[2]));
+    assert!(tf.eval(value, vol.value_range())[3] > 0.0, "{gaze:?}");
+    assert!(
+        (0..3).any(|a| (gaze[a] - 24.0).abs() > 4.0),
+        "{gaze:?} is the box's centre"
+    );
+    let blind = inset.wants_cut((&[], &away), &vol, &placement);
+    assert_eq!(blind, None, "eyes turned away leave the box");
     common::assert_no_validation_messages(&gpu);
 }
 
