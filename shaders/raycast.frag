@@ -48,7 +48,7 @@ layout(set = 0, binding = 15) uniform sampler2D preint_at;
 layout(set = 0, binding = 16) uniform sampler3D structure_ids;
 // The safety margins' glow intensity (R8 unorm; src/render/mod.rs margin_glow), when GLOW.
 layout(set = 0, binding = 17) uniform sampler3D glow;
-// The full-resolution inset's scalars (the volume is shown downsampled around it; FLAGS INSET).
+// The full-resolution inset's scalars (the volume is shown downsampled around it; flag RAY_INSET).
 layout(set = 0, binding = 21) uniform sampler3D inset_scalars;
 
 #define CLIP_SET 0
@@ -79,21 +79,12 @@ layout(location = 0) out vec4 out_color;
 const int CUT_BISECTIONS = 6;
 const float DEPTH_ALPHA = 0.05;
 
-const uint PREINTEGRATED = 1u;
-const uint JITTER = 2u;
-const uint TRICUBIC = 4u;
-const uint SKIP_EMPTY = 8u;
-const uint LABELS = 16u;
-const uint CLIPPING = 32u;
-const uint GLOW = 64u;
-const uint ISO = 128u;
-const uint CLIP_BRICKS = 256u;
-const uint INSET = 512u;
 // Bisections that place an isosurface within 1/256 of a step.
 const int ISO_BISECTIONS = 8;
 
-// The features this pipeline is specialised for (src/render/mod.rs Renderer::pipeline): the
-// code of a feature that is off is not compiled in.
+// The features this pipeline is specialised for (RAY_* in src/shader_constants.rs; src/render/mod.rs
+// Renderer::pipeline): the code of a feature that is off is not compiled in, which on lavapipe
+// is the only way not to pay for it (gallivm runs both sides of every branch).
 layout(constant_id = 0) const uint FLAGS = 0u;
 
 bool flag(uint f) { return (FLAGS & f) != 0u; }
@@ -125,14 +116,14 @@ float scalar_tricubic(sampler3D level, vec3 t) {
 }
 
 float level_scalar(sampler3D level, vec3 t) {
-    return flag(TRICUBIC) ? scalar_tricubic(level, t) : texture(level, t).r;
+    return flag(RAY_TRICUBIC) ? scalar_tricubic(level, t) : texture(level, t).r;
 }
 
 // Whether texture point t lies in the full-resolution inset (frame.inset_lo/hi), where the
 // scalars and V_AO are the inset's: its own volume at full resolution, cropped with a margin of
 // the AO's reach so that its AO there is the whole volume's (docs/design.md, "The inset").
 bool in_inset(vec3 t) {
-    return flag(INSET) && all(greaterThanEqual(t, frame.inset_lo.xyz))
+    return flag(RAY_INSET) && all(greaterThanEqual(t, frame.inset_lo.xyz))
         && all(lessThan(t, frame.inset_hi.xyz));
 }
 
@@ -224,7 +215,7 @@ float run_end(vec3 ov, vec3 dv, float t, ivec3 b, ivec3 last_brick, bool reach) 
         end = min(end, box_entry(vec3(frame.tool_reach[2 * k].xyz), vec3(frame.tool_reach[2 * k + 1].xyz), ov, inv, t));
     }
     // The inset's bricks are the coarse volume's: nothing is skipped inside it.
-    if (flag(INSET)) {
+    if (flag(RAY_INSET)) {
         vec3 dims = vec3(textureSize(scalars, 0));
         end = min(end, box_entry(frame.inset_lo.xyz * dims, frame.inset_hi.xyz * dims, ov, inv, t));
     }
@@ -241,7 +232,7 @@ uint structure_at(vec3 t) {
 // Whether the carving tools leave the sample at texture point t standing: its nearest voxel's
 // structure is protected (the rule clip_mask.comp applies per voxel).
 bool spared_at(vec3 t) {
-    if (!flag(LABELS)) return false;
+    if (!flag(RAY_LABELS)) return false;
     uint id = structure_at(t);
     return ((frame.protect[id >> 7][(id >> 5) & 3u] >> (id & 31u)) & 1u) != 0u;
 }
@@ -333,7 +324,7 @@ vec3 sh_emission(vec3 t) {
 // The start offset in [0,1): the blue-noise tile, at a fixed offset per eye, so each eye's
 // pattern is the same every frame and the two eyes' patterns differ.
 float pixel_jitter(vec2 p, uint eye_index) {
-    if (!flag(JITTER)) return 0.0;
+    if (!flag(RAY_JITTER)) return 0.0;
     ivec2 size = textureSize(blue_noise, 0);
     vec2 off = eye_index == 0u ? frame.jitter.xy : frame.jitter.zw;
     ivec2 q = (ivec2(p) + ivec2(off)) % size;
@@ -463,7 +454,7 @@ void main() {
         float hg = frame.bleeding.z;
         float phase = (1.0 - hg * hg) / pow(1.0 + hg * hg + 2.0 * hg * dot(light, view), 1.5);
         float t = tn + dt * pixel_jitter(pixel, v);
-        bool clipping = flag(CLIPPING);
+        bool clipping = flag(RAY_CLIPPING);
         // The previous sample's value (pre-integration), or none after a gap in the material.
         float s_prev = 0.0;
         bool have_prev = false;
@@ -474,8 +465,8 @@ void main() {
         // Empty-space skipping and the clip test per brick: the brick the last sample was
         // in, whether it is empty, its clip state (see ClipBricks; CUT: test every sample),
         // and whether that sample could have been skipped (an empty brick no tool cuts).
-        bool skipping = flag(SKIP_EMPTY);
-        bool clip_bricks = clipping && flag(CLIP_BRICKS);
+        bool skipping = flag(RAY_SKIP_EMPTY);
+        bool clip_bricks = clipping && flag(RAY_CLIP_BRICKS);
         vec3 dims = vec3(textureSize(scalars, 0));
         ivec3 last_brick = ((ivec3(dims) + (1 << RAY_BRICK_SHIFT) - 1) >> RAY_BRICK_SHIFT) - 1;
         ivec3 brick = ivec3(-1);
@@ -511,7 +502,7 @@ void main() {
             // Jump to two steps before the brick's end, as below; the last two are taken here
             // one by one.
             if (clip_bricks && sample_clip != CLIP_BRICK_OPEN && sample_clip != CLIP_BRICK_CUT
-                && !flag(LABELS) && !flag(GLOW)) {
+                && !flag(RAY_LABELS) && !flag(RAY_GLOW)) {
                 float t_out = min(tf, run_end(o * dims, d * dims, t, brick, last_brick, false));
                 int n = int(floor((t_out - t) / dt)) - 2;
                 if (n > 0) k += n;
@@ -554,7 +545,7 @@ void main() {
             }
             // The safety margins' volumetric glow (Ropinski et al., Sect. 4.4): emission only,
             // through what lies in front, and also where a tool cut the tissue away.
-            if (flag(GLOW)) {
+            if (flag(RAY_GLOW)) {
                 color += (1.0 - alpha) * frame.glow.rgb * (texture(glow, p).r * frame.glow.a * step_mm);
             }
             // Shadow-test clipping: the same maps the AO update used.
@@ -563,7 +554,7 @@ void main() {
                 // A brick no tool cuts needs no test; in one a tool hides whole, that tool is
                 // the first hider unless a protected structure is spared.
                 int hider = sample_clip == CLIP_BRICK_OPEN ? -1
-                          : sample_clip == CLIP_BRICK_CUT || flag(LABELS) ? hiding_tool(w, p, vi)
+                          : sample_clip == CLIP_BRICK_CUT || flag(RAY_LABELS) ? hiding_tool(w, p, vi)
                           : int(sample_clip) - 1;
                 if (hider >= 0) {
                     prev_tool = hider;
@@ -598,9 +589,9 @@ void main() {
             vec4 c = classify_value(s);
             float a;
             vec3 premult;
-            bool pre_mid = flag(PREINTEGRATED) && have_prev;
+            bool pre_mid = flag(RAY_PREINTEGRATED) && have_prev;
             vec2 pre_uv = vec2(0.0);
-            if (flag(ISO)) {
+            if (flag(RAY_ISO)) {
                 // The first-hit isosurface (frame.surface.w, in texel units): below it nothing
                 // is seen; the first sample at or past it ends the ray, moved back onto the
                 // surface by bisection on the scalar between it and the sample before (at the
@@ -621,7 +612,7 @@ void main() {
                 }
                 a = 1.0;
                 premult = classify_value(iso).rgb;
-            } else if (flag(PREINTEGRATED)) {
+            } else if (flag(RAY_PREINTEGRATED)) {
                 float sf = have_prev ? s_prev : s;
                 pre_uv = vec2(sf, s) * frame.value_map.w + frame.value_map.z;
                 vec4 pre = texture(preint, pre_uv);
@@ -634,7 +625,7 @@ void main() {
             s_prev = s;
             have_prev = true;
             // Structures: their opacity a_l scales the TF's, their colour replaces its colour.
-            if (flag(LABELS)) {
+            if (flag(RAY_LABELS)) {
                 float unlabelled, shown;
                 vec3 colour;
                 structures_at(p, unlabelled, shown, colour);
@@ -642,7 +633,7 @@ void main() {
                 a *= unlabelled + shown;
             }
             // Variance opacity modulation: homogeneous tissue fades, boundaries stay.
-            if (frame.lighting.w > 0.0) {
+            if (flag(RAY_VARIANCE)) {
                 float m = min(texture(variance, p).r * frame.lighting.w, 1.0);
                 a *= m;
                 premult *= m;
@@ -651,12 +642,11 @@ void main() {
                 // A pre-integrated step is shaded where its light comes from (its extinction's
                 // mean position), not at the back sample.
                 vec3 q = pre_mid ? o + (t - (1.0 - texture(preint_at, pre_uv).r) * dt) * d : p;
-                float occl = frame.background.a > 0.5 ? ambient_at(q) : 1.0;
-                vec3 e = frame.bleeding.x > 0.0 || frame.bleeding.y > 0.0 ? bleeding_at(q)
-                                                                          : vec3(0.0);
+                float occl = flag(RAY_AO) ? ambient_at(q) : 1.0;
+                vec3 e = flag(RAY_BLEEDING) || flag(RAY_SCATTERING) ? bleeding_at(q) : vec3(0.0);
                 // Colour bleeding (Ropinski et al.): towards the neighbourhood's colour E, the
                 // more the neighbourhood occludes (O_env = 1 - A).
-                if (frame.bleeding.x > 0.0) {
+                if (flag(RAY_BLEEDING)) {
                     premult = mix(premult, e * a, frame.bleeding.x * (1.0 - occl));
                 }
                 // The normal: the tool's within the cut layer, else the data's gradient, which
@@ -670,7 +660,7 @@ void main() {
                     if (frame.cut_tint.a > 0.0) {
                         premult = mix(premult, frame.cut_tint.rgb * a, frame.cut_tint.a);
                     }
-                } else if (frame.phong.y > 0.0 || frame.phong.z > 0.0) {
+                } else if (flag(RAY_LIT)) {
                     n = gradient_mm(q);
                     float g = length(n);
                     float gmin = frame.surface.x;
@@ -685,7 +675,7 @@ void main() {
                 }
                 float ao_diffuse = 1.0 - frame.surface.z + frame.surface.z * occl;
                 vec3 shade = vec3(frame.phong.x * occl + lit * frame.phong.y * ao_diffuse * ndl);
-                if (frame.lighting.x > 0.0) {
+                if (flag(RAY_SH)) {
                     float ao_factor = frame.lighting.z > 0.5 ? occl : 1.0;
                     shade += frame.lighting.x * ao_factor * sh_emission(q);
                 }
@@ -694,7 +684,7 @@ void main() {
                 // colour E, which is both hemispheres' where the data is flat and the front
                 // one's at a border, scattered towards the eye.
                 vec3 scattered = vec3(0.0);
-                if (frame.bleeding.y > 0.0) {
+                if (flag(RAY_SCATTERING)) {
                     scattered = frame.phong.x * frame.bleeding.y * phase * e;
                 }
                 color += (1.0 - alpha) * (premult * shade + a * (spec + scattered));
@@ -703,7 +693,7 @@ void main() {
                     vec4 clip = frame.view_proj[v] * vec4(a_w + t * (b_w - a_w), 1.0);
                     depth = clamp(clip.z / clip.w, 0.0, 1.0);
                 }
-                if (alpha >= OPAQUE_ALPHA || flag(ISO)) break;
+                if (alpha >= OPAQUE_ALPHA || flag(RAY_ISO)) break;
             }
         }
     }

@@ -48,3 +48,28 @@ pub const SHAPE_SPHERE: u32 = 1;
 pub const SHAPE_BOX: u32 = 2;
 pub const SHAPE_CYLINDER: u32 = 3;
 pub const SHAPE_TORUS: u32 = 4;
+/// The features the ray caster is specialised on (raycast.frag's FLAGS, constant_id 0): the code
+/// of a feature that is off is not compiled in. lavapipe (gallivm) runs both sides of every
+/// branch, masked, even where the condition is the same for every pixel, so a feature switched
+/// off by a uniform would still cost its reads (docs/design.md, "Shading and sampling").
+pub const RAY_PREINTEGRATED: u32 = 1;
+pub const RAY_JITTER: u32 = 1 << 1;
+pub const RAY_TRICUBIC: u32 = 1 << 2;
+pub const RAY_SKIP_EMPTY: u32 = 1 << 3;
+pub const RAY_LABELS: u32 = 1 << 4;
+pub const RAY_CLIPPING: u32 = 1 << 5;
+pub const RAY_GLOW: u32 = 1 << 6;
+pub const RAY_ISO: u32 = 1 << 7;
+pub const RAY_CLIP_BRICKS: u32 = 1 << 8;
+pub const RAY_INSET: u32 = 1 << 9;
+/// V_AO modulates the ambient and part of the diffuse term.
+pub const RAY_AO: u32 = 1 << 10;
+/// The local histograms' colour bleeding, and their scattering (both read E).
+pub const RAY_BLEEDING: u32 = 1 << 11;
+pub const RAY_SCATTERING: u32 = 1 << 12;
+/// SH environment light through the visibility volume.
+pub const RAY_SH: u32 = 1 << 13;
+/// Variance opacity modulation.
+pub const RAY_VARIANCE: u32 = 1 << 14;
+/// Diffuse or specular light (the gradient is read).
+pub const RAY_LIT: u32 = 1 << 15;

@@ -6,7 +6,7 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     mat4 tex_from_world;     // world -> volume texture coordinates [0,1]^3
     vec4 extent_mm;          // xyz: volume extent in mm along i,j,k; w: step in mm
     vec4 value_map;          // lut coordinate = value * y + x; pre-integration table's: * w + z
-    vec4 background;         // rgb background, a: 1 = modulate by AO
+    vec4 background;         // rgb background, a: unused (V_AO is read with RAY_AO)
     vec4 viewport;           // xy: width, height in pixels; z: number of clipping tools;
                              // w: unused (the features are raycast.frag's FLAGS constant)
     vec4 phong;              // Blinn-Phong ka, kd, ks, shininess (headlight per eye)
@@ -15,8 +15,8 @@ layout(std140, set = 0, binding = 0) uniform Frame {
                              // z: share of the diffuse term the AO multiplies
     vec4 cut_tint;           // rgb: tint of cut faces, a: its weight (0: none)
     vec4 jitter;             // xy: left eye's blue-noise offset in pixels, zw: right eye's
-    vec4 lighting;           // x: SH light weight (0: off), y: SH coefficients, z: 1 = times AO,
-                             // w: 1 / V_max of variance opacity modulation (0: off)
+    vec4 lighting;           // x: SH light weight (read with RAY_SH), y: SH coefficients, z: 1 = times AO,
+                             // w: 1 / V_max of variance opacity modulation (RAY_VARIANCE)
     vec4 bleeding;           // x: bleeding weight W of the local-histogram method (0: off),
                              // y: its scattering weight (0: off), z: the phase function's g
     vec4 glow;               // rgb: the safety margins' glow colour, a: its emission per mm
@@ -26,11 +26,11 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     uvec4 protect[2];        // bit id: the structure is protected from the carving tools
     vec4 light;              // xyz: towards a light fixed in the world, in the gradient's frame
                              // (along i, j, k, in mm, unit); w: 1 = that light, 0 = headlight
-    uvec4 ao_words;          // xy: V_AO's address (16-bit unorm words, x fastest), read when
-                             // background.a = 1; zw: the bleeding colour E's (RGBA8 words),
-                             // read when bleeding.x or .y > 0
+    uvec4 ao_words;          // xy: V_AO's address (16-bit unorm words, x fastest), read with
+                             // RAY_AO; zw: the bleeding colour E's (RGBA8 words),
+                             // read with RAY_BLEEDING or RAY_SCATTERING
     vec4 inset_lo;           // xyz: the full-resolution inset's box in texture coordinates
-    vec4 inset_hi;           //   [lo, hi) (read with raycast.frag's INSET flag)
+    vec4 inset_hi;           //   [lo, hi) (read with RAY_INSET)
     vec4 inset_scale;        // xyz: its scalars' texture coordinates are t * scale + offset
     vec4 inset_offset;
     uvec4 inset_words;       // xy: its V_AO's address (16-bit unorm words, as ao_words)

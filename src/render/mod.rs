@@ -10,7 +10,11 @@ pub mod preintegration;
 pub mod text;
 
 use crate::gpu::{pipeline, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
-use crate::shader_constants::MAX_TOOLS;
+use crate::shader_constants::{
+    MAX_TOOLS, RAY_AO, RAY_BLEEDING, RAY_CLIPPING, RAY_CLIP_BRICKS, RAY_GLOW, RAY_INSET, RAY_ISO,
+    RAY_JITTER, RAY_LABELS, RAY_LIT, RAY_PREINTEGRATED, RAY_SCATTERING, RAY_SH, RAY_SKIP_EMPTY,
+    RAY_TRICUBIC, RAY_VARIANCE,
+};
 use crate::space::View;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
@@ -986,18 +990,6 @@ crate::gpu::glsl_layout!(FrameUniforms, 5248,
     protect: 5104, light: 5136, ao_words: 5152, inset_lo: 5168, inset_hi: 5184,
     inset_scale: 5200, inset_offset: 5216, inset_words: 5232);
 
-/// The features the ray caster is specialised on (raycast.frag FLAGS, constant_id 0).
-const FLAG_PREINTEGRATED: u32 = 1;
-const FLAG_JITTER: u32 = 2;
-const FLAG_TRICUBIC: u32 = 4;
-const FLAG_SKIP_EMPTY: u32 = 8;
-const FLAG_LABELS: u32 = 16;
-const FLAG_CLIPPING: u32 = 32;
-const FLAG_GLOW: u32 = 64;
-const FLAG_ISO: u32 = 128;
-const FLAG_CLIP_BRICKS: u32 = 256;
-const FLAG_INSET: u32 = 512;
-
 /// The ray caster's descriptor writes: the uniforms, the clip tools, maps and brick states
 /// (bindings 0, 4, 5, 20), then the sampled images by binding.
 fn descriptor_writes<'a>(
@@ -1041,7 +1033,7 @@ struct EyePush {
 
 pub struct Renderer {
     gpu: Gpu,
-    /// The ray caster specialised per combination of flags (FLAG_*; the shader's constant_id
+    /// The ray caster specialised per combination of flags (RAY_*; the shader's constant_id
     /// 0), made on first use: code for a feature that is off is not there at all. On lavapipe
     /// that matters twice: its SIMD runs every branch, taken or not, and every loop iteration
     /// of an invocation, taken or not, counts against one budget of 65,535 (docs/design.md).
@@ -1329,20 +1321,35 @@ impl Renderer {
         let iso = settings.iso.is_some();
         let flags = [
             // An isosurface is found on point samples, and skipping knows the TF, not the iso.
-            (preintegrated && !iso, FLAG_PREINTEGRATED),
-            (settings.jitter, FLAG_JITTER),
-            (settings.tricubic, FLAG_TRICUBIC),
+            (preintegrated && !iso, RAY_PREINTEGRATED),
+            (settings.jitter, RAY_JITTER),
+            (settings.tricubic, RAY_TRICUBIC),
             // The glow lies in empty space: no skipping where it shines.
             (
                 settings.skip_empty && tex.skip_ready(settings) && !glow && !iso,
-                FLAG_SKIP_EMPTY,
+                RAY_SKIP_EMPTY,
             ),
-            (iso, FLAG_ISO),
-            (tex.labelled, FLAG_LABELS),
-            (clip.is_some_and(|c| c.count > 0), FLAG_CLIPPING),
-            (glow, FLAG_GLOW),
-            (settings.clip_bricks, FLAG_CLIP_BRICKS),
-            (frame.inset.is_some(), FLAG_INSET),
+            (iso, RAY_ISO),
+            (tex.labelled, RAY_LABELS),
+            (clip.is_some_and(|c| c.count > 0), RAY_CLIPPING),
+            (glow, RAY_GLOW),
+            (settings.clip_bricks, RAY_CLIP_BRICKS),
+            (frame.inset.is_some(), RAY_INSET),
+            (settings.use_ao && frame.ao.is_some(), RAY_AO),
+            (
+                frame.bleeding.is_some() && settings.bleeding > 0.0,
+                RAY_BLEEDING,
+            ),
+            (
+                frame.bleeding.is_some() && settings.scattering > 0.0,
+                RAY_SCATTERING,
+            ),
+            (frame.sh.is_some() && settings.sh_weight > 0.0, RAY_SH),
+            (
+                tex.variance.is_some() && settings.variance_max > 0.0,
+                RAY_VARIANCE,
+            ),
+            (settings.diffuse > 0.0 || settings.specular > 0.0, RAY_LIT),
         ]
         .iter()
         .filter(|f| f.0)
@@ -1364,11 +1371,7 @@ impl Renderer {
                 settings.background[0],
                 settings.background[1],
                 settings.background[2],
-                if settings.use_ao && frame.ao.is_some() {
-                    1.0
-                } else {
-                    0.0
-                },
+                0.0,
             ],
             viewport: [
                 target.width as f32,
