@@ -143,6 +143,11 @@ pub struct FrameLoop {
     pub markups: Markups,
     /// A downsampled volume's full-resolution box around the tools ([`Inset`]).
     inset: Option<Inset>,
+    /// Where the box moves, its new AO is computed over the next frames, a slab of
+    /// [`FrameLoop::tf_samples_per_frame`] each, while the downsampled volume shows there
+    /// ([`Inset::start_cut`]; the window, the headset and replays), rather than in the frame
+    /// that moves it (renders, whose one frame shows the box, and tests).
+    pub progressive_inset: bool,
 }
 
 /// How a frame loop is set up beside its volume and transfer functions ([`FrameLoop::new`]).
@@ -417,18 +422,28 @@ impl FrameLoop {
         if !inset.computes(&config, &tf) {
             inset.set_method(&self.gpu, (config, tf))?;
         }
-        if let Some(centre) = inset.wants_cut((tools, views), shown, placement) {
-            inset.cut(&self.gpu, centre)?;
+        // Cut again where the box should go (at once, or over the next frames), then the next
+        // slab of a box being computed, then this frame's update of the box shown.
+        let centre = inset.wants_cut((tools, views), shown, placement);
+        let computing = inset.refining().is_some();
+        let mut step = match centre {
+            Some(c) if self.progressive_inset => inset.start_cut(&self.gpu, c),
+            Some(c) => inset.cut(&self.gpu, c),
+            None => Ok(()),
+        }
+        .and_then(|_| inset.refine(&self.gpu, self.tf_samples_per_frame));
+        if step.is_ok() && (centre.is_some() || computing && inset.refining().is_none()) {
             eprintln!("volume {}: {}", shown.name, inset.describe());
         }
         loop {
-            match inset.run_frame(tools, (shown, placement), self.mode) {
+            match step.and_then(|_| inset.run_frame(tools, (shown, placement), self.mode)) {
                 Err(AppError::Gpu(GpuError::OutOfMemory(m))) => {
                     if !inset.shrink(&self.gpu)? {
                         eprintln!("volume {}: the inset is given up: {m}", shown.name);
                         return self.drop_inset();
                     }
                     eprintln!("volume {}: {} ({m})", shown.name, inset.describe());
+                    step = Ok(());
                 }
                 r => return r,
             }
@@ -555,6 +570,7 @@ impl FrameLoop {
             budget: None,
             markups: Markups::default(),
             inset: None,
+            progressive_inset: false,
             volume: vol,
         })
     }

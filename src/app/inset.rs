@@ -8,8 +8,11 @@
 
 use super::common::{precompute_method, Result};
 use crate::ao::cao::{Cao, Mode};
-use crate::ao::{AoConfig, LaoGpu};
-use crate::gpu::{Gpu, GpuError, Image};
+use crate::ao::lao::{LaoKernel, SkipBuffers, SlabInput};
+use crate::ao::method::{AoVolume, MethodGpu};
+use crate::ao::progressive::SlabScheduler;
+use crate::ao::{AoConfig, AoMethod, LaoGpu};
+use crate::gpu::{Buffer, Gpu, GpuError, Image};
 use crate::render::InsetBinding;
 use crate::scene::Tool;
 use crate::space::{lps_from_local_mm, world_from_lps_point, world_from_tex, Placement, View};
@@ -37,6 +40,10 @@ pub fn frame_reserve(voxels: usize) -> u64 {
     (FRAME_BYTES_PER_VOXEL * voxels as f64 + 2.0 * FRAME_BYTES) as u64
 }
 
+/// A moved box is computed over at most this many frames ([`Inset::refine`]): each holds an
+/// eighth of a cut's work at most, and the box is coarse for a few frames only.
+pub const BUILD_FRAMES: usize = 8;
+
 /// Tries at smaller sizes where an inset does not fit after all.
 const FIT_TRIES: usize = 4;
 
@@ -53,6 +60,22 @@ pub struct Inset {
     inner: [usize; 3],
     margin: [usize; 3],
     part: Option<Part>,
+    /// A box being computed slab by slab ([`Inset::start_cut`]), shown once it is done.
+    build: Option<Build>,
+}
+
+/// A box whose LAO is computed a slab of z-slices per frame ([`Inset::refine`]): meanwhile the
+/// picture there is the downsampled volume's.
+struct Build {
+    inner_lo: [usize; 3],
+    crop_lo: [usize; 3],
+    /// The crop with its voxels (its scalar image is made when the box is shown).
+    crop: Volume,
+    opacity: Vec<f32>,
+    skip: SkipBuffers,
+    dirs: Buffer,
+    pao: Buffer,
+    slabs: SlabScheduler,
 }
 
 /// The box on the GPU: the crop (inner box and margin) with its CAO state and scalars.
@@ -189,6 +212,7 @@ impl Inset {
             lao: LaoGpu::new(gpu)?,
             inner,
             part: None,
+            build: None,
         })
     }
 
@@ -204,7 +228,16 @@ impl Inset {
     /// computes its AO; the old box goes first (its memory is the new one's), so no frame that
     /// reads it may be in flight.
     pub fn cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
+        let (inner_lo, crop_lo, crop) = self.crop_at(centre);
+        let ao = precompute_method(gpu, &self.lao, &crop, &self.tf, &self.config, false)?;
+        self.show(gpu, (inner_lo, crop_lo, crop), ao)
+    }
+
+    /// Drops the box (and any being computed), and crops the full-resolution volume for one
+    /// around `centre`: the inner box's first voxel, the crop's, and the crop.
+    fn crop_at(&mut self, centre: [f64; 3]) -> ([usize; 3], [usize; 3], Volume) {
         self.part = None;
+        self.build = None;
         // The method may have changed since the last cut (a switch), and its reach with it.
         self.margin = margin_for(&self.whole, &self.config);
         let inner_lo = self.inner_lo(centre);
@@ -216,10 +249,18 @@ impl Inset {
         let crop = self
             .whole
             .crop(crop_lo, std::array::from_fn(|a| crop_hi[a] - crop_lo[a]));
-        let ao = precompute_method(gpu, &self.lao, &crop, &self.tf, &self.config, false)?;
+        (inner_lo, crop_lo, crop)
+    }
+
+    /// Shows the crop with its precomputed AO `ao`: its CAO state and scalar image.
+    fn show(
+        &mut self,
+        gpu: &Gpu,
+        (inner_lo, crop_lo, mut crop): ([usize; 3], [usize; 3], Volume),
+        ao: AoVolume,
+    ) -> Result<()> {
         let cao = ao.into_cao(gpu, &crop)?;
         let (scalars, _) = crate::render::scalar_image(gpu, &crop)?;
-        let mut crop = crop;
         crop.voxels = crate::volume::Voxels::U8(Vec::new());
         self.part = Some(Part {
             inner_lo,
@@ -231,6 +272,91 @@ impl Inset {
         Ok(())
     }
 
+    /// [`Inset::cut`] without holding the frames: under LAO (default kernel) the crop's AO is
+    /// computed over the next frames, a slab of z-slices each ([`Inset::refine`]), and the box
+    /// is shown when it is done; until then the picture there is the downsampled volume's.
+    /// The other methods (one pass, or one table) cut at once. The old box goes first.
+    pub fn start_cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
+        if self.config.method != AoMethod::Lao || self.lao.kernel != LaoKernel::New {
+            return self.cut(gpu, centre);
+        }
+        let params = self.config.lao;
+        params.validate().map_err(super::common::AppError::Usage)?;
+        let (inner_lo, crop_lo, crop) = self.crop_at(centre);
+        let opacity = self.tf.opacity_volume(&crop);
+        // Each voxel's LAO is its own, so the slabs give the bits one pass gives (the same
+        // kernel reads the skipping data's padded O).
+        let skip = self
+            .lao
+            .skip_buffers(&opacity, crop.dims, crop.spacing, &params)?;
+        let per_slice = LaoGpu::samples_per_slice(crop.dims, &params);
+        let slabs = SlabScheduler::with_budget(crop.dims[2], per_slice, per_slice);
+        self.build = Some(Build {
+            dirs: self.lao.directions_buffer(&params, crop.spacing)?,
+            pao: self.lao.output_buffer(crop.dims)?,
+            inner_lo,
+            crop_lo,
+            crop,
+            opacity,
+            skip,
+            slabs,
+        });
+        Ok(())
+    }
+
+    /// Computes the next slab of a box being cut ([`Inset::start_cut`]), at most `samples`
+    /// opacity samples or a [`BUILD_FRAMES`]th of the box, whichever is more (at least a
+    /// slice), submitted and waited for; shows the box once the last slab is done. Nothing
+    /// without a box being computed.
+    pub fn refine(&mut self, gpu: &Gpu, samples: f64) -> Result<()> {
+        let params = self.config.lao;
+        let Some(b) = self.build.as_mut() else {
+            return Ok(());
+        };
+        // At most BUILD_FRAMES frames, however small the budget.
+        let per_slice = LaoGpu::samples_per_slice(b.crop.dims, &params);
+        let k = b.crop.dims[2].div_ceil(BUILD_FRAMES);
+        // Slabs of 4 or more are whole multiples of 4 (`progressive::slab_slices`); half a slice over.
+        let k = if k >= 4 { k.div_ceil(4) * 4 } else { k };
+        let least = (k as f64 + 0.5) * per_slice;
+        b.slabs.set_budget(samples.max(least));
+        if let Some(z) = b.slabs.next_slab() {
+            let input = SlabInput {
+                opacity: &b.skip.padded,
+                dirs: &b.dirs,
+                skip: &b.skip,
+            };
+            let lao = &self.lao;
+            gpu.submit_and_wait(|cmd| {
+                lao.record_slab(cmd, &input, &b.pao, b.crop.dims, &params, z)
+            })?;
+        }
+        if !b.slabs.is_finished() {
+            return Ok(());
+        }
+        let Build {
+            inner_lo,
+            crop_lo,
+            crop,
+            opacity,
+            skip,
+            pao,
+            ..
+        } = self.build.take().expect("checked above");
+        let ao = AoVolume {
+            opacity,
+            ao_buf: pao,
+            timing: Default::default(),
+            method: MethodGpu::lao(gpu, &crop, params, skip)?,
+        };
+        self.show(gpu, (inner_lo, crop_lo, crop), ao)
+    }
+
+    /// How far the box being cut has come (0 to 1), where one is.
+    pub fn refining(&self) -> Option<f32> {
+        self.build.as_ref().map(|b| b.slabs.fraction())
+    }
+
     /// "inset 160 x 160 x 64 at [176:336,...] (+ margin 24 x 24 x 8) at full resolution", as
     /// stderr tells it.
     pub fn describe(&self) -> String {
@@ -240,7 +366,16 @@ impl Inset {
             let r = |a: usize| format!("{}:{}", p.inner_lo[a], p.inner_lo[a] + self.inner[a]);
             format!(" at [{},{},{}]", r(0), r(1), r(2))
         });
-        format!("inset {x} x {y} x {z}{at} (+ margin {mx} x {my} x {mz}) at full resolution")
+        let refining = match &self.build {
+            Some(b) => {
+                let r = |a: usize| format!("{}:{}", b.inner_lo[a], b.inner_lo[a] + self.inner[a]);
+                format!(" being computed at [{},{},{}]", r(0), r(1), r(2))
+            }
+            None => String::new(),
+        };
+        format!(
+            "inset {x} x {y} x {z}{at}{refining} (+ margin {mx} x {my} x {mz}) at full resolution"
+        )
     }
 
     /// The inner box's size (full-resolution voxels).
@@ -275,7 +410,8 @@ impl Inset {
     }
 
     /// Where the box should be for `tools` and the eyes' `views` over `shown` at `p`, when a
-    /// quarter of the box or more from where it is; None otherwise. It goes where the cutting
+    /// quarter of the box or more from where it is; None otherwise, and while a box is being
+    /// computed ([`Inset::start_cut`]). It goes where the cutting
     /// tools are (their mean position), else where the tools the hands hold inside the volume
     /// are, else where the eyes' centres meet what is shown (`Inset::gaze_point`); with none
     /// of these it stays.
@@ -285,6 +421,11 @@ impl Inset {
         shown: &Volume,
         p: &Placement,
     ) -> Option<[f64; 3]> {
+        // A box being computed is finished first (where it is, however the tools move), so
+        // that moving tools always get a box.
+        if self.build.is_some() {
+            return None;
+        }
         let whole = &*self.whole;
         let tex_from_world = world_from_tex(whole, &Self::placed(whole, shown, p)).inverse();
         let tex = |t: &Tool| tex_from_world.transform_point3(t.pose.position);
@@ -306,11 +447,11 @@ impl Inset {
         };
         let centre: [f64; 3] = std::array::from_fn(|a| mean[a] as f64 * whole.dims[a] as f64);
         let want = self.inner_lo(centre);
-        let moved = match &self.part {
+        let moved = match self.part.as_ref().map(|p| p.inner_lo) {
             None => true,
-            Some(part) => (0..3).any(|a| {
-                (want[a] as f64 - part.inner_lo[a] as f64).abs() > 0.25 * self.inner[a] as f64
-            }),
+            Some(lo) => {
+                (0..3).any(|a| (want[a] as f64 - lo[a] as f64).abs() > 0.25 * self.inner[a] as f64)
+            }
         };
         moved.then_some(centre)
     }
@@ -407,12 +548,13 @@ impl Inset {
         Ok(true)
     }
 
-    /// The inner box's centre (full-resolution index point), or the volume's with no box.
+    /// The inner box's centre (full-resolution index point; the box shown or being computed), or
+    /// the volume's with neither.
     fn centre(&self) -> [f64; 3] {
-        self.part
-            .as_ref()
-            .map_or(self.whole.dims.map(|d| d as f64 * 0.5), |p| {
-                std::array::from_fn(|a| p.inner_lo[a] as f64 + 0.5 * self.inner[a] as f64)
+        let lo = self.part.as_ref().map(|p| p.inner_lo);
+        lo.or(self.build.as_ref().map(|b| b.inner_lo))
+            .map_or(self.whole.dims.map(|d| d as f64 * 0.5), |lo| {
+                std::array::from_fn(|a| lo[a] as f64 + 0.5 * self.inner[a] as f64)
             })
     }
 

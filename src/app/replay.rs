@@ -162,6 +162,9 @@ pub fn replay(
     };
     let mut fl = spec.frame_loop(gpu, opts.size, interaction, true, false)?;
     fl.mode = opts.mode;
+    // A moved inset is computed over frames as in the window and the headset, a fixed budget
+    // of slices a frame, so the frames are the same on any machine.
+    fl.progressive_inset = true;
     // Where the session put the volume (`--volume-at` overrides the stream's header).
     if let Some(c) = opts
         .volume_at

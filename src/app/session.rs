@@ -92,6 +92,7 @@ impl SessionSpec {
         let mut fl = FrameLoop::new_lit(gpu, vol, tfs, built, lighting, show_progress)?;
         fl.set_variance(self.variance)?;
         fl.markups = self.markups.clone();
+        fl.progressive_inset = fast_start;
         Ok(fl)
     }
 }

@@ -10,7 +10,7 @@ use crate::common;
 use cao_xr::ao::cao::Mode;
 use cao_xr::ao::filtered::{Estimator, FilterInput, FilterParams};
 use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
-use cao_xr::app::inset::Inset;
+use cao_xr::app::inset::{Inset, BUILD_FRAMES};
 use cao_xr::app::precompute;
 use cao_xr::clip::Shape;
 use cao_xr::input::FrameInput;
@@ -170,6 +170,86 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     );
     let blind = inset.wants_cut((&[], &away), &vol, &placement);
     assert_eq!(blind, None, "eyes turned away leave the box");
+    common::assert_no_validation_messages(&gpu);
+}
+
+#[test]
+fn a_box_computed_over_frames_is_the_box_cut_at_once() {
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(48));
+    let tf = TransferFunction::preset("ct-skin").unwrap();
+    let params = LaoParams {
+        rays: 14,
+        steps: 5,
+        step_mm: 4.0,
+    };
+    let config = (AoConfig::new(AoMethod::Lao, params), tf);
+    let placement = Placement::default();
+    let inner = [16, 16, 16];
+    let mut inset = Inset::around(&gpu, vol.clone(), config.clone(), (inner, [24.0; 3])).unwrap();
+    // A tool a hand holds near a corner: the box is wanted there.
+    let mut held = tool(
+        Shape::Sphere,
+        placement.center + Vec3::splat(0.07),
+        Quat::IDENTITY,
+        0.02,
+        ToolMode::Carve,
+    );
+    held.active = false;
+    let head = Pose {
+        position: placement.center + Vec3::new(0.0, 0.0, 0.5),
+        orientation: Quat::IDENTITY,
+    };
+    let fov = Fov {
+        angle_left: -0.5,
+        angle_right: 0.5,
+        angle_up: 0.5,
+        angle_down: -0.5,
+    };
+    let eyes = FrameInput::head_views(head, 0.064, fov);
+    let wanted = |inset: &Inset| inset.wants_cut((&[held], &eyes), &vol, &placement);
+    let there = wanted(&inset).expect("the held tool moves the box");
+    let at_once = Inset::around(&gpu, vol.clone(), config, (inner, there)).unwrap();
+    let (_, crop) = at_once.crop_box().unwrap();
+
+    inset.start_cut(&gpu, there).unwrap();
+    // A frame's budget of no samples: the box's work is spread over BUILD_FRAMES frames.
+    let budget = 0.0;
+    let mut refined = 0;
+    while inset.refining().is_some() {
+        assert!(
+            inset.cao().is_none() && inset.binding(&vol, &placement).is_none(),
+            "frame {refined}: the old box is gone and the new one not shown yet"
+        );
+        assert_eq!(
+            wanted(&inset),
+            None,
+            "frame {refined}: the box being computed is not cut again"
+        );
+        inset.refine(&gpu, budget).unwrap();
+        refined += 1;
+        assert!(refined <= BUILD_FRAMES, "done within BUILD_FRAMES frames");
+    }
+    assert!(refined > 1, "{crop:?}: over frames");
+    assert_eq!(inset.inner_box(), at_once.inner_box());
+    assert_eq!(inset.crop_box(), at_once.crop_box());
+    assert_eq!(wanted(&inset), None, "the box shown is where the tool is");
+    // The same bits as the box cut at once, unclipped and on every frame of a carving.
+    let mut at_once = at_once;
+    let bits = |i: &Inset| {
+        read_ao(&i.cao().unwrap().ao)
+            .iter()
+            .map(|v| v.to_bits())
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(bits(&inset), bits(&at_once), "unclipped");
+    for (f, tools) in frames(placement.center).iter().enumerate() {
+        for i in [&mut inset, &mut at_once] {
+            i.run_frame(tools, (&vol, &placement), Mode::Contextual)
+                .unwrap();
+        }
+        assert_eq!(bits(&inset), bits(&at_once), "frame {f}");
+    }
     common::assert_no_validation_messages(&gpu);
 }
 
