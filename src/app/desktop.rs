@@ -188,9 +188,13 @@ impl App {
                 .map(|w| format!(" | {w}"))
                 .collect::<String>();
             // A downsampled volume's full-resolution box around the tools.
+            // "inset 64x64x40 4.2 ms", or "inset 64x64x40 40%" while a moved one is computed.
             let inset = self.fl.inset().map_or(String::new(), |i| {
                 let [x, y, z] = i.inner_size();
-                format!(" | inset {x}x{y}x{z}")
+                let now = stats
+                    .inset
+                    .map_or(String::new(), |s| format!(" {}", s.state()));
+                format!(" | inset {x}x{y}x{z}{now}")
             });
             w.set_title(&format!(
                 "cao-xr | {:.1} fps | AO {} {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}{step}{inset}{margin}",

@@ -71,6 +71,34 @@ pub struct FrameStats {
     pub budget_foveates: bool,
     /// The tools inside a structure's safety margin this frame (`--margin`).
     pub margins: Vec<MarginHit>,
+    /// The full-resolution box this frame, where the volume has one.
+    pub inset: Option<InsetStats>,
+}
+
+/// A frame's full-resolution box ([`Inset`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct InsetStats {
+    /// GPU ms of the box's CAO update (0 while it is computed).
+    pub ao_ms: f64,
+    /// How far the box being computed has come (0 to 1), while one is.
+    pub computing: Option<f32>,
+}
+
+impl InsetStats {
+    /// "4.2 ms", or "40%" while the box is computed.
+    pub fn state(&self) -> String {
+        match self.computing {
+            Some(c) => format!("{:.0}%", 100.0 * c),
+            None => format!("{:.1} ms", self.ao_ms),
+        }
+    }
+}
+
+impl std::fmt::Display for InsetStats {
+    /// "inset 4.2 ms", or "inset 40%" while the box is computed.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "inset {}", self.state())
+    }
 }
 
 /// GPU ms of a frame's passes after CAO's (restore, clip + mask and update are in
@@ -148,6 +176,8 @@ pub struct FrameLoop {
     /// ([`Inset::start_cut`]; the window, the headset and replays), rather than in the frame
     /// that moves it (renders, whose one frame shows the box, and tests).
     pub progressive_inset: bool,
+    /// The box's update this frame ([`FrameLoop::update_inset`]), for the frame's stats.
+    inset_stats: Option<InsetStats>,
 }
 
 /// How a frame loop is set up beside its volume and transfer functions ([`FrameLoop::new`]).
@@ -435,7 +465,7 @@ impl FrameLoop {
         if step.is_ok() && (centre.is_some() || computing && inset.refining().is_none()) {
             eprintln!("volume {}: {}", shown.name, inset.describe());
         }
-        loop {
+        let metrics = loop {
             match step.and_then(|_| inset.run_frame(tools, (shown, placement), self.mode)) {
                 Err(AppError::Gpu(GpuError::OutOfMemory(m))) => {
                     if !inset.shrink(&self.gpu)? {
@@ -445,9 +475,14 @@ impl FrameLoop {
                     eprintln!("volume {}: {} ({m})", shown.name, inset.describe());
                     step = Ok(());
                 }
-                r => return r,
+                r => break r?,
             }
-        }
+        };
+        self.inset_stats = Some(InsetStats {
+            ao_ms: metrics.map_or(0.0, |m| m.gpu_ms()),
+            computing: inset.refining(),
+        });
+        Ok(())
     }
 
     /// No inset: the downsampled volume alone, sampled as itself again (its step, its value
@@ -571,6 +606,7 @@ impl FrameLoop {
             markups: Markups::default(),
             inset: None,
             progressive_inset: false,
+            inset_stats: None,
             volume: vol,
         })
     }
@@ -920,6 +956,7 @@ impl FrameLoop {
                 ao_method: f.ao_method,
                 overlapped: f.overlapped,
                 margins: f.margins,
+                inset: f.inset,
                 step_factor,
                 budget_foveates: self.budget.as_ref().is_some_and(|b| b.control.foveate()),
             },
@@ -966,6 +1003,7 @@ impl FrameLoop {
             lighting,
             markups,
             inset,
+            inset_stats,
             ..
         } = self;
         let model = world_from_tex(volume, &scene.volume);
@@ -1111,6 +1149,7 @@ impl FrameLoop {
             tf_name: tfs.shown().name.clone(),
             ao_method: cao.method_name(),
             margins,
+            inset: inset_stats.take(),
             read_back,
             overlapped,
             t0,
@@ -1159,6 +1198,7 @@ struct InFlight {
     tf_name: String,
     ao_method: String,
     margins: Vec<MarginHit>,
+    inset: Option<InsetStats>,
     read_back: bool,
     overlapped: bool,
     t0: std::time::Instant,

@@ -7,7 +7,7 @@
 //! the box away, the box is cut again around it and its AO computed anew.
 
 use super::common::{precompute_method, Result};
-use crate::ao::cao::{Cao, Mode};
+use crate::ao::cao::{Cao, FrameMetrics, Mode};
 use crate::ao::lao::{LaoKernel, SkipBuffers, SlabInput};
 use crate::ao::method::{AoVolume, MethodGpu};
 use crate::ao::progressive::SlabScheduler;
@@ -516,18 +516,19 @@ impl Inset {
         self.cut(gpu, self.centre())
     }
 
-    /// Records, submits and waits for one frame's update of the box ([`Cao::run_frame`]).
+    /// Records, submits and waits for one frame's update of the box ([`Cao::run_frame`]): what
+    /// it did, where a box is shown.
     pub fn run_frame(
         &mut self,
         tools: &[Tool],
         (shown, p): (&Volume, &Placement),
         mode: Mode,
-    ) -> Result<()> {
-        if let Some(part) = self.part.as_mut() {
-            let placement = Self::placed(&part.crop, shown, p);
-            part.cao.run_frame(tools, &placement, mode)?;
-        }
-        Ok(())
+    ) -> Result<Option<FrameMetrics>> {
+        let Some(part) = self.part.as_mut() else {
+            return Ok(None);
+        };
+        let placement = Self::placed(&part.crop, shown, p);
+        Ok(Some(part.cao.run_frame(tools, &placement, mode)?))
     }
 
     /// The crop on the GPU (the inner box and its margin): its first voxel and its size.

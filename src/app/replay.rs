@@ -243,6 +243,7 @@ pub fn replay(
             .tf_progress
             .as_ref()
             .map_or(String::new(), |p| format!("  {p}"));
+        let inset = f.inset.map_or(String::new(), |i| format!("  {i}"));
         let sh = if fl.lighting.is_some() {
             format!("  SH {:>8.1} ms", f.sh.gpu_ms)
         } else {
@@ -255,7 +256,7 @@ pub fn replay(
             .map(|w| format!("  {w}"))
             .collect::<String>();
         eprintln!(
-            "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {} {:>8.1} ms{sh}  render {:>8.1} ms  recomputed {:>6.2} %{tf}{margin}",
+            "frame {i:>5}/{}  t {:>7.3} s  frame {:>8.1} ms  AO {} {:>8.1} ms{sh}  render {:>8.1} ms  recomputed {:>6.2} %{inset}{tf}{margin}",
             frames.len(),
             frames[i].time,
             f.frame_ms,

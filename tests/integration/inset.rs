@@ -401,6 +401,24 @@ fn the_inset_follows_a_moving_tool_through_a_transfer_function_switch() {
         .collect();
     assert!(firsts.len() >= 3, "{stderr}");
     assert!(firsts.windows(2).all(|w| w[1] >= w[0]), "{firsts:?}");
+    // Moved boxes are computed over frames: the stats line says how far, then what the box's
+    // update cost once it is shown.
+    let insets: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.starts_with("frame "))
+        .filter_map(|l| l.split("  inset ").nth(1))
+        .collect();
+    assert_eq!(insets.len(), 24, "every frame tells the box: {stderr}");
+    let computing = |i: &&str| {
+        i.split_whitespace()
+            .next()
+            .is_some_and(|t| t.ends_with('%'))
+    };
+    assert!(insets.iter().any(computing), "{insets:?}");
+    let shown = insets
+        .iter()
+        .filter(|i| i.split_whitespace().nth(1) == Some("ms"));
+    assert!(shown.count() >= 2, "{insets:?}");
     let csv = std::fs::read_to_string(out.join("metrics.csv")).unwrap();
     assert_eq!(csv.lines().count(), 25, "a header and a row per frame");
 }
