@@ -1137,7 +1137,7 @@ fn render(a: RenderArgs, validation: bool) -> Result<()> {
             m.update_ms
         );
     }
-    let peak = gpu.memory_peak();
+    let peak = gpu.session_memory_peak();
     println!(
         "GPU memory: peak {} MiB, {:.1} bytes per voxel",
         peak >> 20,

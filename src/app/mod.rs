@@ -75,10 +75,21 @@ pub fn render_to_dir(
     let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
     let frame = fl.frame(&FrameInput::without_hands(0.0, views))?;
     // What the frame loop holds once set up (the peak, printed by the caller, may be a
-    // precompute's).
+    // precompute's), per voxel of the volume as given, as the peak is told.
+    let shown = fl.volume();
+    let as_shown = if shown.dims == spec.volume.dims {
+        String::new()
+    } else {
+        let [x, y, z] = shown.dims;
+        let inset = fl.inset().map_or(String::new(), |i| {
+            let [x, y, z] = i.inner_size();
+            format!(", with a {x} x {y} x {z} box at full resolution")
+        });
+        format!(" (shown downsampled to {x} x {y} x {z}{inset})")
+    };
     println!(
-        "GPU memory held after the frame: {:.1} bytes per voxel",
-        gpu.memory_in_use() as f64 / fl.volume().voxel_count().max(1) as f64
+        "GPU memory held after the frame: {:.1} bytes per voxel{as_shown}",
+        gpu.memory_in_use() as f64 / spec.volume.voxel_count().max(1) as f64
     );
     if let Some(w) = fl.margin_warning(&frame.stats.margins) {
         println!("{w}");

@@ -145,8 +145,10 @@ struct MemoryUse {
     next: u64,
     held: std::collections::BTreeMap<u64, u64>,
     total: u64,
-    /// The most `total` has been.
+    /// The most `total` has been since `reset_memory_peak`.
     peak: u64,
+    /// The most `total` has been since the device was opened.
+    session_peak: u64,
     /// The [`BUDGET_ENV`] cap, in bytes.
     budget: Option<u64>,
 }
@@ -687,13 +689,20 @@ impl Core {
         }
     }
 
-    /// The most GPU memory held through Buffer and Image at once so far.
+    /// The most GPU memory held through Buffer and Image at once since
+    /// `reset_memory_peak` (or the start).
     pub fn memory_peak(&self) -> u64 {
         self.memory.lock().map_or(0, |m| m.peak)
     }
 
+    /// The most GPU memory held through Buffer and Image at once since the device was opened,
+    /// whatever was reset (what a command tells the user it needed).
+    pub fn session_memory_peak(&self) -> u64 {
+        self.memory.lock().map_or(0, |m| m.session_peak)
+    }
+
     /// Starts `Gpu::memory_peak` again from what is held now (a benchmark measures one set-up
-    /// after another).
+    /// after another; the fit of a downsample and an inset measures each try).
     pub fn reset_memory_peak(&self) {
         if let Ok(mut m) = self.memory.lock() {
             m.peak = m.total;
@@ -721,6 +730,7 @@ impl Core {
         m.held.insert(id, bytes);
         m.total += bytes;
         m.peak = m.peak.max(m.total);
+        m.session_peak = m.session_peak.max(m.total);
         Ok(id)
     }
 

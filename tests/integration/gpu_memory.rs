@@ -258,3 +258,20 @@ fn info_tells_the_gpu_bytes_per_voxel_each_method_holds() {
         );
     }
 }
+
+#[test]
+fn the_session_peak_is_kept_where_a_fit_restarts_the_peak() {
+    let gpu = crate::common::gpu();
+    let usage = ash::vk::BufferUsageFlags::STORAGE_BUFFER;
+    let held = gpu.memory_in_use();
+    // 4 MiB held, then given back: a try that did not fit.
+    let tried =
+        cao_xr::gpu::Buffer::device_local(&gpu, &vec![0f32; 1 << 20], usage, "tried").unwrap();
+    let with = gpu.session_memory_peak();
+    assert!(with >= held + (4 << 20), "{with} bytes at the peak");
+    drop(tried);
+    // A fit measures each try from here (`reset_memory_peak`); what the run needed stays.
+    gpu.reset_memory_peak();
+    assert!(gpu.memory_peak() < with, "the measuring peak restarted");
+    assert_eq!(gpu.session_memory_peak(), with, "the run's peak is kept");
+}
