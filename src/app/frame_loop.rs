@@ -171,8 +171,9 @@ pub struct FrameLoop {
     pub markups: Markups,
     /// A downsampled volume's full-resolution box around the tools ([`Inset`]).
     inset: Option<Inset>,
-    /// Where the box moves, its new AO is computed over the next frames, a slab of
-    /// [`FrameLoop::tf_samples_per_frame`] each, while the downsampled volume shows there
+    /// Where the box moves, its new AO is computed over the next frames, a slab each (of
+    /// [`FrameLoop::tf_samples_per_frame`], at least an eighth of the box: [`Inset::refine`]),
+    /// while the downsampled volume shows there
     /// ([`Inset::start_cut`]; the window, the headset and replays), rather than in the frame
     /// that moves it (renders, whose one frame shows the box, and tests).
     pub progressive_inset: bool,

@@ -313,10 +313,11 @@ impl Inset {
         let Some(b) = self.build.as_mut() else {
             return Ok(());
         };
-        // At most BUILD_FRAMES frames, however small the budget.
+        // At most BUILD_FRAMES frames, however small the budget: slabs of k slices at least
+        // (a multiple of 4 from 4 on, as `progressive::slab_slices` makes them; half a slice
+        // over, so that rounding keeps k).
         let per_slice = LaoGpu::samples_per_slice(b.crop.dims, &params);
         let k = b.crop.dims[2].div_ceil(BUILD_FRAMES);
-        // Slabs of 4 or more are whole multiples of 4 (`progressive::slab_slices`); half a slice over.
         let k = if k >= 4 { k.div_ceil(4) * 4 } else { k };
         let least = (k as f64 + 0.5) * per_slice;
         b.slabs.set_budget(samples.max(least));
@@ -362,20 +363,16 @@ impl Inset {
     pub fn describe(&self) -> String {
         let [x, y, z] = self.inner;
         let [mx, my, mz] = self.margin;
-        let at = self.part.as_ref().map_or(String::new(), |p| {
-            let r = |a: usize| format!("{}:{}", p.inner_lo[a], p.inner_lo[a] + self.inner[a]);
-            format!(" at [{},{},{}]", r(0), r(1), r(2))
-        });
-        let refining = match &self.build {
-            Some(b) => {
-                let r = |a: usize| format!("{}:{}", b.inner_lo[a], b.inner_lo[a] + self.inner[a]);
-                format!(" being computed at [{},{},{}]", r(0), r(1), r(2))
-            }
-            None => String::new(),
+        let span = |lo: [usize; 3]| {
+            let r = |a: usize| format!("{}:{}", lo[a], lo[a] + self.inner[a]);
+            format!("[{},{},{}]", r(0), r(1), r(2))
         };
-        format!(
-            "inset {x} x {y} x {z}{at}{refining} (+ margin {mx} x {my} x {mz}) at full resolution"
-        )
+        let at = match (&self.part, &self.build) {
+            (Some(p), _) => format!(" at {}", span(p.inner_lo)),
+            (None, Some(b)) => format!(" being computed at {}", span(b.inner_lo)),
+            (None, None) => String::new(),
+        };
+        format!("inset {x} x {y} x {z}{at} (+ margin {mx} x {my} x {mz}) at full resolution")
     }
 
     /// The inner box's size (full-resolution voxels).
