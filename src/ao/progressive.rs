@@ -34,6 +34,8 @@ pub struct SlabScheduler {
     next: usize,
     /// The cost of one slice when the slabs follow a budget ([`SlabScheduler::set_budget`]).
     cost_per_slice: Option<f64>,
+    /// The fewest slices a slab holds whatever the budget ([`SlabScheduler::with_least_slab`]).
+    least: usize,
 }
 
 impl SlabScheduler {
@@ -43,6 +45,18 @@ impl SlabScheduler {
             slab: slab.max(1),
             next: 0,
             cost_per_slice: None,
+            least: 1,
+        }
+    }
+
+    /// The same with slabs of at least `least` slices, however small the budget: a pass that
+    /// must end within `total / least` slabs.
+    pub fn with_least_slab(self, least: usize) -> SlabScheduler {
+        let least = least.max(1);
+        SlabScheduler {
+            least,
+            slab: self.slab.max(least),
+            ..self
         }
     }
 
@@ -59,7 +73,7 @@ impl SlabScheduler {
     /// out stay as they were: a slab's result does not depend on where the slabs split.
     pub fn set_budget(&mut self, budget: f64) {
         if let Some(cost) = self.cost_per_slice {
-            self.slab = slab_slices(self.total, cost, budget);
+            self.slab = slab_slices(self.total, cost, budget).max(self.least);
         }
     }
 
@@ -160,6 +174,18 @@ mod tests {
         let mut f = SlabScheduler::new(1, 1);
         f.set_budget(1e9);
         assert_eq!(f.slab(), 1);
+    }
+
+    #[test]
+    fn a_least_slab_holds_whatever_the_budget() {
+        // 72 slices within 8 slabs: 9 at least, though the budget asks for 1 (and rounding to
+        // multiples of 4 would give 8, nine slabs).
+        let mut s = SlabScheduler::with_budget(72, 10.0, 10.0).with_least_slab(72usize.div_ceil(8));
+        assert_eq!(s.slab(), 9);
+        s.set_budget(0.0);
+        assert_eq!(s.slab_count(), 8);
+        s.set_budget(200.0);
+        assert_eq!(s.slab(), 20, "a larger budget still counts");
     }
 
     #[test]

@@ -290,7 +290,8 @@ impl Inset {
             .lao
             .skip_buffers(&opacity, crop.dims, crop.spacing, &params)?;
         let per_slice = LaoGpu::samples_per_slice(crop.dims, &params);
-        let slabs = SlabScheduler::with_budget(crop.dims[2], per_slice, per_slice);
+        let slabs = SlabScheduler::with_budget(crop.dims[2], per_slice, per_slice)
+            .with_least_slab(crop.dims[2].div_ceil(BUILD_FRAMES));
         self.build = Some(Build {
             dirs: self.lao.directions_buffer(&params, crop.spacing)?,
             pao: self.lao.output_buffer(crop.dims)?,
@@ -313,14 +314,8 @@ impl Inset {
         let Some(b) = self.build.as_mut() else {
             return Ok(());
         };
-        // At most BUILD_FRAMES frames, however small the budget: slabs of k slices at least
-        // (a multiple of 4 from 4 on, as `progressive::slab_slices` makes them; half a slice
-        // over, so that rounding keeps k).
-        let per_slice = LaoGpu::samples_per_slice(b.crop.dims, &params);
-        let k = b.crop.dims[2].div_ceil(BUILD_FRAMES);
-        let k = if k >= 4 { k.div_ceil(4) * 4 } else { k };
-        let least = (k as f64 + 0.5) * per_slice;
-        b.slabs.set_budget(samples.max(least));
+        // At most BUILD_FRAMES frames, however small the budget (`start_cut`'s least slab).
+        b.slabs.set_budget(samples);
         if let Some(z) = b.slabs.next_slab() {
             let input = SlabInput {
                 opacity: &b.skip.padded,

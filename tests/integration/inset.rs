@@ -21,18 +21,24 @@ use cao_xr::volume::transfer::TransferFunction;
 use glam::{Quat, Vec3};
 use std::sync::Arc;
 
-#[test]
-fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
-    let gpu = common::gpu();
-    // 48^3 voxels of 4.6 mm; the box sits against the volume's x = 0 face (its margin cut
-    // there) and well inside on y and z.
-    let vol = Arc::new(phantom::head(48));
-    let tf = TransferFunction::preset("ct-skin").unwrap();
-    let lao_params = LaoParams {
+/// The phantom at 48^3 (voxels of 4.6 mm), its TF and a short LAO: the volume the insets are
+/// cut from.
+fn small_head() -> (Arc<cao_xr::volume::Volume>, TransferFunction, LaoParams) {
+    let params = LaoParams {
         rays: 14,
         steps: 5,
         step_mm: 4.0,
     };
+    let tf = TransferFunction::preset("ct-skin").unwrap();
+    (Arc::new(phantom::head(48)), tf, params)
+}
+
+#[test]
+fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
+    let gpu = common::gpu();
+    // The box sits against the volume's x = 0 face (its margin cut there) and well inside on y
+    // and z.
+    let (vol, tf, lao_params) = small_head();
     let gauss = AoMethod::Filter(FilterParams {
         radius_mm: 11.0,
         estimator: Estimator::Gauss,
@@ -176,13 +182,7 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
 #[test]
 fn a_box_computed_over_frames_is_the_box_cut_at_once() {
     let gpu = common::gpu();
-    let vol = Arc::new(phantom::head(48));
-    let tf = TransferFunction::preset("ct-skin").unwrap();
-    let params = LaoParams {
-        rays: 14,
-        steps: 5,
-        step_mm: 4.0,
-    };
+    let (vol, tf, params) = small_head();
     let config = (AoConfig::new(AoMethod::Lao, params), tf);
     let placement = Placement::default();
     let inner = [16, 16, 16];
