@@ -50,6 +50,8 @@ layout(set = 0, binding = 16) uniform sampler3D structure_ids;
 layout(set = 0, binding = 17) uniform sampler3D glow;
 // The full-resolution inset's scalars (the volume is shown downsampled around it; flag RAY_INSET).
 layout(set = 0, binding = 21) uniform sampler3D inset_scalars;
+// The inset's structure ids at full resolution (as structure_ids), when LABELS and INSET.
+layout(set = 0, binding = 22) uniform sampler3D inset_structure_ids;
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 4
@@ -222,11 +224,18 @@ float run_end(vec3 ov, vec3 dv, float t, ivec3 b, ivec3 last_brick, bool reach) 
     return end;
 }
 
-// The structure id of the voxel nearest texture point t.
+// The structure id of texel q of an id volume of n texels (clamped to its edge).
+uint structure_texel(sampler3D ids, ivec3 q, ivec3 n) {
+    return uint(texelFetch(ids, clamp(q, ivec3(0), n - 1), 0).r * 255.0 + 0.5);
+}
+
+// The structure id of the voxel nearest texture point t (the inset's within it).
 uint structure_at(vec3 t) {
-    ivec3 n = ivec3(textureSize(structure_ids, 0));
-    ivec3 q = clamp(ivec3(floor(t * vec3(n))), ivec3(0), n - 1);
-    return uint(texelFetch(structure_ids, q, 0).r * 255.0 + 0.5);
+    bool fine = in_inset(t);
+    vec3 u = fine ? inset_tex(t) : t;
+    ivec3 n = fine ? textureSize(inset_structure_ids, 0) : textureSize(structure_ids, 0);
+    ivec3 q = ivec3(floor(u * vec3(n)));
+    return fine ? structure_texel(inset_structure_ids, q, n) : structure_texel(structure_ids, q, n);
 }
 
 // Whether the carving tools leave the sample at texture point t standing: its nearest voxel's
@@ -261,12 +270,15 @@ uint clip_brick(ivec3 b, ivec3 n) {
     return (clip_bricks[i >> 2] >> ((i & 3u) * 8u)) & 0xffu;
 }
 
-// The structures around texture point t, interpolated per structure rather than by id, so that
-// boundaries are as smooth as the data's: the trilinear weight of the unlabelled voxels among
-// the eight nearest, the sum of weight x a_l over the labelled ones, and of weight x a_l x c_l.
+// The structures around texture point t (the inset's within it), interpolated per structure
+// rather than by id, so that boundaries are as smooth as the data's: the trilinear weight of
+// the unlabelled voxels among the eight nearest, the sum of weight x a_l over the labelled
+// ones, and of weight x a_l x c_l.
 void structures_at(vec3 t, out float unlabelled, out float shown, out vec3 colour) {
-    ivec3 n = ivec3(textureSize(structure_ids, 0));
-    vec3 c = t * vec3(n) - 0.5;
+    bool fine = in_inset(t);
+    vec3 u = fine ? inset_tex(t) : t;
+    ivec3 n = fine ? textureSize(inset_structure_ids, 0) : textureSize(structure_ids, 0);
+    vec3 c = u * vec3(n) - 0.5;
     ivec3 q = ivec3(floor(c));
     vec3 f = c - floor(c);
     unlabelled = 0.0;
@@ -276,7 +288,8 @@ void structures_at(vec3 t, out float unlabelled, out float shown, out vec3 colou
         ivec3 o = ivec3(k & 1, (k >> 1) & 1, k >> 2);
         vec3 w3 = mix(1.0 - f, f, vec3(o));
         float w = w3.x * w3.y * w3.z;
-        uint id = uint(texelFetch(structure_ids, clamp(q + o, ivec3(0), n - 1), 0).r * 255.0 + 0.5);
+        uint id = fine ? structure_texel(inset_structure_ids, q + o, n)
+                       : structure_texel(structure_ids, q + o, n);
         if (id == 0u) {
             unlabelled += w;
         } else {

@@ -838,13 +838,6 @@ impl VolumeArgs {
             }),
         };
         let mut vol = app::load_volume(self.volume.as_deref(), raw.as_ref())?;
-        if self.downsample > 1 {
-            vol = vol.downsample(self.downsample as usize);
-            eprintln!(
-                "downsampled {0}x{0}x{0}: {1} x {2} x {3} voxels",
-                self.downsample, vol.dims[0], vol.dims[1], vol.dims[2]
-            );
-        }
         if let Some(path) = &self.labels {
             let mut map = cao_xr::volume::labels::load(path, self.label_names.as_deref(), &vol)?;
             map.apply(&cao_xr::volume::labels::LabelDisplay {
@@ -856,6 +849,15 @@ impl VolumeArgs {
             })
             .map_err(anyhow::Error::msg)?;
             vol.labels = Some(std::sync::Arc::new(map));
+        }
+        // The labels are read into the full-resolution grid and downsampled with it (each
+        // block's majority), as a volume too large for the GPU is.
+        if self.downsample > 1 {
+            vol = vol.downsample(self.downsample as usize);
+            eprintln!(
+                "downsampled {0}x{0}x{0}: {1} x {2} x {3} voxels",
+                self.downsample, vol.dims[0], vol.dims[1], vol.dims[2]
+            );
         }
         let tf = match &self.tf {
             Some(t) => TransferFunction::resolve(t)?,

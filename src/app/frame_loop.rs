@@ -450,9 +450,12 @@ impl FrameLoop {
         };
         let (tools, placement) = (&self.scene.tools, &self.scene.volume);
         let shown = &*self.volume;
-        if !inset.computes(&config, &tf) {
-            inset.set_method(&self.gpu, (config, tf))?;
+        // The structures as the shown volume's AO has them, and as the tools guard them now.
+        let structures = self.tfs.shown_structures();
+        if !inset.computes(&config, &tf, structures) {
+            inset.set_shown(&self.gpu, (config, tf), structures)?;
         }
+        inset.set_protected(&self.scene.protected);
         // Cut again where the box should go (at once, or over the next frames), then the next
         // slab of a box being computed, then this frame's update of the box shown.
         let centre = inset.wants_cut((tools, views), shown, placement);

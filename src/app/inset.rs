@@ -55,6 +55,10 @@ pub struct Inset {
     /// The method the part's AO is computed with and the TF its O is classified with.
     config: AoConfig,
     tf: TransferFunction,
+    /// Where the volume has labels: each structure's opacity a_l as shown (part of O), and
+    /// whether the tools leave it standing.
+    structures: Vec<f32>,
+    protected: Vec<bool>,
     lao: LaoGpu,
     /// The inner box's size and the margin on each side (full-resolution voxels).
     inner: [usize; 3],
@@ -87,6 +91,8 @@ struct Part {
     crop: Volume,
     cao: Cao,
     scalars: Image,
+    /// Its structure ids, where the volume has labels.
+    ids: Option<Image>,
 }
 
 impl Inset {
@@ -203,9 +209,12 @@ impl Inset {
         (config, tf): (AoConfig, TransferFunction),
         inner: [usize; 3],
     ) -> Result<Inset> {
+        let labels = whole.labels.as_deref();
         Ok(Inset {
             range: whole.value_range(),
             margin: margin_for(&whole, &config),
+            structures: labels.map_or_else(Vec::new, |l| l.opacities()),
+            protected: labels.map_or_else(Vec::new, |l| l.protected()),
             whole,
             config,
             tf,
@@ -246,9 +255,20 @@ impl Inset {
         let crop_hi: [usize; 3] = std::array::from_fn(|a| {
             (inner_lo[a] + self.inner[a] + self.margin[a]).min(self.whole.dims[a])
         });
-        let crop = self
+        let mut crop = self
             .whole
             .crop(crop_lo, std::array::from_fn(|a| crop_hi[a] - crop_lo[a]));
+        // Its structures as shown now: they classify its O and guard its voxels.
+        if let Some(labels) = crop.labels.as_mut() {
+            let structures = &mut Arc::make_mut(labels).structures;
+            for (s, (&a, &p)) in structures
+                .iter_mut()
+                .zip(self.structures.iter().zip(&self.protected))
+            {
+                s.opacity = a;
+                s.protected = p;
+            }
+        }
         (inner_lo, crop_lo, crop)
     }
 
@@ -261,6 +281,11 @@ impl Inset {
     ) -> Result<()> {
         let cao = ao.into_cao(gpu, &crop)?;
         let (scalars, _) = crate::render::scalar_image(gpu, &crop)?;
+        let ids = crop
+            .labels
+            .take()
+            .map(|l| crate::render::id_image(gpu, crop.dims, &l.ids))
+            .transpose()?;
         crop.voxels = crate::volume::Voxels::U8(Vec::new());
         self.part = Some(Part {
             inner_lo,
@@ -268,6 +293,7 @@ impl Inset {
             crop,
             cao,
             scalars,
+            ids,
         });
         Ok(())
     }
@@ -473,7 +499,11 @@ impl Inset {
             let at = origin + dir * t;
             let v = (at * dims).floor().min(dims - 1.0).max(Vec3::ZERO);
             let i = whole.index(v.x as usize, v.y as usize, v.z as usize);
-            let a = self.tf.eval(whole.voxels.get(i), self.range)[3].clamp(0.0, 1.0);
+            let structure = whole
+                .labels
+                .as_deref()
+                .map_or(1.0, |l| l.factor_showing(i, &self.structures));
+            let a = (self.tf.eval(whole.voxels.get(i), self.range)[3] * structure).clamp(0.0, 1.0);
             clear *= (1.0 - a).powf(step_mm);
             if clear <= 0.5 {
                 return Some(at);
@@ -488,24 +518,39 @@ impl Inset {
         self.config
     }
 
-    /// Whether the box's AO is `config`'s method on O classified with `tf`.
-    pub fn computes(&self, config: &AoConfig, tf: &TransferFunction) -> bool {
-        self.config.method == config.method && self.tf == *tf
+    /// Whether the box's AO is `config`'s method on O classified with `tf` and the
+    /// structures' opacities `structures`.
+    pub fn computes(&self, config: &AoConfig, tf: &TransferFunction, structures: &[f32]) -> bool {
+        self.config.method == config.method && self.tf == *tf && self.structures == structures
     }
 
     /// Classifies with `tf` and computes with `config` from now on (a TF or method switch),
     /// cutting the box again where it is; no frame may be in flight.
-    pub fn set_method(
+    pub fn set_method(&mut self, gpu: &Gpu, shown: (AoConfig, TransferFunction)) -> Result<()> {
+        let structures = self.structures.clone();
+        self.set_shown(gpu, shown, &structures)
+    }
+
+    /// [`Inset::set_method`] with the structures shown at opacities `structures` (by structure
+    /// index: a run-time show or hide, which O follows).
+    pub fn set_shown(
         &mut self,
         gpu: &Gpu,
         (config, tf): (AoConfig, TransferFunction),
+        structures: &[f32],
     ) -> Result<()> {
-        if self.computes(&config, &tf) {
+        if self.computes(&config, &tf, structures) {
             return Ok(());
         }
         self.config = config;
         self.tf = tf;
+        self.structures = structures.to_vec();
         self.cut(gpu, self.centre())
+    }
+
+    /// Which structures the tools leave standing (by structure index), from the next frame on.
+    pub fn set_protected(&mut self, protected: &[bool]) {
+        self.protected = protected.to_vec();
     }
 
     /// Records, submits and waits for one frame's update of the box ([`Cao::run_frame`]): what
@@ -520,6 +565,9 @@ impl Inset {
             return Ok(None);
         };
         let placement = Self::placed(&part.crop, shown, p);
+        if part.ids.is_some() {
+            part.cao.set_protected(&self.protected);
+        }
         Ok(Some(part.cao.run_frame(tools, &placement, mode)?))
     }
 
@@ -569,6 +617,7 @@ impl Inset {
         Some(InsetBinding {
             scalars: &part.scalars,
             ao: &part.cao.ao,
+            structures: part.ids.as_ref(),
             lo: (lo - offset) / scale,
             hi: (hi - offset) / scale,
             scale,

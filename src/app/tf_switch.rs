@@ -257,6 +257,11 @@ impl TfSwitcher {
         (self.methods[self.shown.method], self.tf_of(&self.shown))
     }
 
+    /// The structures' opacities a_l the shown AO classified O with (by structure index).
+    pub fn shown_structures(&self) -> &[f32] {
+        &self.shown.structures
+    }
+
     /// Whether what `scene` asks for (transfer function, AO method, structures) is shown with
     /// no switch in flight: then [`TfSwitcher::advance`] replaces nothing and records no slab.
     pub fn settled(&self, scene: &Scene) -> bool {

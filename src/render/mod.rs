@@ -356,9 +356,15 @@ fn structure_image(
         }
         None => ([1, 1, 1], &[0]),
     };
+    Ok((id_image(gpu, dims, ids)?, table, protect))
+}
+
+/// Structure ids (one byte per voxel of a grid of `dims`) as the R8 unorm volume the ray caster
+/// reads (id / 255).
+pub fn id_image(gpu: &Gpu, dims: [usize; 3], ids: &[u8]) -> Result<Image> {
     let img = volume_image(gpu, dims, vk::Format::R8_UNORM, "structures")?;
     img.upload(ids, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
-    Ok((img, table, protect))
+    Ok(img)
 }
 
 /// What a GPU can hold of a volume (see [`check_volume_fits`]).
@@ -1082,6 +1088,8 @@ pub struct InsetBinding<'a> {
     pub scalars: &'a Image,
     /// Its V_AO (16-bit words), read as [`FrameViews::ao`] is.
     pub ao: &'a Buffer,
+    /// Its structure ids ([`id_image`]), where the volume has labels.
+    pub structures: Option<&'a Image>,
     /// The box \[lo, hi) of the shown volume's texture coordinates it replaces.
     pub lo: Vec3,
     pub hi: Vec3,
@@ -1212,7 +1220,7 @@ impl Renderer {
             let sampled = Some(vk::DescriptorType::COMBINED_IMAGE_SAMPLER);
             let storage = Some(vk::DescriptorType::STORAGE_BUFFER);
             // No bindings 2 and 11: the ray caster reads V_AO and E by address (FrameViews).
-            let mut bindings = [sampled; 22];
+            let mut bindings = [sampled; 23];
             bindings[0] = Some(vk::DescriptorType::UNIFORM_BUFFER);
             for b in [4, 5, 20] {
                 bindings[b] = storage;
@@ -1544,6 +1552,13 @@ impl Renderer {
                 (18, coarse.0),
                 (19, coarse.1),
                 (21, frame.inset.map_or(tex.scalars.view, |i| i.scalars.view)),
+                (
+                    22,
+                    frame
+                        .inset
+                        .and_then(|i| i.structures)
+                        .map_or(tex.structures.view, |s| s.view),
+                ),
             ]
         };
         let plain = sampled_views((self.no_coarse.view, self.no_coarse.view));

@@ -78,6 +78,79 @@ impl LabelMap {
         }
     }
 
+    /// The map of a volume of `dims` averaged over n x n x n blocks ([`Volume::downsample`]):
+    /// each block's id is the one most of its voxels hold, a structure before the unlabelled
+    /// and the first structure among structures with as many (the voxel-count vote
+    /// label-map pyramids take, so that no id is made up between two structures); the
+    /// structures' voxel counts are the new grid's.
+    pub fn downsample(&self, dims: [usize; 3], n: usize) -> LabelMap {
+        let nd = dims.map(|x| x.div_ceil(n));
+        let slice = nd[0] * nd[1];
+        let mut ids = vec![0u8; slice * nd[2]];
+        ids.par_chunks_mut(slice).enumerate().for_each(|(kk, out)| {
+            let mut votes = [0u32; 256];
+            for jj in 0..nd[1] {
+                for ii in 0..nd[0] {
+                    votes.fill(0);
+                    for k in kk * n..((kk + 1) * n).min(dims[2]) {
+                        for j in jj * n..((jj + 1) * n).min(dims[1]) {
+                            let row = dims[0] * (j + dims[1] * k);
+                            for i in ii * n..((ii + 1) * n).min(dims[0]) {
+                                votes[self.ids[row + i] as usize] += 1;
+                            }
+                        }
+                    }
+                    // The first structure with the most votes; the unlabelled only where it
+                    // has more than every structure.
+                    let (best, most) = votes[1..].iter().enumerate().fold((0, 0), |b, (k, &v)| {
+                        if v > b.1 {
+                            (k + 1, v)
+                        } else {
+                            b
+                        }
+                    });
+                    out[ii + nd[0] * jj] = if votes[0] > most { 0 } else { best as u8 };
+                }
+            }
+        });
+        self.with_ids(ids)
+    }
+
+    /// The map of the box `lo .. lo + size` of a volume of `dims` ([`Volume::crop`]; the box
+    /// within the volume), its structures' voxel counts the box's.
+    pub fn crop(&self, dims: [usize; 3], lo: [usize; 3], size: [usize; 3]) -> LabelMap {
+        let mut ids = Vec::with_capacity(size.iter().product());
+        for k in lo[2]..lo[2] + size[2] {
+            for j in lo[1]..lo[1] + size[1] {
+                let row = lo[0] + dims[0] * (j + dims[1] * k);
+                ids.extend_from_slice(&self.ids[row..row + size[0]]);
+            }
+        }
+        self.with_ids(ids)
+    }
+
+    /// These structures over `ids`, counted there.
+    fn with_ids(&self, ids: Vec<u8>) -> LabelMap {
+        let mut map = LabelMap {
+            source: self.source.clone(),
+            ids,
+            structures: self.structures.clone(),
+        };
+        map.count_voxels();
+        map
+    }
+
+    /// Sets every structure's voxel count from the ids.
+    fn count_voxels(&mut self) {
+        let mut counts = vec![0usize; self.structures.len() + 1];
+        for &id in &self.ids {
+            counts[id as usize] += 1;
+        }
+        for (k, s) in self.structures.iter_mut().enumerate() {
+            s.voxels = counts[k + 1];
+        }
+    }
+
     /// Every structure's opacity a_l, by structure index.
     pub fn opacities(&self) -> Vec<f32> {
         self.structures.iter().map(|s| s.opacity).collect()
@@ -331,13 +404,7 @@ pub fn load(path: &Path, names: Option<&Path>, vol: &Volume) -> Result<LabelMap,
         ids,
         structures,
     };
-    let mut counts = vec![0usize; map.structures.len() + 1];
-    for &id in &map.ids {
-        counts[id as usize] += 1;
-    }
-    for (k, s) in map.structures.iter_mut().enumerate() {
-        s.voxels = counts[k + 1];
-    }
+    map.count_voxels();
     Ok(map)
 }
 
@@ -1026,5 +1093,45 @@ mod tests {
                 ..Default::default()
             })
             .is_err());
+    }
+    #[test]
+    fn a_downsampled_map_takes_each_blocks_majority_and_a_crop_its_box() {
+        let s = |name: &str| Structure {
+            value: 1,
+            name: name.into(),
+            colour: palette(0),
+            opacity: 1.0,
+            protected: false,
+            margin_mm: None,
+            voxels: 0,
+        };
+        // 5 x 2 x 2 voxels, x fastest; blocks of 2: x 0..2, 2..4 and the cut block 4..5.
+        #[rustfmt::skip]
+        let ids = vec![
+            1, 1, 2, 0, 3,
+            1, 0, 2, 1, 0,
+            0, 0, 2, 1, 0,
+            0, 0, 0, 1, 3,
+        ];
+        let m = LabelMap {
+            source: "seg".into(),
+            ids,
+            structures: vec![s("liver"), s("vessel"), s("tumour")],
+        };
+        let d = m.downsample([5, 2, 2], 2);
+        // Block 0: three voxels of 1, five unlabelled: the unlabelled win. Block 1: three of
+        // 2, three of 1, two unlabelled: the first structure with as many. Block 2 (cut):
+        // two of 3, two unlabelled: the structure.
+        assert_eq!(d.ids, vec![0, 1, 3]);
+        assert_eq!(
+            d.structures.iter().map(|s| s.voxels).collect::<Vec<_>>(),
+            vec![1, 0, 1]
+        );
+        let c = m.crop([5, 2, 2], [2, 1, 0], [3, 1, 2]);
+        assert_eq!(c.ids, vec![2, 1, 0, 0, 1, 3]);
+        assert_eq!(
+            c.structures.iter().map(|s| s.voxels).collect::<Vec<_>>(),
+            vec![2, 1, 1]
+        );
     }
 }

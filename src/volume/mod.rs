@@ -226,7 +226,9 @@ impl Volume {
     /// The volume averaged over n x n x n blocks (`--downsample N`): dims ceil(dims / n), spacing
     /// x n, the same directions, the origin moved to the centre of the first new voxel. Blocks
     /// cut by the far edges average the voxels they hold. Integer voxels are rounded to the
-    /// nearest integer and keep their type; float32 stays float32. `n <= 1` returns a copy.
+    /// nearest integer and keep their type; float32 stays float32. The labels go along, each
+    /// block taking the id most of its voxels hold ([`labels::LabelMap::downsample`]). `n <= 1`
+    /// returns a copy.
     pub fn downsample(&self, n: usize) -> Volume {
         use rayon::prelude::*;
         if n <= 1 {
@@ -277,13 +279,15 @@ impl Volume {
             origin: self.origin + shift,
             modality: self.modality,
             voxels,
-            labels: None,
+            labels: self
+                .labels
+                .as_ref()
+                .map(|l| std::sync::Arc::new(l.downsample(self.dims, n))),
         }
     }
 
     /// The voxels of the box `lo .. lo + dims` (clamped to the volume), with their geometry
-    /// (the origin moved to the box's first voxel); named `name[i0:i1,j0:j1,k0:k1]`. Its labels
-    /// stay behind (the shown volume's structures are drawn from the whole).
+    /// (the origin moved to the box's first voxel) and labels; named `name[i0:i1,j0:j1,k0:k1]`.
     pub fn crop(&self, lo: [usize; 3], dims: [usize; 3]) -> Volume {
         let lo: [usize; 3] = std::array::from_fn(|a| lo[a].min(self.dims[a]));
         let dims: [usize; 3] = std::array::from_fn(|a| dims[a].min(self.dims[a] - lo[a]));
@@ -322,7 +326,10 @@ impl Volume {
             origin: self.origin + self.directions * shift,
             modality: self.modality,
             voxels,
-            labels: None,
+            labels: self
+                .labels
+                .as_ref()
+                .map(|l| std::sync::Arc::new(l.crop(self.dims, lo, dims))),
         }
     }
 
@@ -1098,6 +1105,29 @@ mod tests {
         assert_eq!(
             one.voxels.get(0) as f64,
             mean(&(0..60).collect::<Vec<_>>()).round()
+        );
+        // Labels go along, block by block, and a crop keeps its box's.
+        let mut labelled = vol.clone();
+        labelled.labels = Some(std::sync::Arc::new(labels::LabelMap {
+            source: "seg".into(),
+            ids: (0..60).map(|i| (i % 5 >= 3) as u8).collect(),
+            structures: vec![labels::Structure {
+                value: 1,
+                name: "liver".into(),
+                colour: [1.0, 0.0, 0.0],
+                opacity: 1.0,
+                protected: false,
+                margin_mm: None,
+                voxels: 24,
+            }],
+        }));
+        let ds = labelled.downsample(2).labels.expect("the labels go along");
+        assert_eq!(ds.ids, vec![0, 1, 1, 0, 1, 1, 0, 1, 1, 0, 1, 1]);
+        let crop = labelled.crop([3, 0, 0], [2, 4, 3]).labels.expect("kept");
+        assert_eq!(crop.ids, vec![1; 24]);
+        assert_eq!(
+            (ds.structures[0].voxels, crop.structures[0].voxels),
+            (8, 24)
         );
     }
 

@@ -179,6 +179,76 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     common::assert_no_validation_messages(&gpu);
 }
 
+/// With labels, the box's AO is still the whole volume's, bit for bit, on every frame of a
+/// carving: its crop carries the structures (a translucent one scales O, a protected one stands
+/// inside the tools), and a structure shown differently at run time is cut again with it.
+#[test]
+fn a_labelled_boxs_ao_is_the_whole_volumes_with_its_structures() {
+    let gpu = common::gpu();
+    let (_, tf, lao_params) = small_head();
+    let mut vol = crate::labels::labelled_head(48, true);
+    // The tissue ball at 0.4 of its TF opacity; the vessel through it protected.
+    Arc::make_mut(vol.labels.as_mut().unwrap()).structures[1].opacity = 0.4;
+    let vol = Arc::new(vol);
+    let placement = Placement::default();
+    let lao = LaoGpu::new(&gpu).unwrap();
+    let ao = AoConfig::new(AoMethod::Lao, lao_params);
+    let mut inset = Inset::around(
+        &gpu,
+        vol.clone(),
+        (ao, tf.clone()),
+        ([20, 20, 24], [24.0, 30.0, 24.0]),
+    )
+    .unwrap();
+    // Shown as a run-time menu leaves them: the tissue at 0.4 again (cut anew), protected.
+    inset
+        .set_shown(&gpu, (ao, tf.clone()), &[1.0, 0.25])
+        .unwrap();
+    inset
+        .set_shown(&gpu, (ao, tf.clone()), &[1.0, 0.4])
+        .unwrap();
+    inset.set_protected(&[true, false]);
+    let mut whole = precompute(&gpu, &lao, &vol, &tf, &ao, false)
+        .unwrap()
+        .into_cao(&gpu, &vol)
+        .unwrap();
+    let (lo, hi) = inset.inner_box().unwrap();
+    let (crop_lo, crop) = inset.crop_box().unwrap();
+    let ids = &vol.labels.as_ref().unwrap().ids;
+    let mut carved = 0;
+    for (f, tools) in frames(placement.center).iter().enumerate() {
+        whole
+            .run_frame(tools, &placement, Mode::Contextual)
+            .unwrap();
+        inset
+            .run_frame(tools, (&vol, &placement), Mode::Contextual)
+            .unwrap();
+        let (want, got) = (read_ao(&whole.ao), read_ao(&inset.cao().unwrap().ao));
+        let mut changed = 0;
+        let mut labelled = [0; 3];
+        for k in lo[2]..hi[2] {
+            for j in lo[1]..hi[1] {
+                for i in lo[0]..hi[0] {
+                    let w = want[vol.index(i, j, k)];
+                    let c = [i - crop_lo[0], j - crop_lo[1], k - crop_lo[2]];
+                    let g = got[c[0] + crop[0] * (c[1] + crop[1] * c[2])];
+                    assert_eq!(
+                        g.to_bits(),
+                        w.to_bits(),
+                        "frame {f}: voxel ({i}, {j}, {k}): {g} against {w}"
+                    );
+                    changed += (w < 1.0) as usize;
+                    labelled[ids[vol.index(i, j, k)] as usize] += 1;
+                }
+            }
+        }
+        assert!(labelled.iter().all(|&n| n > 0), "{labelled:?}");
+        carved += (changed > 0) as usize;
+    }
+    assert!(carved > 0);
+    common::assert_no_validation_messages(&gpu);
+}
+
 #[test]
 fn a_box_computed_over_frames_is_the_box_cut_at_once() {
     let gpu = common::gpu();
@@ -256,7 +326,12 @@ fn a_box_computed_over_frames_is_the_box_cut_at_once() {
 /// `render phantom:192` with a probe (only its inside stays) into `out`, under `env`: what it
 /// told.
 fn render(out: &std::path::Path, env: &[(&str, &str)]) -> String {
-    let args = [
+    render_with(out, &[], env)
+}
+
+/// [`render`] with more arguments.
+fn render_with(out: &std::path::Path, more: &[&str], env: &[(&str, &str)]) -> String {
+    let mut args = vec![
         "render",
         "phantom:192",
         "--size",
@@ -270,6 +345,7 @@ fn render(out: &std::path::Path, env: &[(&str, &str)]) -> String {
         "--out",
         out.to_str().unwrap(),
     ];
+    args.extend_from_slice(more);
     let run = common::run_cao(&args, env);
     let stderr = String::from_utf8_lossy(&run.stderr).into_owned();
     assert!(run.status.success(), "{env:?}: {stderr}");
@@ -292,17 +368,46 @@ fn psnr(a: &std::path::Path, b: &std::path::Path) -> f64 {
     }
 }
 
+/// The whole set-up's GPU memory peak (MiB), as `render` tells it.
+fn peak_of(told: &str) -> u64 {
+    let at = told.find("GPU memory: peak ").expect("the peak is told");
+    let mib = told[at + 17..].split_whitespace().next().unwrap();
+    mib.parse().unwrap()
+}
+
+/// The left eye's pictures in `dirs`: the share of the pixels the first shows (not background)
+/// that each of the others shows within 2/255 per channel. Panics where the first shows
+/// fewer than 400.
+fn shares_as_first(dirs: &[&std::path::Path]) -> Vec<f64> {
+    use cao_xr::render::compare::{read_png, Picture};
+    let pics: Vec<Picture> = dirs
+        .iter()
+        .map(|d| read_png(&d.join("left.png")).unwrap())
+        .collect();
+    let f = &pics[0];
+    let px = |p: &Picture, k: usize| p.rgba[4 * k..4 * k + 4].to_vec();
+    let background = px(f, 0);
+    let seen: Vec<usize> = (0..f.width * f.height)
+        .filter(|&k| px(f, k) != background)
+        .collect();
+    assert!(seen.len() > 400, "{} pixels seen", seen.len());
+    let near = |p: &Picture, k: usize| {
+        px(p, k)
+            .iter()
+            .zip(px(f, k))
+            .all(|(a, b)| a.abs_diff(b) <= 2)
+    };
+    pics[1..]
+        .iter()
+        .map(|p| seen.iter().filter(|&&k| near(p, k)).count() as f64 / seen.len() as f64)
+        .collect()
+}
+
 #[test]
 fn under_a_quarter_of_the_budget_the_tools_neighbourhood_is_shown_at_full_resolution() {
     let dir = common::scratch("inset", "quarter");
     let full = dir.join("full");
     let stderr = render(&full, &[]);
-    // The whole set-up's peak, as `render` tells it.
-    let peak_of = |told: &str| -> u64 {
-        let at = told.find("GPU memory: peak ").expect("the peak is told");
-        let mib = told[at + 17..].split_whitespace().next().unwrap();
-        mib.parse().unwrap()
-    };
     let peak = peak_of(&stderr);
     let quarter = (peak / 4).to_string();
     let budget = [("CAO_XR_GPU_BUDGET_MB", quarter.as_str())];
@@ -343,28 +448,8 @@ fn under_a_quarter_of_the_budget_the_tools_neighbourhood_is_shown_at_full_resolu
     // Only the probe's inside is seen, all of it in the box: the full-resolution picture but for
     // rounding (the box's texture coordinates are the shown volume's scaled and offset): within
     // 2/255 per channel.
-    let read = |d: &std::path::Path| cao_xr::render::compare::read_png(&pic(d)).unwrap();
-    let (f, i, c) = (read(&full), read(&inset), read(&coarse));
-    let px = |p: &cao_xr::render::compare::Picture, k: usize| p.rgba[4 * k..4 * k + 4].to_vec();
-    let background = px(&f, 0);
-    let seen: Vec<usize> = (0..f.width * f.height)
-        .filter(|&k| px(&f, k) != background)
-        .collect();
-    assert!(
-        seen.len() > 400,
-        "{} pixels of the probe's inside",
-        seen.len()
-    );
-    let same = |p: &cao_xr::render::compare::Picture| {
-        let near = |k: usize| {
-            px(p, k)
-                .iter()
-                .zip(px(&f, k))
-                .all(|(a, b)| a.abs_diff(b) <= 2)
-        };
-        seen.iter().filter(|&&k| near(k)).count() as f64 / seen.len() as f64
-    };
-    let (same_with, same_without) = (same(&i), same(&c));
+    let shares = shares_as_first(&[&full, &inset, &coarse]);
+    let (same_with, same_without) = (shares[0], shares[1]);
     assert!(
         same_with >= 0.99 && same_without < 0.5,
         "pixels as at full resolution: {same_with} with the inset, {same_without} without"
@@ -377,6 +462,59 @@ fn under_a_quarter_of_the_budget_the_tools_neighbourhood_is_shown_at_full_resolu
     assert_eq!(
         std::fs::read(pic(&enough)).unwrap(),
         std::fs::read(pic(&full)).unwrap()
+    );
+}
+
+/// A labelled volume past the budget keeps its structures: the downsampled volume has them by
+/// each block's majority (the picture `--downsample N` gives), and the box at full resolution,
+/// where the picture is the full-resolution one.
+#[test]
+fn a_labelled_volume_past_the_budget_shows_its_structures_at_full_resolution_in_the_box() {
+    let dir = common::scratch("inset", "labels");
+    // Two structures in a checkerboard of 2-voxel cells through the head (what a downsample by
+    // 3 or more cannot show), the second at 0.3 of its TF opacity.
+    let n = 192;
+    let head = phantom::head(n);
+    let c = n as f64 / 2.0;
+    let ids = (0..head.voxel_count())
+        .map(|v| {
+            let x = [v % n, (v / n) % n, v / (n * n)];
+            let r2: f64 = x.iter().map(|&i| (i as f64 + 0.5 - c).powi(2)).sum();
+            if r2.sqrt() < 0.45 * n as f64 {
+                1 + ((x[0] / 2 + x[1] / 2 + x[2] / 2) % 2) as u8
+            } else {
+                0
+            }
+        })
+        .collect();
+    let mut seg = head.clone_geometry();
+    seg.voxels = cao_xr::volume::Voxels::U8(ids);
+    let path = dir.join("seg.nii");
+    cao_xr::volume::nifti::write(&path, &seg, false).unwrap();
+    let labels = ["--labels", path.to_str().unwrap(), "--opacity", "2=0.3"];
+    let full = dir.join("full");
+    let quarter = (peak_of(&render_with(&full, &labels, &[])) / 4).to_string();
+    let budget = ("CAO_XR_GPU_BUDGET_MB", quarter.as_str());
+    let inset = dir.join("inset");
+    let told = render_with(&inset, &labels, &[budget]);
+    assert!(told.contains(" at full resolution"), "{told}");
+    let coarse = dir.join("coarse");
+    let told = render_with(&coarse, &labels, &[budget, ("CAO_XR_INSET", "0")]);
+    let at = told.find("shown downsampled by ").expect("downsampled");
+    let by = told[at + 21..].split_whitespace().next().unwrap();
+    let given = dir.join("given");
+    render_with(&given, &[&labels[..], &["--downsample", by]].concat(), &[]);
+    assert!(
+        std::fs::read(coarse.join("left.png")).unwrap()
+            == std::fs::read(given.join("left.png")).unwrap(),
+        "downsampled by {by} for the budget, and as given, the pictures differ"
+    );
+    let shares = shares_as_first(&[&full, &inset, &coarse]);
+    assert!(
+        shares[0] >= 0.99 && shares[1] < 0.5,
+        "pixels as at full resolution: {} with the inset, {} without",
+        shares[0],
+        shares[1]
     );
 }
 

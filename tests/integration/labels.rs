@@ -371,7 +371,7 @@ fn a_slicer_segmentation_gives_its_segments_names_colours_and_values() {
 
 /// The phantom head with two structures: a vessel (a rod through the skull, id 1) and the
 /// tissue around it (a ball, id 2).
-fn labelled_head(n: usize, protect_vessel: bool) -> cao_xr::volume::Volume {
+pub(crate) fn labelled_head(n: usize, protect_vessel: bool) -> cao_xr::volume::Volume {
     let mut vol = cao_xr::volume::phantom::head(n);
     let c = n as f64 / 2.0;
     let ids: Vec<u8> = (0..vol.voxel_count())
