@@ -641,17 +641,22 @@ impl Cao {
     }
 
     /// The safety margins each of `tools` (active or not: the warning comes before the cut) is
-    /// inside ([`crate::clip::margin`]).
+    /// inside ([`crate::clip::margin`]), with `fields` in the grid of this volume placed at
+    /// `placement`, or in `grid` placed at `placement` (the full-resolution volume this one is
+    /// a downsample of: the tools' maps are the same, the voxel centres tested the grid's).
     pub fn margin_hits(
         &mut self,
         tools: &[Tool],
-        placement: &Placement,
+        (grid, placement): (Option<&Volume>, &Placement),
         fields: &[MarginField],
     ) -> Result<Vec<MarginHit>> {
         if fields.is_empty() {
             return Ok(Vec::new());
         }
-        let world_from_index = self.world_from_index(placement);
+        let (world_from_index, dims) = match grid {
+            Some(g) => (world_from_index(g, placement), g.dims),
+            None => (self.world_from_index(placement), self.dims),
+        };
         let radius = self.dilation_radius_mm();
         let mut hits = Vec::new();
         for (n, tool) in tools.iter().enumerate() {
@@ -659,7 +664,7 @@ impl Cao {
             let map = self.map_for(tool, placement, false, radius)?;
             let world_from_local = tool.pose.matrix() * Mat4::from_scale(Vec3::splat(tool.size));
             let local_from_index = world_from_local.inverse() * world_from_index;
-            let b = self.box_of(&map, local_from_index.inverse());
+            let b = box_in(&map, local_from_index.inverse(), dims);
             let range = (b.min.map(|v| v as usize), b.max.map(|v| v as usize));
             hits.extend(margin::hits(n, &map, local_from_index, range, fields));
         }
@@ -668,12 +673,7 @@ impl Cao {
 
     /// Voxel index coordinates (centres at i + 0.5) to the world.
     fn world_from_index(&self, placement: &Placement) -> Mat4 {
-        world_from_tex(&self.geometry, placement)
-            * Mat4::from_scale(Vec3::new(
-                1.0 / self.dims[0] as f32,
-                1.0 / self.dims[1] as f32,
-                1.0 / self.dims[2] as f32,
-            ))
+        world_from_index(&self.geometry, placement)
     }
 
     /// Builds on the GPU, and caches, the clip maps the active tools need and the cache lacks.
@@ -803,23 +803,7 @@ impl Cao {
 
     /// Voxel box (index space, padded by one voxel) around the dilated shape.
     fn box_of(&self, map: &ClipMap, index_from_local: Mat4) -> VoxelBox {
-        let (e, (z0, z1)) = (map.extent, map.z_range);
-        let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
-        for c in 0..8 {
-            let p = Vec3::new(
-                if c & 1 == 0 { -e } else { e },
-                if c & 2 == 0 { -e } else { e },
-                if c & 4 == 0 { z0 } else { z1 },
-            );
-            let q = index_from_local.transform_point3(p);
-            lo = lo.min(q);
-            hi = hi.max(q);
-        }
-        let clamp = |v: f32, a: usize| (v as i32).clamp(0, self.dims[a] as i32);
-        VoxelBox {
-            min: [0, 1, 2].map(|a| clamp(lo[a].floor() - 1.0, a)),
-            max: [0, 1, 2].map(|a| clamp(hi[a].ceil() + 1.0, a)),
-        }
+        box_in(map, index_from_local, self.dims)
     }
 
     fn dims4(&self) -> [i32; 4] {
@@ -1337,4 +1321,32 @@ pub struct PendingFrame {
     clipped_outside: bool,
     /// The [`FrameSlot`] holding its counters and timer.
     slot: usize,
+}
+
+/// Voxel index coordinates (centres at i + 0.5) of `grid` placed at `placement` to the world.
+fn world_from_index(grid: &Volume, placement: &Placement) -> Mat4 {
+    let d = grid.dims.map(|n| 1.0 / n as f32);
+    world_from_tex(grid, placement) * Mat4::from_scale(Vec3::from_array(d))
+}
+
+/// The voxel box of a grid of `dims` that holds what `map`'s tool (its local frame to voxel
+/// index coordinates: `index_from_local`) may hide, a voxel more on every side.
+fn box_in(map: &ClipMap, index_from_local: Mat4, dims: [usize; 3]) -> VoxelBox {
+    let (e, (z0, z1)) = (map.extent, map.z_range);
+    let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+    for c in 0..8 {
+        let p = Vec3::new(
+            if c & 1 == 0 { -e } else { e },
+            if c & 2 == 0 { -e } else { e },
+            if c & 4 == 0 { z0 } else { z1 },
+        );
+        let q = index_from_local.transform_point3(p);
+        lo = lo.min(q);
+        hi = hi.max(q);
+    }
+    let clamp = |v: f32, a: usize| (v as i32).clamp(0, dims[a] as i32);
+    VoxelBox {
+        min: [0, 1, 2].map(|a| clamp(lo[a].floor() - 1.0, a)),
+        max: [0, 1, 2].map(|a| clamp(hi[a].ceil() + 1.0, a)),
+    }
 }

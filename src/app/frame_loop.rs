@@ -163,8 +163,11 @@ pub struct FrameLoop {
     slots: Slots,
     /// Frames [`FrameLoop::submit`] leaves in flight (1 or 2).
     depth: usize,
-    /// The distance fields of the structures with a safety margin (`--margin`).
+    /// The distance fields of the structures with a safety margin (`--margin`), in the shown
+    /// volume's grid or, for a downsampled volume, in `margin_grid`: the full-resolution one
+    /// ([`FrameLoop::measure_margins_in`]).
     margins: Vec<MarginField>,
+    margin_grid: Option<Volume>,
     /// A frame budget ([`FrameLoop::set_frame_budget`]).
     budget: Option<BudgetState>,
     /// Points and rulers drawn with the overlay (`--markups`).
@@ -353,6 +356,7 @@ impl FrameLoop {
                     coarse.downsampled_by(),
                     coarse.name
                 );
+                fl.measure_margins_in(&vol);
                 if !Inset::wanted() {
                     return Ok(fl);
                 }
@@ -390,6 +394,7 @@ impl FrameLoop {
                         inset(&mut fl, per_voxel)?;
                     }
                 }
+                fl.measure_margins_in(&vol);
                 Ok(fl)
             }
             None => Err(fit_advice(
@@ -397,6 +402,20 @@ impl FrameLoop {
                 AppError::Gpu(GpuError::OutOfMemory(m)),
                 None,
             )),
+        }
+    }
+
+    /// Measures the safety margins in `whole`, the full-resolution volume this one is a
+    /// downsample of (its distance fields, on the host), so that a tool's distance to a
+    /// structure is as exact as at full resolution; the margins' glow stays the shown volume's.
+    fn measure_margins_in(&mut self, whole: &Volume) {
+        let fields = whole
+            .labels
+            .as_deref()
+            .map_or_else(Vec::new, |l| l.margin_fields(whole.dims, whole.spacing));
+        if !fields.is_empty() {
+            self.margins = fields;
+            self.margin_grid = Some(whole.clone_geometry());
         }
     }
 
@@ -606,6 +625,7 @@ impl FrameLoop {
             tf_slab_share: (start != Start::Shown(0)).then_some(FAST_START_SLAB_SHARE),
             lighting: None,
             margins,
+            margin_grid: None,
             budget: None,
             markups: Markups::default(),
             inset: None,
@@ -854,9 +874,20 @@ impl FrameLoop {
         // The isovalue the settings start with becomes the scene's, which the hands then move.
         self.scene.iso = self.scene.iso.or(self.settings.iso);
         self.interaction.update(input, &mut self.scene);
-        let margins = self
-            .cao
-            .margin_hits(&self.scene.tools, &self.scene.volume, &self.margins)?;
+        let placement = &self.scene.volume;
+        let margins = match &self.margin_grid {
+            Some(g) => {
+                let at = Inset::placed(g, &self.volume, placement);
+                let grid = (Some(g), &at);
+                self.cao
+                    .margin_hits(&self.scene.tools, grid, &self.margins)?
+            }
+            None => {
+                let grid = (None, placement);
+                self.cao
+                    .margin_hits(&self.scene.tools, grid, &self.margins)?
+            }
+        };
         // Everything a frame writes from the host or reads back has one copy per slot (CAO's
         // tool table, maps, counters and timer, the SH timers, the uniforms, the read-back).
         // A transfer-function switch is the exception: it replaces buffers the frame in flight

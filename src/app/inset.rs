@@ -419,7 +419,7 @@ impl Inset {
 
     /// The placement of `part`, a grid sharing the patient space of `shown` placed at `p`:
     /// its box centre where `shown`'s places that patient point.
-    fn placed(part: &Volume, shown: &Volume, p: &Placement) -> Placement {
+    pub fn placed(part: &Volume, shown: &Volume, p: &Placement) -> Placement {
         let centre = lps_from_local_mm(part, Vec3::ZERO);
         Placement {
             center: world_from_lps_point(shown, p, centre),

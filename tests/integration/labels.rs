@@ -566,12 +566,23 @@ fn a_tool_entering_a_safety_margin_is_told_with_the_exact_distance() {
         steps: 4,
         step_mm: 4.0,
     };
-    let new_loop = |vol: Arc<cao_xr::volume::Volume>| {
+    let new_loop_on = |gpu: &cao_xr::gpu::Gpu, vol: Arc<cao_xr::volume::Volume>| {
         let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
         let settings = InteractionSettings::default();
-        FrameLoop::new(&gpu, vol, tfs, params, (32, 32), settings, false).unwrap()
+        FrameLoop::new(gpu, vol, tfs, params, (32, 32), settings, false).unwrap()
     };
+    let new_loop = |vol| new_loop_on(&gpu, vol);
     let mut fl = new_loop(Arc::clone(&vol));
+    // Under 3/4 of the GPU memory the volume is shown downsampled, and the distances are still
+    // measured at full resolution.
+    let tight = common::gpu();
+    tight.set_memory_budget(Some(gpu.session_memory_peak() * 3 / 4));
+    let mut coarse = new_loop_on(&tight, Arc::clone(&vol));
+    assert!(
+        coarse.volume().name.contains("-ds"),
+        "{}",
+        coarse.volume().name
+    );
     let placement = Placement::default();
     // The vessel's voxel centres in the world, for the brute-force distance.
     let model = world_from_tex(&vol, &placement);
@@ -593,7 +604,7 @@ fn a_tool_entering_a_safety_margin_is_told_with_the_exact_distance() {
         .enumerate()
     {
         let centre = placement.center + Vec3::new(dx, 0.0, 0.0);
-        fl.scene.tools = vec![Tool {
+        let tool = Tool {
             shape: cao_xr::clip::Shape::Sphere,
             pose: Pose {
                 position: centre,
@@ -602,21 +613,35 @@ fn a_tool_entering_a_safety_margin_is_told_with_the_exact_distance() {
             size: radius,
             mode: ToolMode::Carve,
             active: f % 2 == 0,
-        }];
-        let out = fl
-            .frame(&FrameInput::without_hands(f as f64, views))
-            .unwrap();
+        };
         let brute = vessel
             .iter()
             .map(|v| ((v.distance(centre) - radius) * 1e3).max(0.0))
             .fold(f32::INFINITY, f32::min);
+        coarse.scene.tools = vec![tool];
+        let told = coarse
+            .frame(&FrameInput::without_hands(f as f64, views))
+            .unwrap();
+        if let Some(h) = told.stats.margins.first() {
+            assert!(
+                (h.distance_mm - brute).abs() <= half_diagonal,
+                "frame {f}, downsampled: reported {} mm, brute force {brute} mm",
+                h.distance_mm
+            );
+        }
+        fl.scene.tools = vec![tool];
+        let out = fl
+            .frame(&FrameInput::without_hands(f as f64, views))
+            .unwrap();
         let hit = out.stats.margins.first();
         if (brute - margin).abs() > half_diagonal {
-            assert_eq!(
-                hit.is_some(),
-                brute < margin,
-                "frame {f}: {brute} mm, {hit:?}"
-            );
+            for (hit, what) in [(hit, "full"), (told.stats.margins.first(), "downsampled")] {
+                assert_eq!(
+                    hit.is_some(),
+                    brute < margin,
+                    "frame {f}, {what}: {brute} mm, {hit:?}"
+                );
+            }
         }
         if let Some(h) = hit {
             assert_eq!((h.tool, h.structure, h.margin_mm), (0, 0, margin));
