@@ -321,11 +321,10 @@ impl FrameLoop {
             // room for what a frame holds beside the set-up, so that a set-up that fits also
             // draws with tools carving.
             fl.tex.prepare(&fl.settings)?;
-            let room = gpu.reserve(
+            gpu.check_room(
                 "a frame's tools, boxes and staging",
                 super::inset::frame_reserve(fl.volume.voxel_count()),
             )?;
-            gpu.release(room);
             Ok(fl)
         };
         let m = match setup(vol.clone(), show_progress) {

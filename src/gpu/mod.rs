@@ -153,6 +153,25 @@ struct MemoryUse {
     budget: Option<u64>,
 }
 
+impl MemoryUse {
+    /// Refuses `bytes` more for `what` beyond the budget.
+    fn room(&self, what: &str, bytes: u64) -> Result<()> {
+        match self.budget {
+            Some(budget) if self.total + bytes > budget => {
+                Err(GpuError::OutOfMemory(Box::new(OutOfMemory {
+                    what: what.to_string(),
+                    bytes,
+                    in_use: self.total,
+                    held: self.held.values().copied().collect(),
+                    available: budget,
+                    budget: true,
+                })))
+            }
+            _ => Ok(()),
+        }
+    }
+}
+
 /// Fails the build unless a `#[repr(C)]` struct that a shader reads has the size and field
 /// offsets of its GLSL block (std140 for uniform blocks, std430 for push constants and storage
 /// buffers), written next to the struct from the GLSL declaration:
@@ -709,22 +728,18 @@ impl Core {
         }
     }
 
+    /// Whether the budget leaves room for `bytes` more for `what` beside what is held (always,
+    /// without a budget): refused as an allocation beyond it would be, and counted nowhere,
+    /// so the peaks stay what was allocated.
+    pub fn check_room(&self, what: &str, bytes: u64) -> Result<()> {
+        self.memory.lock().unwrap().room(what, bytes)
+    }
+
     /// Counts `bytes` for `what` before they are allocated; refused beyond the budget. The
     /// id returned is given back with [`Core::release`].
     pub(crate) fn reserve(&self, what: &str, bytes: u64) -> Result<u64> {
         let mut m = self.memory.lock().unwrap();
-        if let Some(budget) = m.budget {
-            if m.total + bytes > budget {
-                return Err(GpuError::OutOfMemory(Box::new(OutOfMemory {
-                    what: what.to_string(),
-                    bytes,
-                    in_use: m.total,
-                    held: m.held.values().copied().collect(),
-                    available: budget,
-                    budget: true,
-                })));
-            }
-        }
+        m.room(what, bytes)?;
         let id = m.next;
         m.next += 1;
         m.held.insert(id, bytes);

@@ -275,3 +275,26 @@ fn the_session_peak_is_kept_where_a_fit_restarts_the_peak() {
     assert!(gpu.memory_peak() < with, "the measuring peak restarted");
     assert_eq!(gpu.session_memory_peak(), with, "the run's peak is kept");
 }
+
+/// The room a set-up leaves for its frames is checked against the budget and counted in no
+/// peak: the peaks `render` and `bench scale` tell are what was allocated.
+#[test]
+fn a_room_check_is_refused_beyond_the_budget_and_counted_in_no_peak() {
+    let gpu = crate::common::gpu();
+    let held = gpu.memory_in_use();
+    gpu.set_memory_budget(Some(held + (64 << 20)));
+    gpu.reset_memory_peak();
+    let (peak, session) = (gpu.memory_peak(), gpu.session_memory_peak());
+    gpu.check_room("frames", 60 << 20).unwrap();
+    assert_eq!(
+        (
+            gpu.memory_peak(),
+            gpu.session_memory_peak(),
+            gpu.memory_in_use()
+        ),
+        (peak, session, held),
+        "a room check held or counted memory"
+    );
+    let e = gpu.check_room("frames", 65 << 20).unwrap_err();
+    assert!(e.to_string().contains("frames needs 65.0 MiB"), "{e}");
+}
