@@ -1170,8 +1170,8 @@ impl FrameLoop {
                 .command_buffer_infos(&cmds)
                 .signal_semaphore_infos(&signals)];
             d.reset_fences(&[slot.fence])
-                .and_then(|_| d.queue_submit2(gpu.queue, &submit, slot.fence))
                 .map_err(crate::gpu::GpuError::from)?;
+            gpu.submit(&submit, slot.fence)?;
         }
         slots.next = index + 1;
         slots.flights.push_back(InFlight {

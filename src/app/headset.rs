@@ -124,7 +124,11 @@ fn frames(
             Some(m) => m.acquire()?,
             None => None,
         };
-        let images = xs.acquire()?;
+        // The runtime may use the queue in its swapchain calls and at the frame's end.
+        let images = {
+            let _queue = fl.gpu.queue_guard();
+            xs.acquire()?
+        };
         let d = fl.gpu.device.clone();
         let view = mirror.as_ref().zip(shown.as_ref());
         let retired = fl.submit_signalling(
@@ -141,7 +145,10 @@ fn frames(
             },
             shown.as_ref().map(|a| a.rendered),
         );
-        xs.release()?;
+        {
+            let _queue = fl.gpu.queue_guard();
+            xs.release()?;
+        }
         let mut retired: Vec<_> = retired?.into_iter().collect();
         if done {
             // The session's last frame: its stats (a carve or a margin it starts) count too.
@@ -150,7 +157,10 @@ fn frames(
         for r in retired {
             react(xs, fl, r.stats, &mut last)?;
         }
-        xs.end_frame(&frame)?;
+        {
+            let _queue = fl.gpu.queue_guard();
+            xs.end_frame(&frame)?;
+        }
         if let Some(m) = mirror {
             if let Some(image) = shown {
                 m.present(image)?;

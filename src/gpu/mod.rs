@@ -231,7 +231,11 @@ pub struct Core {
     pub physical: vk::PhysicalDevice,
     pub device: ash::Device,
     pub push_descriptor: ash::khr::push_descriptor::Device,
+    /// The one queue. Vulkan wants its use externally synchronised: submit through
+    /// [`Core::submit`], and hold [`Core::queue_guard`] around anything else that may use it
+    /// (a present, an OpenXR runtime's swapchain calls).
     pub queue: vk::Queue,
+    queue_lock: Mutex<()>,
     pub queue_family: u32,
     pub allocator: Mutex<ManuallyDrop<Allocator>>,
     cmd_pool: Mutex<vk::CommandPool>,
@@ -509,6 +513,7 @@ impl Gpu {
             device,
             push_descriptor,
             queue,
+            queue_lock: Mutex::new(()),
             queue_family,
             allocator: Mutex::new(ManuallyDrop::new(allocator)),
             cmd_pool: Mutex::new(cmd_pool),
@@ -868,9 +873,7 @@ impl Core {
             let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
             let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
             let res = self
-                .device
-                .queue_submit2(self.queue, &submit, fence)
-                .map_err(GpuError::from)
+                .submit(&submit, fence)
                 .and_then(|_| self.wait_fences(&[fence]));
             if matches!(res, Err(GpuError::Stalled(_))) {
                 // Still in use by a device that stopped answering: leaked, not destroyed.
@@ -881,6 +884,24 @@ impl Core {
             res?;
             Ok(r)
         }
+    }
+
+    /// Submits to the queue, holding its lock.
+    ///
+    /// # Safety
+    /// As `vkQueueSubmit2`: the command buffers are recorded and not in use elsewhere, and
+    /// everything they and `fence` reference lives until the fence signals.
+    pub unsafe fn submit(&self, submits: &[vk::SubmitInfo2], fence: vk::Fence) -> Result<()> {
+        let _queue = self.queue_guard();
+        Ok(self.device.queue_submit2(self.queue, submits, fence)?)
+    }
+
+    /// The queue's lock, for a use of it other than [`Core::submit`].
+    pub fn queue_guard(&self) -> std::sync::MutexGuard<'_, ()> {
+        // A panic while holding it cannot leave the queue inconsistent.
+        self.queue_lock
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
     /// A full memory barrier between passes (compute/graphics/transfer all read-after-write).

@@ -293,7 +293,11 @@ impl Presenter {
         if wait {
             info = info.wait_semaphores(&waits);
         }
-        match self.swapchain_fn.queue_present(self.gpu.queue, &info) {
+        let presented = {
+            let _queue = self.gpu.queue_guard();
+            self.swapchain_fn.queue_present(self.gpu.queue, &info)
+        };
+        match presented {
             Ok(_) | Err(vk::Result::ERROR_OUT_OF_DATE_KHR) | Err(vk::Result::SUBOPTIMAL_KHR) => {
                 Ok(())
             }

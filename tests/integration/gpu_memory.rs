@@ -298,3 +298,36 @@ fn a_room_check_is_refused_beyond_the_budget_and_counted_in_no_peak() {
     let e = gpu.check_room("frames", 65 << 20).unwrap_err();
     assert!(e.to_string().contains("frames needs 65.0 MiB"), "{e}");
 }
+
+/// Two threads submitting to the one queue at once (one-shot work, and a frame's own
+/// submission): its use is synchronised (the validation layers' thread-safety checks report a
+/// queue used by two threads at a time).
+#[test]
+fn the_queue_is_used_by_one_thread_at_a_time() {
+    use ash::vk;
+    let gpu = crate::common::gpu();
+    std::thread::scope(|s| {
+        s.spawn(|| {
+            for _ in 0..300 {
+                gpu.submit_and_wait(|cmd| gpu.barrier(cmd)).unwrap();
+            }
+        });
+        s.spawn(|| {
+            let d = &gpu.device;
+            // SAFETY: the fence is this thread's, waited for before it is reset or destroyed;
+            // an empty submission references nothing else.
+            unsafe {
+                let fence = d
+                    .create_fence(&vk::FenceCreateInfo::default(), None)
+                    .unwrap();
+                for _ in 0..300 {
+                    gpu.submit(&[], fence).unwrap();
+                    d.wait_for_fences(&[fence], true, u64::MAX).unwrap();
+                    d.reset_fences(&[fence]).unwrap();
+                }
+                d.destroy_fence(fence, None);
+            }
+        });
+    });
+    crate::common::assert_no_validation_messages(&gpu);
+}
