@@ -33,8 +33,10 @@ layout(set = 0, binding = 6) uniform sampler3D sh0;
 layout(set = 0, binding = 7) uniform sampler3D sh1;
 layout(set = 0, binding = 8) uniform sampler3D sh2;
 layout(set = 0, binding = 9) uniform sampler3D sh3;
-// var_s of variance opacity modulation (data units squared); read when lighting.w = 1/V_max > 0.
+// var_s of variance opacity modulation (data units squared), when VARIANCE; the inset's at full
+// resolution (flag INSET).
 layout(set = 0, binding = 10) uniform sampler3D variance;
+layout(set = 0, binding = 23) uniform sampler3D inset_variance;
 // Pre-integrated TF: premultiplied colour and opacity of a step from front to back value.
 layout(set = 0, binding = 12) uniform sampler2D preint;
 // Blue-noise thresholds in (0, 1), tiled over the screen (src/render/blue_noise.rs).
@@ -647,7 +649,8 @@ void main() {
             }
             // Variance opacity modulation: homogeneous tissue fades, boundaries stay.
             if (flag(RAY_VARIANCE)) {
-                float m = min(texture(variance, p).r * frame.lighting.w, 1.0);
+                float var_s = in_inset(p) ? texture(inset_variance, inset_tex(p)).r : texture(variance, p).r;
+                float m = min(var_s * frame.lighting.w, 1.0);
                 a *= m;
                 premult *= m;
             }

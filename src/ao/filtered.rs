@@ -332,13 +332,19 @@ pub struct VarianceModulation {
 /// max(1, round(R / s_a)), out-of-grid members taking v_min; in data units squared. Separable
 /// sums in f64 (the values are shifted by v_min, so outside members add nothing).
 pub fn variance_volume(vol: &crate::volume::Volume, radius_mm: f64) -> Vec<f32> {
+    variance_volume_shifted(vol, radius_mm, vol.value_range().0)
+}
+
+/// [`variance_volume`] with the values shifted by `lo` (out-of-grid members taking `lo`): a part
+/// of a volume shifted by the whole's v_min gives each voxel whose box lies in the part the
+/// whole's var_s, bit for bit (the same sums in the same order).
+pub fn variance_volume_shifted(vol: &crate::volume::Volume, radius_mm: f64, lo: f32) -> Vec<f32> {
     let h = FilterParams {
         radius_mm,
         ..Default::default()
     }
     .half_widths(vol.spacing);
     let dims = vol.dims;
-    let (lo, _) = vol.value_range();
     let mut sums: Vec<[f64; 2]> = (0..vol.voxel_count())
         .into_par_iter()
         .map(|i| {
@@ -549,6 +555,23 @@ mod tests {
         assert_eq!(var[1 + n * (8 + n * 8)], 0.0);
         // At the boundary between the halves: large.
         assert!(var[5 + n * (5 + n * 5)] > 1000.0);
+        // A part shifted by the whole's v_min: the whole's bits wherever the box lies in it
+        // (here the part [1, 9) x [2, 10) x [3, 8), the box one voxel a side).
+        let (lo, size) = ([1, 2, 3], [8, 8, 5]);
+        let part = vol.crop(lo, size);
+        let shifted = variance_volume_shifted(&part, 1.0, 100.0);
+        let mut compared = 0;
+        for k in 1..size[2] - 1 {
+            for j in 1..size[1] - 1 {
+                for i in 1..size[0] - 1 {
+                    let whole = var[vol.index(lo[0] + i, lo[1] + j, lo[2] + k)];
+                    let got = shifted[part.index(i, j, k)];
+                    assert_eq!(got.to_bits(), whole.to_bits(), "({i}, {j}, {k})");
+                    compared += 1;
+                }
+            }
+        }
+        assert!(compared > 100);
     }
 
     #[test]

@@ -686,6 +686,9 @@ impl FrameLoop {
     pub fn set_variance(&mut self, m: Option<VarianceModulation>) -> Result<()> {
         let var = m.map(|m| variance_volume(&self.volume, m.radius_mm));
         self.tex.set_variance(&self.gpu, var.as_deref())?;
+        if let Some(inset) = self.inset.as_mut() {
+            inset.set_variance(&self.gpu, m)?;
+        }
         self.settings.variance_max = m.map_or(0.0, |m| m.max as f32);
         Ok(())
     }

@@ -8,6 +8,7 @@
 
 use super::common::{precompute_method, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
+use crate::ao::filtered::{variance_volume_shifted, FilterParams, VarianceModulation};
 use crate::ao::lao::{LaoKernel, SkipBuffers, SlabInput};
 use crate::ao::method::{AoVolume, MethodGpu};
 use crate::ao::progressive::SlabScheduler;
@@ -59,6 +60,8 @@ pub struct Inset {
     /// whether the tools leave it standing.
     structures: Vec<f32>,
     protected: Vec<bool>,
+    /// Variance opacity modulation, where it is on: the box's var_s is the full resolution's.
+    variance: Option<VarianceModulation>,
     lao: LaoGpu,
     /// The inner box's size and the margin on each side (full-resolution voxels).
     inner: [usize; 3],
@@ -93,6 +96,8 @@ struct Part {
     scalars: Image,
     /// Its structure ids, where the volume has labels.
     ids: Option<Image>,
+    /// Its var_s, where variance modulation is on.
+    variance: Option<Image>,
 }
 
 impl Inset {
@@ -215,6 +220,7 @@ impl Inset {
             margin: margin_for(&whole, &config),
             structures: labels.map_or_else(Vec::new, |l| l.opacities()),
             protected: labels.map_or_else(Vec::new, |l| l.protected()),
+            variance: None,
             whole,
             config,
             tf,
@@ -286,6 +292,7 @@ impl Inset {
             .take()
             .map(|l| crate::render::id_image(gpu, crop.dims, &l.ids))
             .transpose()?;
+        let variance = self.crop_variance(gpu, crop_lo, crop.dims)?;
         crop.voxels = crate::volume::Voxels::U8(Vec::new());
         self.part = Some(Part {
             inner_lo,
@@ -294,6 +301,7 @@ impl Inset {
             cao,
             scalars,
             ids,
+            variance,
         });
         Ok(())
     }
@@ -548,6 +556,58 @@ impl Inset {
         self.cut(gpu, self.centre())
     }
 
+    /// Variance opacity modulation `m` (None: off) in the box from now on: var_s at full
+    /// resolution, as the ray caster reads it there.
+    pub fn set_variance(&mut self, gpu: &Gpu, m: Option<VarianceModulation>) -> Result<()> {
+        self.variance = m;
+        let at = self.part.as_ref().map(|p| (p.crop_lo, p.crop.dims));
+        if let Some((crop_lo, dims)) = at {
+            let var = self.crop_variance(gpu, crop_lo, dims)?;
+            if let Some(p) = self.part.as_mut() {
+                p.variance = var;
+            }
+        }
+        Ok(())
+    }
+
+    /// The crop's var_s image at `crop_lo` of `dims`, where variance modulation is on: computed
+    /// over the crop grown by the box's half-widths and shifted by the whole volume's v_min, so
+    /// that every voxel of the crop has the whole volume's var_s, bit for bit.
+    fn crop_variance(
+        &self,
+        gpu: &Gpu,
+        crop_lo: [usize; 3],
+        dims: [usize; 3],
+    ) -> Result<Option<Image>> {
+        let Some(m) = self.variance else {
+            return Ok(None);
+        };
+        let whole = &*self.whole;
+        let h = FilterParams {
+            radius_mm: m.radius_mm,
+            ..Default::default()
+        }
+        .half_widths(whole.spacing);
+        let lo: [usize; 3] = std::array::from_fn(|a| crop_lo[a].saturating_sub(h[a]));
+        let hi: [usize; 3] =
+            std::array::from_fn(|a| (crop_lo[a] + dims[a] + h[a]).min(whole.dims[a]));
+        let mut grown = whole.crop(lo, std::array::from_fn(|a| hi[a] - lo[a]));
+        grown.labels = None;
+        let var = variance_volume_shifted(&grown, m.radius_mm, self.range.0);
+        let mut part = Vec::with_capacity(dims.iter().product());
+        for k in 0..dims[2] {
+            for j in 0..dims[1] {
+                let at = grown.index(
+                    crop_lo[0] - lo[0],
+                    crop_lo[1] - lo[1] + j,
+                    crop_lo[2] - lo[2] + k,
+                );
+                part.extend_from_slice(&var[at..at + dims[0]]);
+            }
+        }
+        Ok(Some(crate::render::variance_image(gpu, dims, &part)?))
+    }
+
     /// Which structures the tools leave standing (by structure index), from the next frame on.
     pub fn set_protected(&mut self, protected: &[bool]) {
         self.protected = protected.to_vec();
@@ -618,6 +678,7 @@ impl Inset {
             scalars: &part.scalars,
             ao: &part.cao.ao,
             structures: part.ids.as_ref(),
+            variance: part.variance.as_ref(),
             lo: (lo - offset) / scale,
             hi: (hi - offset) / scale,
             scale,

@@ -359,6 +359,16 @@ fn structure_image(
     Ok((id_image(gpu, dims, ids)?, table, protect))
 }
 
+/// var_s (one value per voxel of a grid of `dims`) as the R32F volume the ray caster reads.
+pub fn variance_image(gpu: &Gpu, dims: [usize; 3], var: &[f32]) -> Result<Image> {
+    let img = volume_image(gpu, dims, vk::Format::R32_SFLOAT, "variance")?;
+    img.upload(
+        bytemuck::cast_slice(var),
+        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
+    )?;
+    Ok(img)
+}
+
 /// Structure ids (one byte per voxel of a grid of `dims`) as the R8 unorm volume the ray caster
 /// reads (id / 255).
 pub fn id_image(gpu: &Gpu, dims: [usize; 3], ids: &[u8]) -> Result<Image> {
@@ -646,17 +656,9 @@ impl VolumeTextures {
     /// Uploads var_s (one value per voxel, x fastest) for variance opacity modulation; None
     /// turns it off.
     pub fn set_variance(&mut self, gpu: &Gpu, variance: Option<&[f32]>) -> Result<()> {
-        self.variance = match variance {
-            Some(v) => {
-                let img = volume_image(gpu, self.dims, vk::Format::R32_SFLOAT, "variance")?;
-                img.upload(
-                    bytemuck::cast_slice(v),
-                    vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-                )?;
-                Some(img)
-            }
-            None => None,
-        };
+        self.variance = variance
+            .map(|v| variance_image(gpu, self.dims, v))
+            .transpose()?;
         Ok(())
     }
 
@@ -1090,6 +1092,8 @@ pub struct InsetBinding<'a> {
     pub ao: &'a Buffer,
     /// Its structure ids ([`id_image`]), where the volume has labels.
     pub structures: Option<&'a Image>,
+    /// Its var_s at full resolution ([`variance_image`]), where variance modulation is on.
+    pub variance: Option<&'a Image>,
     /// The box \[lo, hi) of the shown volume's texture coordinates it replaces.
     pub lo: Vec3,
     pub hi: Vec3,
@@ -1220,7 +1224,7 @@ impl Renderer {
             let sampled = Some(vk::DescriptorType::COMBINED_IMAGE_SAMPLER);
             let storage = Some(vk::DescriptorType::STORAGE_BUFFER);
             // No bindings 2 and 11: the ray caster reads V_AO and E by address (FrameViews).
-            let mut bindings = [sampled; 23];
+            let mut bindings = [sampled; 24];
             bindings[0] = Some(vk::DescriptorType::UNIFORM_BUFFER);
             for b in [4, 5, 20] {
                 bindings[b] = storage;
@@ -1558,6 +1562,15 @@ impl Renderer {
                         .inset
                         .and_then(|i| i.structures)
                         .map_or(tex.structures.view, |s| s.view),
+                ),
+                (
+                    23,
+                    frame
+                        .inset
+                        .and_then(|i| i.variance)
+                        .or(tex.variance.as_ref())
+                        .unwrap_or(&tex.scalars)
+                        .view,
                 ),
             ]
         };

@@ -518,6 +518,28 @@ fn a_labelled_volume_past_the_budget_shows_its_structures_at_full_resolution_in_
     );
 }
 
+/// Variance opacity modulation past the budget: the box's var_s is the full resolution's (the
+/// downsampled volume's is that of averaged voxels), so the picture there is the full one.
+#[test]
+fn variance_modulation_in_the_box_is_the_full_resolutions() {
+    let dir = common::scratch("inset", "variance");
+    let more = ["--variance-max", "20000"];
+    let full = dir.join("full");
+    let quarter = (peak_of(&render_with(&full, &more, &[])) / 4).to_string();
+    let budget = ("CAO_XR_GPU_BUDGET_MB", quarter.as_str());
+    let (inset, coarse) = (dir.join("inset"), dir.join("coarse"));
+    let told = render_with(&inset, &more, &[budget]);
+    assert!(told.contains(" at full resolution"), "{told}");
+    render_with(&coarse, &more, &[budget, ("CAO_XR_INSET", "0")]);
+    let shares = shares_as_first(&[&full, &inset, &coarse]);
+    assert!(
+        shares[0] >= 0.99 && shares[1] < 0.5,
+        "pixels as at full resolution: {} with the inset, {} without",
+        shares[0],
+        shares[1]
+    );
+}
+
 #[test]
 fn the_inset_follows_a_moving_tool_through_a_transfer_function_switch() {
     let dir = common::scratch("inset", "replay");
