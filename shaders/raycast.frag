@@ -50,6 +50,8 @@ layout(set = 0, binding = 15) uniform sampler2D preint_at;
 layout(set = 0, binding = 16) uniform sampler3D structure_ids;
 // The safety margins' glow intensity (R8 unorm; src/render/mod.rs margin_glow), when GLOW.
 layout(set = 0, binding = 17) uniform sampler3D glow;
+// The inset's glow from the full-resolution margins, when GLOW and INSET.
+layout(set = 0, binding = 24) uniform sampler3D inset_glow;
 // The full-resolution inset's scalars (the volume is shown downsampled around it; flag RAY_INSET).
 layout(set = 0, binding = 21) uniform sampler3D inset_scalars;
 // The inset's structure ids at full resolution (as structure_ids), when LABELS and INSET.
@@ -561,7 +563,8 @@ void main() {
             // The safety margins' volumetric glow (Ropinski et al., Sect. 4.4): emission only,
             // through what lies in front, and also where a tool cut the tissue away.
             if (flag(RAY_GLOW)) {
-                color += (1.0 - alpha) * frame.glow.rgb * (texture(glow, p).r * frame.glow.a * step_mm);
+                float g = in_inset(p) ? texture(inset_glow, inset_tex(p)).r : texture(glow, p).r;
+                color += (1.0 - alpha) * frame.glow.rgb * (g * frame.glow.a * step_mm);
             }
             // Shadow-test clipping: the same maps the AO update used.
             if (clipping) {

@@ -166,7 +166,7 @@ pub struct FrameLoop {
     /// The distance fields of the structures with a safety margin (`--margin`), in the shown
     /// volume's grid or, for a downsampled volume, in `margin_grid`: the full-resolution one
     /// ([`FrameLoop::measure_margins_in`]).
-    margins: Vec<MarginField>,
+    margins: Arc<Vec<MarginField>>,
     margin_grid: Option<Volume>,
     /// A frame budget ([`FrameLoop::set_frame_budget`]).
     budget: Option<BudgetState>,
@@ -355,7 +355,7 @@ impl FrameLoop {
                     coarse.downsampled_by(),
                     coarse.name
                 );
-                fl.measure_margins_in(&vol);
+                fl.measure_margins_in(&vol)?;
                 if !Inset::wanted() {
                     return Ok(fl);
                 }
@@ -393,7 +393,7 @@ impl FrameLoop {
                         inset(&mut fl, per_voxel)?;
                     }
                 }
-                fl.measure_margins_in(&vol);
+                fl.measure_margins_in(&vol)?;
                 Ok(fl)
             }
             None => Err(fit_advice(
@@ -406,16 +406,21 @@ impl FrameLoop {
 
     /// Measures the safety margins in `whole`, the full-resolution volume this one is a
     /// downsample of (its distance fields, on the host), so that a tool's distance to a
-    /// structure is as exact as at full resolution; the margins' glow stays the shown volume's.
-    fn measure_margins_in(&mut self, whole: &Volume) {
+    /// structure is as exact as at full resolution; the margins glow from the shown volume's
+    /// fields, but in the full-resolution box ([`Inset::set_margins`]) from these.
+    fn measure_margins_in(&mut self, whole: &Volume) -> Result<()> {
         let fields = whole
             .labels
             .as_deref()
             .map_or_else(Vec::new, |l| l.margin_fields(whole.dims, whole.spacing));
         if !fields.is_empty() {
-            self.margins = fields;
+            self.margins = Arc::new(fields);
             self.margin_grid = Some(whole.clone_geometry());
+            if let Some(inset) = self.inset.as_mut() {
+                inset.set_margins(&self.gpu, self.margins.clone())?;
+            }
         }
+        Ok(())
     }
 
     /// Shows the box around the tools at full resolution from `whole` ([`Inset`]), within
@@ -623,7 +628,7 @@ impl FrameLoop {
             tf_samples_per_frame: default_tf_samples_per_frame(gpu),
             tf_slab_share: (start != Start::Shown(0)).then_some(FAST_START_SLAB_SHARE),
             lighting: None,
-            margins,
+            margins: Arc::new(margins),
             margin_grid: None,
             budget: None,
             markups: Markups::default(),

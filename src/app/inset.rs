@@ -17,6 +17,7 @@ use crate::gpu::{Buffer, Gpu, GpuError, Image};
 use crate::render::InsetBinding;
 use crate::scene::Tool;
 use crate::space::{lps_from_local_mm, world_from_lps_point, world_from_tex, Placement, View};
+use crate::volume::distance::MarginField;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
 use glam::{Vec3, Vec4Swizzles};
@@ -62,6 +63,9 @@ pub struct Inset {
     protected: Vec<bool>,
     /// Variance opacity modulation, where it is on: the box's var_s is the full resolution's.
     variance: Option<VarianceModulation>,
+    /// The safety margins' distance fields at full resolution, where structures have margins:
+    /// the box glows from them.
+    margins: Option<Arc<Vec<MarginField>>>,
     lao: LaoGpu,
     /// The inner box's size and the margin on each side (full-resolution voxels).
     inner: [usize; 3],
@@ -98,6 +102,8 @@ struct Part {
     ids: Option<Image>,
     /// Its var_s, where variance modulation is on.
     variance: Option<Image>,
+    /// Its margins' glow, where structures have margins.
+    glow: Option<Image>,
 }
 
 impl Inset {
@@ -221,6 +227,7 @@ impl Inset {
             structures: labels.map_or_else(Vec::new, |l| l.opacities()),
             protected: labels.map_or_else(Vec::new, |l| l.protected()),
             variance: None,
+            margins: None,
             whole,
             config,
             tf,
@@ -293,6 +300,7 @@ impl Inset {
             .map(|l| crate::render::id_image(gpu, crop.dims, &l.ids))
             .transpose()?;
         let variance = self.crop_variance(gpu, crop_lo, crop.dims)?;
+        let glow = self.crop_glow(gpu, crop_lo, crop.dims)?;
         crop.voxels = crate::volume::Voxels::U8(Vec::new());
         self.part = Some(Part {
             inner_lo,
@@ -302,6 +310,7 @@ impl Inset {
             scalars,
             ids,
             variance,
+            glow,
         });
         Ok(())
     }
@@ -608,6 +617,28 @@ impl Inset {
         Ok(Some(crate::render::variance_image(gpu, dims, &part)?))
     }
 
+    /// The safety margins' distance `fields` at full resolution: the box glows from them.
+    pub fn set_margins(&mut self, gpu: &Gpu, fields: Arc<Vec<MarginField>>) -> Result<()> {
+        self.margins = Some(fields);
+        let at = self.part.as_ref().map(|p| (p.crop_lo, p.crop.dims));
+        if let Some((crop_lo, dims)) = at {
+            let glow = self.crop_glow(gpu, crop_lo, dims)?;
+            if let Some(p) = self.part.as_mut() {
+                p.glow = glow;
+            }
+        }
+        Ok(())
+    }
+
+    /// The crop's glow image at `crop_lo` of `dims`, where structures have margins.
+    fn crop_glow(&self, gpu: &Gpu, crop_lo: [usize; 3], dims: [usize; 3]) -> Result<Option<Image>> {
+        let Some(fields) = &self.margins else {
+            return Ok(None);
+        };
+        let glow = crate::volume::distance::glow_in(fields, crop_lo, dims);
+        Ok(Some(crate::render::glow_image(gpu, dims, &glow)?))
+    }
+
     /// Which structures the tools leave standing (by structure index), from the next frame on.
     pub fn set_protected(&mut self, protected: &[bool]) {
         self.protected = protected.to_vec();
@@ -679,6 +710,7 @@ impl Inset {
             ao: &part.cao.ao,
             structures: part.ids.as_ref(),
             variance: part.variance.as_ref(),
+            glow: part.glow.as_ref(),
             lo: (lo - offset) / scale,
             hi: (hi - offset) / scale,
             scale,

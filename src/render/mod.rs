@@ -359,6 +359,14 @@ fn structure_image(
     Ok((id_image(gpu, dims, ids)?, table, protect))
 }
 
+/// The margins' glow (one byte per voxel of a grid of `dims`) as the R8 unorm volume the ray
+/// caster reads.
+pub fn glow_image(gpu: &Gpu, dims: [usize; 3], glow: &[u8]) -> Result<Image> {
+    let img = volume_image(gpu, dims, vk::Format::R8_UNORM, "glow")?;
+    img.upload(glow, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
+    Ok(img)
+}
+
 /// var_s (one value per voxel of a grid of `dims`) as the R32F volume the ray caster reads.
 pub fn variance_image(gpu: &Gpu, dims: [usize; 3], var: &[f32]) -> Result<Image> {
     let img = volume_image(gpu, dims, vk::Format::R32_SFLOAT, "variance")?;
@@ -665,14 +673,7 @@ impl VolumeTextures {
     /// Uploads the safety margins' glow (one byte per voxel, [`crate::volume::distance::glow`]);
     /// None turns it off.
     pub fn set_glow(&mut self, gpu: &Gpu, glow: Option<&[u8]>) -> Result<()> {
-        self.glow = match glow {
-            Some(g) => {
-                let img = volume_image(gpu, self.dims, vk::Format::R8_UNORM, "glow")?;
-                img.upload(g, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
-                Some(img)
-            }
-            None => None,
-        };
+        self.glow = glow.map(|g| glow_image(gpu, self.dims, g)).transpose()?;
         Ok(())
     }
 
@@ -1094,6 +1095,8 @@ pub struct InsetBinding<'a> {
     pub structures: Option<&'a Image>,
     /// Its var_s at full resolution ([`variance_image`]), where variance modulation is on.
     pub variance: Option<&'a Image>,
+    /// Its safety margins' glow ([`glow_image`]), where structures have margins.
+    pub glow: Option<&'a Image>,
     /// The box \[lo, hi) of the shown volume's texture coordinates it replaces.
     pub lo: Vec3,
     pub hi: Vec3,
@@ -1224,7 +1227,7 @@ impl Renderer {
             let sampled = Some(vk::DescriptorType::COMBINED_IMAGE_SAMPLER);
             let storage = Some(vk::DescriptorType::STORAGE_BUFFER);
             // No bindings 2 and 11: the ray caster reads V_AO and E by address (FrameViews).
-            let mut bindings = [sampled; 24];
+            let mut bindings = [sampled; 25];
             bindings[0] = Some(vk::DescriptorType::UNIFORM_BUFFER);
             for b in [4, 5, 20] {
                 bindings[b] = storage;
@@ -1562,6 +1565,15 @@ impl Renderer {
                         .inset
                         .and_then(|i| i.structures)
                         .map_or(tex.structures.view, |s| s.view),
+                ),
+                (
+                    24,
+                    frame
+                        .inset
+                        .and_then(|i| i.glow)
+                        .or(tex.glow.as_ref())
+                        .unwrap_or(&tex.scalars)
+                        .view,
                 ),
                 (
                     23,

@@ -179,18 +179,26 @@ impl MarginField {
 /// from the structure's surface to the margin's edge), 0 on the structure and beyond; the
 /// largest over the structures.
 pub fn glow(fields: &[MarginField], dims: [usize; 3]) -> Vec<u8> {
-    let mut glow = vec![0u8; dims[0] * dims[1] * dims[2]];
+    glow_in(fields, [0; 3], dims)
+}
+
+/// [`glow`] over the box of `size` voxels from voxel `lo` of the fields' grid (x fastest).
+pub fn glow_in(fields: &[MarginField], lo: [usize; 3], size: [usize; 3]) -> Vec<u8> {
+    let mut glow = vec![0u8; size[0] * size[1] * size[2]];
     for f in fields {
-        for (n, &d) in f.dist.iter().enumerate() {
-            if d > 0.0 && d < f.margin_mm {
-                let p = [
-                    n % f.dims[0],
-                    (n / f.dims[0]) % f.dims[1],
-                    n / (f.dims[0] * f.dims[1]),
-                ];
-                let v = f.min[0] + p[0] + dims[0] * (f.min[1] + p[1] + dims[1] * (f.min[2] + p[2]));
-                let g = ((1.0 - d / f.margin_mm) * 255.0).round() as u8;
-                glow[v] = glow[v].max(g);
+        // The field's box within this one.
+        let a = [0, 1, 2].map(|x| f.min[x].max(lo[x]));
+        let b = [0, 1, 2].map(|x| (f.min[x] + f.dims[x]).min(lo[x] + size[x]));
+        for k in a[2]..b[2] {
+            for j in a[1]..b[1] {
+                for i in a[0]..b[0] {
+                    let d = f.at([i, j, k]);
+                    if d > 0.0 && d < f.margin_mm {
+                        let v = i - lo[0] + size[0] * (j - lo[1] + size[1] * (k - lo[2]));
+                        let g = ((1.0 - d / f.margin_mm) * 255.0).round() as u8;
+                        glow[v] = glow[v].max(g);
+                    }
+                }
             }
         }
     }
@@ -288,5 +296,20 @@ mod tests {
             );
         }
         assert!(g.iter().any(|&v| v > 100), "the glow is lit somewhere");
+        // A box of it: the same bytes.
+        let (lo, size) = ([2, 1, 3], [5, 6, 4]);
+        let part = glow_in(std::slice::from_ref(&f), lo, size);
+        for k in 0..size[2] {
+            for j in 0..size[1] {
+                for i in 0..size[0] {
+                    let w = lo[0] + i + d[0] * (lo[1] + j + d[1] * (lo[2] + k));
+                    assert_eq!(
+                        part[i + size[0] * (j + size[1] * k)],
+                        g[w],
+                        "({i}, {j}, {k})"
+                    );
+                }
+            }
+        }
     }
 }

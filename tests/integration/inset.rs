@@ -518,6 +518,66 @@ fn a_labelled_volume_past_the_budget_shows_its_structures_at_full_resolution_in_
     );
 }
 
+/// A safety margin past the budget glows in the box from the full-resolution distances, as in
+/// the full-resolution picture (the downsampled volume's blocky ball glows otherwise).
+#[test]
+fn a_safety_margin_glows_in_the_box_as_at_full_resolution() {
+    let dir = common::scratch("inset", "glow");
+    // A ball of 14 voxels' radius at the centre with a 4 mm margin, seen through a probe there.
+    let n = 192;
+    let head = phantom::head(n);
+    let c = n as f64 / 2.0;
+    let ids = (0..head.voxel_count())
+        .map(|v| {
+            let x = [v % n, (v / n) % n, v / (n * n)];
+            let r2: f64 = x.iter().map(|&i| (i as f64 + 0.5 - c).powi(2)).sum();
+            (r2.sqrt() < 14.0) as u8
+        })
+        .collect();
+    let mut seg = head.clone_geometry();
+    seg.voxels = cao_xr::volume::Voxels::U8(ids);
+    let path = dir.join("seg.nii");
+    cao_xr::volume::nifti::write(&path, &seg, false).unwrap();
+    let render = |out: &std::path::Path, env: &[(&str, &str)]| {
+        let args = [
+            "render",
+            "phantom:192",
+            "--size",
+            "256x256",
+            "--rays",
+            "6",
+            "--steps",
+            "4",
+            "--tool",
+            "probe-sphere:36:0,0,0",
+            "--labels",
+            path.to_str().unwrap(),
+            "--margin",
+            "1=4",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        let run = common::run_cao(&args, env);
+        let told = String::from_utf8_lossy(&run.stderr).into_owned();
+        assert!(run.status.success(), "{env:?}: {told}");
+        told + &String::from_utf8_lossy(&run.stdout)
+    };
+    let full = dir.join("full");
+    let quarter = (peak_of(&render(&full, &[])) / 4).to_string();
+    let budget = ("CAO_XR_GPU_BUDGET_MB", quarter.as_str());
+    let (inset, coarse) = (dir.join("inset"), dir.join("coarse"));
+    let told = render(&inset, &[budget]);
+    assert!(told.contains(" at full resolution"), "{told}");
+    render(&coarse, &[budget, ("CAO_XR_INSET", "0")]);
+    let shares = shares_as_first(&[&full, &inset, &coarse]);
+    assert!(
+        shares[0] >= 0.99 && shares[1] < 0.9,
+        "pixels as at full resolution: {} with the inset, {} without",
+        shares[0],
+        shares[1]
+    );
+}
+
 /// Variance opacity modulation past the budget: the box's var_s is the full resolution's (the
 /// downsampled volume's is that of averaged voxels), so the picture there is the full one.
 #[test]
