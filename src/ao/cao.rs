@@ -641,22 +641,19 @@ impl Cao {
     }
 
     /// The safety margins each of `tools` (active or not: the warning comes before the cut) is
-    /// inside ([`crate::clip::margin`]), with `fields` in the grid of this volume placed at
-    /// `placement`, or in `grid` placed at `placement` (the full-resolution volume this one is
-    /// a downsample of: the tools' maps are the same, the voxel centres tested the grid's).
+    /// inside ([`crate::clip::margin`]), with `fields` in `grid` placed at `placement`: this
+    /// volume's, or the full-resolution one it is a downsample of (the tools' maps are the
+    /// same; the voxel centres tested are the grid's).
     pub fn margin_hits(
         &mut self,
         tools: &[Tool],
-        (grid, placement): (Option<&Volume>, &Placement),
+        (grid, placement): (&Volume, &Placement),
         fields: &[MarginField],
     ) -> Result<Vec<MarginHit>> {
         if fields.is_empty() {
             return Ok(Vec::new());
         }
-        let (world_from_index, dims) = match grid {
-            Some(g) => (world_from_index(g, placement), g.dims),
-            None => (self.world_from_index(placement), self.dims),
-        };
+        let (world_from_index, dims) = (world_from_index(grid, placement), grid.dims);
         let radius = self.dilation_radius_mm();
         let mut hits = Vec::new();
         for (n, tool) in tools.iter().enumerate() {

@@ -355,8 +355,8 @@ impl FrameLoop {
                     coarse.downsampled_by(),
                     coarse.name
                 );
-                fl.measure_margins_in(&vol)?;
                 if !Inset::wanted() {
+                    fl.measure_margins_in(&vol)?;
                     return Ok(fl);
                 }
                 // Full resolution around the tools: where the box that fits beside this
@@ -881,20 +881,14 @@ impl FrameLoop {
         // The isovalue the settings start with becomes the scene's, which the hands then move.
         self.scene.iso = self.scene.iso.or(self.settings.iso);
         self.interaction.update(input, &mut self.scene);
-        let placement = &self.scene.volume;
-        let margins = match &self.margin_grid {
-            Some(g) => {
-                let at = Inset::placed(g, &self.volume, placement);
-                let grid = (Some(g), &at);
-                self.cao
-                    .margin_hits(&self.scene.tools, grid, &self.margins)?
-            }
-            None => {
-                let grid = (None, placement);
-                self.cao
-                    .margin_hits(&self.scene.tools, grid, &self.margins)?
-            }
+        let shown = &*self.volume;
+        let (grid, at) = match &self.margin_grid {
+            Some(g) => (g, Inset::placed(g, shown, &self.scene.volume)),
+            None => (shown, self.scene.volume),
         };
+        let margins = self
+            .cao
+            .margin_hits(&self.scene.tools, (grid, &at), &self.margins)?;
         // Everything a frame writes from the host or reads back has one copy per slot (CAO's
         // tool table, maps, counters and timer, the SH timers, the uniforms, the read-back).
         // A transfer-function switch is the exception: it replaces buffers the frame in flight

@@ -247,11 +247,13 @@ impl Inset {
     }
 
     /// Crops the box around full-resolution index point `centre` ([`Inset::wants_cut`]) and
-    /// computes its AO; the old box goes first (its memory is the new one's), so no frame that
+    /// computes its AO (classified over the whole volume's value range: a crop's own is
+    /// narrower); the old box goes first (its memory is the new one's), so no frame that
     /// reads it may be in flight.
     pub fn cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
         let (inner_lo, crop_lo, crop) = self.crop_at(centre);
-        let ao = precompute_method(gpu, &self.lao, &crop, &self.tf, &self.config, false)?;
+        let tf = self.tf.pinned_to(self.range);
+        let ao = precompute_method(gpu, &self.lao, &crop, &tf, &self.config, false)?;
         self.show(gpu, (inner_lo, crop_lo, crop), ao)
     }
 
@@ -326,7 +328,7 @@ impl Inset {
         let params = self.config.lao;
         params.validate().map_err(super::common::AppError::Usage)?;
         let (inner_lo, crop_lo, crop) = self.crop_at(centre);
-        let opacity = self.tf.opacity_volume(&crop);
+        let opacity = self.tf.pinned_to(self.range).opacity_volume(&crop);
         // Each voxel's LAO is its own, so the slabs give the bits one pass gives (the same
         // kernel reads the skipping data's padded O).
         let skip = self
@@ -569,11 +571,22 @@ impl Inset {
     /// resolution, as the ray caster reads it there.
     pub fn set_variance(&mut self, gpu: &Gpu, m: Option<VarianceModulation>) -> Result<()> {
         self.variance = m;
-        let at = self.part.as_ref().map(|p| (p.crop_lo, p.crop.dims));
-        if let Some((crop_lo, dims)) = at {
-            let var = self.crop_variance(gpu, crop_lo, dims)?;
+        self.remake_images(gpu)
+    }
+
+    /// The safety margins' distance `fields` at full resolution: the box glows from them.
+    pub fn set_margins(&mut self, gpu: &Gpu, fields: Arc<Vec<MarginField>>) -> Result<()> {
+        self.margins = Some(fields);
+        self.remake_images(gpu)
+    }
+
+    /// Makes the shown box's var_s and glow images anew (their settings changed).
+    fn remake_images(&mut self, gpu: &Gpu) -> Result<()> {
+        if let Some((crop_lo, dims)) = self.part.as_ref().map(|p| (p.crop_lo, p.crop.dims)) {
+            let variance = self.crop_variance(gpu, crop_lo, dims)?;
+            let glow = self.crop_glow(gpu, crop_lo, dims)?;
             if let Some(p) = self.part.as_mut() {
-                p.variance = var;
+                (p.variance, p.glow) = (variance, glow);
             }
         }
         Ok(())
@@ -615,19 +628,6 @@ impl Inset {
             }
         }
         Ok(Some(crate::render::variance_image(gpu, dims, &part)?))
-    }
-
-    /// The safety margins' distance `fields` at full resolution: the box glows from them.
-    pub fn set_margins(&mut self, gpu: &Gpu, fields: Arc<Vec<MarginField>>) -> Result<()> {
-        self.margins = Some(fields);
-        let at = self.part.as_ref().map(|p| (p.crop_lo, p.crop.dims));
-        if let Some((crop_lo, dims)) = at {
-            let glow = self.crop_glow(gpu, crop_lo, dims)?;
-            if let Some(p) = self.part.as_mut() {
-                p.glow = glow;
-            }
-        }
-        Ok(())
     }
 
     /// The crop's glow image at `crop_lo` of `dims`, where structures have margins.

@@ -362,26 +362,30 @@ fn structure_image(
 /// The margins' glow (one byte per voxel of a grid of `dims`) as the R8 unorm volume the ray
 /// caster reads.
 pub fn glow_image(gpu: &Gpu, dims: [usize; 3], glow: &[u8]) -> Result<Image> {
-    let img = volume_image(gpu, dims, vk::Format::R8_UNORM, "glow")?;
-    img.upload(glow, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
-    Ok(img)
+    filled_volume_image(gpu, dims, (vk::Format::R8_UNORM, "glow"), glow)
 }
 
 /// var_s (one value per voxel of a grid of `dims`) as the R32F volume the ray caster reads.
 pub fn variance_image(gpu: &Gpu, dims: [usize; 3], var: &[f32]) -> Result<Image> {
-    let img = volume_image(gpu, dims, vk::Format::R32_SFLOAT, "variance")?;
-    img.upload(
-        bytemuck::cast_slice(var),
-        vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL,
-    )?;
-    Ok(img)
+    let format = (vk::Format::R32_SFLOAT, "variance");
+    filled_volume_image(gpu, dims, format, bytemuck::cast_slice(var))
 }
 
 /// Structure ids (one byte per voxel of a grid of `dims`) as the R8 unorm volume the ray caster
 /// reads (id / 255).
 pub fn id_image(gpu: &Gpu, dims: [usize; 3], ids: &[u8]) -> Result<Image> {
-    let img = volume_image(gpu, dims, vk::Format::R8_UNORM, "structures")?;
-    img.upload(ids, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
+    filled_volume_image(gpu, dims, (vk::Format::R8_UNORM, "structures"), ids)
+}
+
+/// A sampled volume image of `dims` in `format` (named), holding `texels` (x fastest).
+fn filled_volume_image(
+    gpu: &Gpu,
+    dims: [usize; 3],
+    (format, name): (vk::Format, &str),
+    texels: &[u8],
+) -> Result<Image> {
+    let img = volume_image(gpu, dims, format, name)?;
+    img.upload(texels, vk::ImageLayout::SHADER_READ_ONLY_OPTIMAL)?;
     Ok(img)
 }
 
@@ -1567,20 +1571,20 @@ impl Renderer {
                         .map_or(tex.structures.view, |s| s.view),
                 ),
                 (
-                    24,
-                    frame
-                        .inset
-                        .and_then(|i| i.glow)
-                        .or(tex.glow.as_ref())
-                        .unwrap_or(&tex.scalars)
-                        .view,
-                ),
-                (
                     23,
                     frame
                         .inset
                         .and_then(|i| i.variance)
                         .or(tex.variance.as_ref())
+                        .unwrap_or(&tex.scalars)
+                        .view,
+                ),
+                (
+                    24,
+                    frame
+                        .inset
+                        .and_then(|i| i.glow)
+                        .or(tex.glow.as_ref())
                         .unwrap_or(&tex.scalars)
                         .view,
                 ),

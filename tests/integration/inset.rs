@@ -67,43 +67,14 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
             lo[1] - inset.crop_box().unwrap().0[1] > margin,
             "{method:?}: the margin holds the reach"
         );
-        let (lo, hi) = inset.inner_box().unwrap();
-        let (crop_lo, crop) = inset.crop_box().unwrap();
+        let (crop_lo, _) = inset.crop_box().unwrap();
         assert_eq!(
             crop_lo[0], 0,
             "{method:?}: the margin is cut by the volume's face"
         );
         assert!(crop_lo[1] > 0 && crop_lo[2] > 0, "{method:?}: {crop_lo:?}");
-        let mut carved = 0;
-        for (f, tools) in frames(placement.center).iter().enumerate() {
-            whole
-                .run_frame(tools, &placement, Mode::Contextual)
-                .unwrap();
-            inset
-                .run_frame(tools, (&vol, &placement), Mode::Contextual)
-                .unwrap();
-            let want = read_ao(&whole.ao);
-            let got = read_ao(&inset.cao().unwrap().ao);
-            let mut changed = 0;
-            for k in lo[2]..hi[2] {
-                for j in lo[1]..hi[1] {
-                    for i in lo[0]..hi[0] {
-                        let w = want[vol.index(i, j, k)];
-                        let c = [i - crop_lo[0], j - crop_lo[1], k - crop_lo[2]];
-                        let g = got[c[0] + crop[0] * (c[1] + crop[1] * c[2])];
-                        assert_eq!(
-                            g.to_bits(),
-                            w.to_bits(),
-                            "{method:?} frame {f}: voxel ({i}, {j}, {k}): {g} against {w}"
-                        );
-                        changed += (w < 1.0) as usize;
-                    }
-                }
-            }
-            carved += (changed > 0) as usize;
-        }
         // The box holds occluded voxels on the frames (the comparison is not of open space).
-        assert!(carved > 0, "{method:?}");
+        assert!(carve_both(&vol, &mut whole, &mut inset) > 0, "{method:?}");
     }
     // With no tool cutting, the box goes to a tool a hand holds inside the volume (off by
     // more than a quarter of the box here, and before where the eyes look), and stays for one
@@ -179,6 +150,78 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     common::assert_no_validation_messages(&gpu);
 }
 
+/// Runs the scripted carving's frames on `whole` (the whole volume `vol`'s CAO state) and on
+/// `inset`, and requires the box's AO to be the whole's, bit for bit, on every frame; returns
+/// how many frames had occluded voxels in the box.
+fn carve_both(
+    vol: &cao_xr::volume::Volume,
+    whole: &mut cao_xr::ao::cao::Cao,
+    inset: &mut Inset,
+) -> usize {
+    let placement = Placement::default();
+    let (lo, hi) = inset.inner_box().unwrap();
+    let (crop_lo, crop) = inset.crop_box().unwrap();
+    let mut carved = 0;
+    for (f, tools) in frames(placement.center).iter().enumerate() {
+        whole
+            .run_frame(tools, &placement, Mode::Contextual)
+            .unwrap();
+        inset
+            .run_frame(tools, (vol, &placement), Mode::Contextual)
+            .unwrap();
+        let (want, got) = (read_ao(&whole.ao), read_ao(&inset.cao().unwrap().ao));
+        let mut changed = 0;
+        for k in lo[2]..hi[2] {
+            for j in lo[1]..hi[1] {
+                for i in lo[0]..hi[0] {
+                    let w = want[vol.index(i, j, k)];
+                    let c = [i - crop_lo[0], j - crop_lo[1], k - crop_lo[2]];
+                    let g = got[c[0] + crop[0] * (c[1] + crop[1] * c[2])];
+                    assert_eq!(
+                        g.to_bits(),
+                        w.to_bits(),
+                        "frame {f}: voxel ({i}, {j}, {k}): {g} against {w}"
+                    );
+                    changed += (w < 1.0) as usize;
+                }
+            }
+        }
+        carved += (changed > 0) as usize;
+    }
+    carved
+}
+
+/// Under a TF on the normalised value range (MR's), the box is classified over the whole
+/// volume's range, not its crop's narrower one: its AO is still the whole's, bit for bit.
+#[test]
+fn under_a_normalised_tf_the_boxs_ao_is_the_whole_volumes() {
+    let gpu = common::gpu();
+    let (vol, _, lao_params) = small_head();
+    let tf = TransferFunction::preset("mr-default").unwrap();
+    let lao = LaoGpu::new(&gpu).unwrap();
+    let ao = AoConfig::new(AoMethod::Lao, lao_params);
+    let mut inset = Inset::around(
+        &gpu,
+        vol.clone(),
+        (ao, tf.clone()),
+        ([16, 16, 16], [24.0, 30.0, 24.0]),
+    )
+    .unwrap();
+    let (crop_lo, crop) = inset.crop_box().unwrap();
+    let part = vol.crop(crop_lo, crop);
+    assert_ne!(
+        part.value_range(),
+        vol.value_range(),
+        "the crop's range is the whole's"
+    );
+    let mut whole = precompute(&gpu, &lao, &vol, &tf, &ao, false)
+        .unwrap()
+        .into_cao(&gpu, &vol)
+        .unwrap();
+    assert!(carve_both(&vol, &mut whole, &mut inset) > 0);
+    common::assert_no_validation_messages(&gpu);
+}
+
 /// With labels, the box's AO is still the whole volume's, bit for bit, on every frame of a
 /// carving: its crop carries the structures (a translucent one scales O, a protected one stands
 /// inside the tools), and a structure shown differently at run time is cut again with it.
@@ -190,7 +233,6 @@ fn a_labelled_boxs_ao_is_the_whole_volumes_with_its_structures() {
     // The tissue ball at 0.4 of its TF opacity; the vessel through it protected.
     Arc::make_mut(vol.labels.as_mut().unwrap()).structures[1].opacity = 0.4;
     let vol = Arc::new(vol);
-    let placement = Placement::default();
     let lao = LaoGpu::new(&gpu).unwrap();
     let ao = AoConfig::new(AoMethod::Lao, lao_params);
     let mut inset = Inset::around(
@@ -213,39 +255,17 @@ fn a_labelled_boxs_ao_is_the_whole_volumes_with_its_structures() {
         .into_cao(&gpu, &vol)
         .unwrap();
     let (lo, hi) = inset.inner_box().unwrap();
-    let (crop_lo, crop) = inset.crop_box().unwrap();
     let ids = &vol.labels.as_ref().unwrap().ids;
-    let mut carved = 0;
-    for (f, tools) in frames(placement.center).iter().enumerate() {
-        whole
-            .run_frame(tools, &placement, Mode::Contextual)
-            .unwrap();
-        inset
-            .run_frame(tools, (&vol, &placement), Mode::Contextual)
-            .unwrap();
-        let (want, got) = (read_ao(&whole.ao), read_ao(&inset.cao().unwrap().ao));
-        let mut changed = 0;
-        let mut labelled = [0; 3];
-        for k in lo[2]..hi[2] {
-            for j in lo[1]..hi[1] {
-                for i in lo[0]..hi[0] {
-                    let w = want[vol.index(i, j, k)];
-                    let c = [i - crop_lo[0], j - crop_lo[1], k - crop_lo[2]];
-                    let g = got[c[0] + crop[0] * (c[1] + crop[1] * c[2])];
-                    assert_eq!(
-                        g.to_bits(),
-                        w.to_bits(),
-                        "frame {f}: voxel ({i}, {j}, {k}): {g} against {w}"
-                    );
-                    changed += (w < 1.0) as usize;
-                    labelled[ids[vol.index(i, j, k)] as usize] += 1;
-                }
+    let mut labelled = [0; 3];
+    for k in lo[2]..hi[2] {
+        for j in lo[1]..hi[1] {
+            for i in lo[0]..hi[0] {
+                labelled[ids[vol.index(i, j, k)] as usize] += 1;
             }
         }
-        assert!(labelled.iter().all(|&n| n > 0), "{labelled:?}");
-        carved += (changed > 0) as usize;
     }
-    assert!(carved > 0);
+    assert!(labelled.iter().all(|&n| n > 0), "{labelled:?}");
+    assert!(carve_both(&vol, &mut whole, &mut inset) > 0);
     common::assert_no_validation_messages(&gpu);
 }
 
