@@ -1545,6 +1545,15 @@ impl Renderer {
         // The sampled images by binding (raycast.frag): var_s and E, where absent, are a bound
         // image standing in, unread (lighting.w = 0, bleeding.x = 0); so are the coarse images
         // but in a foveated eye's full pass.
+        // The inset's image where it has one, else the shown volume's, else a stand-in (unread).
+        let inset_or = |of: fn(InsetBinding) -> Option<&Image>, shown: Option<&Image>| {
+            frame
+                .inset
+                .and_then(of)
+                .or(shown)
+                .unwrap_or(&tex.scalars)
+                .view
+        };
         let sampled_views = |coarse: (vk::ImageView, vk::ImageView)| {
             [
                 (1, tex.scalars.view),
@@ -1570,24 +1579,8 @@ impl Renderer {
                         .and_then(|i| i.structures)
                         .map_or(tex.structures.view, |s| s.view),
                 ),
-                (
-                    23,
-                    frame
-                        .inset
-                        .and_then(|i| i.variance)
-                        .or(tex.variance.as_ref())
-                        .unwrap_or(&tex.scalars)
-                        .view,
-                ),
-                (
-                    24,
-                    frame
-                        .inset
-                        .and_then(|i| i.glow)
-                        .or(tex.glow.as_ref())
-                        .unwrap_or(&tex.scalars)
-                        .view,
-                ),
+                (23, inset_or(|i| i.variance, tex.variance.as_ref())),
+                (24, inset_or(|i| i.glow, tex.glow.as_ref())),
             ]
         };
         let plain = sampled_views((self.no_coarse.view, self.no_coarse.view));

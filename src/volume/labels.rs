@@ -1049,9 +1049,9 @@ mod tests {
         assert!(e.contains("does not overlap") && e.contains("499.5"), "{e}");
     }
 
-    #[test]
-    fn display_options_name_structures_and_refuse_unknown_ones() {
-        let s = |name: &str, value| Structure {
+    /// A shown, unprotected structure of `value` called `name`.
+    fn structure(name: &str, value: u32) -> Structure {
+        Structure {
             value,
             name: name.into(),
             colour: palette(0),
@@ -1059,7 +1059,12 @@ mod tests {
             protected: false,
             margin_mm: None,
             voxels: 0,
-        };
+        }
+    }
+
+    #[test]
+    fn display_options_name_structures_and_refuse_unknown_ones() {
+        let s = structure;
         let mut m = LabelMap {
             source: "seg".into(),
             ids: vec![0, 1, 2, 3],
@@ -1096,15 +1101,7 @@ mod tests {
     }
     #[test]
     fn a_downsampled_map_takes_each_blocks_majority_and_a_crop_its_box() {
-        let s = |name: &str| Structure {
-            value: 1,
-            name: name.into(),
-            colour: palette(0),
-            opacity: 1.0,
-            protected: false,
-            margin_mm: None,
-            voxels: 0,
-        };
+        let s = |name: &str| structure(name, 1);
         // 5 x 2 x 2 voxels, x fastest; blocks of 2: x 0..2, 2..4 and the cut block 4..5.
         #[rustfmt::skip]
         let ids = vec![

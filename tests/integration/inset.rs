@@ -351,6 +351,16 @@ fn render(out: &std::path::Path, env: &[(&str, &str)]) -> String {
 
 /// [`render`] with more arguments.
 fn render_with(out: &std::path::Path, more: &[&str], env: &[(&str, &str)]) -> String {
+    render_through("probe-sphere:20", out, more, env)
+}
+
+/// [`render_with`] seen through the probe `tool` (`--tool`'s form).
+fn render_through(
+    tool: &str,
+    out: &std::path::Path,
+    more: &[&str],
+    env: &[(&str, &str)],
+) -> String {
     let mut args = vec![
         "render",
         "phantom:192",
@@ -361,7 +371,7 @@ fn render_with(out: &std::path::Path, more: &[&str], env: &[(&str, &str)]) -> St
         "--steps",
         "4",
         "--tool",
-        "probe-sphere:20",
+        tool,
         "--out",
         out.to_str().unwrap(),
     ];
@@ -485,6 +495,45 @@ fn under_a_quarter_of_the_budget_the_tools_neighbourhood_is_shown_at_full_resolu
     );
 }
 
+/// A label map in `phantom:192`'s grid, written as NIfTI into `dir`: voxel x gets `id(x, r)`, r
+/// its distance from the volume's centre in voxels.
+fn phantom_labels(dir: &std::path::Path, id: impl Fn([usize; 3], f64) -> u8) -> std::path::PathBuf {
+    let n = 192;
+    let head = phantom::head(n);
+    let c = n as f64 / 2.0;
+    let ids = (0..head.voxel_count())
+        .map(|v| {
+            let x = [v % n, (v / n) % n, v / (n * n)];
+            let r2: f64 = x.iter().map(|&i| (i as f64 + 0.5 - c).powi(2)).sum();
+            id(x, r2.sqrt())
+        })
+        .collect();
+    let mut seg = head.clone_geometry();
+    seg.voxels = cao_xr::volume::Voxels::U8(ids);
+    let path = dir.join("seg.nii");
+    cao_xr::volume::nifti::write(&path, &seg, false).unwrap();
+    path
+}
+
+/// `render` (into a folder, under an environment; what it told) into `dir`'s `full`, then under
+/// a quarter of that run's GPU peak into `inset` (a box must be shown) and, without the box,
+/// `coarse`: the share of the full picture's pixels each of the last two shows within 2/255
+/// (in the box, the first must be about all), and what the coarse run told.
+fn past_the_budget(
+    dir: &std::path::Path,
+    render: impl Fn(&std::path::Path, &[(&str, &str)]) -> String,
+) -> ([f64; 2], String) {
+    let full = dir.join("full");
+    let quarter = (peak_of(&render(&full, &[])) / 4).to_string();
+    let budget = ("CAO_XR_GPU_BUDGET_MB", quarter.as_str());
+    let (inset, coarse) = (dir.join("inset"), dir.join("coarse"));
+    let told = render(&inset, &[budget]);
+    assert!(told.contains(" at full resolution"), "{told}");
+    let told = render(&coarse, &[budget, ("CAO_XR_INSET", "0")]);
+    let shares = shares_as_first(&[&full, &inset, &coarse]);
+    ([shares[0], shares[1]], told)
+}
+
 /// A labelled volume past the budget keeps its structures: the downsampled volume has them by
 /// each block's majority (the picture `--downsample N` gives), and the box at full resolution,
 /// where the picture is the full-resolution one.
@@ -493,43 +542,24 @@ fn a_labelled_volume_past_the_budget_shows_its_structures_at_full_resolution_in_
     let dir = common::scratch("inset", "labels");
     // Two structures in a checkerboard of 2-voxel cells through the head (what a downsample by
     // 3 or more cannot show), the second at 0.3 of its TF opacity.
-    let n = 192;
-    let head = phantom::head(n);
-    let c = n as f64 / 2.0;
-    let ids = (0..head.voxel_count())
-        .map(|v| {
-            let x = [v % n, (v / n) % n, v / (n * n)];
-            let r2: f64 = x.iter().map(|&i| (i as f64 + 0.5 - c).powi(2)).sum();
-            if r2.sqrt() < 0.45 * n as f64 {
-                1 + ((x[0] / 2 + x[1] / 2 + x[2] / 2) % 2) as u8
-            } else {
-                0
-            }
-        })
-        .collect();
-    let mut seg = head.clone_geometry();
-    seg.voxels = cao_xr::volume::Voxels::U8(ids);
-    let path = dir.join("seg.nii");
-    cao_xr::volume::nifti::write(&path, &seg, false).unwrap();
+    let path = phantom_labels(&dir, |x, r| {
+        if r < 0.45 * 192.0 {
+            1 + ((x[0] / 2 + x[1] / 2 + x[2] / 2) % 2) as u8
+        } else {
+            0
+        }
+    });
     let labels = ["--labels", path.to_str().unwrap(), "--opacity", "2=0.3"];
-    let full = dir.join("full");
-    let quarter = (peak_of(&render_with(&full, &labels, &[])) / 4).to_string();
-    let budget = ("CAO_XR_GPU_BUDGET_MB", quarter.as_str());
-    let inset = dir.join("inset");
-    let told = render_with(&inset, &labels, &[budget]);
-    assert!(told.contains(" at full resolution"), "{told}");
-    let coarse = dir.join("coarse");
-    let told = render_with(&coarse, &labels, &[budget, ("CAO_XR_INSET", "0")]);
+    let (shares, told) = past_the_budget(&dir, |out, env| render_with(out, &labels, env));
     let at = told.find("shown downsampled by ").expect("downsampled");
     let by = told[at + 21..].split_whitespace().next().unwrap();
     let given = dir.join("given");
     render_with(&given, &[&labels[..], &["--downsample", by]].concat(), &[]);
     assert!(
-        std::fs::read(coarse.join("left.png")).unwrap()
+        std::fs::read(dir.join("coarse/left.png")).unwrap()
             == std::fs::read(given.join("left.png")).unwrap(),
         "downsampled by {by} for the budget, and as given, the pictures differ"
     );
-    let shares = shares_as_first(&[&full, &inset, &coarse]);
     assert!(
         shares[0] >= 0.99 && shares[1] < 0.5,
         "pixels as at full resolution: {} with the inset, {} without",
@@ -544,52 +574,12 @@ fn a_labelled_volume_past_the_budget_shows_its_structures_at_full_resolution_in_
 fn a_safety_margin_glows_in_the_box_as_at_full_resolution() {
     let dir = common::scratch("inset", "glow");
     // A ball of 14 voxels' radius at the centre with a 4 mm margin, seen through a probe there.
-    let n = 192;
-    let head = phantom::head(n);
-    let c = n as f64 / 2.0;
-    let ids = (0..head.voxel_count())
-        .map(|v| {
-            let x = [v % n, (v / n) % n, v / (n * n)];
-            let r2: f64 = x.iter().map(|&i| (i as f64 + 0.5 - c).powi(2)).sum();
-            (r2.sqrt() < 14.0) as u8
-        })
-        .collect();
-    let mut seg = head.clone_geometry();
-    seg.voxels = cao_xr::volume::Voxels::U8(ids);
-    let path = dir.join("seg.nii");
-    cao_xr::volume::nifti::write(&path, &seg, false).unwrap();
+    let path = phantom_labels(&dir, |_, r| (r < 14.0) as u8);
+    let margin = ["--labels", path.to_str().unwrap(), "--margin", "1=4"];
     let render = |out: &std::path::Path, env: &[(&str, &str)]| {
-        let args = [
-            "render",
-            "phantom:192",
-            "--size",
-            "256x256",
-            "--rays",
-            "6",
-            "--steps",
-            "4",
-            "--tool",
-            "probe-sphere:36:0,0,0",
-            "--labels",
-            path.to_str().unwrap(),
-            "--margin",
-            "1=4",
-            "--out",
-            out.to_str().unwrap(),
-        ];
-        let run = common::run_cao(&args, env);
-        let told = String::from_utf8_lossy(&run.stderr).into_owned();
-        assert!(run.status.success(), "{env:?}: {told}");
-        told + &String::from_utf8_lossy(&run.stdout)
+        render_through("probe-sphere:36:0,0,0", out, &margin, env)
     };
-    let full = dir.join("full");
-    let quarter = (peak_of(&render(&full, &[])) / 4).to_string();
-    let budget = ("CAO_XR_GPU_BUDGET_MB", quarter.as_str());
-    let (inset, coarse) = (dir.join("inset"), dir.join("coarse"));
-    let told = render(&inset, &[budget]);
-    assert!(told.contains(" at full resolution"), "{told}");
-    render(&coarse, &[budget, ("CAO_XR_INSET", "0")]);
-    let shares = shares_as_first(&[&full, &inset, &coarse]);
+    let (shares, _) = past_the_budget(&dir, render);
     assert!(
         shares[0] >= 0.99 && shares[1] < 0.9,
         "pixels as at full resolution: {} with the inset, {} without",
@@ -604,14 +594,7 @@ fn a_safety_margin_glows_in_the_box_as_at_full_resolution() {
 fn variance_modulation_in_the_box_is_the_full_resolutions() {
     let dir = common::scratch("inset", "variance");
     let more = ["--variance-max", "20000"];
-    let full = dir.join("full");
-    let quarter = (peak_of(&render_with(&full, &more, &[])) / 4).to_string();
-    let budget = ("CAO_XR_GPU_BUDGET_MB", quarter.as_str());
-    let (inset, coarse) = (dir.join("inset"), dir.join("coarse"));
-    let told = render_with(&inset, &more, &[budget]);
-    assert!(told.contains(" at full resolution"), "{told}");
-    render_with(&coarse, &more, &[budget, ("CAO_XR_INSET", "0")]);
-    let shares = shares_as_first(&[&full, &inset, &coarse]);
+    let (shares, _) = past_the_budget(&dir, |out, env| render_with(out, &more, env));
     assert!(
         shares[0] >= 0.99 && shares[1] < 0.5,
         "pixels as at full resolution: {} with the inset, {} without",
