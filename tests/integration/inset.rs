@@ -56,10 +56,7 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     .unwrap();
     for method in [AoMethod::Lao, gauss] {
         let ao = AoConfig::new(method, lao_params);
-        let mut whole = precompute(&gpu, &lao, &vol, &tf, &ao, false)
-            .unwrap()
-            .into_cao(&gpu, &vol)
-            .unwrap();
+        let mut whole = whole_cao(&gpu, &lao, &vol, (&tf, &ao));
         inset.set_method(&gpu, (ao, tf.clone())).unwrap();
         let margin = (whole.reach_mm() / vol.spacing[1]).ceil() as usize;
         let (lo, _) = inset.inner_box().unwrap();
@@ -150,6 +147,19 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     common::assert_no_validation_messages(&gpu);
 }
 
+/// The CAO state of the whole volume `vol` under `tf` and `ao`: what the box is compared with.
+fn whole_cao(
+    gpu: &cao_xr::gpu::Gpu,
+    lao: &LaoGpu,
+    vol: &cao_xr::volume::Volume,
+    (tf, ao): (&TransferFunction, &AoConfig),
+) -> cao_xr::ao::cao::Cao {
+    precompute(gpu, lao, vol, tf, ao, false)
+        .unwrap()
+        .into_cao(gpu, vol)
+        .unwrap()
+}
+
 /// Runs the scripted carving's frames on `whole` (the whole volume `vol`'s CAO state) and on
 /// `inset`, and requires the box's AO to be the whole's, bit for bit, on every frame; returns
 /// how many frames had occluded voxels in the box.
@@ -214,10 +224,7 @@ fn under_a_normalised_tf_the_boxs_ao_is_the_whole_volumes() {
         vol.value_range(),
         "the crop's range is the whole's"
     );
-    let mut whole = precompute(&gpu, &lao, &vol, &tf, &ao, false)
-        .unwrap()
-        .into_cao(&gpu, &vol)
-        .unwrap();
+    let mut whole = whole_cao(&gpu, &lao, &vol, (&tf, &ao));
     assert!(carve_both(&vol, &mut whole, &mut inset) > 0);
     common::assert_no_validation_messages(&gpu);
 }
@@ -250,10 +257,7 @@ fn a_labelled_boxs_ao_is_the_whole_volumes_with_its_structures() {
         .set_shown(&gpu, (ao, tf.clone()), &[1.0, 0.4])
         .unwrap();
     inset.set_protected(&[true, false]);
-    let mut whole = precompute(&gpu, &lao, &vol, &tf, &ao, false)
-        .unwrap()
-        .into_cao(&gpu, &vol)
-        .unwrap();
+    let mut whole = whole_cao(&gpu, &lao, &vol, (&tf, &ao));
     let (lo, hi) = inset.inner_box().unwrap();
     let ids = &vol.labels.as_ref().unwrap().ids;
     let mut labelled = [0; 3];
