@@ -177,10 +177,13 @@ float ambient_at(vec3 t) {
 #undef AO_READ
 }
 
-// The bleeding colour E at texture coordinates t.
+// The bleeding colour E at texture coordinates t (the inset's within it, where it has one: its
+// local histograms at full resolution).
 vec3 bleeding_at(vec3 t) {
-    BleedingWords b = BleedingWords(frame.ao_words.zw);
-    Corners c = corners_at(textureSize(scalars, 0), t);
+    bool fine = in_inset(t) && any(notEqual(frame.inset_words.zw, uvec2(0)));
+    BleedingWords b = BleedingWords(fine ? frame.inset_words.zw : frame.ao_words.zw);
+    Corners c = fine ? corners_at(textureSize(inset_scalars, 0), inset_tex(t))
+                     : corners_at(textureSize(scalars, 0), t);
 #define E_READ(i) unpackUnorm4x8(b.e_words[i]).rgb
     return TRILINEAR(c, E_READ);
 #undef E_READ

@@ -33,5 +33,6 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     vec4 inset_hi;           //   [lo, hi) (read with RAY_INSET)
     vec4 inset_scale;        // xyz: its scalars' texture coordinates are t * scale + offset
     vec4 inset_offset;
-    uvec4 inset_words;       // xy: its V_AO's address (16-bit unorm words, as ao_words)
+    uvec4 inset_words;       // xy: its V_AO's address (16-bit unorm words, as ao_words);
+                             // zw: its bleeding colour E's (as ao_words.zw), 0 where it has none
 } frame;

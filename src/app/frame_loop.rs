@@ -322,8 +322,8 @@ impl FrameLoop {
             // draws with tools carving.
             fl.tex.prepare(&fl.settings)?;
             gpu.check_room(
-                "a frame's tools, boxes and staging",
-                super::inset::frame_reserve(fl.volume.voxel_count()),
+                "a frame's tools, boxes, staging and read-back",
+                fl.frame_reserve(),
             )?;
             Ok(fl)
         };
@@ -426,6 +426,13 @@ impl FrameLoop {
     /// Shows the box around the tools at full resolution from `whole` ([`Inset`]), within
     /// `available` bytes of GPU memory at about `per_voxel` bytes per voxel; told on stderr.
     /// Returns the box's least share of the volume's side (0: none fits).
+    /// What this loop's frames hold beside its set-up, at most: the shown volume's
+    /// [`super::inset::frame_reserve`] and the read-back of a waited frame (`render`'s, a
+    /// screenshot's), made at its first use.
+    fn frame_reserve(&self) -> u64 {
+        super::inset::frame_reserve(self.volume.voxel_count()) + self.target.readback_bytes()
+    }
+
     fn add_inset(
         &mut self,
         whole: Arc<Volume>,
@@ -438,12 +445,12 @@ impl FrameLoop {
         let (method, tf) = self.tfs.shown_ao();
         let config = AoConfig { method, ..config };
         let name = whole.name.clone();
-        let shown = self.volume.voxel_count();
+        let frames = self.frame_reserve();
         self.inset = Inset::new(
             &self.gpu,
             whole,
             (config, tf),
-            (available, per_voxel, shown),
+            (available, per_voxel, frames),
         )?;
         match &self.inset {
             Some(i) => {

@@ -6,9 +6,10 @@
 //! tools (or, with none in the volume, where the eyes look): when that point moves a quarter of
 //! the box away, the box is cut again around it and its AO computed anew.
 
-use super::common::{precompute_method, Result};
+use super::common::{histogram_state_over, precompute_histogram, precompute_method, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
 use crate::ao::filtered::{variance_volume_shifted, FilterParams, VarianceModulation};
+use crate::ao::histogram::HistParams;
 use crate::ao::lao::{LaoKernel, SkipBuffers, SlabInput};
 use crate::ao::method::{AoVolume, MethodGpu};
 use crate::ao::progressive::SlabScheduler;
@@ -113,8 +114,8 @@ impl Inset {
     }
 
     /// The largest inset beside what the GPU holds now that fits `available` bytes in all,
-    /// leaving [`FRAME_BYTES_PER_VOXEL`] for each of the `shown_voxels` of the shown volume's
-    /// frames: its inner box as near a cube in mm as the volume allows, cut first around the
+    /// leaving `frames` bytes for the shown volume's frames (its [`frame_reserve`] and
+    /// read-back): its inner box as near a cube in mm as the volume allows, cut first around the
     /// volume's centre. The first box is sized at `bytes_per_voxel` (the shown volume's set-up
     /// peak per voxel, its fixed costs included: too much; at least a [`MIN_SIDE`] box is
     /// tried), the next at what the first cost, while that makes it larger. None where not
@@ -123,9 +124,9 @@ impl Inset {
         gpu: &Gpu,
         whole: Arc<Volume>,
         (config, tf): (AoConfig, TransferFunction),
-        (available, bytes_per_voxel, shown_voxels): (u64, f64, usize),
+        (available, bytes_per_voxel, frames): (u64, f64, u64),
     ) -> Result<Option<Inset>> {
-        let frames = frame_reserve(shown_voxels) as f64;
+        let frames = frames as f64;
         let free = available.saturating_sub(gpu.memory_in_use()) as f64 - frames;
         let centre = whole.dims.map(|d| d as f64 * 0.5);
         let mut inset = Inset::uncut(gpu, whole, (config, tf), [0; 3])?;
@@ -253,7 +254,16 @@ impl Inset {
     pub fn cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
         let (inner_lo, crop_lo, crop) = self.crop_at(centre);
         let tf = self.tf.pinned_to(self.range);
-        let ao = precompute_method(gpu, &self.lao, &crop, &tf, &self.config, false)?;
+        let ao = match self.config.method {
+            // The direct sums, binned over the whole's range: the definition the clusters
+            // approximate, the whole volume's bit for bit, with no clustering in the frame.
+            AoMethod::Histogram(hp) => {
+                let direct = HistParams { clusters: 0, ..hp };
+                let h = histogram_state_over(gpu, (&crop, self.range), direct, None, false)?;
+                precompute_histogram(gpu, &self.lao, &crop, &tf, &self.config.lao, h)?
+            }
+            _ => precompute_method(gpu, &self.lao, &crop, &tf, &self.config, false)?,
+        };
         self.show(gpu, (inner_lo, crop_lo, crop), ao)
     }
 
@@ -708,6 +718,7 @@ impl Inset {
         Some(InsetBinding {
             scalars: &part.scalars,
             ao: &part.cao.ao,
+            bleeding: part.cao.method().bleeding(),
             structures: part.ids.as_ref(),
             variance: part.variance.as_ref(),
             glow: part.glow.as_ref(),

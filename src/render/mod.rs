@@ -893,9 +893,19 @@ impl StereoTarget {
         self.image_from(&bufs)
     }
 
+    /// Bytes of [`StereoTarget::readback_buffers`].
+    pub fn readback_bytes(&self) -> u64 {
+        2 * self.layer_bytes()
+    }
+
+    /// Bytes of the colour (or the depth) of both layers.
+    fn layer_bytes(&self) -> u64 {
+        (self.width * self.height * 2) as u64 * 4
+    }
+
     /// Host-visible buffers for the colour and depth of both layers.
     pub fn readback_buffers(&self, gpu: &Gpu) -> Result<[Buffer; 2]> {
-        let bytes = (self.width * self.height * 2) as u64 * 4;
+        let bytes = self.layer_bytes();
         let usage = vk::BufferUsageFlags::TRANSFER_DST;
         Ok([
             Buffer::new(
@@ -1095,6 +1105,8 @@ pub struct InsetBinding<'a> {
     pub scalars: &'a Image,
     /// Its V_AO (16-bit words), read as [`FrameViews::ao`] is.
     pub ao: &'a Buffer,
+    /// Its bleeding colour E, read as [`FrameViews::bleeding`] is, where its method has one.
+    pub bleeding: Option<&'a Buffer>,
     /// Its structure ids ([`id_image`]), where the volume has labels.
     pub structures: Option<&'a Image>,
     /// Its var_s at full resolution ([`variance_image`]), where variance modulation is on.
@@ -1492,8 +1504,12 @@ impl Renderer {
             inset_scale,
             inset_offset,
             inset_words: {
-                let a = frame.inset.map_or(0, |i| i.ao.address);
-                [a as u32, (a >> 32) as u32, 0, 0]
+                let [a, e] = [
+                    frame.inset.map(|i| i.ao),
+                    frame.inset.and_then(|i| i.bleeding),
+                ]
+                .map(|b| b.map_or(0, |b| b.address));
+                [a as u32, (a >> 32) as u32, e as u32, (e >> 32) as u32]
             },
         };
         self.uniforms[slot].write(0, bytemuck::bytes_of(&u))?;

@@ -9,6 +9,7 @@ use crate::common;
 
 use cao_xr::ao::cao::Mode;
 use cao_xr::ao::filtered::{Estimator, FilterInput, FilterParams};
+use cao_xr::ao::histogram::HistParams;
 use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
 use cao_xr::app::inset::{Inset, BUILD_FRAMES};
 use cao_xr::app::precompute;
@@ -54,9 +55,24 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         ([20, 16, 24], [12.0, 30.0, 24.0]),
     )
     .unwrap();
-    for method in [AoMethod::Lao, gauss] {
+    // The local histograms' box is their direct sums (the definition the clusters
+    // approximate), binned over the whole's range: the whole's direct AO and E.
+    let hist = |clusters| {
+        AoMethod::Histogram(HistParams {
+            radius_mm: 10.0,
+            bins: 16,
+            clusters,
+            hemispheres: true,
+        })
+    };
+    for (method, at_full) in [
+        (AoMethod::Lao, AoMethod::Lao),
+        (gauss, gauss),
+        (hist(64), hist(0)),
+    ] {
         let ao = AoConfig::new(method, lao_params);
-        let mut whole = whole_cao(&gpu, &lao, &vol, (&tf, &ao));
+        let full = AoConfig::new(at_full, lao_params);
+        let mut whole = whole_cao(&gpu, &lao, &vol, (&tf, &full));
         inset.set_method(&gpu, (ao, tf.clone())).unwrap();
         let margin = (whole.reach_mm() / vol.spacing[1]).ceil() as usize;
         let (lo, _) = inset.inner_box().unwrap();
@@ -161,8 +177,9 @@ fn whole_cao(
 }
 
 /// Runs the scripted carving's frames on `whole` (the whole volume `vol`'s CAO state) and on
-/// `inset`, and requires the box's AO to be the whole's, bit for bit, on every frame; returns
-/// how many frames had occluded voxels in the box.
+/// `inset`, and requires the box's AO (and bleeding colour, where the method has one) to be the
+/// whole's, bit for bit, on every frame; returns how many frames had occluded voxels in the
+/// box.
 fn carve_both(
     vol: &cao_xr::volume::Volume,
     whole: &mut cao_xr::ao::cao::Cao,
@@ -179,19 +196,36 @@ fn carve_both(
         inset
             .run_frame(tools, (vol, &placement), Mode::Contextual)
             .unwrap();
-        let (want, got) = (read_ao(&whole.ao), read_ao(&inset.cao().unwrap().ao));
+        let part = inset.cao().unwrap();
+        let (want, got) = (read_ao(&whole.ao), read_ao(&part.ao));
+        let words = |b: Option<&cao_xr::gpu::Buffer>| -> Vec<u32> {
+            b.map_or_else(Vec::new, |b| {
+                bytemuck::cast_slice(&b.read_back().unwrap()).to_vec()
+            })
+        };
+        let (want_e, got_e) = (
+            words(whole.method().bleeding()),
+            words(part.method().bleeding()),
+        );
+        assert_eq!(want_e.is_empty(), got_e.is_empty());
         let mut changed = 0;
         for k in lo[2]..hi[2] {
             for j in lo[1]..hi[1] {
                 for i in lo[0]..hi[0] {
-                    let w = want[vol.index(i, j, k)];
-                    let c = [i - crop_lo[0], j - crop_lo[1], k - crop_lo[2]];
-                    let g = got[c[0] + crop[0] * (c[1] + crop[1] * c[2])];
+                    let (v, c) = (
+                        vol.index(i, j, k),
+                        [i - crop_lo[0], j - crop_lo[1], k - crop_lo[2]],
+                    );
+                    let u = c[0] + crop[0] * (c[1] + crop[1] * c[2]);
+                    let (w, g) = (want[v], got[u]);
                     assert_eq!(
                         g.to_bits(),
                         w.to_bits(),
                         "frame {f}: voxel ({i}, {j}, {k}): {g} against {w}"
                     );
+                    if !want_e.is_empty() {
+                        assert_eq!(got_e[u], want_e[v], "frame {f}: E at ({i}, {j}, {k})");
+                    }
                     changed += (w < 1.0) as usize;
                 }
             }
@@ -586,6 +620,32 @@ fn a_safety_margin_glows_in_the_box_as_at_full_resolution() {
     let (shares, _) = past_the_budget(&dir, render);
     assert!(
         shares[0] >= 0.99 && shares[1] < 0.9,
+        "pixels as at full resolution: {} with the inset, {} without",
+        shares[0],
+        shares[1]
+    );
+}
+
+/// The local histograms past the budget: the box holds their direct sums at full resolution,
+/// binned over the whole volume's range, and the ray caster reads its AO and its bleeding colour
+/// E there, so the picture in the box is the full-resolution one (the direct sums, as
+/// `--clusters 0` gives them at full resolution).
+#[test]
+fn the_local_histograms_in_the_box_are_the_full_resolutions() {
+    let dir = common::scratch("inset", "histogram");
+    let more = [
+        "--ao",
+        "histogram",
+        "--clusters",
+        "0",
+        "--hist-radius-mm",
+        "4",
+        "--bleeding",
+        "1",
+    ];
+    let (shares, _) = past_the_budget(&dir, |out, env| render_with(out, &more, env));
+    assert!(
+        shares[0] >= 0.99 && shares[1] < 0.5,
         "pixels as at full resolution: {} with the inset, {} without",
         shares[0],
         shares[1]
