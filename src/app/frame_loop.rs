@@ -18,6 +18,7 @@ use super::lighting::{LightingOptions, ShLighting};
 use super::tf_switch::{default_tf_samples_per_frame, TfProgress, TfSwitcher};
 use crate::ao::cao::{Cao, FrameMetrics, Mode, PendingFrame};
 use crate::ao::filtered::{variance_volume, Estimator, FilterInput, VarianceModulation};
+use crate::ao::histogram::Neighbourhood;
 use crate::ao::sh::ShFrameMetrics;
 use crate::ao::{AoConfig, AoMethod, LaoGpu};
 use crate::clip::margin::MarginHit;
@@ -206,29 +207,34 @@ pub const FAST_START_SLAB_SHARE: f64 = 1.0;
 /// The desktop window's and the headset's [`Built::fast_start_after_s`].
 pub const FAST_START_AFTER_S: f64 = 2.0;
 
-/// About how long `config`'s method takes to precompute on `gpu`. On a CPU device (lavapipe on
-/// two cores, measured on the CT head and a 512 x 512 x 133 chest, empty-space skipping on):
+/// About how long `config`'s method takes to precompute for `vol` on `gpu`. On a CPU device
+/// (lavapipe on two cores, measured on the CT head, a 512 x 512 x 133 chest and the phantom):
 /// LAO about 2e8 of its K·(M−1) opacity samples per second, the filters about 1.5e6 voxels per
-/// second; on a GPU a hundred times that (an estimate). The local histograms are not computed
-/// slab by slab, so a fast start never waits on them: 0.
-pub fn precompute_seconds(gpu: &Gpu, dims: [usize; 3], config: &AoConfig) -> f64 {
-    let voxels = (dims[0] * dims[1] * dims[2]) as f64;
+/// second, the local histograms about 1.2e8 members of S_r per second clustered (every voxel's
+/// local histograms, the training and the assignment) and 3e8 direct (`--clusters 0`: one
+/// pass of sums); on a GPU a hundred times that (an estimate).
+pub fn precompute_seconds(gpu: &Gpu, vol: &Volume, config: &AoConfig) -> f64 {
+    let voxels = vol.voxel_count() as f64;
     let speed = if gpu.is_cpu() { 1.0 } else { 100.0 };
     let p = &config.lao;
     match config.method {
         AoMethod::Lao => voxels * p.rays as f64 * p.steps.saturating_sub(1) as f64 / (2e8 * speed),
         AoMethod::Filter(_) => voxels / (1.5e6 * speed),
-        AoMethod::Histogram(_) => 0.0,
+        AoMethod::Histogram(h) => {
+            let members = Neighbourhood::new(h.radius_mm, vol.spacing).offsets.len() as f64;
+            let rate = if h.clusters > 0 { 1.2e8 } else { 3e8 };
+            voxels * members / (rate * speed)
+        }
     }
 }
 
 /// The index in `methods` of the method a fast start shows first: filter-gauss (one filtering
-/// pass) when the configured method (`methods[0]`) is LAO, else 0 (the filters are fast
-/// themselves, and the local histograms cannot be computed slab by slab).
+/// pass) when the configured method (`methods[0]`) is LAO or the local histograms, else 0 (the
+/// filters are fast themselves).
 pub fn fast_method(methods: &[AoMethod]) -> usize {
     let gauss = |m: &AoMethod| matches!(m, AoMethod::Filter(f) if f.estimator == Estimator::Gauss);
     match methods.first() {
-        Some(AoMethod::Lao) => methods.iter().position(gauss).unwrap_or(0),
+        Some(AoMethod::Lao | AoMethod::Histogram(_)) => methods.iter().position(gauss).unwrap_or(0),
         _ => 0,
     }
 }
@@ -567,7 +573,7 @@ impl FrameLoop {
         // AO 1) and computes the configured one slab by slab (not the fast one first: the
         // filters refilter in one go, and a frame held for minutes is worse than AO later).
         let fast = fast_method(&methods);
-        let seconds = |method| precompute_seconds(gpu, vol.dims, &AoConfig { method, ..config });
+        let seconds = |method| precompute_seconds(gpu, &vol, &AoConfig { method, ..config });
         let (configured, quick) = (seconds(methods[0]), seconds(methods[fast]));
         let start = match fast_start_after_s {
             Some(s) if configured > s && fast != 0 && quick <= s => Start::Shown(fast),

@@ -26,6 +26,7 @@ use crate::volume::labels::{shown_as, LabelMap};
 use crate::volume::transfer::{presets_for_volume, TransferFunction};
 use crate::volume::Volume;
 use ash::vk;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 /// How far a switch has come: V_PAO' (and V_PSH', half each) of `name` (the new TF, or the
@@ -147,6 +148,29 @@ impl Switch {
     }
 }
 
+/// The local histograms' clustering (independent of the TF) computed on a worker thread while
+/// the frames are lit by what is shown: its GPU batches are submitted beside the frames.
+struct Clustering {
+    /// The index of the method in [`TfSwitcher::methods`].
+    method: usize,
+    /// None until the first picture is out.
+    task: Option<HostTask<std::result::Result<HistogramGpu, String>>>,
+    /// Batches done (high 32 bits) and in all (low 32 bits), as the clustering tells them.
+    progress: Arc<AtomicU64>,
+}
+
+impl Clustering {
+    fn fraction(&self) -> f32 {
+        let p = self.progress.load(Ordering::Relaxed);
+        let (done, total) = ((p >> 32) as f32, (p & 0xffff_ffff) as f32);
+        if total > 0.0 {
+            done / total
+        } else {
+            0.0
+        }
+    }
+}
+
 /// The transfer functions and AO methods a frame loop can show, the ones it shows, and the
 /// switch in flight.
 pub struct TfSwitcher {
@@ -159,9 +183,10 @@ pub struct TfSwitcher {
     /// Nothing is computed yet (the CAO state's method is [`MethodGpu::Open`], AO 1): the
     /// shown choice's method is the one computed first, whatever the scene asks.
     open: bool,
-    /// Open, the first switch waits until a picture has left the GPU
-    /// ([`TfSwitcher::picture_shown`]): its classification on the host would take the cores
-    /// from that first picture (on lavapipe, 13 s instead of 5 at 512 x 512 x 600).
+    /// Open, the first switch (and any start, the local histograms' clustering) waits until a
+    /// picture has left the GPU ([`TfSwitcher::picture_shown`]): its classification on the
+    /// host would take the cores from that first picture (on lavapipe, 13 s instead of 5 at
+    /// 512 x 512 x 600).
     first_picture_pending: bool,
     /// The structures' names, for the progress line.
     names: Vec<String>,
@@ -169,6 +194,9 @@ pub struct TfSwitcher {
     /// The local-histogram method's state while another method is shown (its clustering is
     /// kept, so switching back is a table update).
     parked: Option<HistogramGpu>,
+    /// The local histograms' clustering on a worker thread, where the loop started without it
+    /// (a fast start): parked when done.
+    clustering: Option<Clustering>,
     lao: LaoGpu,
     lao_dirs: Buffer,
     /// The LAO parameters a switch to LAO computes with (`lao_dirs` holds their directions).
@@ -200,12 +228,13 @@ impl TfSwitcher {
             },
             value_range,
             open,
-            first_picture_pending: open,
+            first_picture_pending: true,
             names: labels.map_or_else(Vec::new, |l| {
                 l.structures.iter().map(|s| s.name.clone()).collect()
             }),
             switch: None,
             parked: None,
+            clustering: None,
             lao,
             lao_dirs,
             params,
@@ -265,7 +294,10 @@ impl TfSwitcher {
     /// Whether what `scene` asks for (transfer function, AO method, structures) is shown with
     /// no switch in flight: then [`TfSwitcher::advance`] replaces nothing and records no slab.
     pub fn settled(&self, scene: &Scene) -> bool {
-        self.switch.is_none() && !self.open && self.wanted(scene) == self.shown
+        self.switch.is_none()
+            && self.clustering.is_none()
+            && !self.open
+            && self.wanted(scene) == self.shown
     }
 
     /// A frame has left the GPU: an open start's first switch may begin.
@@ -276,6 +308,13 @@ impl TfSwitcher {
     /// The switch in flight, if any (an open start's first one from the first frame, at 0 %
     /// while it waits for the first picture).
     pub fn progress(&self) -> Option<TfProgress> {
+        if let Some(c) = &self.clustering {
+            return Some(TfProgress {
+                what: "AO",
+                name: self.methods[c.method].name(),
+                fraction: c.fraction(),
+            });
+        }
         if self.open && self.switch.is_none() {
             return Some(TfProgress {
                 what: "AO",
@@ -332,12 +371,22 @@ impl TfSwitcher {
         lighting: Option<&mut ShLighting>,
     ) -> Result<()> {
         let want = self.wanted(scene);
-        let target = self.switch.as_ref().map_or(&self.shown, |s| &s.choice);
-        if want != self.shown && self.methods[want.method].refresh() == Refresh::Table {
+        let table = self.methods[want.method].refresh() == Refresh::Table;
+        if (table && self.parked.is_none() && cao.histogram().is_none())
+            || self.clustering.is_some()
+        {
+            // The local histograms not clustered yet (a fast start): on a worker thread, once
+            // the first picture is out; the frames meanwhile show what is shown.
+            if !self.cluster(want.method, vol)? && table {
+                return Ok(());
+            }
+        }
+        if table && (want != self.shown || self.open) {
             // The local histograms follow a new TF (or come back) with one table update.
             self.switch = None;
             return self.switch_to_histogram(want, vol, cao, tex);
         }
+        let target = self.switch.as_ref().map_or(&self.shown, |s| &s.choice);
         // Open, the first switch starts though the choice is the shown one (once the first
         // picture is out).
         let first = self.open && self.switch.is_none() && !self.first_picture_pending;
@@ -440,6 +489,67 @@ impl TfSwitcher {
         Ok(())
     }
 
+    /// Starts the clustering of local-histogram method `method` on a worker thread (once the
+    /// first picture is out), or polls it: true once it is parked (then a switch to it is a
+    /// table update), or where no clustering is wanted.
+    fn cluster(&mut self, method: usize, vol: &Arc<Volume>) -> Result<bool> {
+        let AoMethod::Histogram(params) = self.methods[method] else {
+            if self.clustering.is_none() {
+                return Ok(true);
+            }
+            return self.poll_clustering(vol);
+        };
+        let c = self.clustering.get_or_insert_with(|| Clustering {
+            method,
+            task: None,
+            progress: Arc::new(AtomicU64::new(0)),
+        });
+        if c.task.is_some() {
+            return self.poll_clustering(vol);
+        }
+        if self.first_picture_pending {
+            return Ok(false);
+        }
+        let (gpu, v, told) = (self.gpu.clone(), Arc::clone(vol), Arc::clone(&c.progress));
+        let task = HostTask::spawn("cao-xr-cluster", move || {
+            let cache = crate::ao::histogram::default_cache_dir();
+            HistogramGpu::new(
+                &gpu,
+                (&v, v.value_range()),
+                params,
+                Some(&cache),
+                &mut |done, total, _| told.store((done << 32) | total, Ordering::Relaxed),
+            )
+            .map_err(|e| e.to_string())
+        })
+        .map_err(|e| {
+            AppError::Usage(format!(
+                "{}: cannot start a thread for the local histograms: {e}",
+                vol.name
+            ))
+        })?;
+        c.task = Some(task);
+        Ok(false)
+    }
+
+    /// Takes the clustering's result once it is there (parked): whether it is.
+    fn poll_clustering(&mut self, vol: &Volume) -> Result<bool> {
+        let Some(done) = self
+            .clustering
+            .as_mut()
+            .and_then(|c| c.task.as_mut())
+            .and_then(HostTask::poll)
+        else {
+            return Ok(false);
+        };
+        let h = done
+            .and_then(|r| r)
+            .map_err(|e| AppError::Usage(format!("{}: local histograms: {e}", vol.name)))?;
+        self.clustering = None;
+        self.parked = Some(h);
+        Ok(true)
+    }
+
     /// Shows the local-histogram method under TF `index` at once: the bins' and clusters'
     /// tables, q, and one pass for V_PAO and the bleeding volume.
     fn switch_to_histogram(
@@ -472,6 +582,7 @@ impl TfSwitcher {
         tex.set_transfer_function(tf)?;
         tex.set_structure_opacities(&want.structures);
         self.shown = want;
+        self.open = false;
         Ok(())
     }
 

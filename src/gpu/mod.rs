@@ -845,41 +845,47 @@ impl Core {
         }
     }
 
-    /// Records commands into a fresh command buffer, submits it and waits for completion.
+    /// Records commands into a fresh command buffer, submits it and waits for completion. The
+    /// shared command pool is locked while the buffer is allocated, recorded, submitted and
+    /// freed, not during the wait: a worker thread's long submission (the local histograms'
+    /// clustering beside the frames) holds up no other thread's.
     pub fn submit_and_wait<R>(&self, record: impl FnOnce(vk::CommandBuffer) -> R) -> Result<R> {
-        // SAFETY: the pool lock is held to the end of the block, so no other caller allocates,
-        // records, submits or frees through this pool meanwhile (the frame loop and the presenter
-        // submit from the same thread). `cmd` is begun before `record` gets it and ended after; it
-        // and the fence are freed only once the wait returned (after a stall they stay in use:
-        // leaked). Whatever `record` names outlives this call, which waits.
+        // SAFETY: the pool lock is held while `cmd` is allocated, recorded, submitted and
+        // freed, so no other caller uses the pool meanwhile (the frame loop's slots have pools
+        // of their own); while it waits, `cmd` is pending and nothing on the host touches it.
+        // `cmd` is begun before `record` gets it and ended after; it and the fence are freed
+        // only once the wait returned (after a stall they stay in use: leaked). Whatever
+        // `record` names outlives this call, which waits.
         unsafe {
-            let pool = self.cmd_pool.lock().unwrap();
-            let cmd = self.device.allocate_command_buffers(
-                &vk::CommandBufferAllocateInfo::default()
-                    .command_pool(*pool)
-                    .level(vk::CommandBufferLevel::PRIMARY)
-                    .command_buffer_count(1),
-            )?[0];
-            self.device.begin_command_buffer(
-                cmd,
-                &vk::CommandBufferBeginInfo::default()
-                    .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
-            )?;
-            let r = record(cmd);
-            self.device.end_command_buffer(cmd)?;
-            let fence = self
-                .device
-                .create_fence(&vk::FenceCreateInfo::default(), None)?;
-            let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
-            let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
-            let res = self
-                .submit(&submit, fence)
-                .and_then(|_| self.wait_fences(&[fence]));
+            let (cmd, fence, r, submitted) = {
+                let pool = self.cmd_pool.lock().unwrap();
+                let cmd = self.device.allocate_command_buffers(
+                    &vk::CommandBufferAllocateInfo::default()
+                        .command_pool(*pool)
+                        .level(vk::CommandBufferLevel::PRIMARY)
+                        .command_buffer_count(1),
+                )?[0];
+                self.device.begin_command_buffer(
+                    cmd,
+                    &vk::CommandBufferBeginInfo::default()
+                        .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+                )?;
+                let r = record(cmd);
+                self.device.end_command_buffer(cmd)?;
+                let fence = self
+                    .device
+                    .create_fence(&vk::FenceCreateInfo::default(), None)?;
+                let cmds = [vk::CommandBufferSubmitInfo::default().command_buffer(cmd)];
+                let submit = [vk::SubmitInfo2::default().command_buffer_infos(&cmds)];
+                (cmd, fence, r, self.submit(&submit, fence))
+            };
+            let res = submitted.and_then(|_| self.wait_fences(&[fence]));
             if matches!(res, Err(GpuError::Stalled(_))) {
                 // Still in use by a device that stopped answering: leaked, not destroyed.
                 return res.map(|_| r);
             }
             self.device.destroy_fence(fence, None);
+            let pool = self.cmd_pool.lock().unwrap();
             self.device.free_command_buffers(*pool, &[cmd]);
             res?;
             Ok(r)

@@ -7,6 +7,7 @@ use crate::common;
 
 use cao_xr::ao::cao::Mode;
 use cao_xr::ao::filtered::{Estimator, FilterParams};
+use cao_xr::ao::histogram::HistParams;
 use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
 use cao_xr::app::frame_loop::{precompute_seconds, Built, FrameLoop, FrameOutput};
 use cao_xr::clip::Shape;
@@ -521,8 +522,8 @@ fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
     // The filter's pass within the threshold: it lights the first picture, and the frames
     // until LAO is complete, slab by slab.
     let gauss = AoConfig::new(filter(Estimator::Gauss), deep);
-    let quick = precompute_seconds(&gpu, vol.dims, &gauss);
-    assert!(quick < precompute_seconds(&gpu, vol.dims, &deep.into()));
+    let quick = precompute_seconds(&gpu, &vol, &gauss);
+    assert!(quick < precompute_seconds(&gpu, &vol, &deep.into()));
     let mut fl = new(quick);
     assert_eq!(
         fl.cao.method_name(),
@@ -545,6 +546,69 @@ fn a_fast_start_shows_the_filter_first_then_exactly_lao() {
         count(&stages, "none", "lao") == stages.len() && stages.len() > 1,
         "LAO not slab by slab while open: {stages:?}"
     );
+    common::assert_no_validation_messages(&gpu);
+}
+
+/// The local histograms configured and a fast start: the first picture is lit by the filter (or
+/// by nothing, open), the clustering runs on a worker thread beside the frames, and once it is
+/// done the frames show exactly what a loop that waited for it shows.
+#[test]
+fn a_fast_start_clusters_the_local_histograms_beside_the_frames() {
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(N));
+    let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
+    let hist = AoConfig::new(
+        // Wide enough (S_r ~ 350 voxels of 6.9 mm) that it takes longer than the filter.
+        AoMethod::Histogram(HistParams {
+            radius_mm: 30.0,
+            bins: 16,
+            clusters: 64,
+            hemispheres: true,
+        }),
+        PARAMS,
+    );
+    let gauss = AoConfig::new(filter(Estimator::Gauss), PARAMS);
+    let quick = precompute_seconds(&gpu, &vol, &gauss);
+    assert!(quick < precompute_seconds(&gpu, &vol, &hist));
+    let c = Placement::default().center;
+    for (after, first) in [(quick, "filter-gauss"), (quick / 2.0, "none")] {
+        let built = Built {
+            config: hist,
+            size: (48, 48),
+            interaction: InteractionSettings::default(),
+            fast_start_after_s: Some(after),
+        };
+        let mut fl =
+            FrameLoop::new_lit(&gpu, Arc::clone(&vol), tfs.clone(), built, None, false).unwrap();
+        assert_eq!(fl.cao.method_name(), first, "the first picture's method");
+        let (mut i, mut stages) = (0, Vec::new());
+        let (done, t) = loop {
+            assert!(i < 2000, "the local histograms never arrived");
+            let t = tool(c, i, true);
+            let a = click_frame(&mut fl, &vol, t, false, i, false);
+            i += 1;
+            let Some(p) = a.stats.tf_progress.clone() else {
+                break (a, t);
+            };
+            assert_eq!((p.what, p.name.as_str()), ("AO", "histogram"), "frame {i}");
+            stages.push(a.stats.ao_method.clone());
+            // Frames keep coming while it clusters (lavapipe shares two cores with it).
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        };
+        assert!(
+            !stages.is_empty() && stages.iter().all(|s| s == first),
+            "{first}: {stages:?}"
+        );
+        assert_eq!(done.stats.ao_method, "histogram");
+        let mut waited = new_loop_with(&gpu, &vol, tfs.clone(), Mode::Contextual, hist);
+        let f = click_frame(&mut waited, &vol, t, false, i, false);
+        let d = common::first_bit_difference(&read_ao(&fl.cao.ao), &read_ao(&waited.cao.ao));
+        assert!(
+            d.is_none(),
+            "{first}: V_AO differs from a loop that waited, at {d:?}"
+        );
+        assert!(done.image == f.image, "{first}: the image differs");
+    }
     common::assert_no_validation_messages(&gpu);
 }
 
