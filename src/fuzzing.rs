@@ -231,6 +231,7 @@ mod tests {
         use glam::{DMat3, DVec3};
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds");
         let vol = |voxels| Volume {
+            whole_range: None,
             name: "s".into(),
             dims: [3, 2, 2],
             spacing: [0.5, 1.0, 2.0],

@@ -79,11 +79,10 @@ pub fn packed_dims(shades: usize) -> usize {
 /// Most clusters `--clusters` takes (cluster ids are stored as u16 in the cache).
 pub const MAX_CLUSTERS: usize = 16384;
 
-/// bin(u) = min(B-1, floor(B (value_u - v_min) / (v_max - v_min))), in f64, over `range` =
-/// (v_min, v_max): the volume's own, or a whole volume's for a part of it (the inset's crop,
-/// binned as the whole is); 0 for a constant volume.
-pub fn bins(vol: &Volume, range: (f32, f32), b: usize) -> Vec<u32> {
-    let (lo, hi) = range;
+/// bin(u) = min(B-1, floor(B (value_u - v_min) / (v_max - v_min))), in f64, over the range the
+/// volume is classified over (a crop's is the whole's); 0 for a constant volume.
+pub fn bins(vol: &Volume, b: usize) -> Vec<u32> {
+    let (lo, hi) = vol.value_range();
     let span = hi as f64 - lo as f64;
     (0..vol.voxel_count())
         .into_par_iter()
@@ -270,7 +269,7 @@ pub fn direct_inputs(
     structures: &[f32],
 ) -> (Vec<f32>, Vec<u32>, Vec<[f32; 4]>) {
     let labels = vol.labels.as_deref();
-    let shades = Shades::new(bins(vol, vol.value_range(), b), b, labels);
+    let shades = Shades::new(bins(vol, b), b, labels);
     let table = shades.table(&bin_table(tf, vol.value_range(), b), labels, structures);
     (shades.q(&table), shades.ids, table)
 }
@@ -922,6 +921,7 @@ mod tests {
         let on = |i: usize| material(i / (d[0] * d[1]));
         let n = d[0] * d[1] * d[2];
         let vol = Volume {
+            whole_range: None,
             name: "hemispheres".into(),
             dims: d,
             spacing: [1.0; 3],

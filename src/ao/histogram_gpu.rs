@@ -128,13 +128,12 @@ fn spv(name: &str) -> &'static [u8] {
 }
 
 impl HistogramGpu {
-    /// Sets the method up for `vol`, binned over value range `range` (its own, or a whole
-    /// volume's for a part of it, [`hist::bins`]): bins, S_r and, with N > 0, the clustering,
-    /// read from `cache_dir` when a valid entry for this volume and these parameters is there,
-    /// else computed (`progress(done, total, phase)` is told along the way) and written there.
+    /// Sets the method up for `vol`: bins, S_r and, with N > 0, the clustering, read from
+    /// `cache_dir` when a valid entry for this volume and these parameters is there, else
+    /// computed (`progress(done, total, phase)` is told along the way) and written there.
     pub fn new(
         gpu: &Gpu,
-        (vol, range): (&Volume, (f32, f32)),
+        vol: &Volume,
         params: HistParams,
         cache_dir: Option<&Path>,
         progress: &mut dyn FnMut(u64, u64, &str),
@@ -142,10 +141,9 @@ impl HistogramGpu {
         params.validate().map_err(crate::gpu::GpuError::Other)?;
         let n = vol.voxel_count();
         let labels = vol.labels.clone();
-        let bins = hist::bins(vol, range, params.bins);
-        let shades = Shades::new(bins, params.bins, labels.as_deref());
+        let shades = Shades::new(hist::bins(vol, params.bins), params.bins, labels.as_deref());
         let nb = Neighbourhood::new(params.radius_mm, vol.spacing);
-        let geometry = (vol.dims, vol.spacing, range);
+        let geometry = (vol.dims, vol.spacing, vol.value_range());
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
         let values: Option<Vec<f32>> = params
             .hemispheres

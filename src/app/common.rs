@@ -314,22 +314,10 @@ pub fn histogram_state(
     cache: Option<&Path>,
     show_progress: bool,
 ) -> Result<HistogramGpu> {
-    histogram_state_over(gpu, (vol, vol.value_range()), hp, cache, show_progress)
-}
-
-/// [`histogram_state`] with the bins over value range `range` (a whole volume's, for a part of
-/// it).
-pub fn histogram_state_over(
-    gpu: &Gpu,
-    (vol, range): (&Volume, (f32, f32)),
-    hp: HistParams,
-    cache: Option<&Path>,
-    show_progress: bool,
-) -> Result<HistogramGpu> {
     hp.validate().map_err(AppError::Usage)?;
     crate::render::check_volume_fits_gpu(gpu, vol)?;
     let bar = show_progress.then(|| progress_bar_of(1, "local histograms", "batches"));
-    let h = HistogramGpu::new(gpu, (vol, range), hp, cache, &mut |done, total, phase| {
+    let h = HistogramGpu::new(gpu, vol, hp, cache, &mut |done, total, phase| {
         if let Some(b) = &bar {
             b.set_length(total.max(1));
             b.set_position(done);

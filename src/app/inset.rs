@@ -6,9 +6,9 @@
 //! tools (or, with none in the volume, where the eyes look): when that point moves a quarter of
 //! the box away, the box is cut again around it and its AO computed anew.
 
-use super::common::{histogram_state_over, precompute_histogram, precompute_method, Result};
+use super::common::{histogram_state, precompute_histogram, precompute_method, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
-use crate::ao::filtered::{variance_volume_shifted, FilterParams, VarianceModulation};
+use crate::ao::filtered::{variance_volume, FilterParams, VarianceModulation};
 use crate::ao::histogram::HistParams;
 use crate::ao::lao::{LaoKernel, SkipBuffers, SlabInput};
 use crate::ao::method::{AoVolume, MethodGpu};
@@ -253,16 +253,17 @@ impl Inset {
     /// reads it may be in flight.
     pub fn cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
         let (inner_lo, crop_lo, crop) = self.crop_at(centre);
-        let tf = self.tf.pinned_to(self.range);
+        let tf = &self.tf;
         let ao = match self.config.method {
-            // The direct sums, binned over the whole's range: the definition the clusters
-            // approximate, the whole volume's bit for bit, with no clustering in the frame.
+            // The direct sums (binned over the whole's range, as the crop is classified): the
+            // definition the clusters approximate, the whole volume's bit for bit, with no
+            // clustering in the frame.
             AoMethod::Histogram(hp) => {
                 let direct = HistParams { clusters: 0, ..hp };
-                let h = histogram_state_over(gpu, (&crop, self.range), direct, None, false)?;
-                precompute_histogram(gpu, &self.lao, &crop, &tf, &self.config.lao, h)?
+                let h = histogram_state(gpu, &crop, direct, None, false)?;
+                precompute_histogram(gpu, &self.lao, &crop, tf, &self.config.lao, h)?
             }
-            _ => precompute_method(gpu, &self.lao, &crop, &tf, &self.config, false)?,
+            _ => precompute_method(gpu, &self.lao, &crop, tf, &self.config, false)?,
         };
         self.show(gpu, (inner_lo, crop_lo, crop), ao)
     }
@@ -338,7 +339,7 @@ impl Inset {
         let params = self.config.lao;
         params.validate().map_err(super::common::AppError::Usage)?;
         let (inner_lo, crop_lo, crop) = self.crop_at(centre);
-        let opacity = self.tf.pinned_to(self.range).opacity_volume(&crop);
+        let opacity = self.tf.opacity_volume(&crop);
         // Each voxel's LAO is its own, so the slabs give the bits one pass gives (the same
         // kernel reads the skipping data's padded O).
         let skip = self
@@ -625,7 +626,7 @@ impl Inset {
             std::array::from_fn(|a| (crop_lo[a] + dims[a] + h[a]).min(whole.dims[a]));
         let mut grown = whole.crop(lo, std::array::from_fn(|a| hi[a] - lo[a]));
         grown.labels = None;
-        let var = variance_volume_shifted(&grown, m.radius_mm, self.range.0);
+        let var = variance_volume(&grown, m.radius_mm);
         let mut part = Vec::with_capacity(dims.iter().product());
         for k in 0..dims[2] {
             for j in 0..dims[1] {

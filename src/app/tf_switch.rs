@@ -513,13 +513,9 @@ impl TfSwitcher {
         let (gpu, v, told) = (self.gpu.clone(), Arc::clone(vol), Arc::clone(&c.progress));
         let task = HostTask::spawn("cao-xr-cluster", move || {
             let cache = crate::ao::histogram::default_cache_dir();
-            HistogramGpu::new(
-                &gpu,
-                (&v, v.value_range()),
-                params,
-                Some(&cache),
-                &mut |done, total, _| told.store((done << 32) | total, Ordering::Relaxed),
-            )
+            HistogramGpu::new(&gpu, &v, params, Some(&cache), &mut |done, total, _| {
+                told.store((done << 32) | total, Ordering::Relaxed)
+            })
             .map_err(|e| e.to_string())
         })
         .map_err(|e| {

@@ -299,6 +299,7 @@ pub fn convert_inv3_dir(dir: &Path) -> Result<Volume, VolumeError> {
         ));
     }
     Ok(Volume {
+        whole_range: None,
         name: "ct-head".into(),
         dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize],
         spacing: [spacing[0], spacing[1], spacing[2]],

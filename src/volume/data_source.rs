@@ -27,6 +27,7 @@ pub(crate) fn loaded_volume(
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "volume".into());
     Volume {
+        whole_range: None,
         name,
         dims: dims.map(|d| d as usize),
         spacing,

@@ -1338,6 +1338,7 @@ fn load_chosen(dir: &Path, series: &Series) -> Result<Volume, VolumeError> {
         format!("{base} ({})", series.label())
     };
     Ok(Volume {
+        whole_range: None,
         name,
         dims: [dims[0] as usize, dims[1] as usize, dims[2] as usize],
         spacing: g.spacing,

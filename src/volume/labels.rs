@@ -1003,6 +1003,7 @@ mod tests {
 
     fn grid(dims: [usize; 3], spacing: [f64; 3], origin: DVec3, directions: DMat3) -> Volume {
         Volume {
+            whole_range: None,
             name: "g".into(),
             dims,
             spacing,

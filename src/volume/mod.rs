@@ -135,6 +135,11 @@ pub struct Volume {
     /// The segmentation resampled into this grid (`--labels`), and how its structures are
     /// shown: part of the classification O of docs/design.md.
     pub labels: Option<std::sync::Arc<labels::LabelMap>>,
+    /// Where this volume is a part of a larger one (a crop or a downsample of it), that
+    /// volume's value range: it is classified over it ([`Volume::value_range`]), so that a
+    /// normalised TF, the local histograms' bins and the lighting threshold mean there what
+    /// they mean in the whole. None: its own values' range.
+    pub whole_range: Option<(f32, f32)>,
 }
 
 /// Where a volume's voxels lie and what they measure: a [`Volume`]'s geometry without its
@@ -168,8 +173,14 @@ impl Volume {
     pub fn index(&self, i: usize, j: usize, k: usize) -> usize {
         i + self.dims[0] * (j + self.dims[1] * k)
     }
-    /// (min, max) of the stored values.
+    /// The value range the volume is classified over: (min, max) of its stored values, or the
+    /// whole volume's it is a part of ([`Volume::whole_range`]).
     pub fn value_range(&self) -> (f32, f32) {
+        self.whole_range.unwrap_or_else(|| self.own_value_range())
+    }
+
+    /// (min, max) of the stored values.
+    pub fn own_value_range(&self) -> (f32, f32) {
         fn mm<T: Copy + PartialOrd + Into<f32>>(v: &[T]) -> (f32, f32) {
             let Some(&first) = v.first() else {
                 return (0.0, 0.0);
@@ -196,6 +207,7 @@ impl Volume {
     /// The same geometry (dims, spacing, orientation, name) with no voxels.
     pub fn clone_geometry(&self) -> Volume {
         Volume {
+            whole_range: None,
             name: self.name.clone(),
             dims: self.dims,
             spacing: self.spacing,
@@ -283,6 +295,7 @@ impl Volume {
                 .labels
                 .as_ref()
                 .map(|l| std::sync::Arc::new(l.downsample(self.dims, n))),
+            whole_range: Some(self.value_range()),
         }
     }
 
@@ -330,6 +343,7 @@ impl Volume {
                 .labels
                 .as_ref()
                 .map(|l| std::sync::Arc::new(l.crop(self.dims, lo, dims))),
+            whole_range: Some(self.value_range()),
         }
     }
 
@@ -976,6 +990,13 @@ mod tests {
         assert_eq!(twice.downsampled_by(), 6);
         // by 2 then 3 is by 6 at once
         assert_eq!(twice.dims, v.downsample(6).dims);
+        // Classified over the full volume's range, whose extremes averaging has narrowed, as
+        // a crop of it is.
+        assert_ne!(twice.own_value_range(), v.value_range());
+        assert_eq!(twice.value_range(), v.value_range());
+        let part = v.downsample(2).crop([1, 1, 1], [2, 2, 2]);
+        assert_eq!(part.value_range(), v.value_range());
+        assert_eq!(v.value_range(), v.own_value_range());
         let odd = Volume {
             name: "scan-dsx".into(),
             ..v.clone()
@@ -1023,6 +1044,7 @@ mod tests {
     #[test]
     fn crop_keeps_the_voxels_and_their_patient_positions() {
         let vol = Volume {
+            whole_range: None,
             name: "v".into(),
             dims: [5, 4, 3],
             spacing: [0.5, 1.0, 2.0],
@@ -1054,6 +1076,7 @@ mod tests {
         let dims = [5, 4, 3];
         let dirs = DMat3::from_rotation_z(0.4);
         let vol = Volume {
+            whole_range: None,
             name: "v".into(),
             dims,
             spacing: [0.5, 1.0, 2.0],

@@ -646,6 +646,7 @@ mod tests {
 
     fn sample(voxels: Voxels) -> Volume {
         Volume {
+            whole_range: None,
             name: "t".into(),
             dims: [5, 4, 3],
             spacing: [0.7, 1.25, 3.0],

@@ -247,6 +247,7 @@ pub fn head(n: usize) -> Volume {
     }
 
     Volume {
+        whole_range: None,
         name: format!("phantom-{n}"),
         dims: [n, n, n],
         spacing: [FOV_MM as f64 / n as f64; 3],
@@ -338,6 +339,7 @@ pub fn chest(dims: [usize; 3], spacing: [f64; 3]) -> Volume {
         }
     });
     Volume {
+        whole_range: None,
         name: format!("chest-{nx}x{ny}x{nz}"),
         dims: [nx, ny, nz],
         spacing,

@@ -125,6 +125,7 @@ pub fn load(path: &Path, spec: &RawSpec) -> Result<Volume, VolumeError> {
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "raw".into());
     Ok(Volume {
+        whole_range: None,
         name,
         dims: spec.dims,
         spacing: spec.spacing,

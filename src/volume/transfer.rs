@@ -14,11 +14,6 @@ pub enum Domain {
     Data,
     /// Control-point values are fractions of the volume's value range, 0 = min, 1 = max.
     Normalized,
-    /// Fractions of a fixed range (the f32 bits of its min and max), whatever the volume's: a
-    /// normalised TF pinned to a whole volume's range classifies a part of it as the whole
-    /// ([`TransferFunction::pinned_to`]). Never read from or written to a file.
-    #[serde(skip)]
-    Pinned([u32; 2]),
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -312,23 +307,8 @@ impl TransferFunction {
         let (lo, hi) = match self.domain {
             Domain::Data => return v as f64,
             Domain::Normalized => range,
-            Domain::Pinned([lo, hi]) => (f32::from_bits(lo), f32::from_bits(hi)),
         };
         lo as f64 + v as f64 * (hi as f64 - lo as f64)
-    }
-
-    /// This TF with a normalised domain pinned to `range` (a whole volume's), so that a part of
-    /// that volume (a crop, whose own range is narrower) classifies as the whole does, bit for
-    /// bit; a TF in data values is itself.
-    pub fn pinned_to(&self, range: (f32, f32)) -> TransferFunction {
-        let domain = match self.domain {
-            Domain::Normalized => Domain::Pinned([range.0.to_bits(), range.1.to_bits()]),
-            d => d,
-        };
-        TransferFunction {
-            domain,
-            ..self.clone()
-        }
     }
 
     /// RGBA at data value `value` (piecewise linear, clamped at the ends).

@@ -1456,6 +1456,7 @@ fn info_reads_nifti_and_metaimage() {
     use glam::{DMat3, DVec3};
     let dir = tmp("medio");
     let vol = Volume {
+        whole_range: None,
         name: "m".into(),
         dims: [6, 5, 4],
         spacing: [0.5, 0.75, 2.5],
@@ -1528,6 +1529,7 @@ fn info_picks_the_transfer_function_and_downsamples() {
     assert!(text.contains("tf          mr-default"), "{text}");
     // Float data of unknown modality outside the HU range: float32, mr-default.
     let mut vol = Volume {
+        whole_range: None,
         name: "f".into(),
         dims: [6, 5, 4],
         spacing: [0.5, 0.75, 2.5],

@@ -72,6 +72,7 @@ pub fn ct_volume(
         }
     }
     Volume {
+        whole_range: None,
         name: name.into(),
         dims: [n; 3],
         spacing: [spacing; 3],

@@ -153,6 +153,7 @@ impl Spec {
             })
             .collect();
         Volume {
+            whole_range: None,
             name: String::new(),
             dims: [self.cols, self.rows, self.slices],
             spacing: [

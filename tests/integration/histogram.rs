@@ -46,6 +46,7 @@ fn setup(
 
 fn volume(dims: [usize; 3], spacing: f64, v: Vec<f32>) -> Volume {
     Volume {
+        whole_range: None,
         name: "test".into(),
         dims,
         spacing: [spacing; 3],

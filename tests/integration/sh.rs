@@ -31,6 +31,7 @@ fn opacity_volume(dims: [usize; 3], o: impl Fn(usize, usize, usize) -> f32) -> (
         }
     }
     let vol = Volume {
+        whole_range: None,
         name: "opacity".into(),
         dims,
         spacing: [1.0; 3],

@@ -225,6 +225,7 @@ pub fn read(path: &Path) -> Result<Segmentation, VolumeError> {
         }
     }
     let geometry = Volume {
+        whole_range: None,
         name: path.display().to_string(),
         dims: [cols, rows, slices],
         // PixelSpacing is (between rows, between columns)
