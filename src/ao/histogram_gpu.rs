@@ -631,18 +631,31 @@ impl HistogramGpu {
         Ok(())
     }
 
-    /// Records V_PAO (`pre_a`) and [`HistogramGpu::pre_e`] of the unclipped volume for the TF
-    /// last given to [`HistogramGpu::set_tf`]: the clusters' values, or with N = 0 the direct
-    /// sums over `q`.
-    pub fn record_precompute(&self, cmd: vk::CommandBuffer, q: &Buffer, pre_a: &Buffer) {
+    /// Records V_PAO (`pre_a`) and [`HistogramGpu::pre_e`] of the unclipped volume's z-slices
+    /// `z` for the TF last given to [`HistogramGpu::set_tf`]: the clusters' values, or with
+    /// N = 0 the direct sums over `q`. Each voxel's values are its own, so slabs give the bits
+    /// one pass gives.
+    pub fn record_precompute(
+        &self,
+        cmd: vk::CommandBuffer,
+        (q, pre_a): (&Buffer, &Buffer),
+        z: std::ops::Range<usize>,
+    ) {
         let mode = if self.clusters.is_some() {
             Pass::Clustered
         } else {
             Pass::Direct
         };
         let bufs = MethodBuffers::precompute(q, self.dims, pre_a);
-        let all = [VoxelBox::whole(self.dims)];
-        self.dispatch(cmd, &bufs, &self.pre_e, (&all, &[0]), mode);
+        let mut slab = VoxelBox::whole(self.dims);
+        (slab.min[2], slab.max[2]) = (z.start as i32, z.end as i32);
+        self.dispatch(cmd, &bufs, &self.pre_e, (&[slab], &[0]), mode);
+    }
+
+    /// The members of S_r summed over one z-slice of the volume: a slab's cost, in the unit of
+    /// LAO's opacity samples.
+    pub fn samples_per_slice(&self) -> f64 {
+        (self.dims[0] * self.dims[1] * self.nb.offsets.len()) as f64
     }
 
     /// The bleeding colour of the unclipped volume, as the precompute left it (RGBA8 per voxel):

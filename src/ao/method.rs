@@ -103,8 +103,9 @@ impl MethodGpu {
     /// Records slices `z` of the method's precompute after a change of O, from the unclipped O
     /// `opacity` into V_PAO' `pao` ([`AoMethod::refresh`]): LAO's slab with `lao` (its old
     /// kernel reads the ray steps `dirs`, [`LaoGpu::directions_buffer`]); the filters refilter
-    /// the whole volume whatever `z`; the local histograms (refreshed at once) and no method
-    /// record nothing. Records no barrier.
+    /// the whole volume whatever `z`; the local histograms sum slices `z` over q (`opacity`;
+    /// a TF switch refreshes them at once, with a table); no method records nothing. Records
+    /// no barrier.
     pub fn record_precompute(
         &self,
         cmd: vk::CommandBuffer,
@@ -124,7 +125,8 @@ impl MethodGpu {
                 };
                 lao.record_slab(cmd, &input, pao, l.dims, &l.params, z);
             }
-            MethodGpu::Histogram(_) | MethodGpu::Open => {}
+            MethodGpu::Histogram(h) => h.record_precompute(cmd, (opacity, pao), z),
+            MethodGpu::Open => {}
         }
     }
 
@@ -513,7 +515,7 @@ pub fn histogram_tables(
     let mut timer = crate::gpu::GpuTimer::new(gpu, 2)?;
     gpu.submit_and_wait(|cmd| {
         timer.begin(cmd);
-        h.record_precompute(cmd, &opacity, &pao);
+        h.record_precompute(cmd, (&opacity, &pao), 0..dims[2]);
         timer.mark(cmd, "histogram");
     })?;
     let gpu_ms = timer.read()?.iter().map(|t| t.1).sum();

@@ -10,7 +10,7 @@ use super::common::{histogram_state, precompute_histogram, precompute_method, Re
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
 use crate::ao::filtered::{variance_volume, FilterParams, VarianceModulation};
 use crate::ao::histogram::HistParams;
-use crate::ao::lao::{LaoKernel, SkipBuffers, SlabInput};
+use crate::ao::lao::LaoKernel;
 use crate::ao::method::{AoVolume, MethodGpu};
 use crate::ao::progressive::SlabScheduler;
 use crate::ao::{AoConfig, AoMethod, LaoGpu};
@@ -76,15 +76,18 @@ pub struct Inset {
     build: Option<Build>,
 }
 
-/// A box whose LAO is computed a slab of z-slices per frame ([`Inset::refine`]): meanwhile the
-/// picture there is the downsampled volume's.
+/// A box whose AO (LAO, or the local histograms' direct sums) is computed a slab of z-slices
+/// per frame ([`Inset::refine`]): meanwhile the picture there is the downsampled volume's.
 struct Build {
     inner_lo: [usize; 3],
     crop_lo: [usize; 3],
     /// The crop with its voxels (its scalar image is made when the box is shown).
     crop: Volume,
+    /// O on the host (the local histograms' q), and the method with its state.
     opacity: Vec<f32>,
-    skip: SkipBuffers,
+    method: MethodGpu,
+    /// The local histograms' q on the GPU (LAO reads its skipping data's padded O).
+    q: Option<Buffer>,
     dirs: Buffer,
     pao: Buffer,
     slabs: SlabScheduler,
@@ -255,12 +258,8 @@ impl Inset {
         let (inner_lo, crop_lo, crop) = self.crop_at(centre);
         let tf = &self.tf;
         let ao = match self.config.method {
-            // The direct sums (binned over the whole's range, as the crop is classified): the
-            // definition the clusters approximate, the whole volume's bit for bit, with no
-            // clustering in the frame.
             AoMethod::Histogram(hp) => {
-                let direct = HistParams { clusters: 0, ..hp };
-                let h = histogram_state(gpu, &crop, direct, None, false)?;
+                let h = histogram_state(gpu, &crop, Self::direct(hp), None, false)?;
                 precompute_histogram(gpu, &self.lao, &crop, tf, &self.config.lao, h)?
             }
             _ => precompute_method(gpu, &self.lao, &crop, tf, &self.config, false)?,
@@ -328,24 +327,49 @@ impl Inset {
         Ok(())
     }
 
-    /// [`Inset::cut`] without holding the frames: under LAO (default kernel) the crop's AO is
-    /// computed over the next frames, a slab of z-slices each ([`Inset::refine`]), and the box
-    /// is shown when it is done; until then the picture there is the downsampled volume's.
-    /// The other methods (one pass, or one table) cut at once. The old box goes first.
+    /// [`Inset::cut`] without holding the frames: under LAO (default kernel) and the local
+    /// histograms (their direct sums) the crop's AO is computed over the next frames, a slab
+    /// of z-slices each ([`Inset::refine`]), and the box is shown when it is done; until then
+    /// the picture there is the downsampled volume's. The filters (one pass) cut at once. The
+    /// old box goes first.
     pub fn start_cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
-        if self.config.method != AoMethod::Lao || self.lao.kernel != LaoKernel::New {
-            return self.cut(gpu, centre);
-        }
         let params = self.config.lao;
+        let hist = match self.config.method {
+            AoMethod::Lao if self.lao.kernel == LaoKernel::New => None,
+            AoMethod::Histogram(hp) => Some(hp),
+            _ => return self.cut(gpu, centre),
+        };
         params.validate().map_err(super::common::AppError::Usage)?;
         let (inner_lo, crop_lo, crop) = self.crop_at(centre);
-        let opacity = self.tf.opacity_volume(&crop);
-        // Each voxel's LAO is its own, so the slabs give the bits one pass gives (the same
-        // kernel reads the skipping data's padded O).
-        let skip = self
-            .lao
-            .skip_buffers(&opacity, crop.dims, crop.spacing, &params)?;
-        let per_slice = LaoGpu::samples_per_slice(crop.dims, &params);
+        // Each voxel's AO is its own, so the slabs give the bits one pass gives (LAO's kernel
+        // reads the skipping data's padded O either way).
+        let (opacity, method, q, per_slice) = match hist {
+            None => {
+                let opacity = self.tf.opacity_volume(&crop);
+                let skip = self
+                    .lao
+                    .skip_buffers(&opacity, crop.dims, crop.spacing, &params)?;
+                let method = MethodGpu::lao(gpu, &crop, params, skip)?;
+                (
+                    opacity,
+                    method,
+                    None,
+                    LaoGpu::samples_per_slice(crop.dims, &params),
+                )
+            }
+            Some(hp) => {
+                let mut h = histogram_state(gpu, &crop, Self::direct(hp), None, false)?;
+                let q = h.set_tf(&self.tf, &[])?;
+                let words = crate::ao::stored::upload(
+                    gpu,
+                    &q,
+                    ash::vk::BufferUsageFlags::STORAGE_BUFFER,
+                    "opacity",
+                )?;
+                let per_slice = h.samples_per_slice();
+                (q, MethodGpu::Histogram(h), Some(words), per_slice)
+            }
+        };
         let slabs = SlabScheduler::with_budget(crop.dims[2], per_slice, per_slice)
             .with_least_slab(crop.dims[2].div_ceil(BUILD_FRAMES));
         self.build = Some(Build {
@@ -355,10 +379,18 @@ impl Inset {
             crop_lo,
             crop,
             opacity,
-            skip,
+            method,
+            q,
             slabs,
         });
         Ok(())
+    }
+
+    /// The local histograms' parameters the box computes with: their direct sums (the
+    /// definition the clusters approximate), the whole volume's bit for bit, with no codebook
+    /// trained per cut.
+    fn direct(hp: HistParams) -> HistParams {
+        HistParams { clusters: 0, ..hp }
     }
 
     /// Computes the next slab of a box being cut ([`Inset::start_cut`]), at most `samples`
@@ -366,21 +398,21 @@ impl Inset {
     /// slice), submitted and waited for; shows the box once the last slab is done. Nothing
     /// without a box being computed.
     pub fn refine(&mut self, gpu: &Gpu, samples: f64) -> Result<()> {
-        let params = self.config.lao;
         let Some(b) = self.build.as_mut() else {
             return Ok(());
         };
         // At most BUILD_FRAMES frames, however small the budget (`start_cut`'s least slab).
         b.slabs.set_budget(samples);
         if let Some(z) = b.slabs.next_slab() {
-            let input = SlabInput {
-                opacity: &b.skip.padded,
-                dirs: &b.dirs,
-                skip: &b.skip,
+            let input = match (&b.method, &b.q) {
+                (MethodGpu::Lao(l), _) => &l.skip.padded,
+                (_, Some(q)) => q,
+                _ => unreachable!("a box being computed is LAO's or has q"),
             };
             let lao = &self.lao;
             gpu.submit_and_wait(|cmd| {
-                lao.record_slab(cmd, &input, &b.pao, b.crop.dims, &params, z)
+                b.method
+                    .record_precompute(cmd, lao, &b.dirs, input, &b.pao, z)
             })?;
         }
         if !b.slabs.is_finished() {
@@ -391,7 +423,7 @@ impl Inset {
             crop_lo,
             crop,
             opacity,
-            skip,
+            method,
             pao,
             ..
         } = self.build.take().expect("checked above");
@@ -399,7 +431,7 @@ impl Inset {
             opacity,
             ao_buf: pao,
             timing: Default::default(),
-            method: MethodGpu::lao(gpu, &crop, params, skip)?,
+            method,
         };
         self.show(gpu, (inner_lo, crop_lo, crop), ao)
     }

@@ -316,10 +316,29 @@ fn a_labelled_boxs_ao_is_the_whole_volumes_with_its_structures() {
 fn a_box_computed_over_frames_is_the_box_cut_at_once() {
     let gpu = common::gpu();
     let (vol, tf, params) = small_head();
-    let config = (AoConfig::new(AoMethod::Lao, params), tf);
+    let hist = AoMethod::Histogram(HistParams {
+        radius_mm: 10.0,
+        bins: 16,
+        clusters: 64,
+        hemispheres: true,
+    });
+    for method in [AoMethod::Lao, hist] {
+        let config = (AoConfig::new(method, params), tf.clone());
+        computed_over_frames(&gpu, &vol, config);
+    }
+    common::assert_no_validation_messages(&gpu);
+}
+
+/// [`a_box_computed_over_frames_is_the_box_cut_at_once`] under one method.
+fn computed_over_frames(
+    gpu: &cao_xr::gpu::Gpu,
+    vol: &Arc<cao_xr::volume::Volume>,
+    config: (AoConfig, TransferFunction),
+) {
+    let method = config.0.method;
     let placement = Placement::default();
     let inner = [16, 16, 16];
-    let mut inset = Inset::around(&gpu, vol.clone(), config.clone(), (inner, [24.0; 3])).unwrap();
+    let mut inset = Inset::around(gpu, vol.clone(), config.clone(), (inner, [24.0; 3])).unwrap();
     // A tool a hand holds near a corner: the box is wanted there.
     let mut held = tool(
         Shape::Sphere,
@@ -340,30 +359,30 @@ fn a_box_computed_over_frames_is_the_box_cut_at_once() {
         angle_down: -0.5,
     };
     let eyes = FrameInput::head_views(head, 0.064, fov);
-    let wanted = |inset: &Inset| inset.wants_cut((&[held], &eyes), &vol, &placement);
+    let wanted = |inset: &Inset| inset.wants_cut((&[held], &eyes), vol, &placement);
     let there = wanted(&inset).expect("the held tool moves the box");
-    let at_once = Inset::around(&gpu, vol.clone(), config, (inner, there)).unwrap();
+    let at_once = Inset::around(gpu, vol.clone(), config, (inner, there)).unwrap();
     let (_, crop) = at_once.crop_box().unwrap();
 
-    inset.start_cut(&gpu, there).unwrap();
+    inset.start_cut(gpu, there).unwrap();
     // A frame's budget of no samples: the box's work is spread over BUILD_FRAMES frames.
     let budget = 0.0;
     let mut refined = 0;
     while inset.refining().is_some() {
         assert!(
-            inset.cao().is_none() && inset.binding(&vol, &placement).is_none(),
-            "frame {refined}: the old box is gone and the new one not shown yet"
+            inset.cao().is_none() && inset.binding(vol, &placement).is_none(),
+            "{method:?}, frame {refined}: the old box is gone and the new one not shown yet"
         );
         assert_eq!(
             wanted(&inset),
             None,
             "frame {refined}: the box being computed is not cut again"
         );
-        inset.refine(&gpu, budget).unwrap();
+        inset.refine(gpu, budget).unwrap();
         refined += 1;
         assert!(refined <= BUILD_FRAMES, "done within BUILD_FRAMES frames");
     }
-    assert!(refined > 1, "{crop:?}: over frames");
+    assert!(refined > 1, "{method:?} {crop:?}: over frames");
     assert_eq!(inset.inner_box(), at_once.inner_box());
     assert_eq!(inset.crop_box(), at_once.crop_box());
     assert_eq!(wanted(&inset), None, "the box shown is where the tool is");
@@ -375,15 +394,14 @@ fn a_box_computed_over_frames_is_the_box_cut_at_once() {
             .map(|v| v.to_bits())
             .collect::<Vec<_>>()
     };
-    assert_eq!(bits(&inset), bits(&at_once), "unclipped");
+    assert!(bits(&inset) == bits(&at_once), "{method:?} unclipped");
     for (f, tools) in frames(placement.center).iter().enumerate() {
         for i in [&mut inset, &mut at_once] {
-            i.run_frame(tools, (&vol, &placement), Mode::Contextual)
+            i.run_frame(tools, (vol, &placement), Mode::Contextual)
                 .unwrap();
         }
-        assert_eq!(bits(&inset), bits(&at_once), "frame {f}");
+        assert!(bits(&inset) == bits(&at_once), "{method:?} frame {f}");
     }
-    common::assert_no_validation_messages(&gpu);
 }
 
 /// `render phantom:192` with a probe (only its inside stays) into `out`, under `env`: what it
