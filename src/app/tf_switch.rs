@@ -494,10 +494,14 @@ impl TfSwitcher {
     /// table update), or where no clustering is wanted.
     fn cluster(&mut self, method: usize, vol: &Arc<Volume>) -> Result<bool> {
         let AoMethod::Histogram(params) = self.methods[method] else {
-            if self.clustering.is_none() {
-                return Ok(true);
+            // Not wanted now: one running goes on (parked when done), one not begun is dropped.
+            if self.clustering.as_ref().is_some_and(|c| c.task.is_none()) {
+                self.clustering = None;
             }
-            return self.poll_clustering(vol);
+            return match self.clustering {
+                Some(_) => self.poll_clustering(vol),
+                None => Ok(true),
+            };
         };
         let c = self.clustering.get_or_insert_with(|| Clustering {
             method,

@@ -595,6 +595,17 @@ fn past_the_budget(
     ([shares[0], shares[1]], told)
 }
 
+/// The shares [`past_the_budget`] gives: about all of the full picture's pixels with the box,
+/// fewer than `without` of them from the downsampled volume alone.
+fn assert_full_in_box(shares: [f64; 2], without: f64) {
+    assert!(
+        shares[0] >= 0.99 && shares[1] < without,
+        "pixels as at full resolution: {} with the inset, {} without",
+        shares[0],
+        shares[1]
+    );
+}
+
 /// A labelled volume past the budget keeps its structures: the downsampled volume has them by
 /// each block's majority (the picture `--downsample N` gives), and the box at full resolution,
 /// where the picture is the full-resolution one.
@@ -621,12 +632,7 @@ fn a_labelled_volume_past_the_budget_shows_its_structures_at_full_resolution_in_
             == std::fs::read(given.join("left.png")).unwrap(),
         "downsampled by {by} for the budget, and as given, the pictures differ"
     );
-    assert!(
-        shares[0] >= 0.99 && shares[1] < 0.5,
-        "pixels as at full resolution: {} with the inset, {} without",
-        shares[0],
-        shares[1]
-    );
+    assert_full_in_box(shares, 0.5);
 }
 
 /// A safety margin past the budget glows in the box from the full-resolution distances, as in
@@ -641,12 +647,7 @@ fn a_safety_margin_glows_in_the_box_as_at_full_resolution() {
         render_through("probe-sphere:36:0,0,0", out, &margin, env)
     };
     let (shares, _) = past_the_budget(&dir, render);
-    assert!(
-        shares[0] >= 0.99 && shares[1] < 0.9,
-        "pixels as at full resolution: {} with the inset, {} without",
-        shares[0],
-        shares[1]
-    );
+    assert_full_in_box(shares, 0.9);
 }
 
 /// The local histograms past the budget: the box holds their direct sums at full resolution,
@@ -667,12 +668,7 @@ fn the_local_histograms_in_the_box_are_the_full_resolutions() {
         "1",
     ];
     let (shares, _) = past_the_budget(&dir, |out, env| render_with(out, &more, env));
-    assert!(
-        shares[0] >= 0.99 && shares[1] < 0.5,
-        "pixels as at full resolution: {} with the inset, {} without",
-        shares[0],
-        shares[1]
-    );
+    assert_full_in_box(shares, 0.5);
 }
 
 /// Variance opacity modulation past the budget: the box's var_s is the full resolution's (the
@@ -682,12 +678,7 @@ fn variance_modulation_in_the_box_is_the_full_resolutions() {
     let dir = common::scratch("inset", "variance");
     let more = ["--variance-max", "20000"];
     let (shares, _) = past_the_budget(&dir, |out, env| render_with(out, &more, env));
-    assert!(
-        shares[0] >= 0.99 && shares[1] < 0.5,
-        "pixels as at full resolution: {} with the inset, {} without",
-        shares[0],
-        shares[1]
-    );
+    assert_full_in_box(shares, 0.5);
 }
 
 #[test]
