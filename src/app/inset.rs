@@ -523,7 +523,7 @@ impl Inset {
                 tex_from_world.transform_vector3(dir),
             )?
         } else {
-            points.iter().sum::<Vec3>() / points.len() as f32
+            self.tools_centre(&points)
         };
         let centre: [f64; 3] = std::array::from_fn(|a| mean[a] as f64 * whole.dims[a] as f64);
         let want = self.inner_lo(centre);
@@ -534,6 +534,30 @@ impl Inset {
             }
         };
         moved.then_some(centre)
+    }
+
+    /// Where the box goes for tools at `points` (texture coordinates, at least one): the mean of
+    /// the largest group of them within half the inner box of one of them on every axis (among
+    /// groups as large, the first tool's), not of all: two hands carving far apart get a box
+    /// around one of them, not one between them around neither.
+    fn tools_centre(&self, points: &[Vec3]) -> Vec3 {
+        let dims = Vec3::from_array(self.whole.dims.map(|d| d as f32));
+        let half = Vec3::from_array(self.inner.map(|n| n as f32)) * 0.5 / dims;
+        let group = |p: &Vec3| -> Vec<Vec3> {
+            points
+                .iter()
+                .copied()
+                .filter(|q| (*q - *p).abs().cmple(half).all())
+                .collect()
+        };
+        let mut best = group(&points[0]);
+        for p in &points[1..] {
+            let g = group(p);
+            if g.len() > best.len() {
+                best = g;
+            }
+        }
+        best.iter().sum::<Vec3>() / best.len() as f32
     }
 
     /// The first point (texture coordinates) on the ray from `origin` along `dir` (texture

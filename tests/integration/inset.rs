@@ -131,6 +131,10 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         centre.iter().all(|&c| !(12.0..=36.0).contains(&c)),
         "{centre:?}"
     );
+    // Two hands far apart (more than the box): the box goes around the first, not between them.
+    let apart = [held(Vec3::splat(0.07)), held(Vec3::splat(-0.07))];
+    let two = inset.wants_cut((&apart, &looking), &vol, &placement);
+    assert_eq!(two, near_corner, "two tools far apart");
     let outside = inset.wants_cut((&[held(Vec3::new(0.4, 0.0, 0.0))], &away), &vol, &placement);
     assert_eq!(outside, None);
     // With no tool inside, the box goes where the eyes' centres meet the head: a voxel the TF
