@@ -429,9 +429,6 @@ impl FrameLoop {
         Ok(())
     }
 
-    /// Shows the box around the tools at full resolution from `whole` ([`Inset`]), within
-    /// `available` bytes of GPU memory at about `per_voxel` bytes per voxel; told on stderr.
-    /// Returns the box's least share of the volume's side (0: none fits).
     /// What this loop's frames hold beside its set-up, at most: the shown volume's
     /// [`super::inset::frame_reserve`] and the read-back of a waited frame (`render`'s, a
     /// screenshot's), made at its first use.
@@ -439,6 +436,9 @@ impl FrameLoop {
         super::inset::frame_reserve(self.volume.voxel_count()) + self.target.readback_bytes()
     }
 
+    /// Shows the box around the tools at full resolution from `whole` ([`Inset`]), within
+    /// `available` bytes of GPU memory at about `per_voxel` bytes per voxel; told on stderr.
+    /// Returns the box's least share of the volume's side (0: none fits).
     fn add_inset(
         &mut self,
         whole: Arc<Volume>,

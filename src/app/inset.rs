@@ -6,7 +6,7 @@
 //! tools (or, with none in the volume, where the eyes look): when that point moves a quarter of
 //! the box away, the box is cut again around it and its AO computed anew.
 
-use super::common::{histogram_state, precompute_histogram, precompute_method, Result};
+use super::common::{histogram_state, precompute_method, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
 use crate::ao::filtered::{variance_volume, FilterParams, VarianceModulation};
 use crate::ao::histogram::HistParams;
@@ -255,15 +255,14 @@ impl Inset {
     /// narrower); the old box goes first (its memory is the new one's), so no frame that
     /// reads it may be in flight.
     pub fn cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
+        if matches!(self.config.method, AoMethod::Histogram(_)) {
+            // The direct sums the box is built with over frames ([`Inset::start_cut`]), in one
+            // slab.
+            self.start_cut(gpu, centre)?;
+            return self.refine(gpu, f64::INFINITY);
+        }
         let (inner_lo, crop_lo, crop) = self.crop_at(centre);
-        let tf = &self.tf;
-        let ao = match self.config.method {
-            AoMethod::Histogram(hp) => {
-                let h = histogram_state(gpu, &crop, Self::direct(hp), None, false)?;
-                precompute_histogram(gpu, &self.lao, &crop, tf, &self.config.lao, h)?
-            }
-            _ => precompute_method(gpu, &self.lao, &crop, tf, &self.config, false)?,
-        };
+        let ao = precompute_method(gpu, &self.lao, &crop, &self.tf, &self.config, false)?;
         self.show(gpu, (inner_lo, crop_lo, crop), ao)
     }
 
