@@ -17,19 +17,31 @@ layout(std430, binding = 5) readonly buffer GroupFirst { uint first[]; };
 layout(std430, binding = 6) readonly buffer GroupMembers { uint members[]; };
 
 layout(push_constant) uniform Push {
-    uvec4 job;     // x: rows, y: shades, z: packed dimension P, w: clusters N
+    uvec4 job;     // x: rows, y: shades, z: packed dimension P (also the constant below), w: clusters N
     uvec4 groups;  // x: groups G
 } pc;
 
 const uint GROUPS_SEARCHED = 3u;
 
-float packed[HIST_MAX_PACKED];
+// The packed dimension, a specialization constant (src/ao/histogram_gpu.rs): the packed
+// histogram is then held in registers and the distance loops unrolled. The two distances read
+// their tables in loops of their own: a select between two tables reads both on a CPU renderer.
+layout(constant_id = 0) const uint P = HIST_MAX_PACKED;
+float packed[P];
 
-float dist(uint base_is_group, uint c) {
-    uint p = pc.job.z;
+float dist_group(uint c) {
     float d = 0.0;
-    for (uint k = 0u; k < p; k++) {
-        float t = (base_is_group == 1u ? group_centres[c * p + k] : centroids[c * p + k]) - packed[k];
+    for (uint k = 0u; k < P; k++) {
+        float t = group_centres[c * P + k] - packed[k];
+        d += t * t;
+    }
+    return d;
+}
+
+float dist_centroid(uint c) {
+    float d = 0.0;
+    for (uint k = 0u; k < P; k++) {
+        float t = centroids[c * P + k] - packed[k];
         d += t * t;
     }
     return d;
@@ -38,19 +50,19 @@ float dist(uint base_is_group, uint c) {
 void main() {
     uint r = gl_GlobalInvocationID.x;
     if (r >= pc.job.x) return;
-    uint b = pc.job.y, p = pc.job.z;
+    uint b = pc.job.y;
     // A flat voxel's second row (marked negative by histogram_local.comp) is its first: the
     // host takes the first row's cluster.
     if (rows[r * b] < 0.0) {
         ids[r] = SAME_AS_FRONT;
         return;
     }
-    for (uint d = 0u; d < p; d++) packed[d] = 0.0;
+    for (uint d = 0u; d < P; d++) packed[d] = 0.0;
     for (uint k = 0u; k < b; k++) {
         float x = rows[r * b + k];
         // A neighbourhood holds few of the shades: skipping the zeros changes no sum.
         if (x == 0.0) continue;
-        for (uint d = 0u; d < p; d++) packed[d] += x * packing[k * p + d];
+        for (uint d = 0u; d < P; d++) packed[d] += x * packing[k * P + d];
     }
     // The nearest groups (first of equals), kept sorted.
     uint near_g[GROUPS_SEARCHED];
@@ -60,7 +72,7 @@ void main() {
         near_d[i] = 1.0 / 0.0;
     }
     for (uint g = 0u; g < pc.groups.x; g++) {
-        float d = dist(1u, g);
+        float d = dist_group(g);
         if (d < near_d[GROUPS_SEARCHED - 1u]) {
             uint i = GROUPS_SEARCHED - 1u;
             while (i > 0u && d < near_d[i - 1u]) {
@@ -79,7 +91,7 @@ void main() {
         if (g == 0xffffffffu) continue;
         for (uint m = first[g]; m < first[g + 1u]; m++) {
             uint c = members[m];
-            float d = dist(0u, c);
+            float d = dist_centroid(c);
             if (d < best_d || (d == best_d && c < best)) {
                 best_d = d;
                 best = c;

@@ -39,49 +39,37 @@ void main() {
     uint shades = pc.job.y;
     uint base = (split_on != 0u ? 2u * r : r) * shades;
     for (uint k = 0u; k < shades; k++) rows[base + k] = 0.0;
-    // Away from the border every member is in the grid: no test per member.
-    bool inside = all(greaterThanEqual(v, pc.reach.xyz)) && all(lessThan(v + pc.reach.xyz, pc.dims.xyz));
+    // One loop for every voxel, at the border or not, split or not: a CPU renderer runs every
+    // branch of a workgroup whichever its lanes take, so separate loops would each cost the
+    // whole. The members are added in the order of S_r either way.
+    vec3 d;
+    bool split = split_at(v, pc.dims.xyz, d);
+    uint back = base + shades;
+    if (split) for (uint k = 0u; k < shades; k++) rows[back + k] = 0.0;
+    float total_f = 0.0, total_b = 0.0;
     int row = pc.dims.x, slice = pc.dims.x * pc.dims.y;
     int i0 = v.x + row * v.y + slice * v.z;
-    vec3 d;
-    if (split_at(v, pc.dims.xyz, d)) {
-        uint back = base + shades;
-        for (uint k = 0u; k < shades; k++) rows[back + k] = 0.0;
-        float total_f = 0.0, total_b = 0.0;
-        for (int n = 0; n < pc.dims.w; n++) {
-            vec4 nb = neighbours[n];
-            ivec3 o = ivec3(nb.xyz);
-            bool b = in_back(o, d);
-            if (b) total_b += nb.w; else total_f += nb.w;
-            ivec3 u = v + o;
-            if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
-            rows[(b ? back : base) + uint(bins[u.x + row * u.y + slice * u.z])] += nb.w;
-        }
+    for (int n = 0; n < pc.dims.w; n++) {
+        vec4 nb = neighbours[n];
+        ivec3 o = ivec3(nb.xyz);
+        bool b = split && in_back(o, d);
+        // Adding 0 changes neither total.
+        total_b += b ? nb.w : 0.0;
+        total_f += b ? 0.0 : nb.w;
+        ivec3 u = v + o;
+        if (all(greaterThanEqual(u, ivec3(0))) && all(lessThan(u, pc.dims.xyz)))
+            rows[(b ? back : base) + uint(bins[i0 + o.x + row * o.y + slice * o.z])] += nb.w;
+    }
+    if (split) {
         float sf = total_f > 0.0 ? 1.0 / total_f : 0.0, sb = total_b > 0.0 ? 1.0 / total_b : 0.0;
         for (uint k = 0u; k < shades; k++) {
             rows[base + k] *= sf;
             rows[back + k] *= sb;
         }
-        return;
-    }
-    if (inside) {
-        for (int n = 0; n < pc.dims.w; n++) {
-            vec4 nb = neighbours[n];
-            ivec3 o = ivec3(nb.xyz);
-            rows[base + uint(bins[i0 + o.x + row * o.y + slice * o.z])] += nb.w;
-        }
-    } else {
-        for (int n = 0; n < pc.dims.w; n++) {
-            vec4 nb = neighbours[n];
-            ivec3 u = v + ivec3(nb.xyz);
-            if (any(lessThan(u, ivec3(0))) || any(greaterThanEqual(u, pc.dims.xyz))) continue;
-            rows[base + uint(bins[u.x + row * u.y + slice * u.z])] += nb.w;
-        }
-    }
-    // A flat voxel's H_b is its H_f: its second row is only marked (its first entry negative),
-    // and the clustering takes the first row for it (src/ao/histogram_gpu.rs).
-    if (split_on != 0u) {
-        rows[base + shades] = -1.0;
-        for (uint k = 1u; k < shades; k++) rows[base + shades + k] = 0.0;
+    } else if (split_on != 0u) {
+        // A flat voxel's H_b is its H_f: its second row is only marked (its first entry
+        // negative), and the clustering takes the first row for it (src/ao/histogram_gpu.rs).
+        rows[back] = -1.0;
+        for (uint k = 1u; k < shades; k++) rows[back + k] = 0.0;
     }
 }

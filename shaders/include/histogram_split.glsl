@@ -29,9 +29,14 @@ vec3 split_delta(ivec3 v, ivec3 dims) {
                 scalar_at(v.x + row * v.y + slice * hi.z) - scalar_at(v.x + row * v.y + slice * lo.z));
 }
 
+// Whether the scalars are integers, read once in split_at: read in in_back it would be read
+// again for every member (the rows a shader writes could alias it), lane by lane on a CPU.
+bool split_integer = false;
+
 // Whether v's neighbourhood splits (the gradient is steep enough), and its Δ.
 bool split_at(ivec3 v, ivec3 dims, out vec3 d) {
     d = vec3(0.0);
+    split_integer = integer_scalars != 0u;
     if (split_on == 0u) return false;
     d = split_delta(v, dims);
     vec3 g = d * half_inv_spacing.xyz;
@@ -40,7 +45,7 @@ bool split_at(ivec3 v, ivec3 dims, out vec3 d) {
 
 // Whether member offset o lies in the back hemisphere H_b (o . Δ > 0) of a split voxel.
 bool in_back(ivec3 o, vec3 d) {
-    if (integer_scalars != 0u) {
+    if (split_integer) {
         ivec3 di = ivec3(d);
         return o.x * di.x + o.y * di.y + o.z * di.z > 0;
     }

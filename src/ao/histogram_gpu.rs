@@ -516,11 +516,12 @@ impl HistogramGpu {
         self.timing.training_ms = t1.elapsed().as_secs_f64() * 1e3;
 
         // Assignment, batch by batch.
-        let assign = ComputePipeline::new(
+        let assign = ComputePipeline::specialised(
             &self.gpu,
             spv("assign"),
             &[vk::DescriptorType::STORAGE_BUFFER; 7],
             32,
+            &[p as u32],
         )?;
         let groups = hist::Groups::new(&centroids, p);
         let group_bufs = [

@@ -9,7 +9,7 @@ mod timer;
 
 pub use resources::{
     address_bytes, cmd_blit_color, cmd_image_barrier, push_set_layout, shader_module,
-    sparse_set_layout, Buffer, ComputePipeline, Image, ImageDesc, Reach,
+    sparse_set_layout, specialization_entries, Buffer, ComputePipeline, Image, ImageDesc, Reach,
 };
 pub use slabs::{SlabBuffer, MAX_BUFFER_ENV};
 pub use timer::GpuTimer;

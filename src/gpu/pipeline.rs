@@ -3,7 +3,7 @@
 //! attachment. A caller names its shaders, layout, vertex input, formats and blending, and one
 //! (rasterisation, depth) pair per pipeline variant.
 
-use super::{shader_module, Gpu, Result};
+use super::{shader_module, specialization_entries, Gpu, Result};
 use ash::vk;
 
 pub struct GraphicsDesc<'a> {
@@ -60,14 +60,7 @@ pub fn graphics_pipelines(
             return Err(e);
         }
     };
-    let entries: Vec<vk::SpecializationMapEntry> = (0..desc.fs_constants.len() as u32)
-        .map(|i| {
-            vk::SpecializationMapEntry::default()
-                .constant_id(i)
-                .offset(4 * i)
-                .size(4)
-        })
-        .collect();
+    let entries = specialization_entries(desc.fs_constants.len());
     let specialization = vk::SpecializationInfo::default()
         .map_entries(&entries)
         .data(bytemuck::cast_slice(desc.fs_constants));

@@ -651,6 +651,18 @@ pub fn address_bytes(n: usize) -> u32 {
     (8 * n as u32).next_multiple_of(16)
 }
 
+/// Map entries of `n` u32 specialization constants, constant_id 0.. in order.
+pub fn specialization_entries(n: usize) -> Vec<vk::SpecializationMapEntry> {
+    (0..n as u32)
+        .map(|i| {
+            vk::SpecializationMapEntry::default()
+                .constant_id(i)
+                .offset(4 * i)
+                .size(4)
+        })
+        .collect()
+}
+
 /// Creates a shader module from SPIR-V bytes (as built by build.rs).
 pub fn shader_module(gpu: &Gpu, spv: &[u8]) -> Result<vk::ShaderModule> {
     let words = ash::util::read_spv(&mut std::io::Cursor::new(spv))
@@ -727,7 +739,7 @@ impl ComputePipeline {
             .iter()
             .map(|r| (*r == Reach::Descriptor).then_some(vk::DescriptorType::STORAGE_BUFFER))
             .collect();
-        ComputePipeline::build(gpu, spv, &descriptors, bytes, reach.to_vec())
+        ComputePipeline::build(gpu, spv, &descriptors, bytes, reach.to_vec(), &[])
     }
 
     pub fn new(
@@ -736,9 +748,22 @@ impl ComputePipeline {
         bindings: &[vk::DescriptorType],
         push_constant_bytes: u32,
     ) -> Result<ComputePipeline> {
+        ComputePipeline::specialised(gpu, spv, bindings, push_constant_bytes, &[])
+    }
+
+    /// [`ComputePipeline::new`] with the shader's specialization constants, constant_id 0..
+    /// (u32 each): a loop bounded by one is unrolled, and an array it sizes is held in registers
+    /// (on a CPU renderer an array indexed at run time is read lane by lane).
+    pub fn specialised(
+        gpu: &Gpu,
+        spv: &[u8],
+        bindings: &[vk::DescriptorType],
+        push_constant_bytes: u32,
+        constants: &[u32],
+    ) -> Result<ComputePipeline> {
         let reach = vec![Reach::Descriptor; bindings.len()];
         let bindings: Vec<_> = bindings.iter().map(|&t| Some(t)).collect();
-        ComputePipeline::build(gpu, spv, &bindings, push_constant_bytes, reach)
+        ComputePipeline::build(gpu, spv, &bindings, push_constant_bytes, reach, constants)
     }
 
     /// The pipeline with a descriptor at each binding that has a type (the others are absent),
@@ -749,6 +774,7 @@ impl ComputePipeline {
         bindings: &[Option<vk::DescriptorType>],
         push_constant_bytes: u32,
         reach: Vec<Reach>,
+        constants: &[u32],
     ) -> Result<ComputePipeline> {
         // SAFETY: each create call borrows locals that outlive it; the module is destroyed only
         // once the pipeline was created from it (allowed); on success the returned pipeline owns
@@ -765,10 +791,15 @@ impl ComputePipeline {
             }
             let layout = gpu.device.create_pipeline_layout(&li, None)?;
             let module = shader_module(gpu, spv)?;
+            let entries = specialization_entries(constants.len());
+            let specialization = vk::SpecializationInfo::default()
+                .map_entries(&entries)
+                .data(bytemuck::cast_slice(constants));
             let stage = vk::PipelineShaderStageCreateInfo::default()
                 .stage(vk::ShaderStageFlags::COMPUTE)
                 .module(module)
-                .name(c"main");
+                .name(c"main")
+                .specialization_info(&specialization);
             let info = [vk::ComputePipelineCreateInfo::default()
                 .stage(stage)
                 .layout(layout)];
