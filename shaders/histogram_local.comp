@@ -30,6 +30,13 @@ layout(push_constant) uniform Push {
 } pc;
 #define bins pc.bins_buf.bins
 
+// The shades, a specialization constant (src/ao/histogram_gpu.rs PRIVATE_SHADES): up to 512 a
+// voxel's sums are added in an array of its own and written once (on lavapipe 1.4x faster
+// than adding into the rows, each access of which a CPU renderer makes lane by lane behind a
+// bounds test); 0: more shades, added in the rows.
+layout(constant_id = 0) const uint S = 0u;
+float h[2u * S + 1u];
+
 void main() {
     uint r = gl_GlobalInvocationID.x;
     if (r >= pc.job.x) return;
@@ -38,14 +45,17 @@ void main() {
                     int(i) / (pc.dims.x * pc.dims.y));
     uint shades = pc.job.y;
     uint base = (split_on != 0u ? 2u * r : r) * shades;
-    for (uint k = 0u; k < shades; k++) rows[base + k] = 0.0;
-    // One loop for every voxel, at the border or not, split or not: a CPU renderer runs every
-    // branch of a workgroup whichever its lanes take, so separate loops would each cost the
-    // whole. The members are added in the order of S_r either way.
     vec3 d;
     bool split = split_at(v, pc.dims.xyz, d);
     uint back = base + shades;
-    if (split) for (uint k = 0u; k < shades; k++) rows[back + k] = 0.0;
+    if (S > 0u) {
+        for (uint k = 0u; k < 2u * S; k++) h[k] = 0.0;
+    } else {
+        for (uint k = 0u; k < (split ? 2u : 1u) * shades; k++) rows[base + k] = 0.0;
+    }
+    // One loop for every voxel, at the border or not, split or not: a CPU renderer runs every
+    // branch of a workgroup whichever its lanes take, so separate loops would each cost the
+    // whole. The members are added in the order of S_r either way.
     float total_f = 0.0, total_b = 0.0;
     int row = pc.dims.x, slice = pc.dims.x * pc.dims.y;
     int i0 = v.x + row * v.y + slice * v.z;
@@ -57,16 +67,23 @@ void main() {
         total_b += b ? nb.w : 0.0;
         total_f += b ? 0.0 : nb.w;
         ivec3 u = v + o;
-        if (all(greaterThanEqual(u, ivec3(0))) && all(lessThan(u, pc.dims.xyz)))
-            rows[(b ? back : base) + uint(bins[i0 + o.x + row * o.y + slice * o.z])] += nb.w;
+        if (all(greaterThanEqual(u, ivec3(0))) && all(lessThan(u, pc.dims.xyz))) {
+            uint k = uint(bins[i0 + o.x + row * o.y + slice * o.z]);
+            if (S > 0u) h[(b ? S : 0u) + k] += nb.w;
+            else rows[(b ? back : base) + k] += nb.w;
+        }
     }
     if (split) {
         float sf = total_f > 0.0 ? 1.0 / total_f : 0.0, sb = total_b > 0.0 ? 1.0 / total_b : 0.0;
         for (uint k = 0u; k < shades; k++) {
-            rows[base + k] *= sf;
-            rows[back + k] *= sb;
+            rows[base + k] = (S > 0u ? h[k] : rows[base + k]) * sf;
+            rows[back + k] = (S > 0u ? h[S + k] : rows[back + k]) * sb;
         }
-    } else if (split_on != 0u) {
+        return;
+    }
+    if (S > 0u)
+        for (uint k = 0u; k < shades; k++) rows[base + k] = h[k];
+    if (split_on != 0u) {
         // A flat voxel's H_b is its H_f: its second row is only marked (its first entry
         // negative), and the clustering takes the first row for it (src/ao/histogram_gpu.rs).
         rows[back] = -1.0;

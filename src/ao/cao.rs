@@ -239,6 +239,7 @@ impl Cao {
             ))),
             &[Reach::Address; 7],
             std::mem::size_of::<ClipPush>() as u32,
+            &[],
         )?;
         let clip = ComputePipeline::with_addresses(
             gpu,
@@ -259,6 +260,7 @@ impl Cao {
                 Reach::Address,
             ],
             std::mem::size_of::<ClipPush>() as u32,
+            &[],
         )?;
         let n = (dims[0] * dims[1] * dims[2]) as u64;
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER

@@ -129,8 +129,8 @@ impl FilterGpu {
         let scratch = |name| SlabBuffer::new(gpu, [dims[0], dims[1], window], 16, name);
         Ok(FilterGpu {
             gpu: gpu.clone(),
-            boxes: ComputePipeline::with_addresses(gpu, spv_box, &[Reach::Address; 3], 64)?,
-            estimate: ComputePipeline::with_addresses(gpu, spv_ao, &[Reach::Address; 5], 80)?,
+            boxes: ComputePipeline::with_addresses(gpu, spv_box, &[Reach::Address; 3], 64, &[])?,
+            estimate: ComputePipeline::with_addresses(gpu, spv_ao, &[Reach::Address; 5], 80, &[])?,
             pass_a: scratch("filter-stats-a")?,
             pass_b: scratch("filter-stats-b")?,
             chunk,

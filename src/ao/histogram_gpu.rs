@@ -113,6 +113,20 @@ pub struct HistogramGpu {
     pub timing: ClusterTiming,
 }
 
+/// Most shades whose local histograms histogram_local.comp adds in an array of each voxel's own
+/// (two rows of 4 bytes per shade); more are added in the rows in memory.
+const PRIVATE_SHADES: usize = 512;
+
+/// histogram_local.comp's specialization constant: the shades, where a voxel's sums fit an
+/// array of its own; 0 where they are added in the rows in memory.
+fn private_shades(shades: usize) -> u32 {
+    if shades <= PRIVATE_SHADES {
+        shades as u32
+    } else {
+        0
+    }
+}
+
 /// Every `step`-th of `ids` (shades below 256 x 256, clusters below [`hist::MAX_CLUSTERS`]) as the
 /// 16-bit words the shaders read.
 fn words16(ids: &[u32], step: usize) -> Vec<u16> {
@@ -252,6 +266,7 @@ impl HistogramGpu {
                     Reach::Descriptor,
                 ],
                 64,
+                &[],
             )?,
             params,
             dims,
@@ -401,6 +416,49 @@ impl HistogramGpu {
         Ok(())
     }
 
+    fn local_pipeline(&self) -> Result<ComputePipeline> {
+        ComputePipeline::with_addresses(
+            &self.gpu,
+            spv("local"),
+            &[
+                Reach::Address,
+                Reach::Descriptor,
+                Reach::Descriptor,
+                Reach::Descriptor,
+                Reach::Descriptor,
+            ],
+            48,
+            &[private_shades(self.shades.count())],
+        )
+    }
+
+    /// The local histograms of `voxels` as the clustering computes them: per voxel a row of a
+    /// sum per shade (H_f's then H_b's with the hemispheres; a flat voxel's second row is marked
+    /// by a negative first entry).
+    pub fn local_histograms(&self, voxels: &[u32]) -> Result<Vec<f32>> {
+        let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        let list = Buffer::from_slice(&self.gpu, voxels, storage, "hist-voxels")?;
+        let bytes = (voxels.len() * self.hemispheres() * self.shades.count() * 4).max(4) as u64;
+        let out = Buffer::new(
+            &self.gpu,
+            bytes,
+            storage | vk::BufferUsageFlags::TRANSFER_SRC,
+            MemoryLocation::GpuOnly,
+            "hist-rows-gpu",
+        )?;
+        let readback = Buffer::new(
+            &self.gpu,
+            bytes,
+            vk::BufferUsageFlags::TRANSFER_DST,
+            MemoryLocation::GpuToCpu,
+            "hist-rows",
+        )?;
+        let local = self.local_pipeline()?;
+        self.local_rows(&local, (0, voxels.len()), Some(&list), &out, &readback)?;
+        let rows: &[f32] = bytemuck::cast_slice(readback.mapped()?);
+        Ok(rows[..voxels.len() * self.hemispheres() * self.shades.count()].to_vec())
+    }
+
     /// Local histograms per voxel: two with the hemispheres (H_f's, then H_b's), else one.
     fn hemispheres(&self) -> usize {
         1 + self.params.hemispheres as usize
@@ -465,18 +523,7 @@ impl HistogramGpu {
             )
         };
 
-        let local = ComputePipeline::with_addresses(
-            &self.gpu,
-            spv("local"),
-            &[
-                Reach::Address,
-                Reach::Descriptor,
-                Reach::Descriptor,
-                Reach::Descriptor,
-                Reach::Descriptor,
-            ],
-            48,
-        )?;
+        let local = self.local_pipeline()?;
         // Training: the sample's histograms, packed.
         let t0 = std::time::Instant::now();
         progress(0, 1, "histograms of the training sample");
@@ -516,10 +563,10 @@ impl HistogramGpu {
         self.timing.training_ms = t1.elapsed().as_secs_f64() * 1e3;
 
         // Assignment, batch by batch.
-        let assign = ComputePipeline::specialised(
+        let assign = ComputePipeline::with_addresses(
             &self.gpu,
             spv("assign"),
-            &[vk::DescriptorType::STORAGE_BUFFER; 7],
+            &[Reach::Descriptor; 7],
             32,
             &[p as u32],
         )?;

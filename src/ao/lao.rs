@@ -395,6 +395,7 @@ impl LaoGpu {
                 Reach::Address,
             ],
             std::mem::size_of::<Push>() as u32,
+            &[],
         )?;
         let old = ComputePipeline::with_addresses(
             gpu,
@@ -407,6 +408,7 @@ impl LaoGpu {
                 Reach::Descriptor,
             ],
             std::mem::size_of::<OldPush>() as u32,
+            &[],
         )?;
         Ok(LaoGpu {
             gpu: gpu.clone(),
@@ -741,6 +743,7 @@ fn update_pipeline(gpu: &Gpu) -> Result<ComputePipeline> {
             Reach::Address,
         ],
         std::mem::size_of::<UpdatePush>() as u32,
+        &[],
     )
 }
 

@@ -464,6 +464,7 @@ impl ShVolume {
             include_bytes!(concat!(env!("OUT_DIR"), "/sh_pyramid.comp.spv")),
             &[Reach::Address; 3],
             std::mem::size_of::<PyramidPush>() as u32,
+            &[],
         )?;
         let sh_pass = ComputePipeline::with_addresses(
             gpu,
@@ -479,6 +480,7 @@ impl ShVolume {
                 Reach::Descriptor,
             ],
             std::mem::size_of::<ShPush>() as u32,
+            &[],
         )?;
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER
             | vk::BufferUsageFlags::TRANSFER_SRC

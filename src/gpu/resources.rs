@@ -719,12 +719,15 @@ pub fn sparse_set_layout(
 impl ComputePipeline {
     /// A pass over volumes: its storage buffers (bindings 0..n) reached as `reach` says, the
     /// addresses first in the push constants (see [`address_bytes`]), then its own
-    /// `push_constant_bytes`.
+    /// `push_constant_bytes`; the shader's specialization constants, constant_id 0.. (u32
+    /// each): a loop bounded by one is unrolled, and an array it sizes can be held in registers
+    /// (on a CPU renderer an array in memory is read and written lane by lane).
     pub fn with_addresses(
         gpu: &Gpu,
         spv: &[u8],
         reach: &[Reach],
         push_constant_bytes: u32,
+        constants: &[u32],
     ) -> Result<ComputePipeline> {
         let addresses = reach.iter().filter(|&&r| r == Reach::Address).count();
         let bytes = address_bytes(addresses) + push_constant_bytes;
@@ -739,7 +742,7 @@ impl ComputePipeline {
             .iter()
             .map(|r| (*r == Reach::Descriptor).then_some(vk::DescriptorType::STORAGE_BUFFER))
             .collect();
-        ComputePipeline::build(gpu, spv, &descriptors, bytes, reach.to_vec(), &[])
+        ComputePipeline::build(gpu, spv, &descriptors, bytes, reach.to_vec(), constants)
     }
 
     pub fn new(
@@ -748,22 +751,9 @@ impl ComputePipeline {
         bindings: &[vk::DescriptorType],
         push_constant_bytes: u32,
     ) -> Result<ComputePipeline> {
-        ComputePipeline::specialised(gpu, spv, bindings, push_constant_bytes, &[])
-    }
-
-    /// [`ComputePipeline::new`] with the shader's specialization constants, constant_id 0..
-    /// (u32 each): a loop bounded by one is unrolled, and an array it sizes is held in registers
-    /// (on a CPU renderer an array indexed at run time is read lane by lane).
-    pub fn specialised(
-        gpu: &Gpu,
-        spv: &[u8],
-        bindings: &[vk::DescriptorType],
-        push_constant_bytes: u32,
-        constants: &[u32],
-    ) -> Result<ComputePipeline> {
         let reach = vec![Reach::Descriptor; bindings.len()];
         let bindings: Vec<_> = bindings.iter().map(|&t| Some(t)).collect();
-        ComputePipeline::build(gpu, spv, &bindings, push_constant_bytes, reach, constants)
+        ComputePipeline::build(gpu, spv, &bindings, push_constant_bytes, reach, &[])
     }
 
     /// The pipeline with a descriptor at each binding that has a type (the others are absent),

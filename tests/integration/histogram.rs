@@ -187,6 +187,106 @@ fn analytic_cases_empty_opaque_and_one_coloured_voxel() {
     common::assert_no_validation_messages(&gpu);
 }
 
+/// Every voxel's local histograms as the clustering's rows are laid out (H_f's then H_b's with
+/// the hemispheres, a flat voxel's second row marked by -1), in f64 from the definitions.
+fn local_rows_reference(vol: &Volume, p: HistParams) -> (Vec<f64>, usize) {
+    let shades =
+        histogram::Shades::new(histogram::bins(vol, p.bins), p.bins, vol.labels.as_deref());
+    let nb = histogram::Neighbourhood::new(p.radius_mm, vol.spacing);
+    let splits = if p.hemispheres {
+        histogram::splits(vol)
+    } else {
+        vec![None; vol.voxel_count()]
+    };
+    let (b, d) = (shades.count(), vol.dims);
+    let mut rows = Vec::new();
+    for (i, split) in splits.iter().enumerate() {
+        let v = [i % d[0], (i / d[0]) % d[1], i / (d[0] * d[1])].map(|x| x as i32);
+        // Per hemisphere (0: front, 1: back): the sums and the weights' total.
+        let (mut h, mut total) = (vec![vec![0.0; b]; 2], [0.0; 2]);
+        for (o, w) in nb.offsets.iter().zip(&nb.weights) {
+            let back = split.is_some_and(|s| (0..3).map(|a| o[a] as f64 * s[a]).sum::<f64>() > 0.0);
+            total[back as usize] += w;
+            let u: [i32; 3] = std::array::from_fn(|a| v[a] + o[a]);
+            if (0..3).all(|a| u[a] >= 0 && u[a] < d[a] as i32) {
+                let j = u[0] as usize + d[0] * (u[1] as usize + d[1] * u[2] as usize);
+                h[back as usize][shades.ids[j] as usize] += w;
+            }
+        }
+        match split {
+            Some(_) => {
+                for (row, t) in h.iter().zip(total) {
+                    rows.extend(row.iter().map(|x| if t > 0.0 { x / t } else { 0.0 }));
+                }
+            }
+            None => {
+                rows.extend(h[0].iter().map(|x| x / nb.total));
+                if p.hemispheres {
+                    rows.push(-1.0);
+                    rows.extend(std::iter::repeat_n(0.0, b - 1));
+                }
+            }
+        }
+    }
+    (rows, b)
+}
+
+#[test]
+fn the_gpu_local_histograms_are_the_definitions_with_few_shades_and_with_many() {
+    // histogram_local.comp sums a voxel's rows in an array of its own up to 512 shades, and in
+    // the rows in memory past that: both are checked against the definitions, hemispheres on.
+    let gpu = common::gpu();
+    let mut many = phantom::head(16);
+    let ids: Vec<u8> = (0..many.voxel_count()).map(|i| (i % 7) as u8 + 1).collect();
+    let structures = (0..7)
+        .map(|k| cao_xr::volume::labels::Structure {
+            value: k + 1,
+            name: format!("s{k}"),
+            colour: [0.5; 3],
+            opacity: 1.0,
+            protected: false,
+            margin_mm: None,
+            voxels: 0,
+        })
+        .collect();
+    many.labels = Some(std::sync::Arc::new(cao_xr::volume::labels::LabelMap {
+        source: "test".into(),
+        ids,
+        structures,
+    }));
+    for (vol, bins, fewer) in [(phantom::head(16), 32, true), (many, 128, false)] {
+        let p = HistParams {
+            radius_mm: 30.0,
+            bins,
+            clusters: 0,
+            hemispheres: true,
+        };
+        let (want, shades) = local_rows_reference(&vol, p);
+        assert_eq!(shades <= 512, fewer, "{shades} shades");
+        let h = histogram_state(&gpu, &vol, p, None, false).unwrap();
+        let voxels: Vec<u32> = (0..vol.voxel_count() as u32).collect();
+        let got = h.local_histograms(&voxels).unwrap();
+        assert_eq!(got.len(), want.len());
+        let worst = got
+            .iter()
+            .zip(&want)
+            .map(|(&g, &w)| (g as f64 - w).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            worst < 1e-5,
+            "{shades} shades: max |GPU - definition| = {worst}"
+        );
+        let split = want
+            .chunks(shades)
+            .skip(1)
+            .step_by(2)
+            .filter(|r| r[0] >= 0.0)
+            .count();
+        assert!(split > 100, "{split} voxels split");
+    }
+    common::assert_no_validation_messages(&gpu);
+}
+
 #[test]
 fn the_clustering_is_close_to_the_direct_sums_and_its_cache_is_reused_and_checked() {
     let gpu = common::gpu();
