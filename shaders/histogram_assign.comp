@@ -8,10 +8,13 @@
 layout(local_size_x = 64) in;
 
 layout(std430, binding = 0) readonly buffer Rows { float rows[]; };
-layout(std430, binding = 1) readonly buffer Packing { float packing[]; };
-layout(std430, binding = 2) readonly buffer Centroids { float centroids[]; };
+// The packing matrix, the centroids and the group centres in vec4s, each row zero-padded to
+// P4 of them (a zero adds nothing to a distance): a CPU renderer reads a vec4 lane by lane in
+// one go, not four.
+layout(std430, binding = 1) readonly buffer Packing { vec4 packing[]; };
+layout(std430, binding = 2) readonly buffer Centroids { vec4 centroids[]; };
 layout(std430, binding = 3) writeonly buffer Ids { uint ids[]; };
-layout(std430, binding = 4) readonly buffer GroupCentres { float group_centres[]; };
+layout(std430, binding = 4) readonly buffer GroupCentres { vec4 group_centres[]; };
 // Group g's members are members[first[g] .. first[g + 1]].
 layout(std430, binding = 5) readonly buffer GroupFirst { uint first[]; };
 layout(std430, binding = 6) readonly buffer GroupMembers { uint members[]; };
@@ -23,27 +26,30 @@ layout(push_constant) uniform Push {
 
 const uint GROUPS_SEARCHED = 3u;
 
-// The packed dimension, a specialization constant (src/ao/histogram_gpu.rs): the packed
-// histogram is then held in registers and the distance loops unrolled. The two distances read
-// their tables in loops of their own: a select between two tables reads both on a CPU renderer.
-layout(constant_id = 0) const uint P = HIST_MAX_PACKED;
-float packed[P];
+// The packed dimension in vec4s, a specialization constant (src/ao/histogram_gpu.rs): the
+// packed histogram is then held in registers and the distance loops unrolled. The two
+// distances read their tables in loops of their own: a select between two tables reads both on
+// a CPU renderer.
+layout(constant_id = 0) const uint P4 = HIST_MAX_PACKED / 4u;
+vec4 packed[P4];
+
+// The squared distance, its terms added in the order of the dimensions.
+float add_squares(float d, vec4 t) {
+    d += t.x * t.x;
+    d += t.y * t.y;
+    d += t.z * t.z;
+    return d + t.w * t.w;
+}
 
 float dist_group(uint c) {
     float d = 0.0;
-    for (uint k = 0u; k < P; k++) {
-        float t = group_centres[c * P + k] - packed[k];
-        d += t * t;
-    }
+    for (uint k = 0u; k < P4; k++) d = add_squares(d, group_centres[c * P4 + k] - packed[k]);
     return d;
 }
 
 float dist_centroid(uint c) {
     float d = 0.0;
-    for (uint k = 0u; k < P; k++) {
-        float t = centroids[c * P + k] - packed[k];
-        d += t * t;
-    }
+    for (uint k = 0u; k < P4; k++) d = add_squares(d, centroids[c * P4 + k] - packed[k]);
     return d;
 }
 
@@ -57,12 +63,12 @@ void main() {
         ids[r] = SAME_AS_FRONT;
         return;
     }
-    for (uint d = 0u; d < P; d++) packed[d] = 0.0;
+    for (uint d = 0u; d < P4; d++) packed[d] = vec4(0.0);
     for (uint k = 0u; k < b; k++) {
         float x = rows[r * b + k];
         // A neighbourhood holds few of the shades: skipping the zeros changes no sum.
         if (x == 0.0) continue;
-        for (uint d = 0u; d < P; d++) packed[d] += x * packing[k * P + d];
+        for (uint d = 0u; d < P4; d++) packed[d] += x * packing[k * P4 + d];
     }
     // The nearest groups (first of equals), kept sorted.
     uint near_g[GROUPS_SEARCHED];

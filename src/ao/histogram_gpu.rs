@@ -127,6 +127,18 @@ fn private_shades(shades: usize) -> u32 {
     }
 }
 
+/// Rows of `dim` values, each zero-padded to a multiple of 4 (histogram_assign.comp reads vec4s).
+fn pad4(rows: &[f32], dim: usize) -> Vec<f32> {
+    let padded = dim.div_ceil(4) * 4;
+    rows.chunks_exact(dim)
+        .flat_map(|r| {
+            r.iter()
+                .copied()
+                .chain(std::iter::repeat_n(0.0, padded - dim))
+        })
+        .collect()
+}
+
 /// Every `step`-th of `ids` (shades below 256 x 256, clusters below [`hist::MAX_CLUSTERS`]) as the
 /// 16-bit words the shaders read.
 fn words16(ids: &[u32], step: usize) -> Vec<u16> {
@@ -416,6 +428,17 @@ impl HistogramGpu {
         Ok(())
     }
 
+    /// The voxels whose local histograms train the clusters: as many rows as with one sphere
+    /// (half the voxels with two hemispheres, fewer where a flat voxel's second row is its
+    /// first).
+    pub fn training_sample(&self) -> Vec<u32> {
+        hist::training_sample(
+            self.dims,
+            &self.shades.ids,
+            MIN_TRAINING.max(16 * self.params.clusters) / self.hemispheres(),
+        )
+    }
+
     fn local_pipeline(&self) -> Result<ComputePipeline> {
         ComputePipeline::with_addresses(
             &self.gpu,
@@ -527,13 +550,7 @@ impl HistogramGpu {
         // Training: the sample's histograms, packed.
         let t0 = std::time::Instant::now();
         progress(0, 1, "histograms of the training sample");
-        // As many rows as with one sphere: half the voxels with two hemispheres, fewer where a
-        // flat voxel's second row is its first.
-        let sample = hist::training_sample(
-            self.dims,
-            &self.shades.ids,
-            MIN_TRAINING.max(16 * self.params.clusters) / hemis,
-        );
+        let sample = self.training_sample();
         let list = Buffer::from_slice(&self.gpu, &sample, storage, "hist-sample")?;
         // One batch size for the sample and the assignment, within what the budget leaves.
         let batch_bytes = self
@@ -568,17 +585,28 @@ impl HistogramGpu {
             spv("assign"),
             &[Reach::Descriptor; 7],
             32,
-            &[p as u32],
+            &[p.div_ceil(4) as u32],
         )?;
         let groups = hist::Groups::new(&centroids, p);
         let group_bufs = [
-            Buffer::from_slice(&self.gpu, &groups.centres, storage, "hist-group-centres")?,
+            Buffer::from_slice(
+                &self.gpu,
+                &pad4(&groups.centres, p),
+                storage,
+                "hist-group-centres",
+            )?,
             Buffer::from_slice(&self.gpu, &groups.first, storage, "hist-group-first")?,
             Buffer::from_slice(&self.gpu, &groups.members, storage, "hist-group-members")?,
         ];
         let group_count = groups.first.len() as u32 - 1;
-        let packing_buf = Buffer::from_slice(&self.gpu, &packing.matrix, storage, "hist-packing")?;
-        let centroid_buf = Buffer::from_slice(&self.gpu, &centroids, storage, "hist-centroids")?;
+        let packing_buf = Buffer::from_slice(
+            &self.gpu,
+            &pad4(&packing.matrix, p),
+            storage,
+            "hist-packing",
+        )?;
+        let centroid_buf =
+            Buffer::from_slice(&self.gpu, &pad4(&centroids, p), storage, "hist-centroids")?;
         let ids_buf = readable(batch * hemis * 4, "hist-batch-ids")?;
         let k = self.params.clusters;
         let mut sums = vec![0.0f64; k * b];

@@ -288,6 +288,57 @@ fn the_gpu_local_histograms_are_the_definitions_with_few_shades_and_with_many() 
 }
 
 #[test]
+fn the_gpu_clustering_is_its_cpu_twins() {
+    // The GPU's rows (checked above against the definitions), trained and assigned on the host
+    // as the docs say: LBG on the training sample's packed rows, then each row to its nearest
+    // centroid among the nearest groups' members. histogram_assign.comp sums its distances in
+    // the twin's order, so every row lands in the twin's cluster.
+    let gpu = common::gpu();
+    let vol = phantom::head(20);
+    let p = HistParams {
+        radius_mm: 24.0,
+        bins: 32,
+        clusters: 128,
+        hemispheres: true,
+    };
+    let h = histogram_state(&gpu, &vol, p, None, false).unwrap();
+    let b = histogram::Shades::new(histogram::bins(&vol, p.bins), p.bins, None).count();
+    let packing =
+        histogram::Packing::new(&histogram::bins(&vol, p.bins), b, histogram::packed_dims(b));
+    let dim = packing.packed;
+    let pack_rows = |rows: &[f32]| -> Vec<Option<Vec<f32>>> {
+        rows.chunks(b)
+            .map(|r| (r[0] >= 0.0).then(|| packing.pack(r)))
+            .collect()
+    };
+    let sample = h.training_sample();
+    let trained: Vec<f32> = pack_rows(&h.local_histograms(&sample).unwrap())
+        .into_iter()
+        .flatten()
+        .flatten()
+        .collect();
+    let centroids = histogram::lbg(&trained, dim, p.clusters);
+    let groups = histogram::Groups::new(&centroids, dim);
+    let all: Vec<u32> = (0..vol.voxel_count() as u32).collect();
+    let mut want = Vec::new();
+    for row in pack_rows(&h.local_histograms(&all).unwrap()) {
+        // A flat voxel's second row takes its first's cluster.
+        let c = match row {
+            Some(packed) => groups.assign(&centroids, dim, &packed),
+            None => *want.last().unwrap(),
+        };
+        want.push(c);
+    }
+    let got = &h.clusters().unwrap().ids;
+    assert_eq!(got.len(), want.len());
+    let same = got.iter().zip(&want).filter(|(g, w)| g == w).count();
+    assert_eq!(same, want.len(), "rows in the twin's cluster");
+    let used = got.iter().collect::<std::collections::HashSet<_>>().len();
+    assert!(used > 64, "{used} clusters used");
+    common::assert_no_validation_messages(&gpu);
+}
+
+#[test]
 fn the_clustering_is_close_to_the_direct_sums_and_its_cache_is_reused_and_checked() {
     let gpu = common::gpu();
     let vol = phantom::head(20);
