@@ -26,14 +26,13 @@ layout(push_constant) uniform Push {
     uvec2 addresses_pad;   // the block below starts 16-aligned
     ivec4 dims;   // w: number of neighbours
     uvec4 job;    // x: rows, y: shades, z: first voxel of a range (with a list: its first entry), w: 1 = voxels from the list
-    ivec4 reach;  // xyz: S_r's largest offset per axis
 } pc;
 #define bins pc.bins_buf.bins
 
-// The shades, a specialization constant (src/ao/histogram_gpu.rs PRIVATE_SHADES): up to 512 a
+// The shades, a specialization constant (src/ao/histogram_gpu.rs): up to PRIVATE_SHADES a
 // voxel's sums are added in an array of its own and written once (on lavapipe 1.4x faster
 // than adding into the rows, each access of which a CPU renderer makes lane by lane behind a
-// bounds test); 0: more shades, added in the rows.
+// bounds test); 0 past that: added in the rows.
 layout(constant_id = 0) const uint S = 0u;
 float h[2u * S + 1u];
 

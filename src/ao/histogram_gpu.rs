@@ -49,9 +49,8 @@ const MIN_TRAINING: usize = 32768;
 struct JobPush {
     dims: [i32; 4],
     job: [u32; 4],
-    reach: [i32; 4],
 }
-crate::gpu::glsl_layout!(JobPush, 48, dims: 0, job: 16, reach: 32);
+crate::gpu::glsl_layout!(JobPush, 32, dims: 0, job: 16);
 
 /// Push constants of histogram_sums.comp: a box, and S_r's reach per axis.
 #[repr(C)]
@@ -404,7 +403,6 @@ impl HistogramGpu {
                 first as u32,
                 list.is_some() as u32,
             ],
-            reach: self.reach4(),
         };
         let bytes = (rows * self.hemispheres() * self.shades.count() * 4) as u64;
         self.gpu.submit_and_wait(|cmd| {
@@ -450,7 +448,7 @@ impl HistogramGpu {
                 Reach::Descriptor,
                 Reach::Descriptor,
             ],
-            48,
+            32,
             &[private_shades(self.shades.count())],
         )
     }
