@@ -302,9 +302,9 @@ fn the_gpu_clustering_is_its_cpu_twins() {
         hemispheres: true,
     };
     let h = histogram_state(&gpu, &vol, p, None, false).unwrap();
-    let b = histogram::Shades::new(histogram::bins(&vol, p.bins), p.bins, None).count();
-    let packing =
-        histogram::Packing::new(&histogram::bins(&vol, p.bins), b, histogram::packed_dims(b));
+    let shades = histogram::Shades::new(histogram::bins(&vol, p.bins), p.bins, None);
+    let b = shades.count();
+    let packing = histogram::Packing::new(&shades.ids, b, histogram::packed_dims(b));
     let dim = packing.packed;
     let pack_rows = |rows: &[f32]| -> Vec<Option<Vec<f32>>> {
         rows.chunks(b)
