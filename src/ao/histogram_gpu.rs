@@ -457,27 +457,42 @@ impl HistogramGpu {
     /// sum per shade (H_f's then H_b's with the hemispheres; a flat voxel's second row is marked
     /// by a negative first entry).
     pub fn local_histograms(&self, voxels: &[u32]) -> Result<Vec<f32>> {
-        let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
-        let list = Buffer::from_slice(&self.gpu, voxels, storage, "hist-voxels")?;
-        let bytes = (voxels.len() * self.hemispheres() * self.shades.count() * 4).max(4) as u64;
-        let out = Buffer::new(
+        let list = Buffer::from_slice(
             &self.gpu,
-            bytes,
-            storage | vk::BufferUsageFlags::TRANSFER_SRC,
-            MemoryLocation::GpuOnly,
-            "hist-rows-gpu",
+            voxels,
+            vk::BufferUsageFlags::STORAGE_BUFFER,
+            "hist-voxels",
         )?;
-        let readback = Buffer::new(
-            &self.gpu,
-            bytes,
-            vk::BufferUsageFlags::TRANSFER_DST,
-            MemoryLocation::GpuToCpu,
-            "hist-rows",
-        )?;
+        let n = voxels.len() * self.hemispheres() * self.shades.count();
+        let out = self.device_rows(n * 4, "hist-rows-gpu")?;
+        let readback = self.readable(n * 4, "hist-rows")?;
         let local = self.local_pipeline()?;
         self.local_rows(&local, (0, voxels.len()), Some(&list), &out, &readback)?;
         let rows: &[f32] = bytemuck::cast_slice(readback.mapped()?);
-        Ok(rows[..voxels.len() * self.hemispheres() * self.shades.count()].to_vec())
+        Ok(rows[..n].to_vec())
+    }
+
+    /// A buffer of `bytes` (at least 4) the host reads: rows or ids copied or written there.
+    fn readable(&self, bytes: usize, name: &str) -> Result<Buffer> {
+        Buffer::new(
+            &self.gpu,
+            bytes.max(4) as u64,
+            vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST,
+            MemoryLocation::GpuToCpu,
+            name,
+        )
+    }
+
+    /// A buffer of `bytes` (at least 4) in device memory that histogram_local.comp adds into,
+    /// copied out.
+    fn device_rows(&self, bytes: usize, name: &str) -> Result<Buffer> {
+        Buffer::new(
+            &self.gpu,
+            bytes.max(4) as u64,
+            vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC,
+            MemoryLocation::GpuOnly,
+            name,
+        )
     }
 
     /// Local histograms per voxel: two with the hemispheres (H_f's, then H_b's), else one.
@@ -525,25 +540,6 @@ impl HistogramGpu {
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
         let packing = Packing::new(&self.shades.ids, b, hist::packed_dims(b));
         let p = packing.packed;
-        let readable = |bytes: usize, name| {
-            Buffer::new(
-                &self.gpu,
-                bytes.max(4) as u64,
-                storage | vk::BufferUsageFlags::TRANSFER_DST,
-                MemoryLocation::GpuToCpu,
-                name,
-            )
-        };
-        let device_rows = |bytes: usize, name| {
-            Buffer::new(
-                &self.gpu,
-                bytes.max(4) as u64,
-                storage | vk::BufferUsageFlags::TRANSFER_SRC,
-                MemoryLocation::GpuOnly,
-                name,
-            )
-        };
-
         let local = self.local_pipeline()?;
         // Training: the sample's histograms, packed.
         let t0 = std::time::Instant::now();
@@ -556,8 +552,8 @@ impl HistogramGpu {
             .budget_left()
             .map_or(BATCH_BYTES, |left| BATCH_BYTES.min(left as usize / 5));
         let batch = (batch_bytes / (hemis * b * 4)).clamp(64, n.max(sample.len()).max(64));
-        let rows = readable(batch * hemis * b * 4, "hist-rows")?;
-        let gpu_rows = device_rows(batch * hemis * b * 4, "hist-rows-gpu")?;
+        let rows = self.readable(batch * hemis * b * 4, "hist-rows")?;
+        let gpu_rows = self.device_rows(batch * hemis * b * 4, "hist-rows-gpu")?;
         let mut packed: Vec<f32> = Vec::new();
         for first in (0..sample.len()).step_by(batch) {
             let count = batch.min(sample.len() - first);
@@ -605,7 +601,7 @@ impl HistogramGpu {
         )?;
         let centroid_buf =
             Buffer::from_slice(&self.gpu, &pad4(&centroids, p), storage, "hist-centroids")?;
-        let ids_buf = readable(batch * hemis * 4, "hist-batch-ids")?;
+        let ids_buf = self.readable(batch * hemis * 4, "hist-batch-ids")?;
         let k = self.params.clusters;
         let mut sums = vec![0.0f64; k * b];
         let mut pop = vec![0u64; k];
