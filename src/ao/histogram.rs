@@ -396,6 +396,153 @@ pub fn local_histogram(
     h
 }
 
+/// The hemispheres' split as histogram_local.comp computes it, in f32: the scalars (integer
+/// data as their values, whose differences are those of the 16-bit words the shader reads),
+/// whether they are integers, 1 / (2 s) per axis, and the square of the flat threshold.
+pub struct SplitF32<'a> {
+    pub values: &'a [f32],
+    pub integer: bool,
+    pub half_inv_spacing: [f32; 3],
+    pub flat2: f32,
+}
+
+impl SplitF32<'_> {
+    /// 1 / (2 s) per axis and the square of the flat threshold ([`super::MIN_GRADIENT`] of the
+    /// value range per mm), as the shaders read them.
+    pub fn parameters(spacing: [f64; 3], range: (f32, f32)) -> ([f32; 3], f32) {
+        let gmin = super::MIN_GRADIENT as f64 * (range.1 as f64 - range.0 as f64);
+        (spacing.map(|s| (0.5 / s) as f32), (gmin * gmin) as f32)
+    }
+
+    /// Δ(v), the central differences with the neighbours clamped into the grid, where the
+    /// gradient is steep enough to split.
+    fn at(&self, dims: [usize; 3], i: usize, v: [usize; 3]) -> Option<[f32; 3]> {
+        let stride = [1, dims[0], dims[0] * dims[1]];
+        let d: [f32; 3] = std::array::from_fn(|a| {
+            let up = if v[a] + 1 < dims[a] { i + stride[a] } else { i };
+            let down = if v[a] > 0 { i - stride[a] } else { i };
+            self.values[up] - self.values[down]
+        });
+        let g: [f32; 3] = std::array::from_fn(|a| d[a] * self.half_inv_spacing[a]);
+        (g[0] * g[0] + g[1] * g[1] + g[2] * g[2] >= self.flat2).then_some(d)
+    }
+}
+
+/// histogram_local.comp on the host's cores, bit for bit: the rows of `out.len() / (rows per
+/// voxel x shades)` voxels, the r-th being `voxel(r)`, laid out as the shader writes them (H_f's
+/// then H_b's with `split`, a flat voxel's second row marked by -1). The same f32 sums in the
+/// order of S_r (`table`: [`Neighbourhood::gpu_table`]), so the same bits: a CPU renderer runs
+/// the shader's scattered reads and adds lane by lane, and the host's own code is several times
+/// faster there (docs/benchmarks.md).
+pub fn local_rows_f32(
+    dims: [usize; 3],
+    (shades, count): (&[u32], usize),
+    table: &[[f32; 4]],
+    split: Option<&SplitF32>,
+    voxel: impl Fn(usize) -> usize + Sync,
+    out: &mut [f32],
+) {
+    // S_r in runs of consecutive x (it is ordered by z, y, x): a run's members are read from
+    // consecutive voxels, and those in the grid are a sub-range of it.
+    struct Run {
+        first: usize,
+        len: usize,
+        o: [i32; 3],
+    }
+    let mut runs: Vec<Run> = Vec::new();
+    for (m, t) in table.iter().enumerate() {
+        let o = [t[0] as i32, t[1] as i32, t[2] as i32];
+        match runs.last_mut() {
+            Some(r) if r.o[1..] == o[1..] && r.o[0] + r.len as i32 == o[0] => r.len += 1,
+            _ => runs.push(Run {
+                first: m,
+                len: 1,
+                o,
+            }),
+        }
+    }
+    let weights: Vec<f32> = table.iter().map(|t| t[3]).collect();
+    let d32 = dims.map(|d| d as i32);
+    let hemis = 1 + split.is_some() as usize;
+    out.par_chunks_mut(hemis * count).enumerate().for_each_init(
+        || vec![0.0f32; 2 * count],
+        |h, (r, rows)| {
+            let i = voxel(r);
+            let v = [
+                i % dims[0],
+                (i / dims[0]) % dims[1],
+                i / (dims[0] * dims[1]),
+            ]
+            .map(|x| x as i32);
+            let d = split.and_then(|s| s.at(dims, i, v.map(|x| x as usize)));
+            let integer = split.is_some_and(|s| s.integer);
+            h.fill(0.0);
+            // The entry last added to, held in a register until another is (the same
+            // additions in the same order: a uniform neighbourhood's members would
+            // otherwise each wait for the previous one's store).
+            let (mut slot, mut held) = (0usize, h[0]);
+            let mut add = |h: &mut [f32], k: usize, w: f32| {
+                if k != slot {
+                    h[slot] = held;
+                    (slot, held) = (k, h[k]);
+                }
+                held += w;
+            };
+            let (mut total_f, mut total_b) = (0.0f32, 0.0f32);
+            for run in &runs {
+                let (y, z, x) = (v[1] + run.o[1], v[2] + run.o[2], v[0] + run.o[0]);
+                // The run's members in the grid: lo..hi.
+                let (lo, hi) = if (0..d32[1]).contains(&y) && (0..d32[2]).contains(&z) {
+                    let lo = (-x).clamp(0, run.len as i32) as usize;
+                    (lo, (d32[0] - x).clamp(lo as i32, run.len as i32) as usize)
+                } else {
+                    (0, 0)
+                };
+                let at = |j: usize| (x + j as i32 + d32[0] * (y + d32[1] * z)) as usize;
+                let w = &weights[run.first..run.first + run.len];
+                let Some(d) = d else {
+                    for j in lo..hi {
+                        add(h, shades[at(j)] as usize, w[j]);
+                    }
+                    continue;
+                };
+                for (j, &w) in w.iter().enumerate() {
+                    let o = [run.o[0] + j as i32, run.o[1], run.o[2]];
+                    let back = if integer {
+                        o[0] * d[0] as i32 + o[1] * d[1] as i32 + o[2] * d[2] as i32 > 0
+                    } else {
+                        o[0] as f32 * d[0] + o[1] as f32 * d[1] + o[2] as f32 * d[2] > 0.0
+                    };
+                    if back {
+                        total_b += w;
+                    } else {
+                        total_f += w;
+                    }
+                    if (lo..hi).contains(&j) {
+                        add(h, if back { count } else { 0 } + shades[at(j)] as usize, w);
+                    }
+                }
+            }
+            h[slot] = held;
+            let (front, back) = rows.split_at_mut(count);
+            if d.is_some() {
+                let scale = |t: f32| if t > 0.0 { 1.0 / t } else { 0.0 };
+                let (sf, sb) = (scale(total_f), scale(total_b));
+                for k in 0..count {
+                    front[k] = h[k] * sf;
+                    back[k] = h[count + k] * sb;
+                }
+            } else {
+                front.copy_from_slice(&h[..count]);
+                if let Some((first, rest)) = back.split_first_mut() {
+                    *first = -1.0;
+                    rest.fill(0.0);
+                }
+            }
+        },
+    );
+}
+
 /// The paper's histogram packing: starting from the volume's normalised histogram, the smallest
 /// bin is split repeatedly and its content given in equal halves to its two neighbours (all of
 /// it to the one neighbour at an end) until `packed` bins remain. `matrix[k * packed + p]` is

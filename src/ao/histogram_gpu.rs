@@ -126,6 +126,37 @@ fn private_shades(shades: usize) -> u32 {
     }
 }
 
+/// Where the clustering's local histograms are summed: histogram_local.comp adding into device
+/// rows, or its twin on the host's cores ([`hist::local_rows_f32`], the same bits) with the
+/// hemispheres' split.
+enum RowsOn<'a> {
+    Gpu {
+        local: ComputePipeline,
+        rows: Buffer,
+    },
+    Host(Option<hist::SplitF32<'a>>),
+}
+
+/// Whether the clustering sums its local histograms on the host: by default on a CPU renderer
+/// such as lavapipe, which makes each lane's scattered read and add one at a time (the host's
+/// own code is several times faster there; docs/benchmarks.md), else on the GPU.
+/// `CAO_XR_HISTOGRAM_ROWS=host` or `gpu` chooses.
+fn rows_on_host(gpu: &Gpu) -> bool {
+    match std::env::var("CAO_XR_HISTOGRAM_ROWS").as_deref() {
+        Ok("host") => true,
+        Ok("gpu") => false,
+        _ => gpu.is_cpu(),
+    }
+}
+
+/// The volume's scalars in f32, as the hemispheres' split reads them.
+fn scalar_values(vol: &Volume) -> Vec<f32> {
+    (0..vol.voxel_count())
+        .into_par_iter()
+        .map(|i| vol.voxels.get(i))
+        .collect()
+}
+
 /// Rows of `dim` values, each zero-padded to a multiple of 4 (histogram_assign.comp reads vec4s).
 fn pad4(rows: &[f32], dim: usize) -> Vec<f32> {
     let padded = dim.div_ceil(4) * 4;
@@ -170,9 +201,7 @@ impl HistogramGpu {
         let nb = Neighbourhood::new(params.radius_mm, vol.spacing);
         let geometry = (vol.dims, vol.spacing, vol.value_range());
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
-        let values: Option<Vec<f32>> = params
-            .hemispheres
-            .then(|| (0..n).into_par_iter().map(|i| vol.voxels.get(i)).collect());
+        let values = params.hemispheres.then(|| scalar_values(vol));
         // Integer scalars as 16-bit words above the least value (histogram_split.glsl).
         let integer = !matches!(vol.voxels, crate::volume::Voxels::F32(_));
         let scalars = match &values {
@@ -195,7 +224,8 @@ impl HistogramGpu {
         )?;
         if params.clusters > 0 {
             let key = hist::cache_key(vol.dims, vol.spacing, &h.shades, &params, values.as_deref());
-            drop(values);
+            // The host's sums split by the scalars (the GPU holds its own copy).
+            let values = values.filter(|_| rows_on_host(gpu));
             let path = cache_dir.map(|d| hist::cache_path(d, key));
             let count = h.shades.count();
             let rows = n * h.hemispheres();
@@ -208,7 +238,7 @@ impl HistogramGpu {
                     c
                 }
                 None => {
-                    let c = h.cluster(progress)?;
+                    let c = h.cluster(values.as_deref(), progress)?;
                     if let Some(p) = &path {
                         if let Err(e) = hist::save_cache(p, key, &c) {
                             eprintln!("{}: cannot cache the clustering: {e}", p.display());
@@ -235,16 +265,16 @@ impl HistogramGpu {
     ) -> Result<HistogramGpu> {
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
         let split = {
-            let gmin = super::MIN_GRADIENT as f64 * (range.1 as f64 - range.0 as f64);
+            let (half_inv_spacing, flat2) = hist::SplitF32::parameters(spacing, range);
             let mut words = [0u32; 8];
             words[0] = scalars.0.address as u32;
             words[1] = (scalars.0.address >> 32) as u32;
             words[2] = params.hemispheres as u32;
             words[3] = scalars.1 as u32;
             for a in 0..3 {
-                words[4 + a] = ((0.5 / spacing[a]) as f32).to_bits();
+                words[4 + a] = half_inv_spacing[a].to_bits();
             }
-            words[7] = ((gmin * gmin) as f32).to_bits();
+            words[7] = flat2.to_bits();
             Buffer::from_slice(gpu, &words, storage, "hist-split")?
         };
         let n = shades.ids.len();
@@ -384,17 +414,31 @@ impl HistogramGpu {
         .sum()
     }
 
-    /// The local histograms of `rows` voxels (from `first`, or the voxels of `list`; two each
-    /// with the hemispheres) into `out` (device memory: the shader adds into it member by
-    /// member), copied to `readback`.
+    /// The local histograms of `rows` voxels (from `first`, or from the `first`-th voxel of
+    /// `list`, its buffer and host copy; two rows each with the hemispheres) into `readback`,
+    /// summed where `on` says.
     fn local_rows(
         &self,
-        local: &ComputePipeline,
+        on: &RowsOn,
         (first, rows): (usize, usize),
-        list: Option<&Buffer>,
-        out: &Buffer,
-        readback: &Buffer,
+        list: Option<(&Buffer, &[u32])>,
+        readback: &mut Buffer,
     ) -> Result<()> {
+        let (local, out) = match on {
+            RowsOn::Host(split) => {
+                let mut out = vec![0.0f32; rows * self.hemispheres() * self.shades.count()];
+                hist::local_rows_f32(
+                    self.dims,
+                    (&self.shades.ids, self.shades.count()),
+                    &self.nb.gpu_table(),
+                    split.as_ref(),
+                    |r| list.map_or(first + r, |(_, l)| l[first + r] as usize),
+                    &mut out,
+                );
+                return readback.write(0, bytemuck::cast_slice(&out));
+            }
+            RowsOn::Gpu { local, rows } => (local, rows),
+        };
         let push = JobPush {
             dims: self.dims4(self.nb.offsets.len() as i32),
             job: [
@@ -406,7 +450,7 @@ impl HistogramGpu {
         };
         let bytes = (rows * self.hemispheres() * self.shades.count() * 4) as u64;
         self.gpu.submit_and_wait(|cmd| {
-            let l = list.unwrap_or(&self.bins);
+            let l = list.map_or(&self.bins, |(b, _)| b);
             local.bind(
                 cmd,
                 &[&self.bins, &self.neighbours, l, out, &self.split],
@@ -437,8 +481,9 @@ impl HistogramGpu {
         )
     }
 
-    fn local_pipeline(&self) -> Result<ComputePipeline> {
-        ComputePipeline::with_addresses(
+    /// histogram_local.comp, and the device rows it adds into for batches of `rows` voxels.
+    fn on_gpu(&self, rows: usize) -> Result<RowsOn<'static>> {
+        let local = ComputePipeline::with_addresses(
             &self.gpu,
             spv("local"),
             &[
@@ -450,13 +495,36 @@ impl HistogramGpu {
             ],
             32,
             &[private_shades(self.shades.count())],
-        )
+        )?;
+        let bytes = rows * self.hemispheres() * self.shades.count() * 4;
+        let rows = Buffer::new(
+            &self.gpu,
+            bytes.max(4) as u64,
+            vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC,
+            MemoryLocation::GpuOnly,
+            "hist-rows-gpu",
+        )?;
+        Ok(RowsOn::Gpu { local, rows })
     }
 
-    /// The local histograms of `voxels` as the clustering computes them: per voxel a row of a
-    /// sum per shade (H_f's then H_b's with the hemispheres; a flat voxel's second row is marked
-    /// by a negative first entry).
-    pub fn local_histograms(&self, voxels: &[u32]) -> Result<Vec<f32>> {
+    /// The hemispheres' split as the host computes it, from the volume's scalars `values` (with
+    /// the hemispheres; otherwise unused).
+    fn host_split<'a>(&self, values: Option<&'a [f32]>) -> Option<hist::SplitF32<'a>> {
+        let values = values.filter(|_| self.params.hemispheres)?;
+        let (half_inv_spacing, flat2) = hist::SplitF32::parameters(self.spacing, self.range);
+        Some(hist::SplitF32 {
+            values,
+            integer: self.scalars.1,
+            half_inv_spacing,
+            flat2,
+        })
+    }
+
+    /// The local histograms of `voxels` as histogram_local.comp sums them, or with `host` (the
+    /// volume) as its twin on the host's cores: per voxel a row of a sum per shade (H_f's then
+    /// H_b's with the hemispheres; a flat voxel's second row is marked by a negative first
+    /// entry).
+    pub fn local_histograms(&self, voxels: &[u32], host: Option<&Volume>) -> Result<Vec<f32>> {
         let list = Buffer::from_slice(
             &self.gpu,
             voxels,
@@ -464,10 +532,13 @@ impl HistogramGpu {
             "hist-voxels",
         )?;
         let n = voxels.len() * self.hemispheres() * self.shades.count();
-        let out = self.device_rows(n * 4, "hist-rows-gpu")?;
-        let readback = self.readable(n * 4, "hist-rows")?;
-        let local = self.local_pipeline()?;
-        self.local_rows(&local, (0, voxels.len()), Some(&list), &out, &readback)?;
+        let mut readback = self.readable(n * 4, "hist-rows")?;
+        let values = host.map(scalar_values);
+        let on = match host {
+            Some(_) => RowsOn::Host(self.host_split(values.as_deref())),
+            None => self.on_gpu(voxels.len())?,
+        };
+        self.local_rows(&on, (0, voxels.len()), Some((&list, voxels)), &mut readback)?;
         let rows: &[f32] = bytemuck::cast_slice(readback.mapped()?);
         Ok(rows[..n].to_vec())
     }
@@ -479,18 +550,6 @@ impl HistogramGpu {
             bytes.max(4) as u64,
             vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_DST,
             MemoryLocation::GpuToCpu,
-            name,
-        )
-    }
-
-    /// A buffer of `bytes` (at least 4) in device memory that histogram_local.comp adds into,
-    /// copied out.
-    fn device_rows(&self, bytes: usize, name: &str) -> Result<Buffer> {
-        Buffer::new(
-            &self.gpu,
-            bytes.max(4) as u64,
-            vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC,
-            MemoryLocation::GpuOnly,
             name,
         )
     }
@@ -531,7 +590,13 @@ impl HistogramGpu {
     /// The clustering: the training sample's histograms on the GPU, packed and trained (LBG) on
     /// the host, then every voxel's histogram and nearest centroid on the GPU batch by batch,
     /// each cluster's representative the mean of its members' full histograms.
-    fn cluster(&mut self, progress: &mut dyn FnMut(u64, u64, &str)) -> Result<Clusters> {
+    /// The local histograms are summed on the host where [`rows_on_host`] says, split by
+    /// `values` (the volume's scalars, with the hemispheres).
+    fn cluster(
+        &mut self,
+        values: Option<&[f32]>,
+        progress: &mut dyn FnMut(u64, u64, &str),
+    ) -> Result<Clusters> {
         let (b, n, hemis) = (
             self.shades.count(),
             self.shades.ids.len(),
@@ -540,7 +605,6 @@ impl HistogramGpu {
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
         let packing = Packing::new(&self.shades.ids, b, hist::packed_dims(b));
         let p = packing.packed;
-        let local = self.local_pipeline()?;
         // Training: the sample's histograms, packed.
         let t0 = std::time::Instant::now();
         progress(0, 1, "histograms of the training sample");
@@ -552,12 +616,16 @@ impl HistogramGpu {
             .budget_left()
             .map_or(BATCH_BYTES, |left| BATCH_BYTES.min(left as usize / 5));
         let batch = (batch_bytes / (hemis * b * 4)).clamp(64, n.max(sample.len()).max(64));
-        let rows = self.readable(batch * hemis * b * 4, "hist-rows")?;
-        let gpu_rows = self.device_rows(batch * hemis * b * 4, "hist-rows-gpu")?;
+        let mut rows = self.readable(batch * hemis * b * 4, "hist-rows")?;
+        let on = if rows_on_host(&self.gpu) {
+            RowsOn::Host(self.host_split(values))
+        } else {
+            self.on_gpu(batch)?
+        };
         let mut packed: Vec<f32> = Vec::new();
         for first in (0..sample.len()).step_by(batch) {
             let count = batch.min(sample.len() - first);
-            self.local_rows(&local, (first, count), Some(&list), &gpu_rows, &rows)?;
+            self.local_rows(&on, (first, count), Some((&list, &sample)), &mut rows)?;
             let sample_rows: &[f32] = bytemuck::cast_slice(rows.mapped()?);
             packed.extend(
                 sample_rows[..count * hemis * b]
@@ -612,7 +680,7 @@ impl HistogramGpu {
             progress(i as u64, batches as u64, "local histograms and assignment");
             let count = batch.min(n - first);
             let t = std::time::Instant::now();
-            self.local_rows(&local, (first, count), None, &gpu_rows, &rows)?;
+            self.local_rows(&on, (first, count), None, &mut rows)?;
             hist_ms += t.elapsed().as_secs_f64() * 1e3;
             let t = std::time::Instant::now();
             let push = [
@@ -627,9 +695,14 @@ impl HistogramGpu {
             ];
             self.gpu.submit_and_wait(|cmd| {
                 let [gc, gf, gm] = &group_bufs;
+                // The host's rows are read where it wrote them.
+                let gpu_rows = match &on {
+                    RowsOn::Gpu { rows, .. } => rows,
+                    RowsOn::Host(_) => &rows,
+                };
                 assign.bind(
                     cmd,
-                    &[&gpu_rows, &packing_buf, &centroid_buf, &ids_buf, gc, gf, gm],
+                    &[gpu_rows, &packing_buf, &centroid_buf, &ids_buf, gc, gf, gm],
                     bytemuck::bytes_of(&push),
                 );
                 assign.dispatch(cmd, [((count * hemis) as u32).div_ceil(64), 1, 1]);

@@ -231,11 +231,9 @@ fn local_rows_reference(vol: &Volume, p: HistParams) -> (Vec<f64>, usize) {
     (rows, b)
 }
 
-#[test]
-fn the_gpu_local_histograms_are_the_definitions_with_few_shades_and_with_many() {
-    // histogram_local.comp sums a voxel's rows in an array of its own up to 512 shades, and in
-    // the rows in memory past that: both are checked against the definitions, hemispheres on.
-    let gpu = common::gpu();
+/// The head phantom at 16^3 with a label map of 7 structures in every voxel: 557 shades at 128
+/// bins.
+fn seven_structures_everywhere() -> Volume {
     let mut many = phantom::head(16);
     let ids: Vec<u8> = (0..many.voxel_count()).map(|i| (i % 7) as u8 + 1).collect();
     let structures = (0..7)
@@ -254,7 +252,18 @@ fn the_gpu_local_histograms_are_the_definitions_with_few_shades_and_with_many() 
         ids,
         structures,
     }));
-    for (vol, bins, fewer) in [(phantom::head(16), 32, true), (many, 128, false)] {
+    many
+}
+
+#[test]
+fn the_gpu_local_histograms_are_the_definitions_with_few_shades_and_with_many() {
+    // histogram_local.comp sums a voxel's rows in an array of its own up to 512 shades, and in
+    // the rows in memory past that: both are checked against the definitions, hemispheres on.
+    let gpu = common::gpu();
+    for (vol, bins, fewer) in [
+        (phantom::head(16), 32, true),
+        (seven_structures_everywhere(), 128, false),
+    ] {
         let p = HistParams {
             radius_mm: 30.0,
             bins,
@@ -265,7 +274,7 @@ fn the_gpu_local_histograms_are_the_definitions_with_few_shades_and_with_many() 
         assert_eq!(shades <= 512, fewer, "{shades} shades");
         let h = histogram_state(&gpu, &vol, p, None, false).unwrap();
         let voxels: Vec<u32> = (0..vol.voxel_count() as u32).collect();
-        let got = h.local_histograms(&voxels).unwrap();
+        let got = h.local_histograms(&voxels, None).unwrap();
         assert_eq!(got.len(), want.len());
         let worst = got
             .iter()
@@ -283,6 +292,52 @@ fn the_gpu_local_histograms_are_the_definitions_with_few_shades_and_with_many() 
             .filter(|r| r[0] >= 0.0)
             .count();
         assert!(split > 100, "{split} voxels split");
+    }
+    common::assert_no_validation_messages(&gpu);
+}
+
+#[test]
+fn the_host_sums_the_local_histograms_as_the_gpu_does_bit_for_bit() {
+    // A CPU renderer's clustering sums the rows on the host (histogram::local_rows_f32): the
+    // same bits as histogram_local.comp, for integer and float scalars, with one sphere and
+    // with the hemispheres (flat voxels and split ones, at the border and inside), and past
+    // 512 shades.
+    let gpu = common::gpu();
+    let head = phantom::head(16);
+    let float = Volume {
+        voxels: Voxels::F32(
+            (0..head.voxel_count())
+                .map(|i| head.voxels.get(i) * 0.37 + 0.1)
+                .collect(),
+        ),
+        spacing: [6.0, 7.0, 9.0],
+        ..phantom::head(16)
+    };
+    let cases = [
+        ("integer", head.clone(), 32, true),
+        ("integer", head, 32, false),
+        ("float", float, 32, true),
+        ("labelled", seven_structures_everywhere(), 128, true),
+    ];
+    for (scalars, vol, bins, hemispheres) in cases {
+        let p = HistParams {
+            radius_mm: 30.0,
+            bins,
+            clusters: 0,
+            hemispheres,
+        };
+        let h = histogram_state(&gpu, &vol, p, None, false).unwrap();
+        let voxels: Vec<u32> = (0..vol.voxel_count() as u32).rev().collect();
+        let want = h.local_histograms(&voxels, None).unwrap();
+        let got = h.local_histograms(&voxels, Some(&vol)).unwrap();
+        if let Some(i) = common::first_bit_difference(&got, &want) {
+            panic!(
+                "{scalars} scalars, {bins} bins, hemispheres {hemispheres}: row entry {i} is {} \
+                 on the host, {} on the GPU",
+                got[i], want[i]
+            );
+        }
+        assert!(want.iter().filter(|&&x| x > 0.0).count() > voxels.len());
     }
     common::assert_no_validation_messages(&gpu);
 }
@@ -312,7 +367,7 @@ fn the_gpu_clustering_is_its_cpu_twins() {
             .collect()
     };
     let sample = h.training_sample();
-    let trained: Vec<f32> = pack_rows(&h.local_histograms(&sample).unwrap())
+    let trained: Vec<f32> = pack_rows(&h.local_histograms(&sample, None).unwrap())
         .into_iter()
         .flatten()
         .flatten()
@@ -321,7 +376,7 @@ fn the_gpu_clustering_is_its_cpu_twins() {
     let groups = histogram::Groups::new(&centroids, dim);
     let all: Vec<u32> = (0..vol.voxel_count() as u32).collect();
     let mut want = Vec::new();
-    for row in pack_rows(&h.local_histograms(&all).unwrap()) {
+    for row in pack_rows(&h.local_histograms(&all, None).unwrap()) {
         // A flat voxel's second row takes its first's cluster.
         let c = match row {
             Some(packed) => groups.assign(&centroids, dim, &packed),
