@@ -16,7 +16,7 @@ use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
-pub use crate::shader_constants::{HIST_MAX_BINS, HIST_MAX_PACKED};
+pub use crate::shader_constants::{HIST_MAX_BINS, HIST_MAX_PACKED, SAME_AS_FRONT};
 
 /// The local-histogram AO's parameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -498,11 +498,16 @@ pub fn local_rows_f32(
                 } else {
                     (0, 0)
                 };
-                let at = |j: usize| (x + j as i32 + d32[0] * (y + d32[1] * z)) as usize;
+                // The run's member j is voxel at + j (read only for j in lo..hi).
+                let at = (x + d32[0] * (y + d32[1] * z)) as isize;
+                let read = |j: usize| (at + j as isize) as usize;
                 let w = &weights[run.first..run.first + run.len];
                 let Some(d) = d else {
-                    for j in lo..hi {
-                        add(h, shades[at(j)] as usize, w[j]);
+                    if lo < hi {
+                        let members = &shades[read(lo)..read(hi)];
+                        for (&k, &w) in members.iter().zip(&w[lo..hi]) {
+                            add(h, k as usize, w);
+                        }
                     }
                     continue;
                 };
@@ -519,7 +524,11 @@ pub fn local_rows_f32(
                         total_f += w;
                     }
                     if (lo..hi).contains(&j) {
-                        add(h, if back { count } else { 0 } + shades[at(j)] as usize, w);
+                        add(
+                            h,
+                            if back { count } else { 0 } + shades[read(j)] as usize,
+                            w,
+                        );
                     }
                 }
             }
@@ -750,10 +759,133 @@ impl Groups {
     }
 }
 
+/// The assignment of whole batches on the host's cores, histogram_assign.comp's twin bit for
+/// bit ([`Groups::assign`] after [`Packing::pack`], a flat voxel's second row
+/// [`SAME_AS_FRONT`]): each row's squared distances to the group centres and then to the
+/// searched groups' members are summed in the same element order, but for many centres at once
+/// from tables stored element by element, which the compiler vectorises.
+pub struct HostAssign<'a> {
+    groups: &'a Groups,
+    packing: &'a Packing,
+    /// The group centres, element-major: `centres[e * G + g]`.
+    centres: Vec<f32>,
+    /// Each group's members' centroids, element-major within the group: member j of group g,
+    /// element e at `members[first[g] * dim + e * len_g + j]`.
+    members: Vec<f32>,
+}
+
+/// The squared distances of `p` to the `n` points of `table` (element-major: element e of point
+/// i at `table[e * n + i]`) into `out`, each summed over the elements in order.
+fn distances(table: &[f32], n: usize, p: &[f32], out: &mut [f32]) {
+    let out = &mut out[..n];
+    out.fill(0.0);
+    for (e, &x) in p.iter().enumerate() {
+        for (o, &c) in out.iter_mut().zip(&table[e * n..(e + 1) * n]) {
+            let t = c - x;
+            *o += t * t;
+        }
+    }
+}
+
+impl<'a> HostAssign<'a> {
+    pub fn new(groups: &'a Groups, packing: &'a Packing, centroids: &[f32]) -> HostAssign<'a> {
+        let dim = packing.packed;
+        let g = groups.first.len() - 1;
+        let centres = (0..dim)
+            .flat_map(|e| (0..g).map(move |i| groups.centres[i * dim + e]))
+            .collect();
+        let mut members = vec![0.0f32; groups.members.len() * dim];
+        for i in 0..g {
+            let (first, last) = (groups.first[i] as usize, groups.first[i + 1] as usize);
+            let block = &mut members[first * dim..last * dim];
+            for (j, &c) in groups.members[first..last].iter().enumerate() {
+                for e in 0..dim {
+                    block[e * (last - first) + j] = centroids[c as usize * dim + e];
+                }
+            }
+        }
+        HostAssign {
+            groups,
+            packing,
+            centres,
+            members,
+        }
+    }
+
+    /// The cluster of each row of `rows` (the shades' sums, [`Packing::bins`] each).
+    pub fn assign(&self, rows: &[f32]) -> Vec<u32> {
+        let (b, dim) = (self.packing.bins, self.packing.packed);
+        let (groups, first) = (self.groups.first.len() - 1, &self.groups.first);
+        let most = (0..groups)
+            .map(|g| (first[g + 1] - first[g]) as usize)
+            .max()
+            .unwrap_or(0);
+        rows.par_chunks_exact(b)
+            .map_init(
+                || (vec![0.0f32; dim], vec![0.0f32; groups.max(most)]),
+                |(p, d), lh| {
+                    if lh[0] < 0.0 {
+                        return SAME_AS_FRONT;
+                    }
+                    p.fill(0.0);
+                    for (k, &x) in lh.iter().enumerate().filter(|(_, x)| **x != 0.0) {
+                        let m = &self.packing.matrix[k * dim..(k + 1) * dim];
+                        for (o, &w) in p.iter_mut().zip(m) {
+                            *o += x * w;
+                        }
+                    }
+                    // The nearest groups, as the shader inserts them (the first of equals).
+                    distances(&self.centres, groups, p, d);
+                    let mut near = [(f32::INFINITY, usize::MAX); GROUPS_SEARCHED];
+                    for (g, &dg) in d[..groups].iter().enumerate() {
+                        if dg < near[GROUPS_SEARCHED - 1].0 {
+                            let mut i = GROUPS_SEARCHED - 1;
+                            while i > 0 && dg < near[i - 1].0 {
+                                near[i] = near[i - 1];
+                                i -= 1;
+                            }
+                            near[i] = (dg, g);
+                        }
+                    }
+                    let mut best = (f32::INFINITY, 0u32);
+                    for &(_, g) in near.iter().filter(|n| n.1 != usize::MAX) {
+                        let (f, l) = (first[g] as usize, first[g + 1] as usize);
+                        distances(&self.members[f * dim..l * dim], l - f, p, d);
+                        for (&c, &dc) in self.groups.members[f..l].iter().zip(&d[..l - f]) {
+                            if dc < best.0 || (dc == best.0 && c < best.1) {
+                                best = (dc, c);
+                            }
+                        }
+                    }
+                    best.1
+                },
+            )
+            .collect()
+    }
+}
+
+/// Each sample's [`nearest`] centroid and its squared distance.
 fn assign_all(samples: &[f32], dim: usize, centroids: &[f32]) -> Vec<(u32, f32)> {
+    let k = centroids.len() / dim;
+    // Element-major, so that `distances` sums many centroids at once (dist2's sums).
+    let table: Vec<f32> = (0..dim)
+        .flat_map(|e| (0..k).map(move |c| centroids[c * dim + e]))
+        .collect();
     samples
         .par_chunks_exact(dim)
-        .map(|s| nearest(centroids, dim, s))
+        .map_init(
+            || vec![0.0f32; k],
+            |d, s| {
+                distances(&table, k, s, d);
+                let mut best = (0u32, f32::INFINITY);
+                for (c, &dc) in d.iter().enumerate() {
+                    if dc < best.1 {
+                        best = (c as u32, dc);
+                    }
+                }
+                best
+            },
+        )
         .collect()
 }
 

@@ -137,6 +137,50 @@ enum RowsOn<'a> {
     Host(Option<hist::SplitF32<'a>>),
 }
 
+/// histogram_assign.comp with its tables (the packing matrix, the centroids, the group
+/// centres, firsts and members) and the ids it writes.
+struct DeviceAssign {
+    pipeline: ComputePipeline,
+    packed: u32,
+    groups: u32,
+    tables: [Buffer; 5],
+    ids: Buffer,
+}
+
+impl DeviceAssign {
+    /// The cluster of each of the first `rows` rows of `device_rows` (`b` shades each, `k`
+    /// clusters).
+    fn run(
+        &self,
+        gpu: &Gpu,
+        device_rows: &Buffer,
+        rows: usize,
+        (b, k): (usize, usize),
+    ) -> Result<Vec<u32>> {
+        let push = [
+            rows as u32,
+            b as u32,
+            self.packed,
+            k as u32,
+            self.groups,
+            0,
+            0,
+            0,
+        ];
+        gpu.submit_and_wait(|cmd| {
+            let [packing, centroids, gc, gf, gm] = &self.tables;
+            self.pipeline.bind(
+                cmd,
+                &[device_rows, packing, centroids, &self.ids, gc, gf, gm],
+                bytemuck::bytes_of(&push),
+            );
+            self.pipeline
+                .dispatch(cmd, [(rows as u32).div_ceil(64), 1, 1]);
+        })?;
+        Ok(bytemuck::cast_slice(self.ids.mapped()?)[..rows].to_vec())
+    }
+}
+
 /// Whether the clustering sums its local histograms on the host: by default on a CPU renderer
 /// such as lavapipe, which makes each lane's scattered read and add one at a time (the host's
 /// own code is several times faster there; docs/benchmarks.md), else on the GPU.
@@ -225,7 +269,8 @@ impl HistogramGpu {
         if params.clusters > 0 {
             let key = hist::cache_key(vol.dims, vol.spacing, &h.shades, &params, values.as_deref());
             // The host's sums split by the scalars (the GPU holds its own copy).
-            let values = values.filter(|_| rows_on_host(gpu));
+            let on_host = rows_on_host(gpu);
+            let values = values.filter(|_| on_host);
             let path = cache_dir.map(|d| hist::cache_path(d, key));
             let count = h.shades.count();
             let rows = n * h.hemispheres();
@@ -238,7 +283,7 @@ impl HistogramGpu {
                     c
                 }
                 None => {
-                    let c = h.cluster(values.as_deref(), progress)?;
+                    let c = h.cluster(values.as_deref(), on_host, progress)?;
                     if let Some(p) = &path {
                         if let Err(e) = hist::save_cache(p, key, &c) {
                             eprintln!("{}: cannot cache the clustering: {e}", p.display());
@@ -470,6 +515,13 @@ impl HistogramGpu {
         Ok(())
     }
 
+    /// The clustering of `vol` (this state's volume) computed again, on the host or by the
+    /// shaders, whichever [`HistogramGpu::new`] took: the two must be the same.
+    pub fn recluster(&mut self, vol: &Volume, on_host: bool) -> Result<Clusters> {
+        let values = self.params.hemispheres.then(|| scalar_values(vol));
+        self.cluster(values.as_deref(), on_host, &mut |_, _, _| {})
+    }
+
     /// The voxels whose local histograms train the clusters: as many rows as with one sphere
     /// (half the voxels with two hemispheres, fewer where a flat voxel's second row is its
     /// first).
@@ -590,11 +642,12 @@ impl HistogramGpu {
     /// The clustering: the training sample's histograms on the GPU, packed and trained (LBG) on
     /// the host, then every voxel's histogram and nearest centroid on the GPU batch by batch,
     /// each cluster's representative the mean of its members' full histograms.
-    /// The local histograms are summed on the host where [`rows_on_host`] says, split by
-    /// `values` (the volume's scalars, with the hemispheres).
+    /// The rows are summed and assigned on the host with `on_host` (split by `values`, the
+    /// volume's scalars, with the hemispheres), else by the shaders.
     fn cluster(
         &mut self,
         values: Option<&[f32]>,
+        on_host: bool,
         progress: &mut dyn FnMut(u64, u64, &str),
     ) -> Result<Clusters> {
         let (b, n, hemis) = (
@@ -617,7 +670,7 @@ impl HistogramGpu {
             .map_or(BATCH_BYTES, |left| BATCH_BYTES.min(left as usize / 5));
         let batch = (batch_bytes / (hemis * b * 4)).clamp(64, n.max(sample.len()).max(64));
         let mut rows = self.readable(batch * hemis * b * 4, "hist-rows")?;
-        let on = if rows_on_host(&self.gpu) {
+        let on = if on_host {
             RowsOn::Host(self.host_split(values))
         } else {
             self.on_gpu(batch)?
@@ -641,35 +694,14 @@ impl HistogramGpu {
         let centroids = hist::lbg(&packed, p, self.params.clusters);
         self.timing.training_ms = t1.elapsed().as_secs_f64() * 1e3;
 
-        // Assignment, batch by batch.
-        let assign = ComputePipeline::with_addresses(
-            &self.gpu,
-            spv("assign"),
-            &[Reach::Descriptor; 7],
-            32,
-            &[p.div_ceil(4) as u32],
-        )?;
+        // Assignment, batch by batch, where the rows were summed.
         let groups = hist::Groups::new(&centroids, p);
-        let group_bufs = [
-            Buffer::from_slice(
-                &self.gpu,
-                &pad4(&groups.centres, p),
-                storage,
-                "hist-group-centres",
-            )?,
-            Buffer::from_slice(&self.gpu, &groups.first, storage, "hist-group-first")?,
-            Buffer::from_slice(&self.gpu, &groups.members, storage, "hist-group-members")?,
-        ];
-        let group_count = groups.first.len() as u32 - 1;
-        let packing_buf = Buffer::from_slice(
-            &self.gpu,
-            &pad4(&packing.matrix, p),
-            storage,
-            "hist-packing",
-        )?;
-        let centroid_buf =
-            Buffer::from_slice(&self.gpu, &pad4(&centroids, p), storage, "hist-centroids")?;
-        let ids_buf = self.readable(batch * hemis * 4, "hist-batch-ids")?;
+        let host_assign = matches!(on, RowsOn::Host(_))
+            .then(|| hist::HostAssign::new(&groups, &packing, &centroids));
+        let device_assign = match &on {
+            RowsOn::Gpu { .. } => Some(self.device_assign(&groups, &packing, &centroids, batch)?),
+            RowsOn::Host(_) => None,
+        };
         let k = self.params.clusters;
         let mut sums = vec![0.0f64; k * b];
         let mut pop = vec![0u64; k];
@@ -683,31 +715,15 @@ impl HistogramGpu {
             self.local_rows(&on, (first, count), None, &mut rows)?;
             hist_ms += t.elapsed().as_secs_f64() * 1e3;
             let t = std::time::Instant::now();
-            let push = [
-                (count * hemis) as u32,
-                b as u32,
-                p as u32,
-                k as u32,
-                group_count,
-                0,
-                0,
-                0,
-            ];
-            self.gpu.submit_and_wait(|cmd| {
-                let [gc, gf, gm] = &group_bufs;
-                // The host's rows are read where it wrote them.
-                let gpu_rows = match &on {
-                    RowsOn::Gpu { rows, .. } => rows,
-                    RowsOn::Host(_) => &rows,
-                };
-                assign.bind(
-                    cmd,
-                    &[gpu_rows, &packing_buf, &centroid_buf, &ids_buf, gc, gf, gm],
-                    bytemuck::bytes_of(&push),
-                );
-                assign.dispatch(cmd, [((count * hemis) as u32).div_ceil(64), 1, 1]);
-            })?;
-            let batch_ids: &[u32] = &bytemuck::cast_slice(ids_buf.mapped()?)[..count * hemis];
+            let batch_ids = match (&host_assign, &device_assign, &on) {
+                (Some(host), _, _) => {
+                    host.assign(&bytemuck::cast_slice(rows.mapped()?)[..count * hemis * b])
+                }
+                (None, Some(device), RowsOn::Gpu { rows, .. }) => {
+                    device.run(&self.gpu, rows, count * hemis, (b, k))?
+                }
+                _ => unreachable!("the rows and their assignment are on one side"),
+            };
             let batch_rows: &[f32] = bytemuck::cast_slice(rows.mapped()?);
             for (r, &c) in batch_ids.iter().enumerate() {
                 // A flat voxel's second row is its first (marked, not assigned: only odd rows).
@@ -746,6 +762,39 @@ impl HistogramGpu {
             })
             .collect();
         Ok(Clusters { bins: b, ids, reps })
+    }
+
+    /// histogram_assign.comp and its tables for batches of `batch` voxels.
+    fn device_assign(
+        &self,
+        groups: &hist::Groups,
+        packing: &Packing,
+        centroids: &[f32],
+        batch: usize,
+    ) -> Result<DeviceAssign> {
+        let p = packing.packed;
+        let storage = vk::BufferUsageFlags::STORAGE_BUFFER;
+        let table =
+            |data: &[f32], name| Buffer::from_slice(&self.gpu, &pad4(data, p), storage, name);
+        Ok(DeviceAssign {
+            pipeline: ComputePipeline::with_addresses(
+                &self.gpu,
+                spv("assign"),
+                &[Reach::Descriptor; 7],
+                32,
+                &[p.div_ceil(4) as u32],
+            )?,
+            packed: p as u32,
+            groups: groups.first.len() as u32 - 1,
+            tables: [
+                table(&packing.matrix, "hist-packing")?,
+                table(centroids, "hist-centroids")?,
+                table(&groups.centres, "hist-group-centres")?,
+                Buffer::from_slice(&self.gpu, &groups.first, storage, "hist-group-first")?,
+                Buffer::from_slice(&self.gpu, &groups.members, storage, "hist-group-members")?,
+            ],
+            ids: self.readable(batch * self.hemispheres() * 4, "hist-batch-ids")?,
+        })
     }
 
     /// Takes `tf` with the structures shown as `structures` (by structure index; empty: as the

@@ -356,7 +356,7 @@ fn the_gpu_clustering_is_its_cpu_twins() {
         clusters: 128,
         hemispheres: true,
     };
-    let h = histogram_state(&gpu, &vol, p, None, false).unwrap();
+    let mut h = histogram_state(&gpu, &vol, p, None, false).unwrap();
     let shades = histogram::Shades::new(histogram::bins(&vol, p.bins), p.bins, None);
     let b = shades.count();
     let packing = histogram::Packing::new(&shades.ids, b, histogram::packed_dims(b));
@@ -384,12 +384,27 @@ fn the_gpu_clustering_is_its_cpu_twins() {
         };
         want.push(c);
     }
-    let got = &h.clusters().unwrap().ids;
-    assert_eq!(got.len(), want.len());
-    let same = got.iter().zip(&want).filter(|(g, w)| g == w).count();
-    assert_eq!(same, want.len(), "rows in the twin's cluster");
-    let used = got.iter().collect::<std::collections::HashSet<_>>().len();
-    assert!(used > 64, "{used} clusters used");
+    // Summed and assigned by the shaders, and on the host (a CPU renderer's default).
+    for on_host in [false, true] {
+        let got = h.recluster(&vol, on_host).unwrap();
+        assert_eq!(got.ids.len(), want.len());
+        let same = got.ids.iter().zip(&want).filter(|(g, w)| g == w).count();
+        assert_eq!(
+            same,
+            want.len(),
+            "on the host {on_host}: rows in the twin's cluster"
+        );
+        let used = got
+            .ids
+            .iter()
+            .collect::<std::collections::HashSet<_>>()
+            .len();
+        assert!(used > 64, "{used} clusters used");
+        assert!(
+            Some(&got) == h.clusters(),
+            "on the host {on_host}: not the clustering the state was made with"
+        );
+    }
     common::assert_no_validation_messages(&gpu);
 }
 
