@@ -558,9 +558,9 @@ fn a_fast_start_clusters_the_local_histograms_beside_the_frames() {
     let vol = Arc::new(phantom::head(N));
     let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
     let hist = AoConfig::new(
-        // Wide enough (S_r ~ 350 voxels of 6.9 mm) that it takes longer than the filter.
+        // Wide enough (S_r ~ 600 voxels of 6.9 mm) that it takes longer than the filter.
         AoMethod::Histogram(HistParams {
-            radius_mm: 30.0,
+            radius_mm: 36.0,
             bins: 16,
             clusters: 64,
             hemispheres: true,
