@@ -32,6 +32,7 @@ fn constants_glsl() -> String {
         format!("const uint HIST_MAX_BINS = {HIST_MAX_BINS}u;"),
         format!("const uint HIST_MAX_PACKED = {HIST_MAX_PACKED}u;"),
         format!("const uint SAME_AS_FRONT = {SAME_AS_FRONT}u;"),
+        format!("const int HIST_BRICK_SHIFT = {HIST_BRICK_SHIFT};"),
         format!("const int RAY_BRICK_SHIFT = {RAY_BRICK_SHIFT};"),
         format!("const int MAX_TOOLS = {MAX_TOOLS};"),
         format!("const uint CLIP_BRICK_OPEN = {CLIP_BRICK_OPEN}u;"),

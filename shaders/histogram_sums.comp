@@ -30,6 +30,9 @@ layout(std430, binding = 3) readonly buffer Neighbours { vec4 neighbours[]; };
 layout(std430, binding = 10) readonly buffer Clusters { vec4 clusters[]; };
 #define SPLIT_BINDING 11
 #include "histogram_split.glsl"
+// One bit per brick of 2^HIST_BRICK_SHIFT voxels: no member of any of its voxels has q > 0
+// under this TF (src/ao/histogram.rs clear_bricks; clipping only lowers q).
+layout(std430, binding = 12) readonly buffer ClearBricks { uint clear_bricks[]; };
 
 layout(push_constant) uniform Push {
     Q q_buf;
@@ -73,7 +76,14 @@ void direct(ivec3 v, out float a, out vec3 e) {
     bool inside = all(greaterThanEqual(v, pc.reach.xyz)) && all(lessThan(v + pc.reach.xyz, pc.dims.xyz));
     int row = pc.dims.x, slice = pc.dims.x * pc.dims.y;
     int i0 = v.x + row * v.y + slice * v.z;
-    for (int n = 0; n < pc.dims.w; n++) {
+    // In a clear brick every w q is 0: the loop would leave occ = 0 and rgb = 0 (A = 1, E = 0),
+    // so it does not run.
+    ivec3 bricks = (pc.dims.xyz + (1 << HIST_BRICK_SHIFT) - 1) >> HIST_BRICK_SHIFT;
+    ivec3 b = v >> HIST_BRICK_SHIFT;
+    int bi = b.x + bricks.x * (b.y + bricks.y * b.z);
+    bool clear = (clear_bricks[bi >> 5] & (1u << (bi & 31))) != 0u;
+    int members = clear ? 0 : pc.dims.w;
+    for (int n = 0; n < members; n++) {
         vec4 nb = neighbours[n];
         ivec3 o = ivec3(nb.xyz);
         if (split) {

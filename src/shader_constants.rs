@@ -30,6 +30,9 @@ pub const HIST_MAX_PACKED: u32 = 32;
 /// The cluster id histogram_assign.comp gives a flat voxel's second hemisphere: the same as its
 /// first's (the host resolves it).
 pub const SAME_AS_FRONT: u32 = u32::MAX;
+/// Bricks of 2^HIST_BRICK_SHIFT voxels per axis for the local histograms' clear bricks
+/// (src/ao/histogram.rs clear_bricks).
+pub const HIST_BRICK_SHIFT: u32 = 3;
 /// Bricks of 2^RAY_BRICK_SHIFT voxels per axis for the ray caster's exact empty-space skipping
 /// (src/render/empty_space.rs).
 pub const RAY_BRICK_SHIFT: u32 = 3;

@@ -16,7 +16,9 @@ use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
-pub use crate::shader_constants::{HIST_MAX_BINS, HIST_MAX_PACKED, SAME_AS_FRONT};
+pub use crate::shader_constants::{
+    HIST_BRICK_SHIFT, HIST_MAX_BINS, HIST_MAX_PACKED, SAME_AS_FRONT,
+};
 
 /// The local-histogram AO's parameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -550,6 +552,81 @@ pub fn local_rows_f32(
             }
         },
     );
+}
+
+/// The bricks (2^[`HIST_BRICK_SHIFT`] voxels per axis, x fastest, one bit each) none of whose
+/// voxels has a voxel with q > 0 within `reach` voxels per axis (the box around S_r). Every w q
+/// of such a voxel is 0, so its direct sums are A = 1 and E = 0 under any clip (clipping only
+/// lowers q): histogram_sums.comp skips their member loop, the same bits.
+pub fn clear_bricks(dims: [usize; 3], q: &[f32], reach: [usize; 3]) -> Vec<u32> {
+    // The opaque voxels dilated by the box, one axis at a time (running counts: O(n)).
+    let opaque: Vec<u8> = q.par_iter().map(|&v| (v > 0.0) as u8).collect();
+    let (row, slice) = (dims[0], dims[0] * dims[1]);
+    let mut x = vec![0u8; opaque.len()];
+    let mut y = vec![0u8; opaque.len()];
+    let mut reached = vec![0u8; opaque.len()];
+    dilate_rows(&opaque, &mut x, row, 1, reach[0]);
+    dilate_rows(&x, &mut y, slice, row, reach[1]);
+    dilate_rows(&y, &mut reached, opaque.len(), slice, reach[2]);
+    let side = 1usize << HIST_BRICK_SHIFT;
+    let bd = dims.map(|d| d.div_ceil(side));
+    let bricks = bd[0] * bd[1] * bd[2];
+    let clear: Vec<bool> = (0..bricks)
+        .into_par_iter()
+        .map(|b| {
+            let [bx, by, bz] = [b % bd[0], (b / bd[0]) % bd[1], b / (bd[0] * bd[1])];
+            let [x, y, z] = [bx * side, by * side, bz * side];
+            (z..(z + side).min(dims[2])).all(|z| {
+                (y..(y + side).min(dims[1])).all(|y| {
+                    let at = x + row * y + slice * z;
+                    reached[at..at + side.min(dims[0] - x)]
+                        .iter()
+                        .all(|&r| r == 0)
+                })
+            })
+        })
+        .collect();
+    let mut bits = vec![0u32; bricks.div_ceil(32).max(1)];
+    for (b, _) in clear.iter().enumerate().filter(|(_, &c)| c) {
+        bits[b / 32] |= 1 << (b % 32);
+    }
+    bits
+}
+
+/// Within each chunk of `chunk` values, seen as slabs of `width` values: out's slab k is 1
+/// where any of in's slabs k - r..=k + r is non-zero (chunks in parallel).
+fn dilate_rows(input: &[u8], out: &mut [u8], chunk: usize, width: usize, r: usize) {
+    out.par_chunks_mut(chunk)
+        .zip(input.par_chunks(chunk))
+        .for_each(|(out, input)| {
+            let slabs = input.len() / width;
+            let slab = |k: usize| &input[k * width..(k + 1) * width];
+            let mut count = vec![0u32; width];
+            for k in 0..r.min(slabs) {
+                count
+                    .iter_mut()
+                    .zip(slab(k))
+                    .for_each(|(c, &v)| *c += v as u32);
+            }
+            for k in 0..slabs {
+                if k + r < slabs {
+                    count
+                        .iter_mut()
+                        .zip(slab(k + r))
+                        .for_each(|(c, &v)| *c += v as u32);
+                }
+                if k > r {
+                    count
+                        .iter_mut()
+                        .zip(slab(k - r - 1))
+                        .for_each(|(c, &v)| *c -= v as u32);
+                }
+                out[k * width..(k + 1) * width]
+                    .iter_mut()
+                    .zip(&count)
+                    .for_each(|(o, &c)| *o = (c > 0) as u8);
+            }
+        });
 }
 
 /// The paper's histogram packing: starting from the volume's normalised histogram, the smallest
@@ -1333,6 +1410,47 @@ mod tests {
             .filter(|s| groups.assign(&cen, dim, s) == nearest(&cen, dim, s).0)
             .count();
         assert!(same as f64 >= 0.95 * 4000.0, "{same} of 4000 exact");
+    }
+
+    #[test]
+    fn a_clear_brick_is_one_no_voxel_of_which_reaches_an_opaque_one() {
+        // Three grids (edge bricks partial), sparse opaque voxels, per-axis reaches; checked
+        // against every voxel's box of reach, brute force, and the bits beyond the bricks 0.
+        for (dims, reach, every) in [
+            ([19, 13, 11], [3, 2, 1], 1303),
+            ([40, 9, 17], [9, 0, 4], 331),
+            ([30, 30, 30], [2, 2, 2], 2003),
+        ] {
+            let n = dims[0] * dims[1] * dims[2];
+            let q: Vec<f32> = (0..n)
+                .map(|i| if (i * 7919) % every == 3 { 0.5 } else { 0.0 })
+                .collect();
+            let bits = clear_bricks(dims, &q, reach);
+            let side = 1usize << HIST_BRICK_SHIFT;
+            let bd = dims.map(|d| d.div_ceil(side));
+            let bricks = bd[0] * bd[1] * bd[2];
+            let (mut clear, mut occupied) = (0, 0);
+            for b in 0..bricks {
+                let c = [b % bd[0], (b / bd[0]) % bd[1], b / (bd[0] * bd[1])];
+                let reaches = (0..n).filter(|&j| q[j] > 0.0).any(|j| {
+                    let u = [
+                        j % dims[0],
+                        (j / dims[0]) % dims[1],
+                        j / (dims[0] * dims[1]),
+                    ];
+                    (0..3).all(|a| {
+                        let (lo, hi) = (c[a] * side, ((c[a] + 1) * side).min(dims[a]) - 1);
+                        u[a] + reach[a] >= lo && u[a] <= hi + reach[a]
+                    })
+                });
+                let bit = bits[b / 32] >> (b % 32) & 1 == 1;
+                assert_eq!(bit, !reaches, "{dims:?} brick {c:?}");
+                (clear, occupied) = (clear + bit as usize, occupied + !bit as usize);
+            }
+            assert!(bricks % 32 == 0 || bits[bricks / 32] >> (bricks % 32) == 0);
+            assert!(clear > 0, "{dims:?}: no brick clear");
+            assert!(occupied > 0, "{dims:?}: every brick clear");
+        }
     }
 
     #[test]

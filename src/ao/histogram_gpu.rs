@@ -105,6 +105,10 @@ pub struct HistogramGpu {
     /// integers, and the split's parameters as histogram_sums.comp's `Split` reads them.
     scalars: (Buffer, bool),
     split: Buffer,
+    /// The clear bricks of the last TF ([`hist::clear_bricks`]; none before one), and their
+    /// host copy.
+    clear: Buffer,
+    clear_bits: Vec<u32>,
     /// E of the unclipped volume without clusters (with them a stand-in: a voxel's is its
     /// cluster's), and this frame's E (RGBA8 per voxel).
     pub pre_e: Buffer,
@@ -350,6 +354,7 @@ impl HistogramGpu {
                     Reach::Address,
                     Reach::Descriptor,
                     Reach::Descriptor,
+                    Reach::Descriptor,
                 ],
                 64,
                 &[],
@@ -376,6 +381,20 @@ impl HistogramGpu {
             e: rgba8("hist-e", n)?,
             scalars,
             split,
+            clear: Buffer::new(
+                gpu,
+                (dims
+                    .map(|d| d.div_ceil(1 << hist::HIST_BRICK_SHIFT))
+                    .iter()
+                    .product::<usize>())
+                .div_ceil(32)
+                .max(1) as u64
+                    * 4,
+                storage,
+                MemoryLocation::CpuToGpu,
+                "hist-clear-bricks",
+            )?,
+            clear_bits: Vec::new(),
             timing: ClusterTiming::default(),
             nb,
             shades,
@@ -384,6 +403,7 @@ impl HistogramGpu {
         if let Some(c) = clusters {
             h.set_clusters(c)?;
         }
+        h.write_clear(Vec::new())?;
         Ok(h)
     }
 
@@ -425,6 +445,7 @@ impl HistogramGpu {
             ),
         )?;
         h.write_tables(self.last_table.clone())?;
+        h.write_clear(self.clear_bits.clone())?;
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
         h.pre_e = self.pre_e.duplicate(usage, "hist-pre-e")?;
         h.timing = self.timing;
@@ -807,7 +828,17 @@ impl HistogramGpu {
         let table = self.shades.table(&bins, self.labels.as_deref(), structures);
         let q = self.shades.q(&table);
         self.write_tables(table)?;
+        self.write_clear(hist::clear_bricks(self.dims, &q, self.reach_voxels()))?;
         Ok(q)
+    }
+
+    /// The clear bricks' bits (empty: none clear, before a TF).
+    fn write_clear(&mut self, bits: Vec<u32>) -> Result<()> {
+        let mut words = vec![0u32; self.clear.size as usize / 4];
+        words[..bits.len()].copy_from_slice(&bits);
+        self.clear.write(0, bytemuck::cast_slice(&words))?;
+        self.clear_bits = bits;
+        Ok(())
     }
 
     fn write_tables(&mut self, table: Vec<[f32; 4]>) -> Result<()> {
@@ -942,6 +973,7 @@ impl HistogramGpu {
                 &self.ids,
                 &self.cluster_table,
                 &self.split,
+                &self.clear,
             ];
             self.sums.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.sums, cmd, bx);
