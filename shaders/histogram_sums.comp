@@ -30,8 +30,8 @@ layout(std430, binding = 3) readonly buffer Neighbours { vec4 neighbours[]; };
 layout(std430, binding = 10) readonly buffer Clusters { vec4 clusters[]; };
 #define SPLIT_BINDING 11
 #include "histogram_split.glsl"
-// One bit per brick of 2^HIST_BRICK_SHIFT voxels: no member of any of its voxels has q > 0
-// under this TF (src/ao/histogram.rs clear_bricks; clipping only lowers q).
+// One bit per brick of 2^HIST_BRICK_SHIFT voxels: no voxel within S_r's reach (a box) of any of
+// its voxels has q > 0 under this TF (src/ao/histogram.rs clear_bricks; clipping only lowers q).
 layout(std430, binding = 12) readonly buffer ClearBricks { uint clear_bricks[]; };
 
 layout(push_constant) uniform Push {

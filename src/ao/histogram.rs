@@ -559,6 +559,7 @@ pub fn local_rows_f32(
 /// of such a voxel is 0, so its direct sums are A = 1 and E = 0 under any clip (clipping only
 /// lowers q): histogram_sums.comp skips their member loop, the same bits.
 pub fn clear_bricks(dims: [usize; 3], q: &[f32], reach: [usize; 3]) -> Vec<u32> {
+    debug_assert_eq!(q.len(), dims.iter().product::<usize>());
     // The opaque voxels dilated by the box, one axis at a time (running counts: O(n)).
     let opaque: Vec<u8> = q.par_iter().map(|&v| (v > 0.0) as u8).collect();
     let (row, slice) = (dims[0], dims[0] * dims[1]);
@@ -570,8 +571,7 @@ pub fn clear_bricks(dims: [usize; 3], q: &[f32], reach: [usize; 3]) -> Vec<u32> 
     dilate_rows(&y, &mut reached, opaque.len(), slice, reach[2]);
     let side = 1usize << HIST_BRICK_SHIFT;
     let bd = dims.map(|d| d.div_ceil(side));
-    let bricks = bd[0] * bd[1] * bd[2];
-    let clear: Vec<bool> = (0..bricks)
+    let clear: Vec<bool> = (0..bd.iter().product())
         .into_par_iter()
         .map(|b| {
             let [bx, by, bz] = [b % bd[0], (b / bd[0]) % bd[1], b / (bd[0] * bd[1])];
@@ -586,11 +586,20 @@ pub fn clear_bricks(dims: [usize; 3], q: &[f32], reach: [usize; 3]) -> Vec<u32> 
             })
         })
         .collect();
-    let mut bits = vec![0u32; bricks.div_ceil(32).max(1)];
+    let mut bits = vec![0u32; clear_brick_words(dims)];
     for (b, _) in clear.iter().enumerate().filter(|(_, &c)| c) {
         bits[b / 32] |= 1 << (b % 32);
     }
     bits
+}
+
+/// The u32 words [`clear_bricks`] gives for a volume of `dims` (at least one).
+pub fn clear_brick_words(dims: [usize; 3]) -> usize {
+    let bricks: usize = dims
+        .iter()
+        .map(|d| d.div_ceil(1 << HIST_BRICK_SHIFT))
+        .product();
+    bricks.div_ceil(32).max(1)
 }
 
 /// Within each chunk of `chunk` values, seen as slabs of `width` values: out's slab k is 1

@@ -383,13 +383,7 @@ impl HistogramGpu {
             split,
             clear: Buffer::new(
                 gpu,
-                (dims
-                    .map(|d| d.div_ceil(1 << hist::HIST_BRICK_SHIFT))
-                    .iter()
-                    .product::<usize>())
-                .div_ceil(32)
-                .max(1) as u64
-                    * 4,
+                hist::clear_brick_words(dims) as u64 * 4,
                 storage,
                 MemoryLocation::CpuToGpu,
                 "hist-clear-bricks",
