@@ -20,8 +20,7 @@ layout(std430, binding = 5) readonly buffer GroupFirst { uint first[]; };
 layout(std430, binding = 6) readonly buffer GroupMembers { uint members[]; };
 
 layout(push_constant) uniform Push {
-    uvec4 job;     // x: rows, y: shades, z: packed dimension P (also the constant below), w: clusters N
-    uvec4 groups;  // x: groups G
+    uvec4 job;  // x: rows, y: shades, z: groups G, w: clusters N
 } pc;
 
 const uint GROUPS_SEARCHED = 3u;
@@ -77,7 +76,7 @@ void main() {
         near_g[i] = 0xffffffffu;
         near_d[i] = 1.0 / 0.0;
     }
-    for (uint g = 0u; g < pc.groups.x; g++) {
+    for (uint g = 0u; g < pc.job.z; g++) {
         float d = dist_group(g);
         if (d < near_d[GROUPS_SEARCHED - 1u]) {
             uint i = GROUPS_SEARCHED - 1u;

@@ -145,7 +145,6 @@ enum RowsOn<'a> {
 /// centres, firsts and members) and the ids it writes.
 struct DeviceAssign {
     pipeline: ComputePipeline,
-    packed: u32,
     groups: u32,
     tables: [Buffer; 5],
     ids: Buffer,
@@ -161,16 +160,7 @@ impl DeviceAssign {
         rows: usize,
         (b, k): (usize, usize),
     ) -> Result<Vec<u32>> {
-        let push = [
-            rows as u32,
-            b as u32,
-            self.packed,
-            k as u32,
-            self.groups,
-            0,
-            0,
-            0,
-        ];
+        let push = [rows as u32, b as u32, self.groups, k as u32];
         gpu.submit_and_wait(|cmd| {
             let [packing, centroids, gc, gf, gm] = &self.tables;
             self.pipeline.bind(
@@ -796,10 +786,9 @@ impl HistogramGpu {
                 &self.gpu,
                 spv("assign"),
                 &[Reach::Descriptor; 7],
-                32,
+                16,
                 &[p.div_ceil(4) as u32],
             )?,
-            packed: p as u32,
             groups: groups.first.len() as u32 - 1,
             tables: [
                 table(&packing.matrix, "hist-packing")?,
