@@ -560,31 +560,40 @@ pub fn local_rows_f32(
 /// lowers q): histogram_sums.comp skips their member loop, the same bits.
 pub fn clear_bricks(dims: [usize; 3], q: &[f32], reach: [usize; 3]) -> Vec<u32> {
     debug_assert_eq!(q.len(), dims.iter().product::<usize>());
-    // The opaque voxels dilated by the box, one axis at a time (running counts: O(n)).
-    let opaque: Vec<u8> = q.par_iter().map(|&v| (v > 0.0) as u8).collect();
-    let (row, slice) = (dims[0], dims[0] * dims[1]);
-    let mut x = vec![0u8; opaque.len()];
-    let mut y = vec![0u8; opaque.len()];
-    let mut reached = vec![0u8; opaque.len()];
-    dilate_rows(&opaque, &mut x, row, 1, reach[0]);
-    dilate_rows(&x, &mut y, slice, row, reach[1]);
-    dilate_rows(&y, &mut reached, opaque.len(), slice, reach[2]);
     let side = 1usize << HIST_BRICK_SHIFT;
     let bd = dims.map(|d| d.div_ceil(side));
-    let clear: Vec<bool> = (0..bd.iter().product())
-        .into_par_iter()
-        .map(|b| {
-            let [bx, by, bz] = [b % bd[0], (b / bd[0]) % bd[1], b / (bd[0] * bd[1])];
-            let [x, y, z] = [bx * side, by * side, bz * side];
-            (z..(z + side).min(dims[2])).all(|z| {
-                (y..(y + side).min(dims[1])).all(|y| {
-                    let at = x + row * y + slice * z;
-                    reached[at..at + side.min(dims[0] - x)]
-                        .iter()
-                        .all(|&r| r == 0)
-                })
+    // The voxels along axis a that brick c's voxels reach, inclusive.
+    let within = move |a: usize, c: usize| {
+        let lo = (c * side).saturating_sub(reach[a]);
+        lo..=((c + 1) * side - 1 + reach[a]).min(dims[a] - 1)
+    };
+    // Separably, one axis at a time: whether any opaque voxel lies within reach of the brick
+    // along x (per brick column of each row), then y (per slice), then z.
+    let along_x: Vec<bool> = q
+        .par_chunks(dims[0])
+        .flat_map_iter(|row| {
+            let mut before = vec![0u32; row.len() + 1];
+            for (x, &v) in row.iter().enumerate() {
+                before[x + 1] = before[x] + (v > 0.0) as u32;
+            }
+            (0..bd[0]).map(move |bx| {
+                let r = within(0, bx);
+                before[r.end() + 1] > before[*r.start()]
             })
         })
+        .collect();
+    let along_y: Vec<bool> = along_x
+        .par_chunks(bd[0] * dims[1])
+        .flat_map_iter(|slice| {
+            (0..bd[1]).flat_map(move |by| {
+                (0..bd[0]).map(move |bx| within(1, by).any(|y| slice[bx + bd[0] * y]))
+            })
+        })
+        .collect();
+    let plane = bd[0] * bd[1];
+    let clear: Vec<bool> = (0..plane * bd[2])
+        .into_par_iter()
+        .map(|b| !within(2, b / plane).any(|z| along_y[b % plane + plane * z]))
         .collect();
     let mut bits = vec![0u32; clear_brick_words(dims)];
     for (b, _) in clear.iter().enumerate().filter(|(_, &c)| c) {
@@ -600,42 +609,6 @@ pub fn clear_brick_words(dims: [usize; 3]) -> usize {
         .map(|d| d.div_ceil(1 << HIST_BRICK_SHIFT))
         .product();
     bricks.div_ceil(32).max(1)
-}
-
-/// Within each chunk of `chunk` values, seen as slabs of `width` values: out's slab k is 1
-/// where any of in's slabs k - r..=k + r is non-zero (chunks in parallel).
-fn dilate_rows(input: &[u8], out: &mut [u8], chunk: usize, width: usize, r: usize) {
-    out.par_chunks_mut(chunk)
-        .zip(input.par_chunks(chunk))
-        .for_each(|(out, input)| {
-            let slabs = input.len() / width;
-            let slab = |k: usize| &input[k * width..(k + 1) * width];
-            let mut count = vec![0u32; width];
-            for k in 0..r.min(slabs) {
-                count
-                    .iter_mut()
-                    .zip(slab(k))
-                    .for_each(|(c, &v)| *c += v as u32);
-            }
-            for k in 0..slabs {
-                if k + r < slabs {
-                    count
-                        .iter_mut()
-                        .zip(slab(k + r))
-                        .for_each(|(c, &v)| *c += v as u32);
-                }
-                if k > r {
-                    count
-                        .iter_mut()
-                        .zip(slab(k - r - 1))
-                        .for_each(|(c, &v)| *c -= v as u32);
-                }
-                out[k * width..(k + 1) * width]
-                    .iter_mut()
-                    .zip(&count)
-                    .for_each(|(o, &c)| *o = (c > 0) as u8);
-            }
-        });
 }
 
 /// The paper's histogram packing: starting from the volume's normalised histogram, the smallest
