@@ -105,10 +105,8 @@ pub struct HistogramGpu {
     /// integers, and the split's parameters as histogram_sums.comp's `Split` reads them.
     scalars: (Buffer, bool),
     split: Buffer,
-    /// The clear bricks of the last TF ([`hist::clear_bricks`]; none before one), and their
-    /// host copy.
+    /// The clear bricks of the last TF ([`hist::clear_bricks`]; none before one), mapped.
     clear: Buffer,
-    clear_bits: Vec<u32>,
     /// E of the unclipped volume without clusters (with them a stand-in: a voxel's is its
     /// cluster's), and this frame's E (RGBA8 per voxel).
     pub pre_e: Buffer,
@@ -378,7 +376,6 @@ impl HistogramGpu {
                 MemoryLocation::CpuToGpu,
                 "hist-clear-bricks",
             )?,
-            clear_bits: Vec::new(),
             timing: ClusterTiming::default(),
             nb,
             shades,
@@ -387,7 +384,7 @@ impl HistogramGpu {
         if let Some(c) = clusters {
             h.set_clusters(c)?;
         }
-        h.write_clear(Vec::new())?;
+        h.write_clear(&[])?;
         Ok(h)
     }
 
@@ -429,7 +426,7 @@ impl HistogramGpu {
             ),
         )?;
         h.write_tables(self.last_table.clone())?;
-        h.write_clear(self.clear_bits.clone())?;
+        h.clear.write(0, self.clear.mapped()?)?;
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC;
         h.pre_e = self.pre_e.duplicate(usage, "hist-pre-e")?;
         h.timing = self.timing;
@@ -811,17 +808,15 @@ impl HistogramGpu {
         let table = self.shades.table(&bins, self.labels.as_deref(), structures);
         let q = self.shades.q(&table);
         self.write_tables(table)?;
-        self.write_clear(hist::clear_bricks(self.dims, &q, self.reach_voxels()))?;
+        self.write_clear(&hist::clear_bricks(self.dims, &q, self.reach_voxels()))?;
         Ok(q)
     }
 
     /// The clear bricks' bits (empty: none clear, before a TF).
-    fn write_clear(&mut self, bits: Vec<u32>) -> Result<()> {
+    fn write_clear(&mut self, bits: &[u32]) -> Result<()> {
         let mut words = vec![0u32; self.clear.size as usize / 4];
-        words[..bits.len()].copy_from_slice(&bits);
-        self.clear.write(0, bytemuck::cast_slice(&words))?;
-        self.clear_bits = bits;
-        Ok(())
+        words[..bits.len()].copy_from_slice(bits);
+        self.clear.write(0, bytemuck::cast_slice(&words))
     }
 
     fn write_tables(&mut self, table: Vec<[f32; 4]>) -> Result<()> {
