@@ -58,6 +58,13 @@ fn constants_glsl() -> String {
         format!("const uint RAY_SCATTERING = {RAY_SCATTERING}u;"),
         format!("const uint RAY_SH = {RAY_SH}u;"),
         format!("const uint RAY_VARIANCE = {RAY_VARIANCE}u;"),
+        format!("const uint RAY_RECORD = {RAY_RECORD}u;"),
+        format!("const uint RAY_REPROJECT = {RAY_REPROJECT}u;"),
+        format!("const float REPROJECT_PARALLAX = {REPROJECT_PARALLAX:?};"),
+        format!("const float REPROJECT_BACK_ALPHA = {REPROJECT_BACK_ALPHA:?};"),
+        format!("const float REPROJECT_SLOPE = {REPROJECT_SLOPE:?};"),
+        format!("const float REPROJECT_CONTRAST = {REPROJECT_CONTRAST:?};"),
+        format!("const int REPROJECT_MAX_MARCH = {REPROJECT_MAX_MARCH};"),
         format!("const uint RAY_LIT = {RAY_LIT}u;"),
         "#endif".into(),
     ]

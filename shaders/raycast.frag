@@ -1,7 +1,7 @@
 #version 460
 // Stereo ray caster: front-to-back compositing through the volume with early termination.
-// Shading (docs/design.md, "Shading"): Blinn-Phong from the data's gradient with a headlight per
-// eye (or a light fixed in the world), the AO multiplying the ambient term and a share of the
+// Shading (docs/design.md, "Shading"): Blinn-Phong from the data's gradient with a headlight at
+// the head (or a light fixed in the world), the AO multiplying the ambient term and a share of the
 // diffuse one,
 //   C = C_tf * (ka * AO + kd * (1 - s + s * AO) * |n.l|) + ks * (n.h)^p  (+ w * E_sh),
 // where E_sh = sum_k V_k L_k is the environment light seen through the SH visibility volume
@@ -73,8 +73,14 @@ layout(std430, set = 0, binding = 20) readonly buffer ClipBricks {
 // Foveation): 0, every pixel cast; 1, the coarse pass of a foveated eye, each pixel standing for
 // a block of `scale` x `scale` pixels of the eye, whose ray it casts through the block's centre;
 // 2, the full pass of a foveated eye: pixels within `radius` (pixels) of the eye's centre cast
-// as in pass 0, the others take the coarse pass's colour and depth, interpolated.
-layout(push_constant) uniform Eye { uint index; uint pass; float scale; float radius; } eye;
+// as in pass 0, the others take the coarse pass's colour and depth, interpolated. `record`: the
+// address of the first eye's record, which its pass 0 writes (RAY_RECORD) and the second eye's
+// reads (RAY_REPROJECT).
+layout(push_constant) uniform Eye { uint index; uint pass; float scale; float radius; uvec2 record; } eye;
+// The first eye's record, per pixel (rows of viewport.x): its colour (RGBA8) and the view
+// depths (its clip w) where the ray's opacity reached DEPTH_ALPHA and REPROJECT_BACK_ALPHA (0:
+// never, or the ray did not end opaque).
+layout(buffer_reference, std430, buffer_reference_align = 16) buffer EyeRecord { uvec4 texels[]; };
 // The coarse pass's colour and depth, layer = eye; read in pass 2 (else stand-ins, unread).
 layout(set = 0, binding = 18) uniform sampler2DArray coarse_color;
 layout(set = 0, binding = 19) uniform sampler2DArray coarse_depth;
@@ -419,6 +425,146 @@ vec3 cut_normal_mm(uint t, vec3 w) {
     return n_index / spacing;
 }
 
+// The ray of eye v through pixel p: its points on the near and far planes in the world (a_w,
+// b_w) and in texture space (o + t d, t in [0, 1] from near to far), and where it enters and
+// leaves the volume (tn < tf where it meets it).
+struct Ray { vec3 a_w; vec3 b_w; vec3 o; vec3 d; float tn; float tf; };
+
+Ray eye_ray(uint v, vec2 pixel) {
+    Ray r;
+    vec2 ndc = pixel / frame.viewport.xy * 2.0 - 1.0;
+    vec4 near_w = frame.inv_view_proj[v] * vec4(ndc, 0.0, 1.0);
+    vec4 far_w = frame.inv_view_proj[v] * vec4(ndc, 1.0, 1.0);
+    r.a_w = near_w.xyz / near_w.w;
+    r.b_w = far_w.xyz / far_w.w;
+    r.o = (frame.tex_from_world * vec4(r.a_w, 1.0)).xyz;
+    r.d = (frame.tex_from_world * vec4(r.b_w, 1.0)).xyz - r.o;
+    vec3 inv = 1.0 / r.d;
+    vec3 t0 = (vec3(0.0) - r.o) * inv;
+    vec3 t1 = (vec3(1.0) - r.o) * inv;
+    r.tn = max(max(min(t0.x, t1.x), min(t0.y, t1.y)), max(min(t0.z, t1.z), 0.0));
+    r.tf = min(min(max(t0.x, t1.x), max(t0.y, t1.y)), min(max(t0.z, t1.z), 1.0));
+    return r;
+}
+
+// The first eye's pixel coordinates (as its gl_FragCoord) of point c in its clip space.
+vec2 first_eye_pixel(vec4 c) {
+    return (c.xy / c.w * 0.5 + 0.5) * frame.viewport.xy;
+}
+
+uvec4 first_eye_texel(ivec2 q) {
+    return EyeRecord(eye.record).texels[q.y * int(frame.viewport.x) + q.x];
+}
+
+// The first eye's surface at its pixel coordinates p: the view depth and colour of the four
+// texels around p, bilinear, where all four show one opaque surface: each reached opaque so
+// close behind where it reached 5 % that the eyes' parallax over that depth (the baseline
+// frame.background.w over the depth) stays within REPROJECT_PARALLAX pixel footprints
+// (frame.viewport.w per unit of depth); their depths lie within REPROJECT_SLOPE footprints of
+// each other, and their colours within REPROJECT_CONTRAST. False where they do not.
+bool first_eye_surface(vec2 p, float step_w, out float w, out vec4 colour) {
+    vec2 x = p - 0.5;
+    ivec2 q = ivec2(floor(x));
+    vec2 f = x - vec2(q);
+    w = 0.0;
+    colour = vec4(0.0);
+    if (any(lessThan(q, ivec2(0))) || any(greaterThanEqual(q + 1, ivec2(frame.viewport.xy)))) {
+        return false;
+    }
+    float lo = 3.0e38;
+    float hi = 0.0;
+    vec3 c_lo = vec3(1.0);
+    vec3 c_hi = vec3(0.0);
+    [[unroll]] for (int k = 0; k < 4; k++) {
+        ivec2 o = ivec2(k & 1, k >> 1);
+        uvec4 r = first_eye_texel(q + o);
+        float front = uintBitsToFloat(r.y);
+        float back = uintBitsToFloat(r.z);
+        if (front <= 0.0 || back <= 0.0
+            || (back - front) * frame.background.w > REPROJECT_PARALLAX * frame.viewport.w * front * front) {
+            return false;
+        }
+        vec2 w2 = mix(1.0 - f, f, vec2(o));
+        w += w2.x * w2.y * front;
+        vec4 ck = unpackUnorm4x8(r.x);
+        colour += w2.x * w2.y * ck;
+        c_lo = min(c_lo, ck.rgb);
+        c_hi = max(c_hi, ck.rgb);
+        lo = min(lo, front);
+        hi = max(hi, front);
+    }
+    if (hi - lo > REPROJECT_SLOPE * frame.viewport.w * hi) return false;
+    if (any(greaterThan(c_hi - c_lo, vec3(REPROJECT_CONTRAST)))) return false;
+    return true;
+}
+
+// Bisections that place the second eye's ray on the first eye's surface within 1/64 of a pixel.
+const int REPROJECT_BISECTIONS = 6;
+
+// Pass 3: this pixel of the second eye (ray r) from the first eye's record, where the first
+// thing its ray meets is a surface the first eye saw opaque. Walking the ray from where it
+// enters the volume, in steps of at most one first-eye pixel, each point lies in front of what
+// the first eye saw there (which saw through it: it is empty) until one lies behind; between
+// the two, the ray crosses the first eye's surface (bisected on its interpolated depth), and
+// that crossing must lie on one surface (first_eye_surface) within a ray step. Where the walk
+// meets no surface and every first-eye ray it passed saw nothing at all (alpha 0: all of
+// their space is empty), the ray sees nothing either: background. False where any of this
+// fails, the entry lies behind a surface already, or the walk leaves the first eye's image:
+// the pixel casts its own ray.
+bool reprojected(Ray r) {
+    if (r.tn >= r.tf) return false;
+    vec3 xa = mix(r.a_w, r.b_w, r.tn);
+    vec3 xb = mix(r.a_w, r.b_w, r.tf);
+    vec4 ca = frame.view_proj[0] * vec4(xa, 1.0);
+    vec4 cb = frame.view_proj[0] * vec4(xb, 1.0);
+    if (ca.w <= 0.0 || cb.w <= 0.0) return false;
+    int n = int(ceil(length(first_eye_pixel(cb) - first_eye_pixel(ca)))) + 1;
+    if (n > REPROJECT_MAX_MARCH) return false;
+    float step_w = frame.extent_mm.w / length(r.d * frame.extent_mm.xyz) * length(r.b_w - r.a_w);
+    ivec2 size = ivec2(frame.viewport.xy);
+    float s_front = 0.0;
+    float s_behind = -1.0;
+    // Whether every first-eye ray the walk passed saw nothing at all.
+    bool clear = true;
+    for (int i = 0; i <= n; i++) {
+        float s = float(i) / float(n);
+        vec4 c = mix(ca, cb, s);
+        ivec2 q = ivec2(floor(first_eye_pixel(c)));
+        if (any(lessThan(q, ivec2(0))) || any(greaterThanEqual(q, size))) return false;
+        uvec4 texel = first_eye_texel(q);
+        float front = uintBitsToFloat(texel.y);
+        clear = clear && (texel.x >> 24) == 0u;
+        if (front > 0.0 && c.w >= front) {
+            s_behind = s;
+            break;
+        }
+        s_front = s;
+    }
+    if (s_behind < 0.0 && clear) {
+        out_color = vec4(frame.background.rgb, 0.0);
+        gl_FragDepth = 1.0;
+        return true;
+    }
+    if (s_behind <= 0.0) return false;
+    float w;
+    vec4 colour;
+    for (int k = 0; k < REPROJECT_BISECTIONS; k++) {
+        float s = 0.5 * (s_front + s_behind);
+        vec4 c = mix(ca, cb, s);
+        if (!first_eye_surface(first_eye_pixel(c), step_w, w, colour)) return false;
+        if (c.w >= w) s_behind = s; else s_front = s;
+    }
+    float s = 0.5 * (s_front + s_behind);
+    vec4 c = mix(ca, cb, s);
+    if (!first_eye_surface(first_eye_pixel(c), step_w, w, colour) || abs(c.w - w) > step_w) {
+        return false;
+    }
+    vec4 c1 = frame.view_proj[1] * vec4(mix(xa, xb, s), 1.0);
+    out_color = colour;
+    gl_FragDepth = clamp(c1.z / c1.w, 0.0, 1.0);
+    return true;
+}
+
 void main() {
     uint v = eye.index;
     // The pixel of the eye's image this ray goes through.
@@ -440,39 +586,33 @@ void main() {
             return;
         }
     }
-    vec2 ndc = pixel / frame.viewport.xy * 2.0 - 1.0;
-    vec4 near_w = frame.inv_view_proj[v] * vec4(ndc, 0.0, 1.0);
-    vec4 far_w = frame.inv_view_proj[v] * vec4(ndc, 1.0, 1.0);
-    vec3 a_w = near_w.xyz / near_w.w;
-    vec3 b_w = far_w.xyz / far_w.w;
-    vec3 o = (frame.tex_from_world * vec4(a_w, 1.0)).xyz;
-    vec3 d = (frame.tex_from_world * vec4(b_w, 1.0)).xyz - o;
-
-    // Ray / unit-box intersection in texture space, t in [0,1] along near->far.
-    vec3 inv = 1.0 / d;
-    vec3 t0 = (vec3(0.0) - o) * inv;
-    vec3 t1 = (vec3(1.0) - o) * inv;
-    float tn = max(max(min(t0.x, t1.x), min(t0.y, t1.y)), max(min(t0.z, t1.z), 0.0));
-    float tf = min(min(max(t0.x, t1.x), max(t0.y, t1.y)), min(max(t0.z, t1.z), 1.0));
+    Ray ray = eye_ray(v, pixel);
+    if (flag(RAY_REPROJECT) && reprojected(ray)) return;
+    vec3 a_w = ray.a_w;
+    vec3 b_w = ray.b_w;
+    vec3 o = ray.o;
+    vec3 d = ray.d;
+    float tn = ray.tn;
+    float tf = ray.tf;
 
     vec3 color = vec3(0.0);
     float alpha = 0.0;
     float depth = 1.0;
+    // The view depths where the opacity reached DEPTH_ALPHA and REPROJECT_BACK_ALPHA (RAY_RECORD).
+    float w_front = 0.0;
+    float w_back = 0.0;
     if (tn < tf) {
         float step_mm = frame.extent_mm.w;
         vec3 d_mm = d * frame.extent_mm.xyz;
         float len_mm = length(d_mm);
         float dt = step_mm / len_mm;
-        // The view direction v (towards the eye); the light l: the headlight (l = v = h) or
-        // one fixed in the world, with Blinn's half vector h.
+        // The view direction v (towards the eye); the light l: the headlight at the head
+        // (frame.light.xyz, midway between the eyes; l = h, per sample, so that both eyes see
+        // a point lit alike) or one fixed in the world, with Blinn's half vector h.
         vec3 view = -d_mm / len_mm;
         bool headlight = frame.light.w < 0.5;
-        vec3 light = headlight ? view : frame.light.xyz;
-        vec3 half_vector = headlight ? view : normalize(light + view);
-        // Scattering: the Henyey-Greenstein phase between the light's travel (-l) and the way
-        // to the eye (v), times 4 pi (1 where g = 0); the same for every sample of the ray.
+        vec3 half_vector = headlight ? view : normalize(frame.light.xyz + view);
         float hg = frame.bleeding.z;
-        float phase = (1.0 - hg * hg) / pow(1.0 + hg * hg + 2.0 * hg * dot(light, view), 1.5);
         float t = tn + dt * pixel_jitter(pixel, v);
         bool clipping = flag(RAY_CLIPPING);
         // The previous sample's value (pre-integration), or none after a gap in the material.
@@ -688,6 +828,8 @@ void main() {
                     float gmin = frame.surface.x;
                     lit = gmin > 0.0 ? smoothstep(gmin, 2.0 * gmin, g) : float(g > 0.0);
                 }
+                vec3 light = headlight ? normalize(frame.light.xyz - q * frame.extent_mm.xyz)
+                                       : frame.light.xyz;
                 float ndl = 0.0;
                 float ndh = 0.0;
                 if (lit > 0.0) {
@@ -707,13 +849,31 @@ void main() {
                 // one's at a border, scattered towards the eye.
                 vec3 scattered = vec3(0.0);
                 if (flag(RAY_SCATTERING)) {
+                    // The Henyey-Greenstein phase between the light's travel (-l) and the way
+                    // to the eye (v), times 4 pi (1 where g = 0).
+                    float phase = (1.0 - hg * hg) / pow(1.0 + hg * hg + 2.0 * hg * dot(light, view), 1.5);
                     scattered = frame.phong.x * frame.bleeding.y * phase * e;
                 }
                 color += (1.0 - alpha) * (premult * shade + a * (spec + scattered));
+                float alpha_before = alpha;
                 alpha += (1.0 - alpha) * a;
                 if (depth == 1.0 && alpha >= DEPTH_ALPHA) {
                     vec4 clip = frame.view_proj[v] * vec4(a_w + t * (b_w - a_w), 1.0);
                     depth = clamp(clip.z / clip.w, 0.0, 1.0);
+                }
+                if (flag(RAY_RECORD)) {
+                    // The view depths where the opacity reached DEPTH_ALPHA and
+                    // REPROJECT_BACK_ALPHA, placed within the step (linearly), free of the
+                    // jittered lattice.
+                    [[unroll]] for (int k = 0; k < 2; k++) {
+                        float level = k == 0 ? DEPTH_ALPHA : REPROJECT_BACK_ALPHA;
+                        if (alpha_before < level && alpha >= level) {
+                            float f = clamp((level - alpha_before) / (alpha - alpha_before), 0.0, 1.0);
+                            float tc = t - (1.0 - f) * dt;
+                            float w = (frame.view_proj[v] * vec4(a_w + tc * (b_w - a_w), 1.0)).w;
+                            if (k == 0) w_front = w; else w_back = w;
+                        }
+                    }
                 }
                 if (alpha >= OPAQUE_ALPHA || flag(RAY_ISO)) break;
             }
@@ -721,4 +881,11 @@ void main() {
     }
     out_color = vec4(color + (1.0 - alpha) * frame.background.rgb, alpha);
     gl_FragDepth = depth;
+    if (flag(RAY_RECORD)) {
+        // Only a ray that ended opaque shows a surface.
+        if (alpha < OPAQUE_ALPHA && !flag(RAY_ISO)) w_back = 0.0;
+        ivec2 q = ivec2(gl_FragCoord.xy);
+        EyeRecord(eye.record).texels[q.y * int(frame.viewport.x) + q.x] =
+            uvec4(packUnorm4x8(out_color), floatBitsToUint(w_front), floatBitsToUint(w_back), 0u);
+    }
 }

@@ -287,6 +287,10 @@ struct XrArgs {
     /// untouched); 0 turns it off. Default: 90 Hz.
     #[arg(long, value_parser = parse_budget, default_value_t = app::budget::HEADSET_FRAME_MS)]
     frame_budget_ms: f64,
+    /// Cast every pixel of both eyes: in the headset the right eye is reprojected from the
+    /// left where that is valid (--reproject) unless this is given.
+    #[arg(long)]
+    cast_both_eyes: bool,
 }
 
 #[derive(Args)]
@@ -670,6 +674,11 @@ struct LightArgs {
     /// FACTOR block, interpolated. Without a value 0.25,3.
     #[arg(long, num_args = 0..=1, default_missing_value = "0.25,3")]
     foveate: Option<cao_xr::render::Foveation>,
+    /// The second eye reuses the first eye's pixels where both see the same opaque surface
+    /// (found along the second eye's ray in the first's depths), casting its own rays where
+    /// not: two eyes for less than twice one. Not with --foveate.
+    #[arg(long)]
+    reproject: bool,
     /// Scattering weight of --ao histogram: the neighbourhood's colour E scattered towards the
     /// eye by the Henyey-Greenstein phase function between the light and the view direction,
     /// so homogeneous tissue glows with the colour of what surrounds it (0: off).
@@ -680,7 +689,7 @@ struct LightArgs {
     #[arg(long, default_value_t = cao_xr::render::DEFAULT_ANISOTROPY, allow_hyphen_values = true, value_parser = parse_anisotropy)]
     hist_anisotropy: f32,
     /// A light fixed in the world, X,Y,Z towards it (head-tracking space: +Y up, -Z ahead of
-    /// where the session started), instead of a headlight per eye.
+    /// where the session started), instead of a headlight at the head.
     #[arg(long, value_parser = parse_direction, allow_hyphen_values = true)]
     light_from: Option<[f32; 3]>,
 }
@@ -710,6 +719,7 @@ impl LightArgs {
                 step_mm: self.ray_step_mm,
                 iso: self.iso,
                 foveation: self.foveate,
+                reproject: self.reproject,
                 scattering: self.hist_scattering,
                 anisotropy: self.hist_anisotropy,
                 light_from: self.light_from,
@@ -1479,7 +1489,7 @@ fn xr(a: XrArgs, validation: bool) -> Result<()> {
     let XrArgs {
         vol,
         lao,
-        light,
+        mut light,
         frames,
         record,
         size,
@@ -1491,7 +1501,10 @@ fn xr(a: XrArgs, validation: bool) -> Result<()> {
         passthrough,
         frames_in_flight,
         frame_budget_ms,
+        cast_both_eyes,
     } = a;
+    // The headset reprojects its second eye by default: two eyes for less than twice one.
+    light.reproject |= !cast_both_eyes;
     let spec = session_spec(&vol, &lao, &light)?;
     let opts = cao_xr::xr::XrOptions {
         frames,

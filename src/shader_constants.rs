@@ -76,3 +76,23 @@ pub const RAY_SH: u32 = 1 << 13;
 pub const RAY_VARIANCE: u32 = 1 << 14;
 /// Diffuse or specular light (the gradient is read).
 pub const RAY_LIT: u32 = 1 << 15;
+/// The first eye writes its record (colour and surface depths per pixel), which the second
+/// eye reads with RAY_REPROJECT (docs/design.md, "The second eye").
+pub const RAY_RECORD: u32 = 1 << 16;
+pub const RAY_REPROJECT: u32 = 1 << 17;
+/// A first-eye pixel shows an opaque surface where its opacity went from 5 % to opaque within a
+/// depth over which the two eyes' parallax stays below this many pixels (deeper, what it
+/// composited lies differently behind the surface for the other eye).
+pub const REPROJECT_PARALLAX: f32 = 0.5;
+/// That depth ends where the opacity reaches this (what comes after adds at most 10 % of the
+/// colour), on a ray that ends opaque.
+pub const REPROJECT_BACK_ALPHA: f32 = 0.9;
+/// The four first-eye pixels a second-eye pixel interpolates lie on one surface where their
+/// depths differ by at most this many pixel footprints (more: an edge, or a surface steeper
+/// than 63 degrees to the view).
+pub const REPROJECT_SLOPE: f32 = 2.0;
+/// ... and their colours differ by at most this much per channel (more: detail that
+/// interpolation between them would blur, and that the second eye's own rays resolve).
+pub const REPROJECT_CONTRAST: f32 = 16.0 / 255.0;
+/// The longest search, in first-eye pixels, along the second eye's ray (longer: cast it).
+pub const REPROJECT_MAX_MARCH: u32 = 2048;

@@ -6,10 +6,10 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     mat4 tex_from_world;     // world -> volume texture coordinates [0,1]^3
     vec4 extent_mm;          // xyz: volume extent in mm along i,j,k; w: step in mm
     vec4 value_map;          // lut coordinate = value * y + x; pre-integration table's: * w + z
-    vec4 background;         // rgb background, a: unused (V_AO is read with RAY_AO)
+    vec4 background;         // rgb background, a: the distance between the two eyes
     vec4 viewport;           // xy: width, height in pixels; z: number of clipping tools;
-                             // w: unused (the features are raycast.frag's FLAGS constant)
-    vec4 phong;              // Blinn-Phong ka, kd, ks, shininess (headlight per eye)
+                             // w: the first eye's pixel width per unit of view depth
+    vec4 phong;              // Blinn-Phong ka, kd, ks, shininess
     vec4 surface;            // x: least gradient (data units / mm) that lights a sample,
                              // y: cut layer in mm (0: cut faces lit by the data's gradient),
                              // z: share of the diffuse term the AO multiplies
@@ -24,8 +24,9 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     ivec4 tool_reach[2 * MAX_TOOLS]; // per tool, index-space [min, max) holding all it hides
     vec4 structures[256];    // per structure id (0: unlabelled): rgb colour, a: opacity a_l
     uvec4 protect[2];        // bit id: the structure is protected from the carving tools
-    vec4 light;              // xyz: towards a light fixed in the world, in the gradient's frame
-                             // (along i, j, k, in mm, unit); w: 1 = that light, 0 = headlight
+    vec4 light;              // w = 1: xyz towards a light fixed in the world, in the gradient's
+                             // frame (along i, j, k, in mm, unit); w = 0: a headlight, xyz the
+                             // head (midway between the eyes) in that frame (texture coords * mm)
     uvec4 ao_words;          // xy: V_AO's address (16-bit unorm words, x fastest), read with
                              // RAY_AO; zw: the bleeding colour E's (RGBA8 words),
                              // read with RAY_BLEEDING or RAY_SCATTERING

@@ -83,6 +83,9 @@ pub struct FrameBench {
     /// Both eyes' ray cast unfoveated and with the default foveation (ms), and the foveated
     /// left eye's PSNR against the unfoveated (dB).
     pub foveated: [f64; 3],
+    /// Two eyes against one without and with the second eye reprojected (skipping empty
+    /// space, interleaved), and the reprojected right eye's PSNR against its own rays (dB).
+    pub reprojected: [f64; 3],
 }
 
 /// `vol` in the middle of a grid twice as large per axis at the same spacing, the rest filled
@@ -267,6 +270,8 @@ pub fn bench_frame(
     );
     let foveated = foveation_rows(&mut fl, &sweep, runs)?;
     fl.settings.foveation = None;
+    let reprojected = reprojection_rows(&mut fl, &sweep, runs)?;
+    fl.settings.reproject = false;
     ablation_rows(&mut fl, &sweep, runs)?;
 
     let lao = LaoGpu::new(gpu)?;
@@ -334,6 +339,7 @@ pub fn bench_frame(
         fps,
         skip_ms,
         foveated,
+        reprojected,
     })
 }
 
@@ -460,6 +466,55 @@ fn foveation_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Resul
         );
     }
     Ok([ms[0], ms[1], psnr(1)])
+}
+
+/// The sweep with both eyes cast and with the second eye reprojected from the first
+/// ([`crate::render::RenderSettings::reproject`]), interleaved `runs` times: two eyes against
+/// one for each (medians over all their frames), and the PSNR of the last frame's right eye
+/// reprojected against the same eye cast. Returns [ratio cast, ratio reprojected, PSNR dB].
+fn reprojection_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Result<[f64; 3]> {
+    let mut stats = [Vec::new(), Vec::new()];
+    let mut pictures = [None, None];
+    for _ in 0..runs.max(1) {
+        for (k, reproject) in [false, true].into_iter().enumerate() {
+            fl.settings.reproject = reproject;
+            stats[k].extend(loop_sweep(fl, sweep, false)?.0);
+            // The last frame again, read back.
+            let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
+            fl.submit(&FrameInput::without_hands(0.0, views), true, |_, _| {})?;
+            pictures[k] = fl
+                .flush()?
+                .and_then(|r| r.image)
+                .map(|p| crate::render::compare::luma(&p.rgba[1]));
+        }
+    }
+    let [cast, re] = stats.map(|s| PassMedians::of(&s));
+    let psnr = match &pictures {
+        [Some(a), Some(b)] => crate::render::compare::psnr(a, b),
+        _ => f64::NAN,
+    };
+    for (name, p) in [("cast", cast), ("reprojected", re)] {
+        println!(
+            "two eyes / one eye, {name:<12} {:>6.2}x  ({:.2} ms / {:.2} ms; right eye {:.2} ms, \
+             left {:.2} ms{}; skipping, medians of {} interleaved run(s))",
+            p.two_eyes() / p.one_eye(),
+            p.two_eyes(),
+            p.one_eye(),
+            p.eyes[1],
+            p.eyes[0],
+            if name == "cast" {
+                String::new()
+            } else {
+                format!("; right eye {psnr:.1} dB against its own rays")
+            },
+            runs.max(1)
+        );
+    }
+    Ok([
+        cast.two_eyes() / cast.one_eye(),
+        re.two_eyes() / re.one_eye(),
+        psnr,
+    ])
 }
 
 #[cfg(test)]

@@ -72,6 +72,8 @@ pub struct ShadingOptions {
     pub iso: Option<f32>,
     /// Foveated ray casting (`--foveate`).
     pub foveation: Option<crate::render::Foveation>,
+    /// The second eye reprojected from the first where valid (`--reproject`).
+    pub reproject: bool,
     /// The local histograms' scattering weight and anisotropy g (`--hist-scattering`,
     /// `--hist-anisotropy`).
     pub scattering: f32,
@@ -96,6 +98,7 @@ impl Default for ShadingOptions {
             step_mm: s.step_mm,
             iso: s.iso,
             foveation: s.foveation,
+            reproject: s.reproject,
             scattering: s.scattering,
             anisotropy: s.anisotropy,
             light_from: s.light_from,
@@ -134,6 +137,7 @@ impl ShadingOptions {
         s.step_mm = self.step_mm;
         s.iso = self.iso;
         s.foveation = self.foveation;
+        s.reproject = self.reproject;
         s.scattering = self.scattering;
         s.anisotropy = self.anisotropy;
         s.light_from = self.light_from;

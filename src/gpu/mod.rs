@@ -253,6 +253,9 @@ pub struct Core {
     /// Nanoseconds per timestamp tick.
     pub timestamp_period: f32,
     pub limits: vk::PhysicalDeviceLimits,
+    /// Whether fragment shaders may write storage (fragmentStoresAndAtomics): the first eye's
+    /// record that the second eye reprojects ([`crate::render::RenderSettings::reproject`]).
+    pub fragment_stores: bool,
 }
 
 /// What [`Core::memory_in_use`] reports.
@@ -452,6 +455,10 @@ impl Gpu {
             }
         };
         let props = instance.get_physical_device_properties(physical);
+        let fragment_stores = instance
+            .get_physical_device_features(physical)
+            .fragment_stores_and_atomics
+            != 0;
 
         let priorities = [1.0f32];
         let queue_info = [vk::DeviceQueueCreateInfo::default()
@@ -474,7 +481,11 @@ impl Gpu {
             vk::PhysicalDevice16BitStorageFeatures::default().storage_buffer16_bit_access(true);
         // shaderInt16: a 16-bit word written as a constant (AO_OPEN) or chosen by a select.
         let mut f2 = vk::PhysicalDeviceFeatures2::default()
-            .features(vk::PhysicalDeviceFeatures::default().shader_int16(true))
+            .features(
+                vk::PhysicalDeviceFeatures::default()
+                    .shader_int16(true)
+                    .fragment_stores_and_atomics(fragment_stores),
+            )
             .push_next(&mut f13)
             .push_next(&mut bda)
             .push_next(&mut f16);
@@ -528,6 +539,7 @@ impl Gpu {
             present: opts.present,
             timestamp_period: props.limits.timestamp_period,
             limits: props.limits,
+            fragment_stores,
         })))
     }
 }

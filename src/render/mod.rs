@@ -12,8 +12,8 @@ pub mod text;
 use crate::gpu::{pipeline, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
 use crate::shader_constants::{
     MAX_TOOLS, RAY_AO, RAY_BLEEDING, RAY_CLIPPING, RAY_CLIP_BRICKS, RAY_GLOW, RAY_INSET, RAY_ISO,
-    RAY_JITTER, RAY_LABELS, RAY_LIT, RAY_PREINTEGRATED, RAY_SCATTERING, RAY_SH, RAY_SKIP_EMPTY,
-    RAY_TRICUBIC, RAY_VARIANCE,
+    RAY_JITTER, RAY_LABELS, RAY_LIT, RAY_PREINTEGRATED, RAY_RECORD, RAY_REPROJECT, RAY_SCATTERING,
+    RAY_SH, RAY_SKIP_EMPTY, RAY_TRICUBIC, RAY_VARIANCE,
 };
 use crate::space::View;
 use crate::volume::transfer::TransferFunction;
@@ -135,7 +135,7 @@ pub struct RenderSettings {
     /// when lit from behind), 0 evenly.
     pub anisotropy: f32,
     /// The direction towards the light in the world (head-tracking space: +y up), if the
-    /// light is fixed there; None: a headlight per eye (l = v).
+    /// light is fixed there; None: a headlight at the head, midway between the eyes.
     pub light_from: Option<[f32; 3]>,
     /// A transparent background (`render --background transparent`): black, alpha 0 where a
     /// ray misses, premultiplied colour; the PNGs get straight alpha.
@@ -148,6 +148,11 @@ pub struct RenderSettings {
     pub iso: Option<f32>,
     /// Fewer rays away from each eye's centre ([`Foveation`]); None casts every pixel.
     pub foveation: Option<Foveation>,
+    /// The second eye reuses the first's pixels where they show an opaque surface it sees too,
+    /// or where the first eye saw nothing along its whole ray (`--reproject`; docs/design.md,
+    /// "The second eye"), casting its own rays elsewhere. Not with foveation, glow, scattering
+    /// or a light fixed in the world, nor on a device whose fragment shaders cannot store.
+    pub reproject: bool,
 }
 
 /// Foveated ray casting: within `radius` (a fraction of the eye image's half-diagonal) of its
@@ -231,6 +236,7 @@ impl Default for RenderSettings {
             glow: DEFAULT_GLOW,
             iso: None,
             foveation: None,
+            reproject: false,
         };
         Shading::default().apply(&mut s);
         s
@@ -1052,7 +1058,13 @@ struct EyePush {
     scale: f32,
     /// Where the full rate ends, in pixels from the eye's centre.
     radius: f32,
+    /// The first eye's record's address (written with RAY_RECORD, read with RAY_REPROJECT).
+    record: [u32; 2],
 }
+
+/// Bytes per pixel of the first eye's record (raycast.frag's EyeRecord): its colour and the
+/// view depths where its ray reached 5 % and opaque.
+const RECORD_TEXEL_BYTES: u64 = 16;
 
 pub struct Renderer {
     gpu: Gpu,
@@ -1076,6 +1088,9 @@ pub struct Renderer {
     coarse: Vec<Option<StereoTarget>>,
     /// Bound in place of the coarse images where a pass does not read them.
     no_coarse: Image,
+    /// Per frame slot, the first eye's record for a reprojected second eye (made for the size
+    /// it was last used at).
+    records: Vec<Option<Buffer>>,
 }
 
 /// What one stereo frame looks at: both views, the volume's model matrix (`world_from_tex`)
@@ -1292,6 +1307,7 @@ impl Renderer {
                 blue_noise,
                 coarse: (0..MAX_FRAMES_IN_FLIGHT).map(|_| None).collect(),
                 no_coarse,
+                records: (0..MAX_FRAMES_IN_FLIGHT).map(|_| None).collect(),
             })
         }
     }
@@ -1386,6 +1402,35 @@ impl Renderer {
         .filter(|f| f.0)
         .fold(0, |acc, f| acc | f.1);
         let pipeline = self.pipeline(flags)?;
+        // The second eye reprojected from the first's record, this slot's own: where the
+        // colour of a point is the same from both eyes (no glow in empty space, no light whose
+        // half vector or phase follows each eye's view).
+        let reproject = settings.reproject
+            && settings.foveation.is_none()
+            && self.gpu.fragment_stores
+            && flags & (RAY_GLOW | RAY_SCATTERING) == 0
+            && settings.light_from.is_none();
+        let record_bytes = (target.width * target.height) as u64 * RECORD_TEXEL_BYTES;
+        let record = if reproject {
+            let slot_record = &mut self.records[slot];
+            if slot_record.as_ref().is_none_or(|b| b.size != record_bytes) {
+                *slot_record = Some(Buffer::new(
+                    &self.gpu,
+                    record_bytes,
+                    vk::BufferUsageFlags::STORAGE_BUFFER,
+                    MemoryLocation::GpuOnly,
+                    "eye-record",
+                )?);
+            }
+            let a = slot_record.as_ref().map_or(0, |b| b.address);
+            Some((
+                [a as u32, (a >> 32) as u32],
+                self.pipeline(flags | RAY_RECORD)?,
+                self.pipeline(flags | RAY_REPROJECT)?,
+            ))
+        } else {
+            None
+        };
         let [ox, oy] = blue_noise::RIGHT_EYE_OFFSET;
         let vp = views.map(|v| v.view_proj());
         let [inset_lo, inset_hi, inset_scale, inset_offset] =
@@ -1402,13 +1447,17 @@ impl Renderer {
                 settings.background[0],
                 settings.background[1],
                 settings.background[2],
-                0.0,
+                // The baseline between the eyes (a reprojected second eye's parallax).
+                views[0].pose.position.distance(views[1].pose.position),
             ],
             viewport: [
                 target.width as f32,
                 target.height as f32,
                 clip.map_or(0, |c| c.count) as f32,
-                0.0,
+                // The first eye's pixel footprint per unit of view depth (a reprojected second
+                // eye's tolerance).
+                (views[0].fov.angle_right.tan() - views[0].fov.angle_left.tan())
+                    / target.width as f32,
             ],
             phong: [
                 settings.ambient,
@@ -1493,7 +1542,13 @@ impl Renderer {
                         * ext;
                     t.normalize_or_zero().extend(1.0).to_array()
                 }
-                None => [0.0; 4],
+                // The headlight stands at the head, midway between the eyes: a point in that
+                // frame (texture coordinates times the extent).
+                None => {
+                    let head = 0.5 * (views[0].pose.position + views[1].pose.position);
+                    let t = world_from_tex.inverse().transform_point3(head) * ext;
+                    t.extend(0.0).to_array()
+                }
             },
             ao_words: {
                 let [a, e] = [frame.ao, frame.bleeding].map(|b| b.map_or(0, |b| b.address));
@@ -1609,88 +1664,92 @@ impl Renderer {
         let plain_writes = descriptor_writes(buffers, &plain, &plain_infos);
         let full_writes = descriptor_writes(buffers, &full, &full_infos);
         // One eye's pass into layer `eye` of `into`.
-        let draw =
-            |into: &StereoTarget, eye: u32, push: EyePush, writes: &[vk::WriteDescriptorSet]| {
-                let area = vk::Rect2D {
-                    offset: vk::Offset2D::default(),
-                    extent: vk::Extent2D {
-                        width: into.width,
-                        height: into.height,
-                    },
-                };
-                let color_att = [vk::RenderingAttachmentInfo::default()
-                    .image_view(into.color.layer_views[eye as usize])
-                    .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
-                    .load_op(vk::AttachmentLoadOp::CLEAR)
-                    .store_op(vk::AttachmentStoreOp::STORE)
-                    .clear_value(vk::ClearValue {
-                        color: vk::ClearColorValue {
-                            float32: [bg[0], bg[1], bg[2], 0.0],
-                        },
-                    })];
-                let depth_att = vk::RenderingAttachmentInfo::default()
-                    .image_view(into.depth.layer_views[eye as usize])
-                    .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
-                    .load_op(vk::AttachmentLoadOp::CLEAR)
-                    .store_op(vk::AttachmentStoreOp::STORE)
-                    .clear_value(vk::ClearValue {
-                        depth_stencil: vk::ClearDepthStencilValue {
-                            depth: 1.0,
-                            stencil: 0,
-                        },
-                    });
-                let info = vk::RenderingInfo::default()
-                    .render_area(area)
-                    .layer_count(1)
-                    .color_attachments(&color_att)
-                    .depth_attachment(&depth_att);
-                // SAFETY: `cmd` is recording; the pipeline, layout and every bound resource live
-                // until the frame's slot is reused, which the caller orders after this frame.
-                unsafe {
-                    d.cmd_begin_rendering(cmd, &info);
-                    d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
-                    self.gpu.push_descriptor.cmd_push_descriptor_set(
-                        cmd,
-                        vk::PipelineBindPoint::GRAPHICS,
-                        self.layout,
-                        0,
-                        writes,
-                    );
-                    d.cmd_push_constants(
-                        cmd,
-                        self.layout,
-                        vk::ShaderStageFlags::FRAGMENT,
-                        0,
-                        bytemuck::bytes_of(&push),
-                    );
-                    d.cmd_set_viewport(
-                        cmd,
-                        0,
-                        &[vk::Viewport {
-                            x: 0.0,
-                            y: 0.0,
-                            width: into.width as f32,
-                            height: into.height as f32,
-                            min_depth: 0.0,
-                            max_depth: 1.0,
-                        }],
-                    );
-                    d.cmd_set_scissor(cmd, 0, &[area]);
-                    d.cmd_draw(cmd, 3, 1, 0, 0);
-                    d.cmd_end_rendering(cmd);
-                }
+        let draw = |into: &StereoTarget,
+                    eye: u32,
+                    pipeline: vk::Pipeline,
+                    push: EyePush,
+                    writes: &[vk::WriteDescriptorSet]| {
+            let area = vk::Rect2D {
+                offset: vk::Offset2D::default(),
+                extent: vk::Extent2D {
+                    width: into.width,
+                    height: into.height,
+                },
             };
+            let color_att = [vk::RenderingAttachmentInfo::default()
+                .image_view(into.color.layer_views[eye as usize])
+                .image_layout(vk::ImageLayout::COLOR_ATTACHMENT_OPTIMAL)
+                .load_op(vk::AttachmentLoadOp::CLEAR)
+                .store_op(vk::AttachmentStoreOp::STORE)
+                .clear_value(vk::ClearValue {
+                    color: vk::ClearColorValue {
+                        float32: [bg[0], bg[1], bg[2], 0.0],
+                    },
+                })];
+            let depth_att = vk::RenderingAttachmentInfo::default()
+                .image_view(into.depth.layer_views[eye as usize])
+                .image_layout(vk::ImageLayout::DEPTH_ATTACHMENT_OPTIMAL)
+                .load_op(vk::AttachmentLoadOp::CLEAR)
+                .store_op(vk::AttachmentStoreOp::STORE)
+                .clear_value(vk::ClearValue {
+                    depth_stencil: vk::ClearDepthStencilValue {
+                        depth: 1.0,
+                        stencil: 0,
+                    },
+                });
+            let info = vk::RenderingInfo::default()
+                .render_area(area)
+                .layer_count(1)
+                .color_attachments(&color_att)
+                .depth_attachment(&depth_att);
+            // SAFETY: `cmd` is recording; the pipeline, layout and every bound resource live
+            // until the frame's slot is reused, which the caller orders after this frame.
+            unsafe {
+                d.cmd_begin_rendering(cmd, &info);
+                d.cmd_bind_pipeline(cmd, vk::PipelineBindPoint::GRAPHICS, pipeline);
+                self.gpu.push_descriptor.cmd_push_descriptor_set(
+                    cmd,
+                    vk::PipelineBindPoint::GRAPHICS,
+                    self.layout,
+                    0,
+                    writes,
+                );
+                d.cmd_push_constants(
+                    cmd,
+                    self.layout,
+                    vk::ShaderStageFlags::FRAGMENT,
+                    0,
+                    bytemuck::bytes_of(&push),
+                );
+                d.cmd_set_viewport(
+                    cmd,
+                    0,
+                    &[vk::Viewport {
+                        x: 0.0,
+                        y: 0.0,
+                        width: into.width as f32,
+                        height: into.height as f32,
+                        min_depth: 0.0,
+                        max_depth: 1.0,
+                    }],
+                );
+                d.cmd_set_scissor(cmd, 0, &[area]);
+                d.cmd_draw(cmd, 3, 1, 0, 0);
+                d.cmd_end_rendering(cmd);
+            }
+        };
         let half_diagonal = 0.5 * (target.width as f32).hypot(target.height as f32);
         let push = |index: u32, pass: u32| EyePush {
             index,
             pass,
             scale: coarse.map_or(1.0, |(_, f)| f.factor as f32),
             radius: coarse.map_or(0.0, |(_, f)| f.radius * half_diagonal),
+            record: record.map_or([0; 2], |r| r.0),
         };
         if let Some((c, _)) = coarse {
             c.cmd_begin(cmd);
             for eye in 0..2u32 {
-                draw(c, eye, push(eye, 1), &plain_writes);
+                draw(c, eye, pipeline, push(eye, 1), &plain_writes);
             }
             c.color.transition(
                 cmd,
@@ -1704,9 +1763,29 @@ impl Renderer {
             );
         }
         for eye in 0..2u32 {
-            match coarse {
-                Some(_) => draw(target, eye, push(eye, 2), &full_writes),
-                None => draw(target, eye, push(eye, 0), &plain_writes),
+            match (coarse, record) {
+                (Some(_), _) => draw(target, eye, pipeline, push(eye, 2), &full_writes),
+                (None, Some((_, first, second))) => {
+                    if eye == 1 {
+                        // The first eye's record, written by its fragments, read by these.
+                        let mb = [vk::MemoryBarrier2::default()
+                            .src_stage_mask(vk::PipelineStageFlags2::FRAGMENT_SHADER)
+                            .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
+                            .dst_stage_mask(vk::PipelineStageFlags2::FRAGMENT_SHADER)
+                            .dst_access_mask(vk::AccessFlags2::SHADER_STORAGE_READ)];
+                        // SAFETY: `cmd` is recording, outside a rendering pass; a global
+                        // memory barrier names no resource.
+                        unsafe {
+                            d.cmd_pipeline_barrier2(
+                                cmd,
+                                &vk::DependencyInfo::default().memory_barriers(&mb),
+                            );
+                        }
+                    }
+                    let p = if eye == 0 { first } else { second };
+                    draw(target, eye, p, push(eye, 0), &plain_writes)
+                }
+                (None, None) => draw(target, eye, pipeline, push(eye, 0), &plain_writes),
             }
             after_eye(cmd, eye as usize);
         }

@@ -880,6 +880,38 @@ fn a_foveated_eye_is_exact_in_its_centre_and_close_beyond() {
     }
 }
 
+/// `--reproject` with a carving tool and the AO: the left eye is the one without it, byte for
+/// byte; the right eye is within 40 dB of its own rays, and reprojected (some pixel differs).
+#[test]
+fn a_reprojected_right_eye_keeps_the_left_and_stays_close() {
+    let dir = tmp("reproject");
+    let render = |extra: &[&str], name: &str| {
+        let out_dir = dir.join(name);
+        let mut args = vec!["render", "phantom:96", "--size", "160x160", "--rays", "6"];
+        args.extend_from_slice(&["--tool", "sphere:30", "--out", out_dir.to_str().unwrap()]);
+        args.extend_from_slice(extra);
+        let out = cao(&args);
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(out.status.success(), "{extra:?}: {stderr}");
+        assert!(!stderr.contains("vulkan validation"), "{stderr}");
+        ["left.png", "right.png"].map(|e| read_png(&out_dir.join(e)))
+    };
+    let (full, re) = (render(&[], "full"), render(&["--reproject"], "reprojected"));
+    assert!(full[0] == re[0], "the left eye changed");
+    let (a, b) = (&full[1].3, &re[1].3);
+    let se: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(&x, &y)| (x as f64 - y as f64).powi(2))
+        .sum();
+    let psnr = 10.0 * (255.0f64.powi(2) / (se / a.len() as f64)).log10();
+    assert!(a != b, "nothing was reprojected");
+    assert!(
+        psnr >= 40.0,
+        "the right eye is {psnr:.1} dB from its own rays"
+    );
+}
+
 /// Scattering (`--hist-scattering W --hist-anisotropy g --light-from X,Y,Z`) adds to each ray
 /// the bleeding colour times the Henyey-Greenstein phase of the angle between the light's travel
 /// and the way to the eye, the same for every sample of a ray, on top of the picture without
