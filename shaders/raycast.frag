@@ -457,12 +457,13 @@ uvec4 first_eye_texel(ivec2 q) {
 }
 
 // The first eye's surface at its pixel coordinates p: the view depth and colour of the four
-// texels around p, bilinear, where all four show one opaque surface: each reached opaque so
-// close behind where it reached 5 % that the eyes' parallax over that depth (the baseline
-// frame.background.w over the depth) stays within REPROJECT_PARALLAX pixel footprints
-// (frame.viewport.w per unit of depth); their depths lie within REPROJECT_SLOPE footprints of
-// each other, and their colours within REPROJECT_CONTRAST. False where they do not.
-bool first_eye_surface(vec2 p, float step_w, out float w, out vec4 colour) {
+// texels around p, bilinear, where all four show one opaque surface: each ray ended opaque and
+// reached REPROJECT_BACK_ALPHA so close behind where it reached 5 % that the eyes' parallax
+// over that depth (the baseline frame.background.w over the depth) stays within
+// REPROJECT_PARALLAX pixel footprints (frame.viewport.w per unit of depth); their depths lie
+// within REPROJECT_SLOPE footprints of each other, and their colours within
+// REPROJECT_CONTRAST. False where they do not.
+bool first_eye_surface(vec2 p, out float w, out vec4 colour) {
     vec2 x = p - 0.5;
     ivec2 q = ivec2(floor(x));
     vec2 f = x - vec2(q);
@@ -493,15 +494,14 @@ bool first_eye_surface(vec2 p, float step_w, out float w, out vec4 colour) {
         lo = min(lo, front);
         hi = max(hi, front);
     }
-    if (hi - lo > REPROJECT_SLOPE * frame.viewport.w * hi) return false;
-    if (any(greaterThan(c_hi - c_lo, vec3(REPROJECT_CONTRAST)))) return false;
-    return true;
+    return hi - lo <= REPROJECT_SLOPE * frame.viewport.w * hi
+        && all(lessThanEqual(c_hi - c_lo, vec3(REPROJECT_CONTRAST)));
 }
 
 // Bisections that place the second eye's ray on the first eye's surface within 1/64 of a pixel.
 const int REPROJECT_BISECTIONS = 6;
 
-// Pass 3: this pixel of the second eye (ray r) from the first eye's record, where the first
+// RAY_REPROJECT: this pixel of the second eye (ray r) from the first eye's record, where the first
 // thing its ray meets is a surface the first eye saw opaque. Walking the ray from where it
 // enters the volume, in steps of at most one first-eye pixel, each point lies in front of what
 // the first eye saw there (which saw through it: it is empty) until one lies behind; between
@@ -520,7 +520,6 @@ bool reprojected(Ray r) {
     if (ca.w <= 0.0 || cb.w <= 0.0) return false;
     int n = int(ceil(length(first_eye_pixel(cb) - first_eye_pixel(ca)))) + 1;
     if (n > REPROJECT_MAX_MARCH) return false;
-    float step_w = frame.extent_mm.w / length(r.d * frame.extent_mm.xyz) * length(r.b_w - r.a_w);
     ivec2 size = ivec2(frame.viewport.xy);
     float s_front = 0.0;
     float s_behind = -1.0;
@@ -551,12 +550,14 @@ bool reprojected(Ray r) {
     for (int k = 0; k < REPROJECT_BISECTIONS; k++) {
         float s = 0.5 * (s_front + s_behind);
         vec4 c = mix(ca, cb, s);
-        if (!first_eye_surface(first_eye_pixel(c), step_w, w, colour)) return false;
+        if (!first_eye_surface(first_eye_pixel(c), w, colour)) return false;
         if (c.w >= w) s_behind = s; else s_front = s;
     }
     float s = 0.5 * (s_front + s_behind);
     vec4 c = mix(ca, cb, s);
-    if (!first_eye_surface(first_eye_pixel(c), step_w, w, colour) || abs(c.w - w) > step_w) {
+    // One ray step, in world units.
+    float step_w = frame.extent_mm.w / length(r.d * frame.extent_mm.xyz) * length(r.b_w - r.a_w);
+    if (!first_eye_surface(first_eye_pixel(c), w, colour) || abs(c.w - w) > step_w) {
         return false;
     }
     vec4 c1 = frame.view_proj[1] * vec4(mix(xa, xb, s), 1.0);

@@ -1063,7 +1063,7 @@ struct EyePush {
 }
 
 /// Bytes per pixel of the first eye's record (raycast.frag's EyeRecord): its colour and the
-/// view depths where its ray reached 5 % and opaque.
+/// view depths where its ray reached 5 % and 90 % opacity.
 const RECORD_TEXEL_BYTES: u64 = 16;
 
 pub struct Renderer {
