@@ -924,11 +924,31 @@ impl Core {
 
     /// A full memory barrier between passes (compute/graphics/transfer all read-after-write).
     pub fn barrier(&self, cmd: vk::CommandBuffer) {
+        self.memory_barrier(
+            cmd,
+            (
+                vk::PipelineStageFlags2::ALL_COMMANDS,
+                vk::AccessFlags2::MEMORY_WRITE,
+            ),
+            (
+                vk::PipelineStageFlags2::ALL_COMMANDS,
+                vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE,
+            ),
+        );
+    }
+
+    /// Records a global memory barrier: what `src` (stages, accesses) wrote, visible to `dst`.
+    pub fn memory_barrier(
+        &self,
+        cmd: vk::CommandBuffer,
+        src: (vk::PipelineStageFlags2, vk::AccessFlags2),
+        dst: (vk::PipelineStageFlags2, vk::AccessFlags2),
+    ) {
         let mb = [vk::MemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-            .src_access_mask(vk::AccessFlags2::MEMORY_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::ALL_COMMANDS)
-            .dst_access_mask(vk::AccessFlags2::MEMORY_READ | vk::AccessFlags2::MEMORY_WRITE)];
+            .src_stage_mask(src.0)
+            .src_access_mask(src.1)
+            .dst_stage_mask(dst.0)
+            .dst_access_mask(dst.1)];
         // SAFETY: `cmd` is a command buffer of this device in the recording state (the contract of
         // every cmd_* helper here); a global memory barrier names no resource.
         unsafe {

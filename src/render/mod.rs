@@ -936,17 +936,14 @@ impl StereoTarget {
     pub fn cmd_read_back(&self, gpu: &Gpu, cmd: vk::CommandBuffer, bufs: &[Buffer; 2]) {
         self.color.cmd_copy_to(cmd, &bufs[0]);
         self.depth.cmd_copy_to(cmd, &bufs[1]);
-        let mb = [vk::MemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::ALL_TRANSFER)
-            .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-            .dst_access_mask(vk::AccessFlags2::HOST_READ)];
-        // SAFETY: `cmd` is recording (the caller's contract); a global memory barrier names no
-        // resource.
-        unsafe {
-            gpu.device
-                .cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&mb));
-        }
+        gpu.memory_barrier(
+            cmd,
+            (
+                vk::PipelineStageFlags2::ALL_TRANSFER,
+                vk::AccessFlags2::TRANSFER_WRITE,
+            ),
+            (vk::PipelineStageFlags2::HOST, vk::AccessFlags2::HOST_READ),
+        );
     }
 
     /// Both eyes from buffers filled by [`StereoTarget::cmd_read_back`], once it executed.
@@ -1768,19 +1765,12 @@ impl Renderer {
                 (None, Some((_, first, second))) => {
                     if eye == 1 {
                         // The first eye's record, written by its fragments, read by these.
-                        let mb = [vk::MemoryBarrier2::default()
-                            .src_stage_mask(vk::PipelineStageFlags2::FRAGMENT_SHADER)
-                            .src_access_mask(vk::AccessFlags2::SHADER_STORAGE_WRITE)
-                            .dst_stage_mask(vk::PipelineStageFlags2::FRAGMENT_SHADER)
-                            .dst_access_mask(vk::AccessFlags2::SHADER_STORAGE_READ)];
-                        // SAFETY: `cmd` is recording, outside a rendering pass; a global
-                        // memory barrier names no resource.
-                        unsafe {
-                            d.cmd_pipeline_barrier2(
-                                cmd,
-                                &vk::DependencyInfo::default().memory_barriers(&mb),
-                            );
-                        }
+                        let fragments = vk::PipelineStageFlags2::FRAGMENT_SHADER;
+                        self.gpu.memory_barrier(
+                            cmd,
+                            (fragments, vk::AccessFlags2::SHADER_STORAGE_WRITE),
+                            (fragments, vk::AccessFlags2::SHADER_STORAGE_READ),
+                        );
                     }
                     let p = if eye == 0 { first } else { second };
                     draw(target, eye, p, push(eye, 0), &plain_writes)

@@ -826,23 +826,41 @@ fn a_negative_isovalue_is_taken_with_or_without_an_equals_sign() {
     assert_ne!(spaced, render(&["--iso", "300"], "positive"));
 }
 
+/// `render ARGS EXTRA --out DIR/NAME` under validation: its left and right eyes.
+fn render_eyes(
+    dir: &Path,
+    name: &str,
+    args: &[&str],
+    extra: &[&str],
+) -> [(usize, usize, usize, Vec<u8>); 2] {
+    let out_dir = dir.join(name);
+    let mut all = vec!["render"];
+    all.extend_from_slice(args);
+    all.extend_from_slice(extra);
+    all.extend_from_slice(&["--out", out_dir.to_str().unwrap()]);
+    let out = cao(&all);
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "{extra:?}: {stderr}");
+    assert!(!stderr.contains("vulkan validation"), "{stderr}");
+    ["left.png", "right.png"].map(|e| read_png(&out_dir.join(e)))
+}
+
 /// Foveation (`--foveate RADIUS,FACTOR`): within the radius of each eye's centre the picture is
 /// the unfoveated one bit for bit; beyond it the coarse rays, interpolated, keep the whole
 /// picture within 32 dB, and they are not the full-rate rays (some pixel there differs).
 #[test]
 fn a_foveated_eye_is_exact_in_its_centre_and_close_beyond() {
     let dir = tmp("foveate");
-    let render = |extra: &[&str], name: &str| {
-        let out_dir = dir.join(name);
-        let mut args = vec!["render", "phantom:48", "--size", "96x80", "--rays", "6"];
-        args.extend_from_slice(&["--tool", "sphere:40", "--out", out_dir.to_str().unwrap()]);
-        args.extend_from_slice(extra);
-        let out = cao(&args);
-        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
-        assert!(out.status.success(), "{extra:?}: {stderr}");
-        assert!(!stderr.contains("vulkan validation"), "{stderr}");
-        ["left.png", "right.png"].map(|e| read_png(&out_dir.join(e)))
-    };
+    let args = [
+        "phantom:48",
+        "--size",
+        "96x80",
+        "--rays",
+        "6",
+        "--tool",
+        "sphere:40",
+    ];
+    let render = |extra: &[&str], name: &str| render_eyes(&dir, name, &args, extra);
     let (full, fov) = (
         render(&[], "full"),
         render(&["--foveate", "0.25,3"], "foveated"),
@@ -885,17 +903,16 @@ fn a_foveated_eye_is_exact_in_its_centre_and_close_beyond() {
 #[test]
 fn a_reprojected_right_eye_keeps_the_left_and_stays_close() {
     let dir = tmp("reproject");
-    let render = |extra: &[&str], name: &str| {
-        let out_dir = dir.join(name);
-        let mut args = vec!["render", "phantom:96", "--size", "160x160", "--rays", "6"];
-        args.extend_from_slice(&["--tool", "sphere:30", "--out", out_dir.to_str().unwrap()]);
-        args.extend_from_slice(extra);
-        let out = cao(&args);
-        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
-        assert!(out.status.success(), "{extra:?}: {stderr}");
-        assert!(!stderr.contains("vulkan validation"), "{stderr}");
-        ["left.png", "right.png"].map(|e| read_png(&out_dir.join(e)))
-    };
+    let args = [
+        "phantom:96",
+        "--size",
+        "160x160",
+        "--rays",
+        "6",
+        "--tool",
+        "sphere:30",
+    ];
+    let render = |extra: &[&str], name: &str| render_eyes(&dir, name, &args, extra);
     let (full, re) = (render(&[], "full"), render(&["--reproject"], "reprojected"));
     assert!(full[0] == re[0], "the left eye changed");
     let (a, b) = (&full[1].3, &re[1].3);
