@@ -236,8 +236,9 @@ struct ViewArgs {
     /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
     frames_in_flight: Option<u32>,
-    /// Hold this frame time (ms) by lengthening the ray step (up to 3x; the AO is
-    /// untouched). Off by default in the window.
+    /// Hold this frame time (ms) by lengthening the ray step (up to 3x), then foveating, then
+    /// lowering the render scale (down to 0.5); the AO is untouched. Off by default in the
+    /// window.
     #[arg(long, value_parser = parse_budget)]
     frame_budget_ms: Option<f64>,
 }
@@ -283,8 +284,9 @@ struct XrArgs {
     /// host's work on the last one) run while the GPU renders; 1 waits for every frame.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=2))]
     frames_in_flight: Option<u32>,
-    /// Hold this frame time (ms) by lengthening the ray step (up to 3x; the AO is
-    /// untouched); 0 turns it off. Default: 90 Hz.
+    /// Hold this frame time (ms) by lengthening the ray step (up to 3x), then foveating, then
+    /// lowering the render scale (down to 0.5); the AO is untouched. 0 turns it off. Default:
+    /// 90 Hz.
     #[arg(long, value_parser = parse_budget, default_value_t = app::budget::HEADSET_FRAME_MS)]
     frame_budget_ms: f64,
     /// Cast every pixel of both eyes: in the headset the right eye is reprojected from the

@@ -127,9 +127,10 @@ impl App {
             |cmd, t| {
                 if let (Some(p), Some(a)) = (presenter, &acquired) {
                     // SAFETY: `cmd` is the frame's recording command buffer and `after` runs after
-                    // cmd_finish, so `t.color` (two layers, t.width x t.height) is in
-                    // TRANSFER_SRC_OPTIMAL; `a` was acquired from `p` above.
-                    unsafe { p.record_blit(cmd, a, t.color.raw, (t.width, t.height), both, None) };
+                    // cmd_finish, so `t.color` (two layers, its drawn part within) is in
+                    // TRANSFER_SRC_OPTIMAL; `a` was acquired from `p` above. The drawn part (a
+                    // frame budget's render scale) is enlarged to the window.
+                    unsafe { p.record_blit(cmd, a, t.color.raw, t.drawn(), both, None) };
                 }
             },
             acquired.as_ref().map(|a| a.rendered),
@@ -169,15 +170,7 @@ impl App {
                 None => String::new(),
             };
             let step = match self.opts.frame_budget_ms {
-                Some(_) => format!(
-                    " | step x{:.2}{}",
-                    stats.step_factor,
-                    if stats.budget_foveates {
-                        ", foveated"
-                    } else {
-                        ""
-                    }
-                ),
+                Some(_) => format!(" | {}", stats.budget()),
                 None => String::new(),
             };
             let margin = self
@@ -364,8 +357,8 @@ pub fn run(spec: &SessionSpec, opts: ViewOptions) -> Result<usize> {
             app.fl.flush()?;
             let t = app.fl.target();
             // SAFETY: `flush` waited for the last frame, so the target's colour (two layers,
-            // t.width x t.height) is in TRANSFER_SRC_OPTIMAL and nothing else writes it.
-            unsafe { p.present(t.color.raw, (t.width, t.height), app.both_eyes, true)? }
+            // its drawn part within) is in TRANSFER_SRC_OPTIMAL and nothing else writes it.
+            unsafe { p.present(t.color.raw, t.drawn(), app.both_eyes, true)? }
         }
         _ => None,
     };

@@ -70,10 +70,27 @@ pub struct FrameStats {
     pub step_factor: f64,
     /// The frames to come are foveated by the frame budget (past its longest step).
     pub budget_foveates: bool,
+    /// The render scale the frame budget chose for the frames to come (past foveation; 1
+    /// without one): each eye is drawn at this fraction of its image's size per axis.
+    pub render_scale: f64,
     /// The tools inside a structure's safety margin this frame (`--margin`).
     pub margins: Vec<MarginHit>,
     /// The full-resolution box this frame, where the volume has one.
     pub inset: Option<InsetStats>,
+}
+
+impl FrameStats {
+    /// What the frame budget chose: "step x1.50", with ", foveated" and ", scale 0.75" past it.
+    pub fn budget(&self) -> String {
+        let mut s = format!("step x{:.2}", self.step_factor);
+        if self.budget_foveates {
+            s += ", foveated";
+        }
+        if self.render_scale < 1.0 {
+            s += &format!(", scale {:.2}", self.render_scale);
+        }
+        s
+    }
 }
 
 /// A frame's full-resolution box ([`Inset`]).
@@ -784,13 +801,15 @@ impl FrameLoop {
     }
 
     /// Holds a frame time of `target_ms` by lengthening the ray step (up to
-    /// [`super::budget::MAX_STEP_FACTOR`] times the step of the settings now) from the measured
-    /// GPU times ([`FrameBudget`]); the AO is never touched. None: the settings' step, always.
-    /// Replay and renders run without one: their pictures must not depend on the machine.
+    /// [`super::budget::MAX_STEP_FACTOR`] times the step of the settings now), then foveating,
+    /// then lowering the render scale, from the measured GPU times ([`FrameBudget`]); the AO is
+    /// never touched. None: the settings' step and foveation at full scale, always. Replay and
+    /// renders run without one: their pictures must not depend on the machine.
     pub fn set_frame_budget(&mut self, target_ms: Option<f64>) {
         if let Some(b) = self.budget.take() {
             self.settings.step_mm = b.configured_step;
             self.settings.foveation = b.configured_foveation;
+            self.target.set_render_scale(1.0);
         }
         let base = self.settings.step_for(self.tex.step_spacing);
         self.budget = target_ms.filter(|t| *t > 0.0).map(|t| BudgetState {
@@ -799,6 +818,11 @@ impl FrameLoop {
             base_step: base,
             configured_foveation: self.settings.foveation,
         });
+    }
+
+    /// The frame time a frame budget holds, if one does.
+    pub fn frame_budget(&self) -> Option<f64> {
+        self.budget.as_ref().map(|b| b.control.target_ms)
     }
 
     /// Frames the GPU may hold at once (1 or 2, [`crate::render::MAX_FRAMES_IN_FLIGHT`]).
@@ -827,6 +851,12 @@ impl FrameLoop {
             image,
             stats: r.stats,
         })
+    }
+
+    /// Draws the frames to come at `scale` of the target's size per axis
+    /// ([`StereoTarget::set_render_scale`]); a frame budget sets its own on every frame.
+    pub fn set_render_scale(&mut self, scale: f64) {
+        self.target.set_render_scale(scale);
     }
 
     /// The stereo target the last frame was rendered into (both layers in TRANSFER_SRC layout
@@ -923,6 +953,8 @@ impl FrameLoop {
             let foveation = b
                 .configured_foveation
                 .or(b.control.foveate().then(Foveation::default));
+            // The render scale needs no wait: the target's images stay as they are.
+            self.target.set_render_scale(b.control.render_scale());
             if step != self.settings.step_for(self.tex.step_spacing) {
                 if retired.is_none() {
                     retired = self.retire()?;
@@ -994,7 +1026,7 @@ impl FrameLoop {
             self.tf_samples_per_frame *= scale;
         }
         let image = match (&slot.readback, f.read_back) {
-            (Some(bufs), true) => Some(self.target.image_from(bufs)?),
+            (Some(bufs), true) => Some(self.target.image_from(bufs, f.drawn)?),
             _ => None,
         };
         Ok(Some(Retired {
@@ -1013,6 +1045,10 @@ impl FrameLoop {
                 inset: f.inset,
                 step_factor,
                 budget_foveates: self.budget.as_ref().is_some_and(|b| b.control.foveate()),
+                render_scale: self
+                    .budget
+                    .as_ref()
+                    .map_or(1.0, |b| b.control.render_scale()),
             },
             image,
         }))
@@ -1205,6 +1241,7 @@ impl FrameLoop {
             margins,
             inset: inset_stats.take(),
             read_back,
+            drawn: target.drawn(),
             overlapped,
             t0,
         });
@@ -1254,6 +1291,8 @@ struct InFlight {
     margins: Vec<MarginHit>,
     inset: Option<InsetStats>,
     read_back: bool,
+    /// The size each eye was drawn at (the target's, or its render-scaled part).
+    drawn: (u32, u32),
     overlapped: bool,
     t0: std::time::Instant,
 }

@@ -159,7 +159,7 @@ fn frames(
         }
         {
             let _queue = fl.gpu.queue_guard();
-            xs.end_frame(&frame)?;
+            xs.end_frame(&frame, fl.target())?;
         }
         if let Some(m) = mirror {
             if let Some(image) = shown {
@@ -184,6 +184,8 @@ struct Reacted {
     margins: Vec<MarginHit>,
     /// The structure menu's line, told again when it changes.
     menu: Option<String>,
+    /// What the frame budget chose, told again when it changes.
+    budget: String,
 }
 
 /// The hands' answer to a frame that left the GPU: a pulse on the right hand when its tool
@@ -215,10 +217,15 @@ fn react(xs: &mut XrSession, fl: &FrameLoop, stats: FrameStats, last: &mut React
             eprintln!("xr: frame {}: {m}", xs.summary.frames);
         }
     }
+    let budget = stats.budget();
+    if fl.frame_budget().is_some() && budget != last.budget {
+        eprintln!("xr: frame {}: frame budget: {budget}", xs.summary.frames);
+    }
     *last = Reacted {
         clipped: stats.metrics.clipped,
         margins: stats.margins,
         menu,
+        budget,
     };
     Ok(())
 }

@@ -90,7 +90,8 @@ impl Mirror {
         target: &StereoTarget,
     ) {
         if let Some(p) = &self.state.presenter {
-            let size = (target.width, target.height);
+            // The drawn part (a frame budget's render scale), enlarged to the window.
+            let size = target.drawn();
             // SAFETY: the caller (the headset loop's `after`) records into a recording `cmd` with
             // the target's colour in TRANSFER_SRC_OPTIMAL there, and `image` was acquired from this
             // presenter this frame.

@@ -819,6 +819,9 @@ pub struct StereoTarget {
     pub depth: Image,
     pub width: u32,
     pub height: u32,
+    /// The part of each layer a frame draws, from the top-left corner: all of it, or less under
+    /// a render scale below 1 ([`StereoTarget::set_render_scale`]).
+    drawn: (u32, u32),
 }
 
 impl StereoTarget {
@@ -858,7 +861,22 @@ impl StereoTarget {
             )?,
             width,
             height,
+            drawn: (width, height),
         })
+    }
+
+    /// The size each eye is drawn at: the image's, or its render-scaled part.
+    pub fn drawn(&self) -> (u32, u32) {
+        self.drawn
+    }
+
+    /// Frames from now on draw each eye into the top-left `scale` (in (0, 1]) of its image, per
+    /// axis: the same view, fewer pixels, which the headset's compositor (the layer's image
+    /// rectangle) or the window's blit enlarges. Each drawn pixel is the one a target of the
+    /// drawn size would hold, bit for bit.
+    pub fn set_render_scale(&mut self, scale: f64) {
+        let part = |n: u32| ((n as f64 * scale.clamp(0.0, 1.0)).round() as u32).clamp(1, n);
+        self.drawn = (part(self.width), part(self.height));
     }
 
     /// Records the start of a frame's drawing: both images, whatever they held, to attachments.
@@ -896,7 +914,7 @@ impl StereoTarget {
     pub fn read_back(&self, gpu: &Gpu) -> Result<StereoImage> {
         let bufs = self.readback_buffers(gpu)?;
         gpu.submit_and_wait(|cmd| self.cmd_read_back(gpu, cmd, &bufs))?;
-        self.image_from(&bufs)
+        self.image_from(&bufs, self.drawn)
     }
 
     /// Bytes of [`StereoTarget::readback_buffers`].
@@ -946,16 +964,31 @@ impl StereoTarget {
         );
     }
 
-    /// Both eyes from buffers filled by [`StereoTarget::cmd_read_back`], once it executed.
-    pub fn image_from(&self, bufs: &[Buffer; 2]) -> Result<StereoImage> {
-        let per = (self.width * self.height) as usize;
+    /// Both eyes from buffers filled by [`StereoTarget::cmd_read_back`], once it executed: the
+    /// part of `drawn` size each eye was drawn in (the whole image at render scale 1).
+    pub fn image_from(&self, bufs: &[Buffer; 2], drawn: (u32, u32)) -> Result<StereoImage> {
+        let (w, h) = (self.width as usize, self.height as usize);
+        let (dw, dh) = (drawn.0 as usize, drawn.1 as usize);
+        let crop = |layer: &[u8], texel: usize| -> Vec<u8> {
+            (0..dh)
+                .flat_map(|y| &layer[y * w * texel..(y * w + dw) * texel])
+                .copied()
+                .collect()
+        };
+        let per = w * h;
         let c = bufs[0].mapped()?;
-        let d: &[f32] = bytemuck::cast_slice(bufs[1].mapped()?);
+        let d = bufs[1].mapped()?;
+        let depth = |layer: &[u8]| -> Vec<f32> {
+            crop(layer, 4)
+                .chunks_exact(4)
+                .map(|b| f32::from_ne_bytes([b[0], b[1], b[2], b[3]]))
+                .collect()
+        };
         Ok(StereoImage {
-            width: self.width,
-            height: self.height,
-            rgba: [c[..per * 4].to_vec(), c[per * 4..].to_vec()],
-            depth: [d[..per].to_vec(), d[per..].to_vec()],
+            width: drawn.0,
+            height: drawn.1,
+            rgba: [crop(&c[..per * 4], 4), crop(&c[per * 4..], 4)],
+            depth: [depth(&d[..per * 4]), depth(&d[per * 4..])],
         })
     }
 }
@@ -1407,6 +1440,8 @@ impl Renderer {
             && self.gpu.fragment_stores
             && flags & (RAY_GLOW | RAY_SCATTERING) == 0
             && settings.light_from.is_none();
+        let (width, height) = target.drawn();
+        // For the whole image, so that a render scale's change does not make it anew.
         let record_bytes = (target.width * target.height) as u64 * RECORD_TEXEL_BYTES;
         let record = if reproject {
             let slot_record = &mut self.records[slot];
@@ -1448,13 +1483,12 @@ impl Renderer {
                 views[0].pose.position.distance(views[1].pose.position),
             ],
             viewport: [
-                target.width as f32,
-                target.height as f32,
+                width as f32,
+                height as f32,
                 clip.map_or(0, |c| c.count) as f32,
                 // The first eye's pixel footprint per unit of view depth (a reprojected second
                 // eye's tolerance).
-                (views[0].fov.angle_right.tan() - views[0].fov.angle_left.tan())
-                    / target.width as f32,
+                (views[0].fov.angle_right.tan() - views[0].fov.angle_left.tan()) / width as f32,
             ],
             phong: [
                 settings.ambient,
@@ -1592,7 +1626,7 @@ impl Renderer {
         // A foveated frame's coarse target, this slot's own (its last frame has finished).
         let coarse_size = settings.foveation.map(|f| {
             let c = |n: u32| n.div_ceil(f.factor);
-            (c(target.width), c(target.height), f)
+            (c(width), c(height), f)
         });
         let slot_coarse = &mut self.coarse[slot];
         let coarse = match coarse_size {
@@ -1666,12 +1700,10 @@ impl Renderer {
                     pipeline: vk::Pipeline,
                     push: EyePush,
                     writes: &[vk::WriteDescriptorSet]| {
+            let (width, height) = into.drawn();
             let area = vk::Rect2D {
                 offset: vk::Offset2D::default(),
-                extent: vk::Extent2D {
-                    width: into.width,
-                    height: into.height,
-                },
+                extent: vk::Extent2D { width, height },
             };
             let color_att = [vk::RenderingAttachmentInfo::default()
                 .image_view(into.color.layer_views[eye as usize])
@@ -1724,8 +1756,8 @@ impl Renderer {
                     &[vk::Viewport {
                         x: 0.0,
                         y: 0.0,
-                        width: into.width as f32,
-                        height: into.height as f32,
+                        width: width as f32,
+                        height: height as f32,
                         min_depth: 0.0,
                         max_depth: 1.0,
                     }],
@@ -1735,7 +1767,7 @@ impl Renderer {
                 d.cmd_end_rendering(cmd);
             }
         };
-        let half_diagonal = 0.5 * (target.width as f32).hypot(target.height as f32);
+        let half_diagonal = 0.5 * (width as f32).hypot(height as f32);
         let push = |index: u32, pass: u32| EyePush {
             index,
             pass,

@@ -508,12 +508,11 @@ impl OverlayRenderer {
         let d = &self.gpu.device;
         // The ray caster's colour and depth writes, before this pass reads and blends them.
         self.gpu.barrier(cmd);
+        // The ray caster's drawn part (a render scale's), which the view maps onto.
+        let (width, height) = target.drawn();
         let area = vk::Rect2D {
             offset: vk::Offset2D::default(),
-            extent: vk::Extent2D {
-                width: target.width,
-                height: target.height,
-            },
+            extent: vk::Extent2D { width, height },
         };
         for (eye, view) in views.iter().enumerate() {
             let eye_pos = view.pose.position;
@@ -554,8 +553,8 @@ impl OverlayRenderer {
                     &[vk::Viewport {
                         x: 0.0,
                         y: 0.0,
-                        width: target.width as f32,
-                        height: target.height as f32,
+                        width: width as f32,
+                        height: height as f32,
                         min_depth: 0.0,
                         max_depth: 1.0,
                     }],

@@ -7,7 +7,7 @@ use super::blend::{choose_blend, BlendMode, Composition};
 use super::conversions::pose_from_xr;
 use super::conversions::{frame_views, projection_views};
 use super::swapchain::{
-    create_depth_swapchain, create_swapchain, record_blit, record_depth_copy, Swapchain,
+    create_depth_swapchain, create_swapchain, layer_rect, record_blit, record_depth_copy, Swapchain,
 };
 use super::{
     actions, bindings, debug, open_instance, vulkan, Result, XrError, XrOptions, XrSummary,
@@ -512,11 +512,12 @@ impl<'a> XrSession<'a> {
     }
 
     /// Ends the frame with its projection layer, submitting the views the image was rendered
-    /// with (the swapchain images were filled and released by then).
-    pub fn end_frame(&mut self, frame: &XrFrame) -> Result<()> {
+    /// with (the swapchain images were filled from `src` and released by then) and the part of
+    /// the images it filled ([`layer_rect`]: all, or less under a render scale).
+    pub fn end_frame(&mut self, frame: &XrFrame, src: &StereoTarget) -> Result<()> {
         let (time, views) = (frame.time, projection_views(&frame.input.views));
         let sc = &self.swapchain;
-        let (w, h) = sc.extent;
+        let (w, h) = layer_rect(src, sc.extent);
         let rect = xr::Rect2Di {
             offset: xr::Offset2Di { x: 0, y: 0 },
             extent: xr::Extent2Di {

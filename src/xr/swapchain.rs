@@ -98,8 +98,18 @@ pub fn create_depth_swapchain(
     .map(Some)
 }
 
+/// The part of each swapchain image of size `(w, h)` a frame fills, from the top-left corner:
+/// all of it, or under a render scale below 1 the same share of it as the target's drawn part.
+pub fn layer_rect(src: &StereoTarget, (w, h): (u32, u32)) -> (u32, u32) {
+    let (dw, dh) = src.drawn();
+    let share = |d: u32, of: u32, n: u32| ((d as u64 * n as u64) / of as u64).max(1) as u32;
+    (share(dw, src.width, w), share(dh, src.height, h))
+}
+
 /// Records the copy of both eyes (the stereo target's colour, in TRANSFER_SRC_OPTIMAL) into the
-/// acquired swapchain image, one blit region for both layers.
+/// acquired swapchain image, one blit region for both layers. Under a render scale below 1 the
+/// drawn part goes into the same part of the image, which the layer's image rectangle names
+/// ([`layer_rect`]), and the compositor enlarges it.
 ///
 /// # Safety
 /// `cmd` is recording on `d`, `image` is the waited swapchain image.
@@ -124,9 +134,9 @@ pub unsafe fn record_blit(
         vk::ImageLayout::UNDEFINED,
         vk::ImageLayout::TRANSFER_DST_OPTIMAL,
     );
-    let size = (src.width, src.height);
-    let rect = [(0, 0), (w as i32, h as i32)];
-    cmd_blit_color(d, cmd, src.color.raw, (0, 2), size, image, rect);
+    let (rw, rh) = layer_rect(src, (w, h));
+    let rect = [(0, 0), (rw as i32, rh as i32)];
+    cmd_blit_color(d, cmd, src.color.raw, (0, 2), src.drawn(), image, rect);
     cmd_image_barrier(
         d,
         cmd,
@@ -168,10 +178,13 @@ pub unsafe fn record_depth_copy(
     let region = [vk::ImageCopy::default()
         .src_subresource(layers)
         .dst_subresource(layers)
-        .extent(vk::Extent3D {
-            width: src.width.min(w),
-            height: src.height.min(h),
-            depth: 1,
+        .extent({
+            let ((rw, rh), (dw, dh)) = (layer_rect(src, (w, h)), src.drawn());
+            vk::Extent3D {
+                width: rw.min(dw),
+                height: rh.min(dh),
+                depth: 1,
+            }
         })];
     d.cmd_copy_image(
         cmd,

@@ -645,6 +645,11 @@ fn a_frame_budget_lengthens_the_step_and_leaves_the_ao_alone() {
                 a.image != b.image,
                 "the longer step changed nothing on screen"
             );
+            // Past the longest step and foveation, the render scale: each eye drawn at the
+            // lowest scale, and read back at that size.
+            assert!(a.stats.budget_foveates);
+            assert_eq!(a.stats.render_scale, cao_xr::app::budget::MIN_RENDER_SCALE);
+            assert_eq!((a.image.width, a.image.height), (24, 24));
         }
     }
     assert!(factors.windows(2).all(|w| w[1] >= w[0]), "{factors:?}");
@@ -653,9 +658,67 @@ fn a_frame_budget_lengthens_the_step_and_leaves_the_ao_alone() {
         cao_xr::app::budget::MAX_STEP_FACTOR,
         "{factors:?}"
     );
-    // Off again: the configured step.
+    // Off again: the configured step, at full scale.
     held.set_frame_budget(None);
     assert_eq!(held.settings.step_mm, free.settings.step_mm);
+    let a = click_frame(&mut held, &vol, tool(c, 12, true), false, 12, false);
+    let b = click_frame(&mut free, &vol, tool(c, 12, true), false, 12, false);
+    assert!(a.image == b.image, "the budget left a mark once off");
+    common::assert_no_validation_messages(&gpu);
+}
+
+/// A render scale below 1 draws each eye into the top-left part of its image, and every pixel
+/// there is the one a target of that size holds, bit for bit: with every pixel cast, foveated,
+/// and with the second eye reprojected.
+#[test]
+fn a_render_scaled_frame_is_the_frame_of_a_smaller_target() {
+    use cao_xr::render::Foveation;
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(N));
+    let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
+    let sized = |size: (u32, u32)| {
+        let mut fl = FrameLoop::new(
+            &gpu,
+            Arc::clone(&vol),
+            tfs.clone(),
+            AoConfig::from(PARAMS),
+            size,
+            InteractionSettings::default(),
+            false,
+        )
+        .unwrap();
+        fl.mode = Mode::Contextual;
+        fl
+    };
+    let c = Placement::default().center;
+    let foveated = Foveation {
+        radius: 0.3,
+        factor: 3,
+    };
+    // (name, foveation, reprojection)
+    let cases = [
+        ("every pixel cast", None, false),
+        ("foveated", Some(foveated), false),
+        ("reprojected", None, true),
+    ];
+    for (name, foveation, reproject) in cases {
+        let (mut scaled, mut small) = (sized((64, 48)), sized((40, 30)));
+        for fl in [&mut scaled, &mut small] {
+            fl.settings.foveation = foveation;
+            fl.settings.reproject = reproject;
+        }
+        scaled.set_render_scale(0.625);
+        for i in 0..2 {
+            let a = click_frame(&mut scaled, &vol, tool(c, i, true), false, i, false);
+            let b = click_frame(&mut small, &vol, tool(c, i, true), false, i, false);
+            assert_eq!((a.image.width, a.image.height), (40, 30), "{name}");
+            assert!(a.image == b.image, "{name}, frame {i}: the pixels differ");
+        }
+        // Back to the whole image: the larger target's own picture.
+        scaled.set_render_scale(1.0);
+        let a = click_frame(&mut scaled, &vol, tool(c, 2, true), false, 2, false);
+        assert_eq!((a.image.width, a.image.height), (64, 48), "{name}");
+    }
     common::assert_no_validation_messages(&gpu);
 }
 

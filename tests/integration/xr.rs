@@ -101,6 +101,8 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
         // ahead. Put the volume there so the tool carves and the touch pulse fires.
         .args(["--volume-at", "0.2,1.3,-0.58"])
         .args(["--frames", &frames, "--record", "rec.jsonl"])
+        // A budget no frame meets: every knob turned (asserted below).
+        .args(["--frame-budget-ms", "0.01"])
         // Validation off by the environment, on by the flag: `--validation` must win.
         .arg("--validation")
         .env("CAO_XR_VALIDATION", "0")
@@ -147,6 +149,13 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
         "{summary}"
     );
     assert!(stderr.contains("xr: session state FOCUSED"), "{context}");
+    // The frame budget took the longest step, foveated, and drew the eyes into the lowest
+    // part of the swapchain images it takes, which Monado composited (the layer's image
+    // rectangle) without a validation message.
+    assert!(
+        stderr.contains("frame budget: step x3.00, foveated, scale 0.50"),
+        "{context}"
+    );
     // The tool touched tissue once: one haptic pulse, on the first frame it clipped.
     assert!(summary.contains("haptic pulses 1"), "{summary}\n{context}");
 
