@@ -72,11 +72,14 @@ layout(std430, set = 0, binding = 20) readonly buffer ClipBricks {
 // Which eye (layer of the stereo target) this draw renders, and its pass (src/render/mod.rs
 // Foveation): 0, every pixel cast; 1, the coarse pass of a foveated eye, each pixel standing for
 // a block of `scale` x `scale` pixels of the eye, whose ray it casts through the block's centre;
-// 2, the full pass of a foveated eye: pixels within `radius` (pixels) of the eye's centre cast
-// as in pass 0, the others take the coarse pass's colour and depth, interpolated. `record`: the
+// 2, the full pass of a foveated eye: pixels within `radius` (pixels) of `centre` (the gaze or
+// the lens centre, src/render/mod.rs fovea_centre) cast as in pass 0, the others take the
+// coarse pass's colour and depth, interpolated. `record`: the
 // address of the first eye's record, which its pass 0 writes (RAY_RECORD) and the second eye's
 // reads (RAY_REPROJECT).
-layout(push_constant) uniform Eye { uint index; uint pass; float scale; float radius; uvec2 record; } eye;
+layout(push_constant) uniform Eye {
+    uint index; uint pass; float scale; float radius; uvec2 record; vec2 centre;
+} eye;
 // The first eye's record, per pixel (rows of viewport.x): its colour (RGBA8) and the view
 // depths (its clip w) where the ray's opacity reached DEPTH_ALPHA and REPROJECT_BACK_ALPHA (0:
 // never, or the ray did not end opaque).
@@ -571,7 +574,7 @@ void main() {
     // The pixel of the eye's image this ray goes through.
     vec2 pixel = eye.pass == 1u ? gl_FragCoord.xy * eye.scale : gl_FragCoord.xy;
     if (eye.pass != 0u) {
-        float r = length(pixel - 0.5 * frame.viewport.xy);
+        float r = length(pixel - eye.centre);
         if (eye.pass == 2u && r > eye.radius) {
             vec2 texel = pixel / eye.scale / vec2(textureSize(coarse_color, 0).xy);
             vec3 uvw = vec3(texel, float(v));

@@ -1544,6 +1544,11 @@ fn xr(a: XrArgs, validation: bool) -> Result<()> {
         if s.hand_tracking { "on" } else { "off" },
         s.hand_frames
     );
+    println!(
+        "eye gaze: {}, tracked in {} frames",
+        if s.eye_gaze { "on" } else { "off" },
+        s.gaze_frames
+    );
     Ok(())
 }
 

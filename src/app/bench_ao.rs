@@ -67,6 +67,7 @@ fn pictures(
                 ao: Some(ao),
                 bleeding: None,
                 inset: None,
+                gaze: None,
             };
             let size = (VIEW_SIZE, VIEW_SIZE);
             let img = hr.render(tex, &frame, size, &RenderSettings::default())?;

@@ -1158,6 +1158,7 @@ impl FrameLoop {
                 inset: inset
                     .as_ref()
                     .and_then(|i| i.binding(volume, &scene.volume)),
+                gaze: input.gaze.map(|g| g.orientation * glam::Vec3::NEG_Z),
             };
             let mut settings = *settings;
             settings.iso = scene.iso;

@@ -154,6 +154,7 @@ impl DesktopInput {
             views,
             hands,
             joints: [None; 2],
+            gaze: None,
         }
     }
 }

@@ -44,6 +44,10 @@ pub struct FrameInput {
     /// overlay and recorded; `hands` already holds what they mean ([`hands::HandGesture`]).
     #[serde(default)]
     pub joints: [Option<hands::HandJoints>; 2],
+    /// Where the eyes look (XR_EXT_eye_gaze_interaction's gaze pose: along its -Z), where the
+    /// headset tracks them; the foveated ray cast centres on it.
+    #[serde(default)]
+    pub gaze: Option<Pose>,
 }
 
 impl FrameInput {
@@ -67,6 +71,7 @@ impl FrameInput {
             views,
             hands: [HandInput::default(); 2],
             joints: [None; 2],
+            gaze: None,
         }
     }
 }

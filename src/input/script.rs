@@ -262,6 +262,7 @@ pub fn generate(kind: ScriptKind, params: &ScriptParams) -> Vec<FrameInput> {
                 views: stage.views,
                 hands,
                 joints,
+                gaze: None,
             }
         })
         .collect()

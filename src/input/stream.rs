@@ -9,13 +9,14 @@
 //! (each object is on one line in a file; wrapped here)
 //!
 //! ```text
-//! {"format":"cao-xr-pose-stream","version":3,"units":"m","reference_space":"STAGE",
+//! {"format":"cao-xr-pose-stream","version":4,"units":"m","reference_space":"STAGE",
 //!  "view_configuration":"PRIMARY_STEREO","source":"script:tremor","description":"..."}
 //! {"t":0.0,"views":[{"pose":{"p":[x,y,z],"q":[x,y,z,w]},"fov":[l,r,u,d]},{..}],
 //!  "hands":[{"tracked":true,"grip":{"p":..,"q":..},"aim":{..},"grip_value":0.0,"trigger":1.0,
 //!            "primary":false,"secondary":false,"menu":false,"stick_click":false,
 //!            "stick":[0.0,0.0]},{..}],
-//!  "joints":[null,{"p":[[x,y,z] x26],"q":[[x,y,z,w] x26],"r":[r x26]}]}
+//!  "joints":[null,{"p":[[x,y,z] x26],"q":[[x,y,z,w] x26],"r":[r x26]}],
+//!  "gaze":{"p":[x,y,z],"q":[x,y,z,w]}}
 //! ```
 //!
 //! The wire format is private serde structs mapped to and from [`FrameInput`], so the in-memory
@@ -41,7 +42,7 @@ use std::time::Duration;
 /// The header's `format` string: what makes a file a pose stream.
 pub const FORMAT: &str = "cao-xr-pose-stream";
 /// The stream version this build writes and the newest it reads.
-pub const VERSION: u64 = 3;
+pub const VERSION: u64 = 4;
 /// Positions are in metres (OpenXR's unit).
 pub const UNITS: &str = "m";
 /// Poses are in OpenXR's STAGE space: floor-level origin, +Y up.
@@ -259,6 +260,21 @@ struct WireFrame {
     /// Tracked hand joints per hand, or null: required from version 3 on, absent before.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     joints: Option<[Option<WireJoints>; 2]>,
+    /// The eyes' gaze pose (looking along its -Z), or null: required from version 4 on, absent
+    /// before (the outer None).
+    #[serde(
+        default,
+        deserialize_with = "present",
+        skip_serializing_if = "Option::is_none"
+    )]
+    gaze: Option<Option<WirePose>>,
+}
+
+/// A field that is there, null or not (serde's default reads a null as absent).
+fn present<'de, D: serde::Deserializer<'de>, T: Deserialize<'de>>(
+    d: D,
+) -> Result<Option<T>, D::Error> {
+    T::deserialize(d).map(Some)
 }
 
 /// One hand's 26 joints (XR_EXT_hand_tracking's order): positions, orientations [x,y,z,w] and
@@ -398,6 +414,7 @@ impl From<&FrameInput> for WireFrame {
                     r: j.radii.iter().map(|&r| F32(r)).collect(),
                 })
             })),
+            gaze: Some(f.gaze.as_ref().map(WirePose::from)),
         }
     }
 }
@@ -457,6 +474,7 @@ impl From<&WireFrame> for FrameInput {
             }),
             // Filled in by parse_frame, which can say what is wrong with them.
             joints: [None; 2],
+            gaze: w.gaze.as_ref().and_then(|g| g.as_ref().map(Pose::from)),
         }
     }
 }
@@ -607,6 +625,9 @@ pub(super) fn check_frame(
         in_range(|| format!("hands[{i}].trigger"), b.trigger, 0.0, 1.0)?;
         in_range(|| format!("hands[{i}].stick[0]"), b.thumbstick.x, -1.0, 1.0)?;
         in_range(|| format!("hands[{i}].stick[1]"), b.thumbstick.y, -1.0, 1.0)?;
+    }
+    if let Some(g) = f.gaze {
+        f.gaze = Some(check_pose("gaze", g)?);
     }
     for (i, j) in f.joints.iter_mut().enumerate() {
         let Some(j) = j else { continue };
@@ -928,6 +949,20 @@ fn parse_frame(
         }
         _ => {}
     }
+    match (version, &wire.gaze) {
+        (1..=3, Some(_)) => {
+            return Err(LineError::Schema(format!(
+                "gaze is a version 4 field, but the header says version {version}"
+            )))
+        }
+        (4.., None) => {
+            return Err(LineError::Schema(
+                "missing field `gaze` (required from version 4 on; null without eye tracking)"
+                    .into(),
+            ))
+        }
+        _ => {}
+    }
     check_frame(frame, previous)
 }
 
@@ -1064,6 +1099,12 @@ mod tests {
                         None,
                         (i % 2 == 0).then(|| super::super::hands::synthetic_hand(head, 0.03, 0.05)),
                     ],
+                    gaze: (i % 3 == 1).then(|| Pose {
+                        position: head.position,
+                        orientation: head.orientation
+                            * Quat::from_rotation_y(rng.range(-0.4, 0.4))
+                            * Quat::from_rotation_x(rng.range(-0.3, 0.3)),
+                    }),
                 }
             })
             .collect()
@@ -1238,12 +1279,12 @@ mod tests {
             }
             err_str(&format!("{h}\n{frame}\n"))
         };
-        let e = with("4");
-        assert_eq!(e.problem(), Some(&LineError::NewerVersion { found: 4 }));
+        let e = with("5");
+        assert_eq!(e.problem(), Some(&LineError::NewerVersion { found: 5 }));
         let msg = e.to_string();
         assert!(msg.contains("line 1"), "{msg}");
         assert!(
-            msg.contains("version 4") && msg.contains("version 3"),
+            msg.contains("version 5") && msg.contains("version 4"),
             "{msg}"
         );
         assert_eq!(with("none").problem(), Some(&LineError::MissingVersion));
@@ -1251,7 +1292,7 @@ mod tests {
         assert_eq!(with("0").problem(), Some(&LineError::VersionZero));
 
         // And the writer will not produce one either.
-        for v in [1, 2, 4] {
+        for v in [1, 3, 5] {
             let mut h = StreamHeader::new("x", "");
             h.version = v;
             let e = PoseStreamWriter::new(Vec::new(), &h).err().unwrap();
@@ -1269,8 +1310,9 @@ mod tests {
             h["version"] = version.into();
             h
         };
-        // A version 1 frame has no stick_click (nor joints): it reads as not pressed.
+        // A version 1 frame has no stick_click (nor joints, nor gaze): it reads as not pressed.
         v.as_object_mut().unwrap().remove("joints");
+        v.as_object_mut().unwrap().remove("gaze");
         for h in v["hands"].as_array_mut().unwrap() {
             h.as_object_mut().unwrap().remove("stick_click");
         }
@@ -1293,7 +1335,9 @@ mod tests {
         let text = format!("{}\n{}\n", header_line(), frame_line(&frames[0]));
         let (_, back) = read_str(&text).unwrap();
         assert_eq!(back[0], frames[0], "joints round trip bit for bit");
+        // A version 3 frame: no gaze.
         let mut v: serde_json::Value = serde_json::from_str(&frame_line(&frames[0])).unwrap();
+        v.as_object_mut().unwrap().remove("gaze");
         let with_header = |version: u64, v: &serde_json::Value| {
             let mut h: serde_json::Value = serde_json::from_str(&header_line()).unwrap();
             h["version"] = version.into();
@@ -1313,6 +1357,38 @@ mod tests {
         v.as_object_mut().unwrap().remove("joints");
         let e = err_str(&with_header(3, &v)).to_string();
         assert!(e.contains("missing field `joints`"), "{e}");
+    }
+
+    #[test]
+    fn version_4_carries_the_gaze_exactly_and_earlier_versions_do_not_know_it() {
+        let frames = random_frames(3, 12);
+        assert!(frames[1].gaze.is_some() && frames[0].gaze.is_none());
+        let text = format!(
+            "{}\n{}\n{}\n",
+            header_line(),
+            frame_line(&frames[0]),
+            frame_line(&frames[1])
+        );
+        let (_, back) = read_str(&text).unwrap();
+        assert_eq!(back[..], frames[..2], "the gaze round trips bit for bit");
+        let with_header = |version: u64, v: &serde_json::Value| {
+            let mut h: serde_json::Value = serde_json::from_str(&header_line()).unwrap();
+            h["version"] = version.into();
+            format!("{h}\n{v}\n")
+        };
+        let mut v: serde_json::Value = serde_json::from_str(&frame_line(&frames[1])).unwrap();
+        let e = err_str(&with_header(3, &v)).to_string();
+        assert!(e.contains("gaze is a version 4 field"), "{e}");
+        v["gaze"]["q"][3] = 2.0.into();
+        let e = err_str(&with_header(4, &v)).to_string();
+        assert!(e.contains("gaze.q"), "{e}");
+        v.as_object_mut().unwrap().remove("gaze");
+        let e = err_str(&with_header(4, &v)).to_string();
+        assert!(e.contains("missing field `gaze`"), "{e}");
+        // A null gaze is a frame without eye tracking.
+        v["gaze"] = serde_json::Value::Null;
+        let (_, back) = read_str(&with_header(4, &v)).unwrap();
+        assert_eq!(back[0].gaze, None);
     }
 
     #[test]

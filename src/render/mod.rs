@@ -203,6 +203,26 @@ impl std::str::FromStr for Foveation {
     }
 }
 
+/// The pixel a foveated eye keeps its full rate around (as gl_FragCoord, in an image of `size`
+/// pixels): where the gaze direction `gaze` (world) meets the image, else its lens centre, the
+/// point straight ahead (the image's centre only where the field of view is symmetric, as a
+/// desktop's is; a headset's eyes look through off-centre lenses). A gaze pointing sideways or
+/// back falls back to the lens centre; one beyond the image is held at its border.
+pub fn fovea_centre(view: &View, gaze: Option<Vec3>, (w, h): (u32, u32)) -> [f32; 2] {
+    let f = &view.fov;
+    let [l, r, u, d] = [f.angle_left, f.angle_right, f.angle_up, f.angle_down].map(f32::tan);
+    // The direction's tangents in the eye's frame (-Z ahead, +Y up); 0, 0 straight ahead.
+    let (tx, ty) = gaze
+        .map(|g| view.pose.orientation.inverse() * g)
+        .filter(|e| e.z < -1e-3 * e.length())
+        .map_or((0.0, 0.0), |e| (e.x / -e.z, e.y / -e.z));
+    let (w, h) = (w as f32, h as f32);
+    [
+        (w * (tx - l) / (r - l)).clamp(0.0, w),
+        (h * (u - ty) / (u - d)).clamp(0.0, h),
+    ]
+}
+
 /// The colour a safety margin glows in: the amber a tool inside a margin is drawn in.
 pub const GLOW_COLOUR: [f32; 3] = [1.0, 0.62, 0.1];
 
@@ -1090,6 +1110,8 @@ struct EyePush {
     radius: f32,
     /// The first eye's record's address (written with RAY_RECORD, read with RAY_REPROJECT).
     record: [u32; 2],
+    /// The foveation's centre, in pixels ([`fovea_centre`]).
+    centre: [f32; 2],
 }
 
 /// Bytes per pixel of the first eye's record (raycast.frag's EyeRecord): its colour and the
@@ -1140,6 +1162,9 @@ pub struct FrameViews<'a> {
     pub bleeding: Option<&'a Buffer>,
     /// A part of the volume at full resolution, where the rest is shown downsampled.
     pub inset: Option<InsetBinding<'a>>,
+    /// Where the eyes look (a direction in the world), which a foveated frame centres on;
+    /// None: each eye's lens centre ([`fovea_centre`]).
+    pub gaze: Option<Vec3>,
 }
 
 /// The full-resolution inset of a downsampled volume ([`crate::app::inset`]): its scalars and
@@ -1774,6 +1799,7 @@ impl Renderer {
             scale: coarse.map_or(1.0, |(_, f)| f.factor as f32),
             radius: coarse.map_or(0.0, |(_, f)| f.radius * half_diagonal),
             record: record.map_or([0; 2], |r| r.0),
+            centre: fovea_centre(&views[index as usize], frame.gaze, (width, height)),
         };
         if let Some((c, _)) = coarse {
             c.cmd_begin(cmd);
@@ -1869,6 +1895,65 @@ mod tests {
                 && e.contains("--downsample 3"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn the_fovea_is_where_the_gaze_meets_the_image_or_the_lens_centre() {
+        use crate::space::{symmetric_fov, Fov, Pose};
+        use glam::{Quat, Vec4Swizzles};
+        let size = (2016, 2240);
+        // A headset's left eye: more field outwards (left) and downwards than in and up.
+        let view = View {
+            pose: Pose {
+                position: Vec3::new(-0.03, 1.6, 0.1),
+                orientation: Quat::from_rotation_y(0.4) * Quat::from_rotation_x(-0.2),
+            },
+            fov: Fov {
+                angle_left: -0.94,
+                angle_right: 0.70,
+                angle_up: 0.80,
+                angle_down: -0.92,
+            },
+        };
+        // Where a world point lands in the image, as the ray caster maps pixels to rays.
+        let pixel_of = |p: Vec3| {
+            let c = view.view_proj() * p.extend(1.0);
+            let ndc = c.xy() / c.w;
+            [
+                (ndc.x * 0.5 + 0.5) * size.0 as f32,
+                (ndc.y * 0.5 + 0.5) * size.1 as f32,
+            ]
+        };
+        let close = |a: [f32; 2], b: [f32; 2]| (a[0] - b[0]).hypot(a[1] - b[1]) < 0.05;
+        let eye = view.pose.position;
+        for local in [
+            Vec3::new(0.3, -0.2, -1.0),
+            Vec3::new(-0.7, 0.5, -0.8),
+            Vec3::new(0.05, 0.6, -1.2),
+        ] {
+            let target = eye + view.pose.orientation * local;
+            let (at, want) = (
+                fovea_centre(&view, Some(target - eye), size),
+                pixel_of(target),
+            );
+            assert!(close(at, want), "{target}: {at:?} against {want:?}");
+        }
+        // No gaze: the lens centre, the point straight ahead, off the image's centre here.
+        let ahead = eye + view.pose.orientation * Vec3::NEG_Z;
+        let lens = fovea_centre(&view, None, size);
+        assert!(close(lens, pixel_of(ahead)), "{lens:?}");
+        assert!(lens[0] > 1100.0 && lens[1] < 1100.0, "{lens:?}");
+        // A gaze behind the eye: the lens centre; one far to the side: held at the border.
+        let back = view.pose.orientation * Vec3::Z;
+        assert_eq!(fovea_centre(&view, Some(back), size), lens);
+        let side = view.pose.orientation * Vec3::new(-1.0, 0.0, -0.05);
+        assert_eq!(fovea_centre(&view, Some(side), size)[0], 0.0);
+        // A symmetric field of view: the image's centre exactly, as before gaze was known.
+        let desk = View {
+            fov: symmetric_fov(0.6),
+            ..view
+        };
+        assert_eq!(fovea_centre(&desk, None, (96, 80)), [48.0, 40.0]);
     }
 
     #[test]

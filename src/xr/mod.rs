@@ -16,6 +16,7 @@ pub mod bindings;
 pub mod blend;
 pub mod conversions;
 pub mod debug;
+pub mod gaze;
 pub mod session;
 pub mod swapchain;
 pub mod vulkan;
@@ -99,6 +100,10 @@ pub struct XrSummary {
     /// many frames a tracked hand drove the interaction with its joints.
     pub hand_tracking: bool,
     pub hand_frames: usize,
+    /// Whether XR_EXT_eye_gaze_interaction is in use, and in how many frames it tracked the
+    /// gaze (the foveation's centre).
+    pub eye_gaze: bool,
+    pub gaze_frames: usize,
     /// The environment blend mode submitted with, and the runtime's offer (its order).
     pub blend: String,
     pub blend_offered: Vec<String>,
@@ -142,6 +147,8 @@ pub(crate) fn open_instance() -> Result<(xr::Entry, xr::Instance, xr::ExtensionS
     exts.ext_hand_tracking = available.ext_hand_tracking;
     // Its interaction profile (pinch_ext, grasp_ext), for controllers/bindings/ext_hand_interaction.json.
     exts.ext_hand_interaction = available.ext_hand_interaction;
+    // Where the eyes look, for the foveation's centres.
+    exts.ext_eye_gaze_interaction = available.ext_eye_gaze_interaction;
     // Passthrough cameras composited under the volume (Quest, Pico), for --passthrough.
     exts.fb_passthrough = available.fb_passthrough;
     let instance = entry

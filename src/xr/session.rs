@@ -10,7 +10,7 @@ use super::swapchain::{
     create_depth_swapchain, create_swapchain, layer_rect, record_blit, record_depth_copy, Swapchain,
 };
 use super::{
-    actions, bindings, debug, open_instance, vulkan, Result, XrError, XrOptions, XrSummary,
+    actions, bindings, debug, gaze, open_instance, vulkan, Result, XrError, XrOptions, XrSummary,
     VIEW_TYPE,
 };
 use crate::gpu::{Gpu, GpuOptions};
@@ -170,6 +170,8 @@ pub struct XrSession<'a> {
     swapchain: Swapchain,
     depth_swapchain: Option<Swapchain>,
     spaces: actions::HandSpaces,
+    /// XR_EXT_eye_gaze_interaction's action and its space, where the system tracks the eyes.
+    gaze: Option<(gaze::EyeGaze, gaze::GazeSpace)>,
     base: xr::Space,
     stream: xr::FrameStream<xr::Vulkan>,
     waiter: xr::FrameWaiter,
@@ -225,6 +227,7 @@ impl<'a> XrSession<'a> {
         )?;
         let actions = actions::HandActions::new(instance, &profiles)?;
         eprintln!("xr: bindings for {}", actions.accepted.join(", "));
+        let eye_gaze = gaze::EyeGaze::new(instance, system, runtime.exts.ext_eye_gaze_interaction)?;
         // SAFETY: the handles are the live instance, physical device and device of `gpu`, which
         // XrRuntime::create_gpu made through this runtime with queue 0 of `queue_family`; the
         // caller keeps `gpu` alive longer than the session (headset::run does).
@@ -240,8 +243,17 @@ impl<'a> XrSession<'a> {
                 },
             )?
         };
-        session.attach_action_sets(&[&actions.set])?;
+        let mut sets = vec![&actions.set];
+        sets.extend(eye_gaze.as_ref().map(|g| &g.set));
+        session.attach_action_sets(&sets)?;
         let spaces = actions.spaces(&session)?;
+        let gaze = match eye_gaze {
+            Some(g) => {
+                let space = g.space(&session)?;
+                Some((g, space))
+            }
+            None => None,
+        };
         let (space, space_name) = if session
             .enumerate_reference_spaces()?
             .contains(&xr::ReferenceSpaceType::STAGE)
@@ -302,6 +314,7 @@ impl<'a> XrSession<'a> {
         if let Some(why) = &depth_missing {
             eprintln!("xr: no depth layer: {why}");
         }
+        let eye_gaze_ok = gaze.is_some();
         let hand_trackers = hand_trackers(runtime, &session);
         let hand_trackers_ok = hand_trackers.is_some();
         let fb_passthrough = if blend.fb_passthrough {
@@ -324,6 +337,7 @@ impl<'a> XrSession<'a> {
             swapchain,
             depth_swapchain,
             spaces,
+            gaze,
             base,
             stream,
             waiter,
@@ -339,6 +353,7 @@ impl<'a> XrSession<'a> {
                 space: space_name.into(),
                 depth_missing,
                 hand_tracking: hand_trackers_ok,
+                eye_gaze: eye_gaze_ok,
                 blend: blend.name(),
                 blend_offered: offered.iter().map(|m| m.name().to_string()).collect(),
                 ..Default::default()
@@ -423,8 +438,13 @@ impl<'a> XrSession<'a> {
             self.stream.end(time, self.blend.blend.to_xr(), &[])?;
             return Ok(None);
         }
-        self.session
-            .sync_actions(&[xr::ActiveActionSet::new(&self.actions.set)])?;
+        let mut active = vec![xr::ActiveActionSet::new(&self.actions.set)];
+        active.extend(
+            self.gaze
+                .as_ref()
+                .map(|g| xr::ActiveActionSet::new(&g.0.set)),
+        );
+        self.session.sync_actions(&active)?;
         let (flags, located) = self.session.locate_views(VIEW_TYPE, time, &self.base)?;
         let Some(views) = frame_views(flags, &located, &mut self.last_views) else {
             self.stream.end(time, self.blend.blend.to_xr(), &[])?;
@@ -457,6 +477,11 @@ impl<'a> XrSession<'a> {
         if hands.iter().any(|h| h.tracked) {
             self.summary.tracked_frames += 1;
         }
+        let gaze = match &self.gaze {
+            Some((g, space)) => g.read(&self.session, space, &self.base, time)?,
+            None => None,
+        };
+        self.summary.gaze_frames += gaze.is_some() as usize;
         let start = *self.t0.get_or_insert(time.as_nanos());
         Ok(Some(XrFrame {
             time,
@@ -465,6 +490,7 @@ impl<'a> XrSession<'a> {
                 views,
                 hands,
                 joints,
+                gaze,
             },
         }))
     }

@@ -80,6 +80,7 @@ fn render(
         ao: Some(&cao.ao),
         bleeding: cao.method().bleeding(),
         inset: None,
+        gaze: None,
     };
     hr.render(&tex, &frame, (64, 64), &RenderSettings::default())
         .unwrap()

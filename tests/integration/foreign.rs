@@ -213,6 +213,7 @@ fn render(vol: &Volume, tf: &TransferFunction, size: u32) -> StereoImage {
         ao: None,
         bleeding: None,
         inset: None,
+        gaze: None,
     };
     let settings = RenderSettings {
         use_ao: false,

@@ -57,6 +57,7 @@ fn render(gpu: &Gpu, overlays: &[Vec<OverlayItem>]) -> Vec<StereoImage> {
         ao: None,
         bleeding: None,
         inset: None,
+        gaze: None,
     };
     let settings = RenderSettings::default();
     tex.prepare(&settings).unwrap();

@@ -45,6 +45,7 @@ fn render(vol: &Volume, settings: &RenderSettings) -> (StereoImage, [View; 2]) {
         ao: None,
         bleeding: None,
         inset: None,
+        gaze: None,
     };
     let img = hr.render(&tex, &frame, (W, W), settings).unwrap();
     drop((tex, hr));
@@ -147,6 +148,7 @@ fn a_reprojected_second_eye_is_close_to_its_own_rays() {
         ao: None,
         bleeding: None,
         inset: None,
+        gaze: None,
     };
     let n = 256u32;
     let full = hr

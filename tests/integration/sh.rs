@@ -360,6 +360,7 @@ fn constant_environment_lights_with_albedo_times_light() {
         ao: None,
         bleeding: None,
         inset: None,
+        gaze: None,
     };
     // Albedo alone: ambient 1, no diffuse or specular term, no AO; point samples, so that
     // the two renders' colours go through the same arithmetic.

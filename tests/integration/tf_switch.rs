@@ -667,6 +667,91 @@ fn a_frame_budget_lengthens_the_step_and_leaves_the_ao_alone() {
     common::assert_no_validation_messages(&gpu);
 }
 
+/// A contextual loop of `size` pixels per eye.
+fn sized_loop(
+    gpu: &Gpu,
+    vol: &Arc<Volume>,
+    tfs: &[TransferFunction],
+    size: (u32, u32),
+) -> FrameLoop {
+    let mut fl = FrameLoop::new(
+        gpu,
+        Arc::clone(vol),
+        tfs.to_vec(),
+        AoConfig::from(PARAMS),
+        size,
+        InteractionSettings::default(),
+        false,
+    )
+    .unwrap();
+    fl.mode = Mode::Contextual;
+    fl
+}
+
+/// A foveated frame spends its full rate where the eyes look: within the radius around the
+/// gaze's pixel in each eye every pixel is the unfoveated frame's, bit for bit, and around the
+/// lens centre, away from the gaze, the coarse rays show.
+#[test]
+fn a_foveated_frame_follows_the_gaze() {
+    use cao_xr::render::{fovea_centre, Foveation};
+    let gpu = common::gpu();
+    let vol = Arc::new(phantom::head(N));
+    let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
+    let size = (96u32, 96u32);
+    let (mut full, mut foveated) = (
+        sized_loop(&gpu, &vol, &tfs, size),
+        sized_loop(&gpu, &vol, &tfs, size),
+    );
+    let radius = 0.2;
+    foveated.settings.foveation = Some(Foveation { radius, factor: 3 });
+    let views = default_stereo_views(&vol, &Placement::default(), 0.064);
+    // Up and to the right of straight ahead.
+    let head = views[0].pose.orientation;
+    let gaze = head * Vec3::new(0.2, 0.15, -1.0).normalize();
+    let mut input = FrameInput::without_hands(0.0, views);
+    input.gaze = Some(Pose {
+        position: views[0].pose.position.lerp(views[1].pose.position, 0.5),
+        orientation: glam::Quat::from_rotation_arc(Vec3::NEG_Z, gaze),
+    });
+    let c = Placement::default().center;
+    let run = |fl: &mut FrameLoop| {
+        fl.scene.tools = vec![tool(c, 0, true)];
+        fl.frame(&input).unwrap().image
+    };
+    let (a, b) = (run(&mut full), run(&mut foveated));
+    let r = radius * 0.5 * (size.0 as f32).hypot(size.1 as f32);
+    let (w, h) = (size.0 as usize, size.1 as usize);
+    for (eye, view) in views.iter().enumerate() {
+        let at = fovea_centre(view, Some(gaze), size);
+        let lens = [0.5 * size.0 as f32, 0.5 * size.1 as f32];
+        assert!(
+            (at[0] - lens[0]).hypot(at[1] - lens[1]) > 1.5 * r,
+            "eye {eye}: the gaze {at:?} is too near the centre"
+        );
+        let (mut inside, mut near_lens_differs) = (0, false);
+        for y in 0..h {
+            for x in 0..w {
+                let p = [x as f32 + 0.5, y as f32 + 0.5];
+                let from = |q: [f32; 2]| (p[0] - q[0]).hypot(p[1] - q[1]);
+                let i = (y * w + x) * 4;
+                let (pa, pb) = (&a.rgba[eye][i..i + 4], &b.rgba[eye][i..i + 4]);
+                if from(at) <= r - 1.0 {
+                    assert_eq!(pa, pb, "eye {eye}, pixel {x},{y} near the gaze");
+                    inside += 1;
+                } else if from(lens) <= r {
+                    near_lens_differs |= pa != pb;
+                }
+            }
+        }
+        assert!(inside > 400, "eye {eye}: {inside} pixels at full rate");
+        assert!(
+            near_lens_differs,
+            "eye {eye}: the lens centre is at full rate"
+        );
+    }
+    common::assert_no_validation_messages(&gpu);
+}
+
 /// A render scale below 1 draws each eye into the top-left part of its image, and every pixel
 /// there is the one a target of that size holds, bit for bit: with every pixel cast, foveated,
 /// and with the second eye reprojected.
@@ -676,20 +761,7 @@ fn a_render_scaled_frame_is_the_frame_of_a_smaller_target() {
     let gpu = common::gpu();
     let vol = Arc::new(phantom::head(N));
     let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
-    let sized = |size: (u32, u32)| {
-        let mut fl = FrameLoop::new(
-            &gpu,
-            Arc::clone(&vol),
-            tfs.clone(),
-            AoConfig::from(PARAMS),
-            size,
-            InteractionSettings::default(),
-            false,
-        )
-        .unwrap();
-        fl.mode = Mode::Contextual;
-        fl
-    };
+    let sized = |size| sized_loop(&gpu, &vol, &tfs, size);
     let c = Placement::default().center;
     let foveated = Foveation {
         radius: 0.3,

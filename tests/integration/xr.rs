@@ -138,6 +138,17 @@ fn monado_session_reaches_focused_submits_frames_and_records_the_hands() {
         stderr.contains("xr: no hand tracking: the system does not support it"),
         "{context}"
     );
+    // Monado offers XR_EXT_eye_gaze_interaction, but its simulated HMD tracks no eyes (the
+    // system's property, read through the chained structure): the foveation centres on the
+    // lenses, and the session says so.
+    assert!(
+        stderr.contains("xr: no eye gaze: the system does not track the eyes"),
+        "{context}"
+    );
+    assert!(
+        stdout.contains("eye gaze: off, tracked in 0 frames"),
+        "{context}"
+    );
     // Monado's simulated HMD offers OPAQUE only; auto takes it.
     assert!(
         summary.contains("blend opaque (offered opaque)"),

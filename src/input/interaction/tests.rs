@@ -16,6 +16,7 @@ fn frame(time: f64, left: HandInput, right: HandInput) -> FrameInput {
         views: FrameInput::head_views(head, DEFAULT_IPD, symmetric_fov(0.6)),
         hands: [left, right],
         joints: [None; 2],
+        gaze: None,
     }
 }
 
