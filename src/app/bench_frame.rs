@@ -272,6 +272,8 @@ pub fn bench_frame(
     fl.settings.foveation = None;
     let reprojected = reprojection_rows(&mut fl, &sweep, runs)?;
     fl.settings.reproject = false;
+    render_scale_rows(&mut fl, &sweep, runs)?;
+    fl.set_render_scale(1.0);
     ablation_rows(&mut fl, &sweep, runs)?;
 
     let lao = LaoGpu::new(gpu)?;
@@ -517,9 +519,93 @@ fn reprojection_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Re
     ])
 }
 
+/// The render scales the frame budget takes, measured: the sweep's ray cast of both eyes at
+/// each (interleaved `runs` times, medians over all frames), and the last frame's left eye
+/// enlarged back to full size (bilinear, as a compositor or the window's blit does) against the
+/// full-size picture.
+fn render_scale_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Result<()> {
+    let scales = [1.0, 0.75, super::budget::MIN_RENDER_SCALE];
+    let mut ms = vec![Vec::new(); scales.len()];
+    let mut pictures = vec![None; scales.len()];
+    for _ in 0..runs.max(1) {
+        for (k, &s) in scales.iter().enumerate() {
+            fl.set_render_scale(s);
+            let (stats, _) = loop_sweep(fl, sweep, false)?;
+            ms[k].extend(
+                stats
+                    .iter()
+                    .map(|s| s.passes.eye_ms[0] + s.passes.eye_ms[1]),
+            );
+            let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
+            fl.submit(&FrameInput::without_hands(0.0, views), true, |_, _| {})?;
+            pictures[k] = fl.flush()?.and_then(|r| r.image);
+        }
+    }
+    let (w, h) = (fl.target().width, fl.target().height);
+    let full = |p: &crate::render::StereoImage| {
+        let luma = crate::render::compare::luma(&p.rgba[0]);
+        enlarged(&luma, (p.width, p.height), (w, h))
+    };
+    let reference = pictures[0].as_ref().map(full);
+    let ms: Vec<f64> = ms.into_iter().map(|mut m| median(&mut m)).collect();
+    for (k, &s) in scales.iter().enumerate().skip(1) {
+        let psnr = match (&reference, pictures[k].as_ref().map(full)) {
+            (Some(a), Some(b)) => crate::render::compare::psnr(a, &b),
+            _ => f64::NAN,
+        };
+        println!(
+            "ray cast, both eyes, scale {s:<4} {:>7.2} ms  {:>5.2}x faster than {:.2} ms (each \
+             eye drawn at {s} of its size per axis; left eye enlarged back {psnr:.1} dB against \
+             full size; medians of {} interleaved run(s))",
+            ms[k],
+            ms[0] / ms[k],
+            ms[0],
+            runs.max(1)
+        );
+    }
+    Ok(())
+}
+
+/// `values` (`from` pixels, rows top-down) resampled to `to` pixels, bilinear between pixel
+/// centres (clamped at the border): what a blit with a linear filter makes of a smaller image.
+fn enlarged(values: &[f64], from: (u32, u32), to: (u32, u32)) -> Vec<f64> {
+    let (fw, fh) = (from.0 as usize, from.1 as usize);
+    let at = |x: usize, y: usize| values[y.min(fh - 1) * fw + x.min(fw - 1)];
+    let axis = |i: u32, n: u32, of: usize| {
+        let p = ((i as f64 + 0.5) * of as f64 / n as f64 - 0.5).max(0.0);
+        (p.floor() as usize, p.fract())
+    };
+    (0..to.1)
+        .flat_map(|y| (0..to.0).map(move |x| (x, y)))
+        .map(|(x, y)| {
+            let ((x0, fx), (y0, fy)) = (axis(x, to.0, fw), axis(y, to.1, fh));
+            let row = |y: usize| at(x0, y) * (1.0 - fx) + at(x0 + 1, y) * fx;
+            row(y0) * (1.0 - fy) + row(y0 + 1) * fy
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn enlarging_is_bilinear_between_pixel_centres() {
+        // The same size: unchanged.
+        let v: Vec<f64> = (0..12).map(|i| i as f64).collect();
+        assert_eq!(enlarged(&v, (4, 3), (4, 3)), v);
+        // A 2 x 1 ramp to 4 x 1: the outer pixels clamp, the inner ones are a quarter and
+        // three quarters of the way (pixel centres 0.25 and 0.75 of a source pixel apart).
+        assert_eq!(
+            enlarged(&[0.0, 4.0], (2, 1), (4, 1)),
+            vec![0.0, 1.0, 3.0, 4.0]
+        );
+        // Rows too.
+        assert_eq!(
+            enlarged(&[0.0, 8.0], (1, 2), (1, 4)),
+            vec![0.0, 2.0, 6.0, 8.0]
+        );
+    }
 
     #[test]
     fn padding_centres_the_volume_in_twice_the_grid_at_the_same_spacing() {

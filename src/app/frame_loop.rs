@@ -31,7 +31,7 @@ use crate::render::{
     StereoTarget, VolumeTextures, MAX_FRAMES_IN_FLIGHT,
 };
 use crate::scene::Scene;
-use crate::space::{world_from_tex, View};
+use crate::space::{world_from_tex, Pose, View};
 use crate::volume::distance::MarginField;
 use crate::volume::markups::Markups;
 use crate::volume::transfer::TransferFunction;
@@ -497,7 +497,7 @@ impl FrameLoop {
     /// around the tools, and its AO update for this frame's tools, submitted and waited for
     /// on its own. Where the update runs out of GPU memory (the tools' boxes grow what a frame
     /// holds) the box is made smaller, or given up.
-    fn update_inset(&mut self, views: &[View; 2]) -> Result<()> {
+    fn update_inset(&mut self, views: &[View; 2], gaze: Option<Pose>) -> Result<()> {
         let Some(inset) = self.inset.as_mut() else {
             return Ok(());
         };
@@ -516,7 +516,7 @@ impl FrameLoop {
         inset.set_protected(&self.scene.protected);
         // Cut again where the box should go (at once, or over the next frames), then the next
         // slab of a box being computed, then this frame's update of the box shown.
-        let centre = inset.wants_cut((tools, views), shown, placement);
+        let centre = inset.wants_cut((tools, views, gaze), shown, placement);
         let computing = inset.refining().is_some();
         let mut step = match centre {
             Some(c) if self.progressive_inset => inset.start_cut(&self.gpu, c),
@@ -968,7 +968,7 @@ impl FrameLoop {
             if retired.is_none() {
                 retired = self.retire()?;
             }
-            self.update_inset(&input.views)?;
+            self.update_inset(&input.views, input.gaze)?;
         }
         self.record_and_submit(input, read_back, after, signal, (t0, margins))?;
         if retired.is_none() && self.slots.flights.len() >= self.depth {

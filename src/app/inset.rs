@@ -17,7 +17,9 @@ use crate::ao::{AoConfig, AoMethod, LaoGpu};
 use crate::gpu::{Buffer, Gpu, GpuError, Image};
 use crate::render::InsetBinding;
 use crate::scene::Tool;
-use crate::space::{lps_from_local_mm, world_from_lps_point, world_from_tex, Placement, View};
+use crate::space::{
+    lps_from_local_mm, world_from_lps_point, world_from_tex, Placement, Pose, View,
+};
 use crate::volume::distance::MarginField;
 use crate::volume::transfer::TransferFunction;
 use crate::volume::Volume;
@@ -488,15 +490,15 @@ impl Inset {
         }
     }
 
-    /// Where the box should be for `tools` and the eyes' `views` over `shown` at `p`, when a
-    /// quarter of the box or more from where it is; None otherwise, and while a box is being
-    /// computed ([`Inset::start_cut`]). It goes where the cutting
-    /// tools are (their mean position), else where the tools the hands hold inside the volume
-    /// are, else where the eyes' centres meet what is shown (`Inset::gaze_point`); with none
-    /// of these it stays.
+    /// Where the box should be for `tools`, the eyes' `views` and their tracked `gaze` pose
+    /// (looking along its -Z) over `shown` at `p`, when a quarter of the box or more from where
+    /// it is; None otherwise, and while a box is being computed ([`Inset::start_cut`]). It goes
+    /// where the cutting tools are (their mean position), else where the tools the hands hold
+    /// inside the volume are, else where the gaze, or without one the eyes' lens centres, meets
+    /// what is shown (`Inset::gaze_point`); with none of these it stays.
     pub fn wants_cut(
         &self,
-        (tools, views): (&[Tool], &[View; 2]),
+        (tools, views, gaze): (&[Tool], &[View; 2], Option<Pose>),
         shown: &Volume,
         p: &Placement,
     ) -> Option<[f64; 3]> {
@@ -516,7 +518,10 @@ impl Inset {
             cutting
         };
         let mean = if points.is_empty() {
-            let (origin, dir) = centre_ray(views);
+            let (origin, dir) = gaze.map_or_else(
+                || centre_ray(views),
+                |g| (g.position, g.orientation * Vec3::NEG_Z),
+            );
             self.gaze_point(
                 tex_from_world.transform_point3(origin),
                 tex_from_world.transform_vector3(dir),

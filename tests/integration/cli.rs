@@ -1972,6 +1972,19 @@ fn bench_frame_prints_every_pass_and_every_ratio() {
         "{line}"
     );
     assert!(line.contains("bricks empty)"), "{line}");
+    // The frame budget's render scales: each measured, with its picture against full size.
+    for s in ["0.75", "0.5 "] {
+        let label = format!("ray cast, both eyes, scale {s}");
+        assert!(value(&label) > 0.0, "{text}");
+        let line = text.lines().find(|l| l.starts_with(&label)).unwrap();
+        let db: f64 = line
+            .split(" dB against full size")
+            .next()
+            .and_then(|l| l.rsplit(' ').next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("no PSNR in {line}"));
+        assert!(db.is_finite() && db > 10.0, "{line}");
+    }
 }
 
 #[test]

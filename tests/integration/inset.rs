@@ -125,7 +125,11 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         FrameInput::head_views(head, 0.064, fov)
     };
     let (looking, away) = (eyes(0.0), eyes(std::f32::consts::PI));
-    let near_corner = inset.wants_cut((&[held(Vec3::splat(0.07))], &looking), &vol, &placement);
+    let near_corner = inset.wants_cut(
+        (&[held(Vec3::splat(0.07))], &looking, None),
+        &vol,
+        &placement,
+    );
     let centre = near_corner.expect("a held tool inside the volume moves the box");
     assert!(
         centre.iter().all(|&c| !(12.0..=36.0).contains(&c)),
@@ -133,15 +137,19 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     );
     // Two hands far apart (more than the box): the box goes around the first, not between them.
     let apart = [held(Vec3::splat(0.07)), held(Vec3::splat(-0.07))];
-    let two = inset.wants_cut((&apart, &looking), &vol, &placement);
+    let two = inset.wants_cut((&apart, &looking, None), &vol, &placement);
     assert_eq!(two, near_corner, "two tools far apart");
-    let outside = inset.wants_cut((&[held(Vec3::new(0.4, 0.0, 0.0))], &away), &vol, &placement);
+    let outside = inset.wants_cut(
+        (&[held(Vec3::new(0.4, 0.0, 0.0))], &away, None),
+        &vol,
+        &placement,
+    );
     assert_eq!(outside, None);
     // With no tool inside, the box goes where the eyes' centres meet the head: a voxel the TF
     // shows, on the centre ray, off the volume's centre by more than a quarter of the box.
     let gaze = inset
         .wants_cut(
-            (&[held(Vec3::new(0.4, 0.0, 0.0))], &looking),
+            (&[held(Vec3::new(0.4, 0.0, 0.0))], &looking, None),
             &vol,
             &placement,
         )
@@ -162,8 +170,30 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         (0..3).any(|a| (gaze[a] - 24.0).abs() > 4.0),
         "{gaze:?} is the box's centre"
     );
-    let blind = inset.wants_cut((&[], &away), &vol, &placement);
+    let blind = inset.wants_cut((&[], &away, None), &vol, &placement);
     assert_eq!(blind, None, "eyes turned away leave the box");
+    // A tracked gaze, from the same eyes 4 cm lower towards the head's centre: the box goes
+    // where it meets the head, on the gaze ray and not on the centre ray.
+    let from = placement.center + Vec3::new(0.05, -0.04, 0.5);
+    let look = Pose {
+        position: from,
+        orientation: Quat::from_rotation_arc(Vec3::NEG_Z, (placement.center - from).normalize()),
+    };
+    let followed = inset
+        .wants_cut((&[], &away, Some(look)), &vol, &placement)
+        .expect("the gaze moves the box");
+    let tex = Vec3::from_array(std::array::from_fn(|a| followed[a] as f32 / dims[a]));
+    let world = cao_xr::space::world_from_tex(&vol, &placement).transform_point3(tex);
+    let dir = (placement.center - from).normalize();
+    let off_gaze = (world - from).cross(dir).length();
+    assert!(
+        off_gaze < 0.005,
+        "{followed:?} is {off_gaze} m off the gaze"
+    );
+    assert!(
+        (world - ray).cross(Vec3::Z).length() > 0.02,
+        "{followed:?} is on the centre ray"
+    );
     common::assert_no_validation_messages(&gpu);
 }
 
@@ -363,7 +393,7 @@ fn computed_over_frames(
         angle_down: -0.5,
     };
     let eyes = FrameInput::head_views(head, 0.064, fov);
-    let wanted = |inset: &Inset| inset.wants_cut((&[held], &eyes), vol, &placement);
+    let wanted = |inset: &Inset| inset.wants_cut((&[held], &eyes, None), vol, &placement);
     let there = wanted(&inset).expect("the held tool moves the box");
     let at_once = Inset::around(gpu, vol.clone(), config, (inner, there)).unwrap();
     let (_, crop) = at_once.crop_box().unwrap();
