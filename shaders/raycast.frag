@@ -451,13 +451,25 @@ Ray eye_ray(uint v, vec2 pixel) {
 }
 
 // The first eye's pixel coordinates (as its gl_FragCoord) of point c in its clip space.
+// The record is on this pass's grid: the eye's pixels (pass 0), or a foveated eye's coarse
+// pixels, one per block of eye.scale x eye.scale (pass 1), which also cast through their
+// centres; its texel coordinates are the eye's pixel coordinates over eye.scale.
+ivec2 record_size() {
+    return ivec2(ceil(frame.viewport.xy / eye.scale));
+}
+
+// The first eye's record texel coordinates (as its gl_FragCoord) of point c in its clip space.
 vec2 first_eye_pixel(vec4 c) {
-    return (c.xy / c.w * 0.5 + 0.5) * frame.viewport.xy;
+    return (c.xy / c.w * 0.5 + 0.5) * frame.viewport.xy / eye.scale;
 }
 
 uvec4 first_eye_texel(ivec2 q) {
-    return EyeRecord(eye.record).texels[q.y * int(frame.viewport.x) + q.x];
+    return EyeRecord(eye.record).texels[q.y * record_size().x + q.x];
 }
+
+// A record texel the first eye did not cast (a coarse pixel inside the full-rate centre): what
+// it saw there is unknown, and the second eye casts wherever its walk meets one.
+const float RECORD_UNKNOWN = -1.0;
 
 // The first eye's surface at its pixel coordinates p: the view depth and colour of the four
 // texels around p, bilinear, where all four show one opaque surface: each ray ended opaque and
@@ -472,9 +484,11 @@ bool first_eye_surface(vec2 p, out float w, out vec4 colour) {
     vec2 f = x - vec2(q);
     w = 0.0;
     colour = vec4(0.0);
-    if (any(lessThan(q, ivec2(0))) || any(greaterThanEqual(q + 1, ivec2(frame.viewport.xy)))) {
+    if (any(lessThan(q, ivec2(0))) || any(greaterThanEqual(q + 1, record_size()))) {
         return false;
     }
+    // The first eye's pixel footprint per unit of depth, on the record's grid.
+    float footprint = frame.viewport.w * eye.scale;
     float lo = 3.0e38;
     float hi = 0.0;
     vec3 c_lo = vec3(1.0);
@@ -485,7 +499,7 @@ bool first_eye_surface(vec2 p, out float w, out vec4 colour) {
         float front = uintBitsToFloat(r.y);
         float back = uintBitsToFloat(r.z);
         if (front <= 0.0 || back <= 0.0
-            || (back - front) * frame.background.w > REPROJECT_PARALLAX * frame.viewport.w * front * front) {
+            || (back - front) * frame.background.w > REPROJECT_PARALLAX * footprint * front * front) {
             return false;
         }
         vec2 w2 = mix(1.0 - f, f, vec2(o));
@@ -497,7 +511,7 @@ bool first_eye_surface(vec2 p, out float w, out vec4 colour) {
         lo = min(lo, front);
         hi = max(hi, front);
     }
-    return hi - lo <= REPROJECT_SLOPE * frame.viewport.w * hi
+    return hi - lo <= REPROJECT_SLOPE * footprint * hi
         && all(lessThanEqual(c_hi - c_lo, vec3(REPROJECT_CONTRAST)));
 }
 
@@ -523,7 +537,7 @@ bool reprojected(Ray r) {
     if (ca.w <= 0.0 || cb.w <= 0.0) return false;
     int n = int(ceil(length(first_eye_pixel(cb) - first_eye_pixel(ca)))) + 1;
     if (n > REPROJECT_MAX_MARCH) return false;
-    ivec2 size = ivec2(frame.viewport.xy);
+    ivec2 size = record_size();
     float s_front = 0.0;
     float s_behind = -1.0;
     // Whether every first-eye ray the walk passed saw nothing at all.
@@ -535,6 +549,7 @@ bool reprojected(Ray r) {
         if (any(lessThan(q, ivec2(0))) || any(greaterThanEqual(q, size))) return false;
         uvec4 texel = first_eye_texel(q);
         float front = uintBitsToFloat(texel.y);
+        if (front == RECORD_UNKNOWN) return false;
         clear = clear && (texel.x >> 24) == 0u;
         if (front > 0.0 && c.w >= front) {
             s_behind = s;
@@ -587,6 +602,11 @@ void main() {
         if (eye.pass == 1u && r + 2.0 * eye.scale < eye.radius) {
             out_color = vec4(0.0);
             gl_FragDepth = 1.0;
+            if (flag(RAY_RECORD)) {
+                ivec2 q = ivec2(gl_FragCoord.xy);
+                EyeRecord(eye.record).texels[q.y * record_size().x + q.x] =
+                    uvec4(0u, floatBitsToUint(RECORD_UNKNOWN), 0u, 0u);
+            }
             return;
         }
     }
@@ -889,7 +909,7 @@ void main() {
         // Only a ray that ended opaque shows a surface.
         if (alpha < OPAQUE_ALPHA && !flag(RAY_ISO)) w_back = 0.0;
         ivec2 q = ivec2(gl_FragCoord.xy);
-        EyeRecord(eye.record).texels[q.y * int(frame.viewport.x) + q.x] =
+        EyeRecord(eye.record).texels[q.y * record_size().x + q.x] =
             uvec4(packUnorm4x8(out_color), floatBitsToUint(w_front), floatBitsToUint(w_back), 0u);
     }
 }

@@ -471,14 +471,22 @@ fn foveation_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Resul
 }
 
 /// The sweep with both eyes cast and with the second eye reprojected from the first
-/// ([`crate::render::RenderSettings::reproject`]), interleaved `runs` times: two eyes against
-/// one for each (medians over all their frames), and the PSNR of the last frame's right eye
-/// reprojected against the same eye cast. Returns [ratio cast, ratio reprojected, PSNR dB].
+/// ([`crate::render::RenderSettings::reproject`]), unfoveated and foveated (the default rings),
+/// interleaved `runs` times: two eyes against one for each (medians over all their frames), and
+/// the PSNR of the last frame's right eye reprojected against the same eye cast. Returns [ratio
+/// cast, ratio reprojected, PSNR dB], unfoveated.
 fn reprojection_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Result<[f64; 3]> {
-    let mut stats = [Vec::new(), Vec::new()];
-    let mut pictures = [None, None];
+    let configs = [
+        (None, false),
+        (None, true),
+        (Some(Foveation::default()), false),
+        (Some(Foveation::default()), true),
+    ];
+    let mut stats = [(); 4].map(|_| Vec::new());
+    let mut pictures = [(); 4].map(|_| None);
     for _ in 0..runs.max(1) {
-        for (k, reproject) in [false, true].into_iter().enumerate() {
+        for (k, &(foveation, reproject)) in configs.iter().enumerate() {
+            fl.settings.foveation = foveation;
             fl.settings.reproject = reproject;
             stats[k].extend(loop_sweep(fl, sweep, false)?.0);
             // The last frame again, read back.
@@ -490,12 +498,19 @@ fn reprojection_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Re
                 .map(|p| crate::render::compare::luma(&p.rgba[1]));
         }
     }
-    let [cast, re] = stats.map(|s| PassMedians::of(&s));
-    let psnr = match &pictures {
-        [Some(a), Some(b)] => crate::render::compare::psnr(a, b),
+    fl.settings.foveation = None;
+    let medians = stats.map(|s| PassMedians::of(&s));
+    let psnr = |k: usize| match (&pictures[k - 1], &pictures[k]) {
+        (Some(a), Some(b)) => crate::render::compare::psnr(a, b),
         _ => f64::NAN,
     };
-    for (name, p) in [("cast", cast), ("reprojected", re)] {
+    let names = [
+        "cast",
+        "reprojected",
+        "foveated, cast",
+        "foveated, reprojected",
+    ];
+    for (k, (name, p)) in names.iter().zip(&medians).enumerate() {
         println!(
             "two eyes / one eye, {name:<12} {:>6.2}x  ({:.2} ms / {:.2} ms; right eye {:.2} ms, \
              left {:.2} ms{}; skipping, medians of {} interleaved run(s))",
@@ -504,14 +519,16 @@ fn reprojection_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Re
             p.one_eye(),
             p.eyes[1],
             p.eyes[0],
-            if name == "cast" {
+            if k % 2 == 0 {
                 String::new()
             } else {
-                format!("; right eye {psnr:.1} dB against its own rays")
+                format!("; right eye {:.1} dB against its own rays", psnr(k))
             },
             runs.max(1)
         );
     }
+    let [cast, re, ..] = medians;
+    let psnr = psnr(1);
     Ok([
         cast.two_eyes() / cast.one_eye(),
         re.two_eyes() / re.one_eye(),

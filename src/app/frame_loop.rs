@@ -1158,7 +1158,9 @@ impl FrameLoop {
                 inset: inset
                     .as_ref()
                     .and_then(|i| i.binding(volume, &scene.volume)),
-                gaze: input.gaze.map(|g| g.orientation * glam::Vec3::NEG_Z),
+                gaze: input
+                    .gaze
+                    .map(|g| crate::render::fixation(&g, scene.volume.center)),
             };
             let mut settings = *settings;
             settings.iso = scene.iso;

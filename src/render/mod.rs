@@ -150,7 +150,8 @@ pub struct RenderSettings {
     pub foveation: Option<Foveation>,
     /// The second eye reuses the first's pixels where they show an opaque surface it sees too,
     /// or where the first eye saw nothing along its whole ray (`--reproject`; docs/design.md,
-    /// "The second eye"), casting its own rays elsewhere. Not with foveation, glow, scattering
+    /// "The second eye"), casting its own rays elsewhere; foveated, in the coarse pass (the
+    /// full-rate centre casts both eyes). Not with glow, scattering
     /// or a light fixed in the world, nor on a device whose fragment shaders cannot store.
     pub reproject: bool,
 }
@@ -204,16 +205,17 @@ impl std::str::FromStr for Foveation {
 }
 
 /// The pixel a foveated eye keeps its full rate around (as gl_FragCoord, in an image of `size`
-/// pixels): where the gaze direction `gaze` (world) meets the image, else its lens centre, the
-/// point straight ahead (the image's centre only where the field of view is symmetric, as a
-/// desktop's is; a headset's eyes look through off-centre lenses). A gaze pointing sideways or
-/// back falls back to the lens centre; one beyond the image is held at its border.
-pub fn fovea_centre(view: &View, gaze: Option<Vec3>, (w, h): (u32, u32)) -> [f32; 2] {
+/// pixels): where the point the eyes fixate (world, [`fixation`]) lies in its image, else its
+/// lens centre, the point straight ahead (the image's centre where the field of view is
+/// symmetric, as the window's is; a headset's eyes look through off-centre lenses). A point
+/// beside or behind the eye falls back to the lens centre; one beyond the image is held at its
+/// border.
+pub fn fovea_centre(view: &View, fixated: Option<Vec3>, (w, h): (u32, u32)) -> [f32; 2] {
     let f = &view.fov;
     let [l, r, u, d] = [f.angle_left, f.angle_right, f.angle_up, f.angle_down].map(f32::tan);
     // The direction's tangents in the eye's frame (-Z ahead, +Y up); 0, 0 straight ahead.
-    let (tx, ty) = gaze
-        .map(|g| view.pose.orientation.inverse() * g)
+    let (tx, ty) = fixated
+        .map(|p| view.pose.orientation.inverse() * (p - view.pose.position))
         .filter(|e| e.z < -1e-3 * e.length())
         .map_or((0.0, 0.0), |e| (e.x / -e.z, e.y / -e.z));
     let (w, h) = (w as f32, h as f32);
@@ -221,6 +223,15 @@ pub fn fovea_centre(view: &View, gaze: Option<Vec3>, (w, h): (u32, u32)) -> [f32
         (w * (tx - l) / (r - l)).clamp(0.0, w),
         (h * (u - ty) / (u - d)).clamp(0.0, h),
     ]
+}
+
+/// The point a tracked gaze (a pose looking along its -Z, from between the eyes) fixates: on its
+/// ray at the depth of `centre` (the volume's), so that each eye's fovea lies where that point
+/// is in its own image, the eyes' parallax included (a direction alone would put both eyes'
+/// foveae ipd / 2 apart at the volume, tens of pixels in a headset).
+pub fn fixation(gaze: &crate::space::Pose, centre: Vec3) -> Vec3 {
+    let dir = gaze.orientation * Vec3::NEG_Z;
+    gaze.position + dir * (centre - gaze.position).dot(dir).max(crate::space::NEAR)
 }
 
 /// The colour a safety margin glows in: the amber a tool inside a margin is drawn in.
@@ -1162,7 +1173,7 @@ pub struct FrameViews<'a> {
     pub bleeding: Option<&'a Buffer>,
     /// A part of the volume at full resolution, where the rest is shown downsampled.
     pub inset: Option<InsetBinding<'a>>,
-    /// Where the eyes look (a direction in the world), which a foveated frame centres on;
+    /// The point the eyes fixate (world, [`fixation`]), which a foveated frame centres on;
     /// None: each eye's lens centre ([`fovea_centre`]).
     pub gaze: Option<Vec3>,
 }
@@ -1461,7 +1472,6 @@ impl Renderer {
         // colour of a point is the same from both eyes (no glow in empty space, no light whose
         // half vector or phase follows each eye's view).
         let reproject = settings.reproject
-            && settings.foveation.is_none()
             && self.gpu.fragment_stores
             && flags & (RAY_GLOW | RAY_SCATTERING) == 0
             && settings.light_from.is_none();
@@ -1801,10 +1811,31 @@ impl Renderer {
             record: record.map_or([0; 2], |r| r.0),
             centre: fovea_centre(&views[index as usize], frame.gaze, (width, height)),
         };
+        // Each eye's casting pass: the first eye recording, the second reprojecting from it
+        // (after its fragments' stores), where the frame reprojects.
+        let casting = |eye: u32| match record {
+            Some((_, first, second)) => {
+                if eye == 1 {
+                    let fragments = vk::PipelineStageFlags2::FRAGMENT_SHADER;
+                    self.gpu.memory_barrier(
+                        cmd,
+                        (fragments, vk::AccessFlags2::SHADER_STORAGE_WRITE),
+                        (fragments, vk::AccessFlags2::SHADER_STORAGE_READ),
+                    );
+                }
+                if eye == 0 {
+                    first
+                } else {
+                    second
+                }
+            }
+            None => pipeline,
+        };
         if let Some((c, _)) = coarse {
+            // Foveated: the coarse pass casts, and reprojects, on its own grid.
             c.cmd_begin(cmd);
             for eye in 0..2u32 {
-                draw(c, eye, pipeline, push(eye, 1), &plain_writes);
+                draw(c, eye, casting(eye), push(eye, 1), &plain_writes);
             }
             c.color.transition(
                 cmd,
@@ -1818,22 +1849,10 @@ impl Renderer {
             );
         }
         for eye in 0..2u32 {
-            match (coarse, record) {
-                (Some(_), _) => draw(target, eye, pipeline, push(eye, 2), &full_writes),
-                (None, Some((_, first, second))) => {
-                    if eye == 1 {
-                        // The first eye's record, written by its fragments, read by these.
-                        let fragments = vk::PipelineStageFlags2::FRAGMENT_SHADER;
-                        self.gpu.memory_barrier(
-                            cmd,
-                            (fragments, vk::AccessFlags2::SHADER_STORAGE_WRITE),
-                            (fragments, vk::AccessFlags2::SHADER_STORAGE_READ),
-                        );
-                    }
-                    let p = if eye == 0 { first } else { second };
-                    draw(target, eye, p, push(eye, 0), &plain_writes)
-                }
-                (None, None) => draw(target, eye, pipeline, push(eye, 0), &plain_writes),
+            match coarse {
+                // The full-rate centre casts both eyes; the rest reads the coarse pass.
+                Some(_) => draw(target, eye, pipeline, push(eye, 2), &full_writes),
+                None => draw(target, eye, casting(eye), push(eye, 0), &plain_writes),
             }
             after_eye(cmd, eye as usize);
         }
@@ -1932,10 +1951,7 @@ mod tests {
             Vec3::new(0.05, 0.6, -1.2),
         ] {
             let target = eye + view.pose.orientation * local;
-            let (at, want) = (
-                fovea_centre(&view, Some(target - eye), size),
-                pixel_of(target),
-            );
+            let (at, want) = (fovea_centre(&view, Some(target), size), pixel_of(target));
             assert!(close(at, want), "{target}: {at:?} against {want:?}");
         }
         // No gaze: the lens centre, the point straight ahead, off the image's centre here.
@@ -1944,10 +1960,21 @@ mod tests {
         assert!(close(lens, pixel_of(ahead)), "{lens:?}");
         assert!(lens[0] > 1100.0 && lens[1] < 1100.0, "{lens:?}");
         // A gaze behind the eye: the lens centre; one far to the side: held at the border.
-        let back = view.pose.orientation * Vec3::Z;
+        let back = eye + view.pose.orientation * Vec3::Z;
         assert_eq!(fovea_centre(&view, Some(back), size), lens);
-        let side = view.pose.orientation * Vec3::new(-1.0, 0.0, -0.05);
+        let side = eye + view.pose.orientation * Vec3::new(-1.0, 0.0, -0.05);
         assert_eq!(fovea_centre(&view, Some(side), size)[0], 0.0);
+        // A gaze from between the eyes fixates at the volume's depth, on its ray.
+        let gaze = Pose {
+            position: eye + view.pose.orientation * Vec3::X * 0.032,
+            orientation: view.pose.orientation,
+        };
+        let at = fixation(
+            &gaze,
+            eye + view.pose.orientation * Vec3::new(0.1, 0.0, -0.6),
+        );
+        let expect = gaze.position + view.pose.orientation * Vec3::new(0.0, 0.0, -0.6);
+        assert!(at.distance(expect) < 1e-5, "{at} against {expect}");
         // A symmetric field of view: the image's centre exactly, as before gaze was known.
         let desk = View {
             fov: symmetric_fov(0.6),

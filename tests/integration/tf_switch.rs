@@ -693,7 +693,7 @@ fn sized_loop(
 /// lens centre, away from the gaze, the coarse rays show.
 #[test]
 fn a_foveated_frame_follows_the_gaze() {
-    use cao_xr::render::{fovea_centre, Foveation};
+    use cao_xr::render::{fixation, fovea_centre, Foveation};
     let gpu = common::gpu();
     let vol = Arc::new(phantom::head(N));
     let tfs = vec![TransferFunction::preset("ct-skin").unwrap()];
@@ -709,10 +709,13 @@ fn a_foveated_frame_follows_the_gaze() {
     let head = views[0].pose.orientation;
     let gaze = head * Vec3::new(0.2, 0.15, -1.0).normalize();
     let mut input = FrameInput::without_hands(0.0, views);
-    input.gaze = Some(Pose {
+    let look = Pose {
         position: views[0].pose.position.lerp(views[1].pose.position, 0.5),
         orientation: glam::Quat::from_rotation_arc(Vec3::NEG_Z, gaze),
-    });
+    };
+    input.gaze = Some(look);
+    // The point it fixates, at the volume's depth: each eye's fovea is where that point is.
+    let fixated = fixation(&look, Placement::default().center);
     let c = Placement::default().center;
     let run = |fl: &mut FrameLoop| {
         fl.scene.tools = vec![tool(c, 0, true)];
@@ -722,8 +725,8 @@ fn a_foveated_frame_follows_the_gaze() {
     let r = radius * 0.5 * (size.0 as f32).hypot(size.1 as f32);
     let (w, h) = (size.0 as usize, size.1 as usize);
     for (eye, view) in views.iter().enumerate() {
-        let at = fovea_centre(view, Some(gaze), size);
-        let lens = [0.5 * size.0 as f32, 0.5 * size.1 as f32];
+        let at = fovea_centre(view, Some(fixated), size);
+        let lens = fovea_centre(view, None, size);
         assert!(
             (at[0] - lens[0]).hypot(at[1] - lens[1]) > 1.5 * r,
             "eye {eye}: the gaze {at:?} is too near the centre"
