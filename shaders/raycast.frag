@@ -74,13 +74,13 @@ layout(std430, set = 0, binding = 20) readonly buffer ClipBricks {
 // a block of `scale` x `scale` pixels of the eye, whose ray it casts through the block's centre;
 // 2, the full pass of a foveated eye: pixels within `radius` (pixels) of `centre` (the gaze or
 // the lens centre, src/render/mod.rs fovea_centre) cast as in pass 0, the others take the
-// coarse pass's colour and depth, interpolated. `record`: the
-// address of the first eye's record, which its pass 0 writes (RAY_RECORD) and the second eye's
-// reads (RAY_REPROJECT).
+// coarse pass's colour and depth, interpolated. `record`: the address of the first eye's
+// record, which its casting pass (0, or 1 where foveated) writes (RAY_RECORD) and the second
+// eye's reads (RAY_REPROJECT).
 layout(push_constant) uniform Eye {
     uint index; uint pass; float scale; float radius; uvec2 record; vec2 centre;
 } eye;
-// The first eye's record, per pixel (rows of viewport.x): its colour (RGBA8) and the view
+// The first eye's record, per pixel of its casting pass (rows of record_size().x): its colour (RGBA8) and the view
 // depths (its clip w) where the ray's opacity reached DEPTH_ALPHA and REPROJECT_BACK_ALPHA (0:
 // never, or the ray did not end opaque).
 layout(buffer_reference, std430, buffer_reference_align = 16) buffer EyeRecord { uvec4 texels[]; };
@@ -450,7 +450,6 @@ Ray eye_ray(uint v, vec2 pixel) {
     return r;
 }
 
-// The first eye's pixel coordinates (as its gl_FragCoord) of point c in its clip space.
 // The record is on this pass's grid: the eye's pixels (pass 0), or a foveated eye's coarse
 // pixels, one per block of eye.scale x eye.scale (pass 1), which also cast through their
 // centres; its texel coordinates are the eye's pixel coordinates over eye.scale.

@@ -437,14 +437,7 @@ fn foveation_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Resul
                     .iter()
                     .map(|s| s.passes.eye_ms[0] + s.passes.eye_ms[1]),
             );
-            // The last frame again, read back.
-            let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
-            let input = FrameInput::without_hands(0.0, views);
-            fl.submit(&input, true, |_, _| {})?;
-            pictures[k] = fl
-                .flush()?
-                .and_then(|r| r.image)
-                .map(|p| crate::render::compare::luma(&p.rgba[0]));
+            pictures[k] = last_frame_again(fl)?.map(|p| crate::render::compare::luma(&p.rgba[0]));
         }
     }
     let ms: Vec<f64> = ms.into_iter().map(|mut m| median(&mut m)).collect();
@@ -489,13 +482,7 @@ fn reprojection_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Re
             fl.settings.foveation = foveation;
             fl.settings.reproject = reproject;
             stats[k].extend(loop_sweep(fl, sweep, false)?.0);
-            // The last frame again, read back.
-            let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
-            fl.submit(&FrameInput::without_hands(0.0, views), true, |_, _| {})?;
-            pictures[k] = fl
-                .flush()?
-                .and_then(|r| r.image)
-                .map(|p| crate::render::compare::luma(&p.rgba[1]));
+            pictures[k] = last_frame_again(fl)?.map(|p| crate::render::compare::luma(&p.rgba[1]));
         }
     }
     fl.settings.foveation = None;
@@ -553,9 +540,7 @@ fn render_scale_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Re
                     .iter()
                     .map(|s| s.passes.eye_ms[0] + s.passes.eye_ms[1]),
             );
-            let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
-            fl.submit(&FrameInput::without_hands(0.0, views), true, |_, _| {})?;
-            pictures[k] = fl.flush()?.and_then(|r| r.image);
+            pictures[k] = last_frame_again(fl)?;
         }
     }
     let (w, h) = (fl.target().width, fl.target().height);
@@ -581,6 +566,14 @@ fn render_scale_rows(fl: &mut FrameLoop, sweep: &[Vec<Tool>], runs: usize) -> Re
         );
     }
     Ok(())
+}
+
+/// The sweep's last frame (its tools as they are) once more, read back: the picture a row
+/// compares.
+fn last_frame_again(fl: &mut FrameLoop) -> Result<Option<crate::render::StereoImage>> {
+    let views = default_stereo_views(fl.volume(), &fl.scene.volume, DEFAULT_IPD);
+    fl.submit(&FrameInput::without_hands(0.0, views), true, |_, _| {})?;
+    Ok(fl.flush()?.and_then(|r| r.image))
 }
 
 /// `values` (`from` pixels, rows top-down) resampled to `to` pixels, bilinear between pixel

@@ -123,16 +123,9 @@ fn depth_is_the_front_surface_of_the_volume() {
     assert_eq!(img.depth[0][0], 1.0);
 }
 
-/// The second eye reprojected from the first (`RenderSettings::reproject`), on the head
-/// phantom framed as a headset would (the default stereo views): the first eye is bit for bit
-/// the one without it; the second is within 40 dB of its own full ray cast and off by at most
-/// 16/255 in any channel where the depth is continuous (the 3 x 3 pixels around it on the
-/// volume, their view distances within 4 pixel footprints of each other); and it was
-/// reprojected (a third of the pixels the volume covers differ from the cast ones). At 128^3:
-/// the 64^3 head's terraced surfaces differ by more than 16/255 between two jitter patterns of
-/// the same eye, cast (36/255 measured), where the 128^3 head's differ by 11/255.
-#[test]
-fn a_reprojected_second_eye_is_close_to_its_own_rays() {
+/// The 128^3 head under ct-bone, framed by the default stereo views at `n` x `n` per eye, no
+/// AO, rendered with each of `settings` (validation silent): the views and both pictures.
+fn head_128(n: u32, settings: [&RenderSettings; 2]) -> ([View; 2], [StereoImage; 2]) {
     let vol = cao_xr::volume::phantom::head(128);
     let gpu = common::gpu();
     let mut hr = HeadlessRenderer::new(&gpu).unwrap();
@@ -150,17 +143,28 @@ fn a_reprojected_second_eye_is_close_to_its_own_rays() {
         inset: None,
         gaze: None,
     };
+    let pictures = settings.map(|s| hr.render(&tex, &frame, (n, n), s).unwrap());
+    drop((tex, hr));
+    common::assert_no_validation_messages(&gpu);
+    (v, pictures)
+}
+
+/// The second eye reprojected from the first (`RenderSettings::reproject`), on the head
+/// phantom framed as a headset would (the default stereo views): the first eye is bit for bit
+/// the one without it; the second is within 40 dB of its own full ray cast and off by at most
+/// 16/255 in any channel where the depth is continuous (the 3 x 3 pixels around it on the
+/// volume, their view distances within 4 pixel footprints of each other); and it was
+/// reprojected (a third of the pixels the volume covers differ from the cast ones). At 128^3:
+/// the 64^3 head's terraced surfaces differ by more than 16/255 between two jitter patterns of
+/// the same eye, cast (36/255 measured), where the 128^3 head's differ by 11/255.
+#[test]
+fn a_reprojected_second_eye_is_close_to_its_own_rays() {
     let n = 256u32;
-    let full = hr
-        .render(&tex, &frame, (n, n), &RenderSettings::default())
-        .unwrap();
     let settings = RenderSettings {
         reproject: true,
         ..RenderSettings::default()
     };
-    let re = hr.render(&tex, &frame, (n, n), &settings).unwrap();
-    drop((tex, hr));
-    common::assert_no_validation_messages(&gpu);
+    let (v, [full, re]) = head_128(n, [&RenderSettings::default(), &settings]);
     assert!(
         full.rgba[0] == re.rgba[0] && full.depth[0] == re.depth[0],
         "the first eye changed"
@@ -241,36 +245,16 @@ fn a_reprojected_second_eye_is_close_to_its_own_rays() {
 #[test]
 fn a_foveated_second_eye_reprojects_its_coarse_pass() {
     use cao_xr::render::{fovea_centre, Foveation};
-    let vol = cao_xr::volume::phantom::head(128);
-    let gpu = common::gpu();
-    let mut hr = HeadlessRenderer::new(&gpu).unwrap();
-    let tf = TransferFunction::preset("ct-bone").unwrap();
-    let tex = VolumeTextures::new(&gpu, &vol, &tf).unwrap();
-    let placement = Placement::default();
-    let v = cao_xr::space::default_stereo_views(&vol, &placement, cao_xr::space::DEFAULT_IPD);
-    let frame = cao_xr::render::FrameViews {
-        views: &v,
-        model: cao_xr::space::world_from_tex(&vol, &placement),
-        clip: None,
-        sh: None,
-        ao: None,
-        bleeding: None,
-        inset: None,
-        gaze: None,
-    };
     let n = 256u32;
     let foveated = RenderSettings {
         foveation: Some(Foveation::default()),
         ..RenderSettings::default()
     };
-    let alone = hr.render(&tex, &frame, (n, n), &foveated).unwrap();
     let settings = RenderSettings {
         reproject: true,
         ..foveated
     };
-    let both = hr.render(&tex, &frame, (n, n), &settings).unwrap();
-    drop((tex, hr));
-    common::assert_no_validation_messages(&gpu);
+    let (v, [alone, both]) = head_128(n, [&foveated, &settings]);
     assert!(
         alone.rgba[0] == both.rgba[0] && alone.depth[0] == both.depth[0],
         "the first eye changed"
