@@ -35,6 +35,7 @@ fn constants_glsl() -> String {
         format!("const int HIST_BRICK_SHIFT = {HIST_BRICK_SHIFT};"),
         format!("const int RAY_BRICK_SHIFT = {RAY_BRICK_SHIFT};"),
         format!("const int MAX_TOOLS = {MAX_TOOLS};"),
+        format!("#define MAX_INSETS {MAX_INSETS}"),
         format!("const uint CLIP_BRICK_OPEN = {CLIP_BRICK_OPEN}u;"),
         format!("const uint CLIP_BRICK_CUT = {CLIP_BRICK_CUT}u;"),
         format!("const float TORUS_MINOR = {TORUS_MINOR:?};"),

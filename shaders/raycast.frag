@@ -33,10 +33,11 @@ layout(set = 0, binding = 6) uniform sampler3D sh0;
 layout(set = 0, binding = 7) uniform sampler3D sh1;
 layout(set = 0, binding = 8) uniform sampler3D sh2;
 layout(set = 0, binding = 9) uniform sampler3D sh3;
-// var_s of variance opacity modulation (data units squared), when VARIANCE; the inset's at full
-// resolution (flag INSET).
+// var_s of variance opacity modulation (data units squared), when VARIANCE; the inset's boxes'
+// at full resolution (flag INSET).
 layout(set = 0, binding = 10) uniform sampler3D variance;
-layout(set = 0, binding = 23) uniform sampler3D inset_variance;
+layout(set = 0, binding = 23) uniform sampler3D inset_variance_0;
+layout(set = 0, binding = 27) uniform sampler3D inset_variance_1;
 // Pre-integrated TF: premultiplied colour and opacity of a step from front to back value.
 layout(set = 0, binding = 12) uniform sampler2D preint;
 // Blue-noise thresholds in (0, 1), tiled over the screen (src/render/blue_noise.rs).
@@ -50,12 +51,20 @@ layout(set = 0, binding = 15) uniform sampler2D preint_at;
 layout(set = 0, binding = 16) uniform sampler3D structure_ids;
 // The safety margins' glow intensity (R8 unorm; src/render/mod.rs margin_glow), when GLOW.
 layout(set = 0, binding = 17) uniform sampler3D glow;
-// The inset's glow from the full-resolution margins, when GLOW and INSET.
-layout(set = 0, binding = 24) uniform sampler3D inset_glow;
-// The full-resolution inset's scalars (the volume is shown downsampled around it; flag RAY_INSET).
-layout(set = 0, binding = 21) uniform sampler3D inset_scalars;
-// The inset's structure ids at full resolution (as structure_ids), when LABELS and INSET.
-layout(set = 0, binding = 22) uniform sampler3D inset_structure_ids;
+// Per box of the full-resolution inset (the volume is shown downsampled around them; flag
+// RAY_INSET): its scalars, its structure ids (as structure_ids, when LABELS) and its glow from
+// the full-resolution margins (when GLOW). A box is chosen per sample, so each box's images
+// have their own bindings (src/render/mod.rs INSET_BINDINGS), picked by a branch: an array
+// indexed by a lane's box reads one lane's box for all (no non-uniform indexing).
+layout(set = 0, binding = 21) uniform sampler3D inset_scalars_0;
+layout(set = 0, binding = 25) uniform sampler3D inset_scalars_1;
+layout(set = 0, binding = 22) uniform sampler3D inset_structure_ids_0;
+layout(set = 0, binding = 26) uniform sampler3D inset_structure_ids_1;
+layout(set = 0, binding = 24) uniform sampler3D inset_glow_0;
+layout(set = 0, binding = 28) uniform sampler3D inset_glow_1;
+#if MAX_INSETS != 2
+#error "the inset_* functions pick one of two boxes"
+#endif
 
 #define CLIP_SET 0
 #define CLIP_TOOLS_BINDING 4
@@ -134,21 +143,49 @@ float level_scalar(sampler3D level, vec3 t) {
     return flag(RAY_TRICUBIC) ? scalar_tricubic(level, t) : texture(level, t).r;
 }
 
-// Whether texture point t lies in the full-resolution inset (frame.inset_lo/hi), where the
-// scalars and V_AO are the inset's: its own volume at full resolution, cropped with a margin of
-// the AO's reach so that its AO there is the whole volume's (docs/design.md, "The inset").
-bool in_inset(vec3 t) {
-    return flag(RAY_INSET) && all(greaterThanEqual(t, frame.inset_lo.xyz))
-        && all(lessThan(t, frame.inset_hi.xyz));
+// The full-resolution box texture point t lies in (frame.inset_lo/hi; the first where boxes
+// overlap: each holds the whole volume's AO there), or -1. In a box the scalars and V_AO are
+// its own: the volume at full resolution, cropped with a margin of the AO's reach so that its
+// AO there is the whole volume's (docs/design.md, "The inset").
+int inset_at(vec3 t) {
+    if (!flag(RAY_INSET)) return -1;
+    [[unroll]] for (int s = 0; s < MAX_INSETS; s++) {
+        if (all(greaterThanEqual(t, frame.inset_lo[s].xyz)) && all(lessThan(t, frame.inset_hi[s].xyz))) {
+            return s;
+        }
+    }
+    return -1;
 }
 
-// The inset's texture coordinates of texture point t.
-vec3 inset_tex(vec3 t) {
-    return t * frame.inset_scale.xyz + frame.inset_offset.xyz;
+bool in_inset(vec3 t) {
+    return inset_at(t) >= 0;
+}
+
+// Box s's texture coordinates of texture point t.
+vec3 inset_tex(int s, vec3 t) {
+    return t * frame.inset_scale[s].xyz + frame.inset_offset[s].xyz;
+}
+
+// Box s's voxels per axis.
+ivec3 inset_size(int s) {
+    return s == 0 ? textureSize(inset_scalars_0, 0) : textureSize(inset_scalars_1, 0);
+}
+
+// Box s's glow and var_s at texture point t (of the shown volume).
+float inset_glow_at(int s, vec3 t) {
+    return s == 0 ? texture(inset_glow_0, inset_tex(0, t)).r : texture(inset_glow_1, inset_tex(1, t)).r;
+}
+
+float inset_variance_at(int s, vec3 t) {
+    return s == 0 ? texture(inset_variance_0, inset_tex(0, t)).r
+                  : texture(inset_variance_1, inset_tex(1, t)).r;
 }
 
 float scalar_at(vec3 t) {
-    return in_inset(t) ? level_scalar(inset_scalars, inset_tex(t)) : level_scalar(scalars, t);
+    int s = inset_at(t);
+    if (s == 0) return level_scalar(inset_scalars_0, inset_tex(0, t));
+    if (s == 1) return level_scalar(inset_scalars_1, inset_tex(1, t));
+    return level_scalar(scalars, t);
 }
 
 // The method's volumes the ray caster reads where they lie (V_AO, E: no image, no copy, no size
@@ -177,10 +214,10 @@ Corners corners_at(ivec3 n, vec3 t) {
 
 // V_AO at texture coordinates t (the inset's within it).
 float ambient_at(vec3 t) {
-    bool fine = in_inset(t);
-    AoWords b = AoWords(fine ? frame.inset_words.xy : frame.ao_words.xy);
-    Corners c = fine ? corners_at(textureSize(inset_scalars, 0), inset_tex(t))
-                     : corners_at(textureSize(scalars, 0), t);
+    int s = inset_at(t);
+    AoWords b = AoWords(s >= 0 ? frame.inset_words[s].xy : frame.ao_words.xy);
+    Corners c = s >= 0 ? corners_at(inset_size(s), inset_tex(s, t))
+                       : corners_at(textureSize(scalars, 0), t);
 #define AO_READ(i) unorm16_value(uint(b.ao_words[i]))
     return TRILINEAR(c, AO_READ);
 #undef AO_READ
@@ -189,9 +226,10 @@ float ambient_at(vec3 t) {
 // The bleeding colour E at texture coordinates t (the inset's within it, where it has one: its
 // local histograms at full resolution).
 vec3 bleeding_at(vec3 t) {
-    bool fine = in_inset(t) && any(notEqual(frame.inset_words.zw, uvec2(0)));
-    BleedingWords b = BleedingWords(fine ? frame.inset_words.zw : frame.ao_words.zw);
-    Corners c = fine ? corners_at(textureSize(inset_scalars, 0), inset_tex(t))
+    int s = inset_at(t);
+    bool fine = s >= 0 && any(notEqual(frame.inset_words[s].zw, uvec2(0)));
+    BleedingWords b = BleedingWords(fine ? frame.inset_words[s].zw : frame.ao_words.zw);
+    Corners c = fine ? corners_at(inset_size(s), inset_tex(s, t))
                      : corners_at(textureSize(scalars, 0), t);
 #define E_READ(i) unpackUnorm4x8(b.e_words[i]).rgb
     return TRILINEAR(c, E_READ);
@@ -235,7 +273,11 @@ float run_end(vec3 ov, vec3 dv, float t, ivec3 b, ivec3 last_brick, bool reach) 
     // The inset's bricks are the coarse volume's: nothing is skipped inside it.
     if (flag(RAY_INSET)) {
         vec3 dims = vec3(textureSize(scalars, 0));
-        end = min(end, box_entry(frame.inset_lo.xyz * dims, frame.inset_hi.xyz * dims, ov, inv, t));
+        [[unroll]] for (int s = 0; s < MAX_INSETS; s++) {
+            if (frame.inset_lo[s].x < frame.inset_hi[s].x) {
+                end = min(end, box_entry(frame.inset_lo[s].xyz * dims, frame.inset_hi[s].xyz * dims, ov, inv, t));
+            }
+        }
     }
     return end;
 }
@@ -245,13 +287,27 @@ uint structure_texel(sampler3D ids, ivec3 q, ivec3 n) {
     return uint(texelFetch(ids, clamp(q, ivec3(0), n - 1), 0).r * 255.0 + 0.5);
 }
 
+// The structure id of texel q of box s's ids, or of the shown volume's with s = -1 (n texels).
+uint box_structure_texel(int s, ivec3 q, ivec3 n) {
+    if (s == 0) return structure_texel(inset_structure_ids_0, q, n);
+    if (s == 1) return structure_texel(inset_structure_ids_1, q, n);
+    return structure_texel(structure_ids, q, n);
+}
+
+// The texels per axis of box s's ids, or of the shown volume's with s = -1.
+ivec3 box_structure_size(int s) {
+    if (s == 0) return textureSize(inset_structure_ids_0, 0);
+    if (s == 1) return textureSize(inset_structure_ids_1, 0);
+    return textureSize(structure_ids, 0);
+}
+
 // The structure id of the voxel nearest texture point t (the inset's within it).
 uint structure_at(vec3 t) {
-    bool fine = in_inset(t);
-    vec3 u = fine ? inset_tex(t) : t;
-    ivec3 n = fine ? textureSize(inset_structure_ids, 0) : textureSize(structure_ids, 0);
+    int s = inset_at(t);
+    vec3 u = s >= 0 ? inset_tex(s, t) : t;
+    ivec3 n = box_structure_size(s);
     ivec3 q = ivec3(floor(u * vec3(n)));
-    return fine ? structure_texel(inset_structure_ids, q, n) : structure_texel(structure_ids, q, n);
+    return box_structure_texel(s, q, n);
 }
 
 // Whether the carving tools leave the sample at texture point t standing: its nearest voxel's
@@ -291,9 +347,9 @@ uint clip_brick(ivec3 b, ivec3 n) {
 // the unlabelled voxels among the eight nearest, the sum of weight x a_l over the labelled
 // ones, and of weight x a_l x c_l.
 void structures_at(vec3 t, out float unlabelled, out float shown, out vec3 colour) {
-    bool fine = in_inset(t);
-    vec3 u = fine ? inset_tex(t) : t;
-    ivec3 n = fine ? textureSize(inset_structure_ids, 0) : textureSize(structure_ids, 0);
+    int s = inset_at(t);
+    vec3 u = s >= 0 ? inset_tex(s, t) : t;
+    ivec3 n = box_structure_size(s);
     vec3 c = u * vec3(n) - 0.5;
     ivec3 q = ivec3(floor(c));
     vec3 f = c - floor(c);
@@ -304,8 +360,7 @@ void structures_at(vec3 t, out float unlabelled, out float shown, out vec3 colou
         ivec3 o = ivec3(k & 1, (k >> 1) & 1, k >> 2);
         vec3 w3 = mix(1.0 - f, f, vec3(o));
         float w = w3.x * w3.y * w3.z;
-        uint id = fine ? structure_texel(inset_structure_ids, q + o, n)
-                       : structure_texel(structure_ids, q + o, n);
+        uint id = box_structure_texel(s, q + o, n);
         if (id == 0u) {
             unlabelled += w;
         } else {
@@ -332,8 +387,11 @@ vec3 level_gradient_mm(sampler3D level, vec3 t, vec3 extent_mm) {
 
 // In the inset, its own texels (its margin holds the neighbours).
 vec3 gradient_mm(vec3 t) {
-    return in_inset(t) ? level_gradient_mm(inset_scalars, inset_tex(t), frame.extent_mm.xyz / frame.inset_scale.xyz)
-                       : level_gradient_mm(scalars, t, frame.extent_mm.xyz);
+    int s = inset_at(t);
+    if (s < 0) return level_gradient_mm(scalars, t, frame.extent_mm.xyz);
+    vec3 mm = frame.extent_mm.xyz / frame.inset_scale[s].xyz;
+    return s == 0 ? level_gradient_mm(inset_scalars_0, inset_tex(0, t), mm)
+                  : level_gradient_mm(inset_scalars_1, inset_tex(1, t), mm);
 }
 
 vec3 sh_dot(vec4 v, int first) {
@@ -729,7 +787,8 @@ void main() {
             // The safety margins' volumetric glow (Ropinski et al., Sect. 4.4): emission only,
             // through what lies in front, and also where a tool cut the tissue away.
             if (flag(RAY_GLOW)) {
-                float g = in_inset(p) ? texture(inset_glow, inset_tex(p)).r : texture(glow, p).r;
+                int s = inset_at(p);
+                float g = s >= 0 ? inset_glow_at(s, p) : texture(glow, p).r;
                 color += (1.0 - alpha) * frame.glow.rgb * (g * frame.glow.a * step_mm);
             }
             // Shadow-test clipping: the same maps the AO update used.
@@ -818,7 +877,8 @@ void main() {
             }
             // Variance opacity modulation: homogeneous tissue fades, boundaries stay.
             if (flag(RAY_VARIANCE)) {
-                float var_s = in_inset(p) ? texture(inset_variance, inset_tex(p)).r : texture(variance, p).r;
+                int s = inset_at(p);
+                float var_s = s >= 0 ? inset_variance_at(s, p) : texture(variance, p).r;
                 float m = min(var_s * frame.lighting.w, 1.0);
                 a *= m;
                 premult *= m;

@@ -30,10 +30,11 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     uvec4 ao_words;          // xy: V_AO's address (16-bit unorm words, x fastest), read with
                              // RAY_AO; zw: the bleeding colour E's (RGBA8 words),
                              // read with RAY_BLEEDING or RAY_SCATTERING
-    vec4 inset_lo;           // xyz: the full-resolution inset's box in texture coordinates
-    vec4 inset_hi;           //   [lo, hi) (read with RAY_INSET)
-    vec4 inset_scale;        // xyz: its scalars' texture coordinates are t * scale + offset
-    vec4 inset_offset;
-    uvec4 inset_words;       // xy: its V_AO's address (16-bit unorm words, as ao_words);
-                             // zw: its bleeding colour E's (as ao_words.zw), 0 where it has none
+    // Per full-resolution box of the inset (read with RAY_INSET; a box absent has lo = hi):
+    vec4 inset_lo[MAX_INSETS];     // xyz: the box in texture coordinates [lo, hi)
+    vec4 inset_hi[MAX_INSETS];
+    vec4 inset_scale[MAX_INSETS];  // xyz: its scalars' texture coordinates are t * scale + offset
+    vec4 inset_offset[MAX_INSETS];
+    uvec4 inset_words[MAX_INSETS]; // xy: its V_AO's address (16-bit unorm words, as ao_words);
+                                   // zw: its bleeding colour E's (as ao_words.zw), 0 where none
 } frame;

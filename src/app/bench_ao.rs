@@ -60,14 +60,8 @@ fn pictures(
             };
             let views = default_stereo_views(vol, &placement, DEFAULT_IPD);
             let frame = FrameViews {
-                views: &views,
-                model: world_from_tex(vol, &placement),
-                clip: None,
-                sh: None,
                 ao: Some(ao),
-                bleeding: None,
-                inset: None,
-                gaze: None,
+                ..FrameViews::new(&views, world_from_tex(vol, &placement))
             };
             let size = (VIEW_SIZE, VIEW_SIZE);
             let img = hr.render(tex, &frame, size, &RenderSettings::default())?;

@@ -187,7 +187,11 @@ impl App {
                 let now = stats
                     .inset
                     .map_or(String::new(), |s| format!(" {}", s.state()));
-                format!(" | inset {x}x{y}x{z}{now}")
+                let n = match i.boxes() {
+                    1 => String::new(),
+                    n => format!("{n} x "),
+                };
+                format!(" | inset {n}{x}x{y}x{z}{now}")
             });
             w.set_title(&format!(
                 "cao-xr | {:.1} fps | AO {} {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}{step}{inset}{margin}",

@@ -96,7 +96,7 @@ impl FrameStats {
 /// A frame's full-resolution box ([`Inset`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct InsetStats {
-    /// GPU ms of the box's CAO update (0 while it is computed).
+    /// GPU ms of the boxes' CAO updates (0 while they are computed).
     pub ao_ms: f64,
     /// How far the box being computed has come (0 to 1), while one is.
     pub computing: Option<f32>,
@@ -514,17 +514,14 @@ impl FrameLoop {
             inset.set_shown(&self.gpu, (config, tf), structures)?;
         }
         inset.set_protected(&self.scene.protected);
-        // Cut again where the box should go (at once, or over the next frames), then the next
-        // slab of a box being computed, then this frame's update of the box shown.
-        let centre = inset.wants_cut((tools, views, gaze), shown, placement);
+        // Cut again where the boxes should go (at once, or over the next frames), then the next
+        // slab of each box being computed, then this frame's update of the boxes shown.
+        let cuts = inset.wants_cuts((tools, views, gaze), shown, placement);
         let computing = inset.refining().is_some();
-        let mut step = match centre {
-            Some(c) if self.progressive_inset => inset.start_cut(&self.gpu, c),
-            Some(c) => inset.cut(&self.gpu, c),
-            None => Ok(()),
-        }
-        .and_then(|_| inset.refine(&self.gpu, self.tf_samples_per_frame));
-        if step.is_ok() && (centre.is_some() || computing && inset.refining().is_none()) {
+        let mut step = inset
+            .make_cuts(&self.gpu, &cuts, self.progressive_inset)
+            .and_then(|_| inset.refine(&self.gpu, self.tf_samples_per_frame));
+        if step.is_ok() && (!cuts.is_empty() || computing && inset.refining().is_none()) {
             eprintln!("volume {}: {}", shown.name, inset.describe());
         }
         let metrics = loop {
@@ -541,7 +538,7 @@ impl FrameLoop {
             }
         };
         self.inset_stats = Some(InsetStats {
-            ao_ms: metrics.map_or(0.0, |m| m.gpu_ms()),
+            ao_ms: metrics.iter().map(|m| m.gpu_ms()).sum(),
             computing: inset.refining(),
         });
         Ok(())
@@ -1142,6 +1139,9 @@ impl FrameLoop {
                 .as_ref()
                 .and_then(|i| i.clip_buffers())
                 .unwrap_or((tools, maps));
+            let insets = inset
+                .as_ref()
+                .map_or_else(Vec::new, |i| i.bindings(volume, &scene.volume));
             let frame = FrameViews {
                 views: &input.views,
                 model,
@@ -1155,9 +1155,7 @@ impl FrameLoop {
                 sh: lighting.as_ref().map(|l| l.binding()),
                 ao: Some(&cao.ao),
                 bleeding: cao.method().bleeding(),
-                inset: inset
-                    .as_ref()
-                    .and_then(|i| i.binding(volume, &scene.volume)),
+                insets: &insets,
                 gaze: input
                     .gaze
                     .map(|g| crate::render::fixation(&g, scene.volume.center)),

@@ -1,10 +1,11 @@
 //! The full-resolution inset: where a volume does not fit the GPU at full resolution and is
-//! shown downsampled, the box around the carving tools is shown at full resolution, with its
-//! own CAO state. The box is cropped from the full-resolution volume with a margin of the AO
-//! method's reach on every side (where the volume goes on), so that the AO inside it is the
-//! whole full-resolution volume's, voxel for voxel (docs/design.md, "The inset"). It follows the
-//! tools (or, with none in the volume, where the eyes look): when that point moves a quarter of
-//! the box away, the box is cut again around it and its AO computed anew.
+//! shown downsampled, the boxes around the carving tools (and where the eyes look) are shown at
+//! full resolution, each with its own CAO state. A box is cropped from the full-resolution
+//! volume with a margin of the AO method's reach on every side (where the volume goes on), so
+//! that the AO inside it is the whole full-resolution volume's, voxel for voxel (docs/design.md,
+//! "The inset"). The boxes follow what they are around: when that point moves a quarter of a box
+//! away, the box is cut again around it and its AO computed anew; a second place to look at
+//! splits the budget between two boxes.
 
 use super::common::{histogram_state, precompute_method, Result};
 use crate::ao::cao::{Cao, FrameMetrics, Mode};
@@ -17,6 +18,7 @@ use crate::ao::{AoConfig, AoMethod, LaoGpu};
 use crate::gpu::{Buffer, Gpu, GpuError, Image};
 use crate::render::InsetBinding;
 use crate::scene::Tool;
+use crate::shader_constants::MAX_INSETS;
 use crate::space::{
     lps_from_local_mm, world_from_lps_point, world_from_tex, Placement, Pose, View,
 };
@@ -26,7 +28,8 @@ use crate::volume::Volume;
 use glam::{Vec3, Vec4Swizzles};
 use std::sync::Arc;
 
-/// Turns the inset off when "0" (to compare with the downsampled volume alone).
+/// How many full-resolution boxes the inset may show, at most [`MAX_INSETS`] (the default): "0"
+/// turns it off (to compare with the downsampled volume alone), "1" keeps one box.
 pub const INSET_ENV: &str = "CAO_XR_INSET";
 
 /// Smallest side (voxels) of an inset worth showing.
@@ -70,9 +73,19 @@ pub struct Inset {
     /// the box glows from them.
     margins: Option<Arc<Vec<MarginField>>>,
     lao: LaoGpu,
-    /// The inner box's size and the margin on each side (full-resolution voxels).
+    /// The inner boxes' size (they share it) and the margin on each side (full-resolution
+    /// voxels).
     inner: [usize; 3],
     margin: [usize; 3],
+    /// The boxes, the first one first: at least one, at most `most`.
+    boxes: Vec<InsetBox>,
+    /// How many boxes the inset may show ([`INSET_ENV`]).
+    most: usize,
+}
+
+/// One box: shown, being computed, or neither (none fitted after a shrink, or not cut yet).
+#[derive(Default)]
+struct InsetBox {
     part: Option<Part>,
     /// A box being computed slab by slab ([`Inset::start_cut`]), shown once it is done.
     build: Option<Build>,
@@ -115,7 +128,15 @@ struct Part {
 impl Inset {
     /// Whether insets are wanted ([`INSET_ENV`]).
     pub fn wanted() -> bool {
-        std::env::var(INSET_ENV).map_or(true, |v| v.trim() != "0")
+        Self::most_boxes() > 0
+    }
+
+    /// How many boxes may be shown ([`INSET_ENV`]: a count up to [`MAX_INSETS`], the default).
+    fn most_boxes() -> usize {
+        std::env::var(INSET_ENV)
+            .ok()
+            .and_then(|v| v.trim().parse::<usize>().ok())
+            .map_or(MAX_INSETS, |n| n.min(MAX_INSETS))
     }
 
     /// The largest inset beside what the GPU holds now that fits `available` bytes in all,
@@ -147,7 +168,7 @@ impl Inset {
             if !grows || want.iter().any(|&n| n < MIN_SIDE) {
                 break;
             }
-            inset.part = None;
+            inset.boxes[0] = InsetBox::default();
             let before = gpu.memory_in_use();
             gpu.reset_memory_peak();
             inset.inner = want;
@@ -239,8 +260,8 @@ impl Inset {
             tf,
             lao: LaoGpu::new(gpu)?,
             inner,
-            part: None,
-            build: None,
+            boxes: vec![InsetBox::default()],
+            most: Self::most_boxes().max(1),
         })
     }
 
@@ -252,27 +273,32 @@ impl Inset {
         })
     }
 
-    /// Crops the box around full-resolution index point `centre` ([`Inset::wants_cut`]) and
+    /// Crops the first box around full-resolution index point `centre` and computes its AO at
+    /// once (`Inset::cut_box`).
+    pub fn cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
+        self.cut_box(gpu, 0, centre)
+    }
+
+    /// Crops box `b` around full-resolution index point `centre` ([`Inset::wants_cuts`]) and
     /// computes its AO (classified over the whole volume's value range: a crop's own is
     /// narrower); the old box goes first (its memory is the new one's), so no frame that
     /// reads it may be in flight.
-    pub fn cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
+    fn cut_box(&mut self, gpu: &Gpu, b: usize, centre: [f64; 3]) -> Result<()> {
         if matches!(self.config.method, AoMethod::Histogram(_)) {
             // The direct sums the box is built with over frames ([`Inset::start_cut`]), in one
             // slab.
-            self.start_cut(gpu, centre)?;
+            self.start_cut_box(gpu, b, centre)?;
             return self.refine(gpu, f64::INFINITY);
         }
-        let (inner_lo, crop_lo, crop) = self.crop_at(centre);
+        let (inner_lo, crop_lo, crop) = self.crop_at(b, centre);
         let ao = precompute_method(gpu, &self.lao, &crop, &self.tf, &self.config, false)?;
-        self.show(gpu, (inner_lo, crop_lo, crop), ao)
+        self.show(gpu, b, (inner_lo, crop_lo, crop), ao)
     }
 
-    /// Drops the box (and any being computed), and crops the full-resolution volume for one
+    /// Drops box `b` (shown or being computed), and crops the full-resolution volume for one
     /// around `centre`: the inner box's first voxel, the crop's, and the crop.
-    fn crop_at(&mut self, centre: [f64; 3]) -> ([usize; 3], [usize; 3], Volume) {
-        self.part = None;
-        self.build = None;
+    fn crop_at(&mut self, b: usize, centre: [f64; 3]) -> ([usize; 3], [usize; 3], Volume) {
+        self.boxes[b] = InsetBox::default();
         // The method may have changed since the last cut (a switch), and its reach with it.
         self.margin = margin_for(&self.whole, &self.config);
         let inner_lo = self.inner_lo(centre);
@@ -298,10 +324,11 @@ impl Inset {
         (inner_lo, crop_lo, crop)
     }
 
-    /// Shows the crop with its precomputed AO `ao`: its CAO state and scalar image.
+    /// Shows the crop with its precomputed AO `ao` as box `b`: its CAO state and scalar image.
     fn show(
         &mut self,
         gpu: &Gpu,
+        b: usize,
         (inner_lo, crop_lo, mut crop): ([usize; 3], [usize; 3], Volume),
         ao: AoVolume,
     ) -> Result<()> {
@@ -315,7 +342,7 @@ impl Inset {
         let variance = self.crop_variance(gpu, crop_lo, crop.dims)?;
         let glow = self.crop_glow(gpu, crop_lo, crop.dims)?;
         crop.voxels = crate::volume::Voxels::U8(Vec::new());
-        self.part = Some(Part {
+        self.boxes[b].part = Some(Part {
             inner_lo,
             crop_lo,
             crop,
@@ -328,20 +355,25 @@ impl Inset {
         Ok(())
     }
 
-    /// [`Inset::cut`] without holding the frames: under LAO (default kernel) and the local
+    /// [`Inset::cut`] without holding the frames (the first box).
+    pub fn start_cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
+        self.start_cut_box(gpu, 0, centre)
+    }
+
+    /// [`Inset::cut_box`] without holding the frames: under LAO (default kernel) and the local
     /// histograms (their direct sums) the crop's AO is computed over the next frames, a slab
     /// of z-slices each ([`Inset::refine`]), and the box is shown when it is done; until then
     /// the picture there is the downsampled volume's. The filters (one pass) cut at once. The
     /// old box goes first.
-    pub fn start_cut(&mut self, gpu: &Gpu, centre: [f64; 3]) -> Result<()> {
+    fn start_cut_box(&mut self, gpu: &Gpu, b: usize, centre: [f64; 3]) -> Result<()> {
         let params = self.config.lao;
         let hist = match self.config.method {
             AoMethod::Lao if self.lao.kernel == LaoKernel::New => None,
             AoMethod::Histogram(hp) => Some(hp),
-            _ => return self.cut(gpu, centre),
+            _ => return self.cut_box(gpu, b, centre),
         };
         params.validate().map_err(super::common::AppError::Usage)?;
-        let (inner_lo, crop_lo, crop) = self.crop_at(centre);
+        let (inner_lo, crop_lo, crop) = self.crop_at(b, centre);
         // Each voxel's AO is its own, so the slabs give the bits one pass gives (LAO's kernel
         // reads the skipping data's padded O either way).
         let (opacity, method, q, per_slice) = match hist {
@@ -373,7 +405,7 @@ impl Inset {
         };
         let slabs = SlabScheduler::with_budget(crop.dims[2], per_slice, per_slice)
             .with_least_slab(crop.dims[2].div_ceil(BUILD_FRAMES));
-        self.build = Some(Build {
+        self.boxes[b].build = Some(Build {
             dirs: self.lao.directions_buffer(&params, crop.spacing)?,
             pao: self.lao.output_buffer(crop.dims)?,
             inner_lo,
@@ -387,6 +419,46 @@ impl Inset {
         Ok(())
     }
 
+    /// Cuts the boxes `cuts` asks for ([`Inset::wants_cuts`]: a box and the full-resolution
+    /// index point it goes around), at once or, `progressive`, over the next frames. A box past
+    /// the last asks for more boxes: all boxes are then made as much smaller as keeps them
+    /// within the memory the boxes there hold, and cut again (where they are unless moved);
+    /// where they would be smaller than [`MIN_SIDE`], no box is added.
+    pub fn make_cuts(
+        &mut self,
+        gpu: &Gpu,
+        cuts: &[(usize, [f64; 3])],
+        progressive: bool,
+    ) -> Result<()> {
+        let mut cuts = cuts.to_vec();
+        let boxes = cuts.iter().map(|&(b, _)| b + 1).max().unwrap_or(0);
+        if boxes > self.boxes.len() {
+            let held = self.boxes.len() as f64 * self.crop_voxels(self.inner);
+            let inner = self.fitting(held / boxes as f64, 1.0);
+            if inner.iter().any(|&n| n < MIN_SIDE) {
+                cuts.retain(|&(b, _)| b < self.boxes.len());
+            } else {
+                for b in 0..self.boxes.len() {
+                    if !cuts.iter().any(|&(c, _)| c == b) {
+                        cuts.push((b, self.centre_of(b)));
+                    }
+                }
+                // Every box is cut again at the new size: free them all first.
+                self.boxes.clear();
+                self.boxes.resize_with(boxes, InsetBox::default);
+                self.inner = inner;
+            }
+        }
+        for (b, centre) in cuts {
+            if progressive {
+                self.start_cut_box(gpu, b, centre)?;
+            } else {
+                self.cut_box(gpu, b, centre)?;
+            }
+        }
+        Ok(())
+    }
+
     /// The local histograms' parameters the box computes with: their direct sums (the
     /// definition the clusters approximate), the whole volume's bit for bit, with no codebook
     /// trained per cut.
@@ -394,56 +466,63 @@ impl Inset {
         HistParams { clusters: 0, ..hp }
     }
 
-    /// Computes the next slab of a box being cut ([`Inset::start_cut`]), at most `samples`
+    /// Computes the next slab of each box being cut ([`Inset::start_cut`]), at most `samples`
     /// opacity samples or a [`BUILD_FRAMES`]th of the box, whichever is more (at least a
-    /// slice), submitted and waited for; shows the box once the last slab is done. Nothing
+    /// slice), submitted and waited for; shows a box once its last slab is done. Nothing
     /// without a box being computed.
     pub fn refine(&mut self, gpu: &Gpu, samples: f64) -> Result<()> {
-        let Some(b) = self.build.as_mut() else {
-            return Ok(());
-        };
-        // At most BUILD_FRAMES frames, however small the budget (`start_cut`'s least slab).
-        b.slabs.set_budget(samples);
-        if let Some(z) = b.slabs.next_slab() {
-            let input = match (&b.method, &b.q) {
-                (MethodGpu::Lao(l), _) => &l.skip.padded,
-                (_, Some(q)) => q,
-                _ => unreachable!("a box being computed is LAO's or has q"),
+        for i in 0..self.boxes.len() {
+            let Some(b) = self.boxes[i].build.as_mut() else {
+                continue;
             };
-            let lao = &self.lao;
-            gpu.submit_and_wait(|cmd| {
-                b.method
-                    .record_precompute(cmd, lao, &b.dirs, input, &b.pao, z)
-            })?;
+            // At most BUILD_FRAMES frames, however small the budget (`start_cut`'s least slab).
+            b.slabs.set_budget(samples);
+            if let Some(z) = b.slabs.next_slab() {
+                let input = match (&b.method, &b.q) {
+                    (MethodGpu::Lao(l), _) => &l.skip.padded,
+                    (_, Some(q)) => q,
+                    _ => unreachable!("a box being computed is LAO's or has q"),
+                };
+                let lao = &self.lao;
+                gpu.submit_and_wait(|cmd| {
+                    b.method
+                        .record_precompute(cmd, lao, &b.dirs, input, &b.pao, z)
+                })?;
+            }
+            if !b.slabs.is_finished() {
+                continue;
+            }
+            let Build {
+                inner_lo,
+                crop_lo,
+                crop,
+                opacity,
+                method,
+                pao,
+                ..
+            } = self.boxes[i].build.take().expect("checked above");
+            let ao = AoVolume {
+                opacity,
+                ao_buf: pao,
+                timing: Default::default(),
+                method,
+            };
+            self.show(gpu, i, (inner_lo, crop_lo, crop), ao)?;
         }
-        if !b.slabs.is_finished() {
-            return Ok(());
-        }
-        let Build {
-            inner_lo,
-            crop_lo,
-            crop,
-            opacity,
-            method,
-            pao,
-            ..
-        } = self.build.take().expect("checked above");
-        let ao = AoVolume {
-            opacity,
-            ao_buf: pao,
-            timing: Default::default(),
-            method,
-        };
-        self.show(gpu, (inner_lo, crop_lo, crop), ao)
+        Ok(())
     }
 
-    /// How far the box being cut has come (0 to 1), where one is.
+    /// How far the boxes being cut have come (0 to 1, the least), where one is.
     pub fn refining(&self) -> Option<f32> {
-        self.build.as_ref().map(|b| b.slabs.fraction())
+        self.boxes
+            .iter()
+            .filter_map(|b| b.build.as_ref())
+            .map(|b| b.slabs.fraction())
+            .reduce(f32::min)
     }
 
-    /// "inset 160 x 160 x 64 at [176:336,...] (+ margin 24 x 24 x 8) at full resolution", as
-    /// stderr tells it.
+    /// "inset 160 x 160 x 64 at [176:336,...] and at [...] (+ margin 24 x 24 x 8) at full
+    /// resolution", as stderr tells it.
     pub fn describe(&self) -> String {
         let [x, y, z] = self.inner;
         let [mx, my, mz] = self.margin;
@@ -451,29 +530,44 @@ impl Inset {
             let r = |a: usize| format!("{}:{}", lo[a], lo[a] + self.inner[a]);
             format!("[{},{},{}]", r(0), r(1), r(2))
         };
-        let at = match (&self.part, &self.build) {
-            (Some(p), _) => format!(" at {}", span(p.inner_lo)),
-            (None, Some(b)) => format!(" being computed at {}", span(b.inner_lo)),
-            (None, None) => String::new(),
-        };
+        let at: Vec<String> = self
+            .boxes
+            .iter()
+            .filter_map(|b| match (&b.part, &b.build) {
+                (Some(p), _) => Some(format!(" at {}", span(p.inner_lo))),
+                (None, Some(b)) => Some(format!(" being computed at {}", span(b.inner_lo))),
+                (None, None) => None,
+            })
+            .collect();
+        let at = at.join(" and");
         format!("inset {x} x {y} x {z}{at} (+ margin {mx} x {my} x {mz}) at full resolution")
     }
 
-    /// The inner box's size (full-resolution voxels).
+    /// The inner boxes' size (full-resolution voxels).
     pub fn inner_size(&self) -> [usize; 3] {
         self.inner
     }
 
-    /// The inner box's least share of the volume's side.
+    /// How many boxes there are (shown, being computed, or waiting for a cut).
+    pub fn boxes(&self) -> usize {
+        self.boxes.len()
+    }
+
+    /// The inner boxes' least share of the volume's side.
     pub fn share(&self) -> f64 {
         (0..3)
             .map(|a| self.inner[a] as f64 / self.whole.dims[a] as f64)
             .fold(1.0, f64::min)
     }
 
-    /// The inner box (full-resolution voxel indices, \[lo, hi)), where one is on the GPU.
+    /// The first box (full-resolution voxel indices, \[lo, hi)), where it is on the GPU.
     pub fn inner_box(&self) -> Option<([usize; 3], [usize; 3])> {
-        let p = self.part.as_ref()?;
+        self.inner_box_of(0)
+    }
+
+    /// Box `b` (full-resolution voxel indices, \[lo, hi)), where it is on the GPU.
+    pub fn inner_box_of(&self, b: usize) -> Option<([usize; 3], [usize; 3])> {
+        let p = self.boxes.get(b)?.part.as_ref()?;
         Some((
             p.inner_lo,
             std::array::from_fn(|a| p.inner_lo[a] + self.inner[a]),
@@ -490,23 +584,58 @@ impl Inset {
         }
     }
 
-    /// Where the box should be for `tools`, the eyes' `views` and their tracked `gaze` pose
-    /// (looking along its -Z) over `shown` at `p`, when a quarter of the box or more from where
-    /// it is; None otherwise, and while a box is being computed ([`Inset::start_cut`]). It goes
-    /// where the cutting tools are (their mean position), else where the tools the hands hold
-    /// inside the volume are, else where the gaze, or without one the eyes' lens centres, meets
-    /// what is shown (`Inset::gaze_point`); with none of these it stays.
-    pub fn wants_cut(
+    /// Which boxes should be cut where (box, full-resolution index point) for `tools`, the
+    /// eyes' `views` and their tracked `gaze` pose (looking along its -Z) over `shown` at `p`.
+    /// The places the boxes belong (`Inset::foci`, the first first) each keep a box already
+    /// around them (within a quarter of the box); the others go to the boxes none keeps and
+    /// none is computing, then, while none is computing, to new boxes (past the last). A box
+    /// being computed ([`Inset::start_cut`]) is finished where it is, however the tools move, so
+    /// that moving tools always get a box; a box no place wants stays where it is.
+    pub fn wants_cuts(
         &self,
         (tools, views, gaze): (&[Tool], &[View; 2], Option<Pose>),
         shown: &Volume,
         p: &Placement,
-    ) -> Option<[f64; 3]> {
-        // A box being computed is finished first (where it is, however the tools move), so
-        // that moving tools always get a box.
-        if self.build.is_some() {
-            return None;
+    ) -> Vec<(usize, [f64; 3])> {
+        let foci = self.foci((tools, views, gaze), shown, p);
+        let mut kept = vec![false; self.boxes.len()];
+        let mut left = Vec::new();
+        for f in foci {
+            let want = self.inner_lo(f);
+            let near = |lo: [usize; 3]| {
+                (0..3).all(|a| (want[a] as f64 - lo[a] as f64).abs() <= 0.25 * self.inner[a] as f64)
+            };
+            match (0..self.boxes.len()).find(|&b| !kept[b] && self.lo_of(b).is_some_and(near)) {
+                Some(b) => kept[b] = true,
+                None => left.push(f),
+            }
         }
+        let computing = self.refining().is_some();
+        let free = (0..self.boxes.len()).filter(|&b| !kept[b] && self.boxes[b].build.is_none());
+        let new = (self.boxes.len()..self.most).filter(|_| !computing);
+        free.chain(new).zip(left).collect()
+    }
+
+    /// Where box `b` is (its inner box's first voxel), shown or being computed.
+    fn lo_of(&self, b: usize) -> Option<[usize; 3]> {
+        let b = &self.boxes[b];
+        let part = b.part.as_ref().map(|p| p.inner_lo);
+        part.or(b.build.as_ref().map(|b| b.inner_lo))
+    }
+
+    /// The places (full-resolution index points) boxes belong, the first first, at most as many
+    /// as may be shown: the groups of the cutting tools (each the mean of the largest group of
+    /// them within half the inner box of one of them on every axis, among groups as large the
+    /// first tool's; then the same of the rest), else of the tools the hands hold inside the
+    /// volume; then where the tracked gaze meets what is shown; with no tool there, where the
+    /// gaze, or without one the eyes' lens centres, meets it (`Inset::gaze_point`). A place a
+    /// box around an earlier one holds (within half a box) is left out.
+    fn foci(
+        &self,
+        (tools, views, gaze): (&[Tool], &[View; 2], Option<Pose>),
+        shown: &Volume,
+        p: &Placement,
+    ) -> Vec<[f64; 3]> {
         let whole = &*self.whole;
         let tex_from_world = world_from_tex(whole, &Self::placed(whole, shown, p)).inverse();
         let tex = |t: &Tool| tex_from_world.transform_point3(t.pose.position);
@@ -517,51 +646,60 @@ impl Inset {
         } else {
             cutting
         };
-        let mean = if points.is_empty() {
-            let (origin, dir) = gaze.map_or_else(
-                || centre_ray(views),
-                |g| (g.position, g.orientation * Vec3::NEG_Z),
-            );
-            self.gaze_point(
+        let mut foci = self.tool_groups(&points);
+        let look = match gaze {
+            Some(g) => Some((g.position, g.orientation * Vec3::NEG_Z)),
+            None if foci.is_empty() => Some(centre_ray(views)),
+            None => None,
+        };
+        if let Some((origin, dir)) = look {
+            foci.extend(self.gaze_point(
                 tex_from_world.transform_point3(origin),
                 tex_from_world.transform_vector3(dir),
-            )?
-        } else {
-            self.tools_centre(&points)
-        };
-        let centre: [f64; 3] = std::array::from_fn(|a| mean[a] as f64 * whole.dims[a] as f64);
-        let want = self.inner_lo(centre);
-        let moved = match self.part.as_ref().map(|p| p.inner_lo) {
-            None => true,
-            Some(lo) => {
-                (0..3).any(|a| (want[a] as f64 - lo[a] as f64).abs() > 0.25 * self.inner[a] as f64)
-            }
-        };
-        moved.then_some(centre)
-    }
-
-    /// Where the box goes for tools at `points` (texture coordinates, at least one): the mean of
-    /// the largest group of them within half the inner box of one of them on every axis (among
-    /// groups as large, the first tool's), not of all: two hands carving far apart get a box
-    /// around one of them, not one between them around neither.
-    fn tools_centre(&self, points: &[Vec3]) -> Vec3 {
-        let dims = Vec3::from_array(self.whole.dims.map(|d| d as f32));
+            ));
+        }
+        let dims = Vec3::from_array(whole.dims.map(|d| d as f32));
         let half = Vec3::from_array(self.inner.map(|n| n as f32)) * 0.5 / dims;
-        let group = |p: &Vec3| -> Vec<Vec3> {
-            points
-                .iter()
-                .copied()
-                .filter(|q| (*q - *p).abs().cmple(half).all())
-                .collect()
-        };
-        let mut best = group(&points[0]);
-        for p in &points[1..] {
-            let g = group(p);
-            if g.len() > best.len() {
-                best = g;
+        let mut distinct: Vec<Vec3> = Vec::new();
+        for f in foci {
+            if !distinct.iter().any(|d| (f - *d).abs().cmple(half).all()) {
+                distinct.push(f);
             }
         }
-        best.iter().sum::<Vec3>() / best.len() as f32
+        distinct.truncate(self.most);
+        distinct
+            .iter()
+            .map(|f| std::array::from_fn(|a| f[a] as f64 * whole.dims[a] as f64))
+            .collect()
+    }
+
+    /// The groups of tools at `points` (texture coordinates), the largest first: each the mean
+    /// of the largest group of those left within half the inner box of one of them on every
+    /// axis (among groups as large, the first tool's): two hands carving far apart get a box
+    /// each, not one between them around neither.
+    fn tool_groups(&self, points: &[Vec3]) -> Vec<Vec3> {
+        let dims = Vec3::from_array(self.whole.dims.map(|d| d as f32));
+        let half = Vec3::from_array(self.inner.map(|n| n as f32)) * 0.5 / dims;
+        let mut left = points.to_vec();
+        let mut means = Vec::new();
+        while !left.is_empty() {
+            let group = |p: &Vec3| -> Vec<Vec3> {
+                left.iter()
+                    .copied()
+                    .filter(|q| (*q - *p).abs().cmple(half).all())
+                    .collect()
+            };
+            let mut best = group(&left[0]);
+            for p in &left[1..] {
+                let g = group(p);
+                if g.len() > best.len() {
+                    best = g;
+                }
+            }
+            means.push(best.iter().sum::<Vec3>() / best.len() as f32);
+            left.retain(|q| !best.contains(q));
+        }
+        means
     }
 
     /// The first point (texture coordinates) on the ray from `origin` along `dir` (texture
@@ -635,7 +773,15 @@ impl Inset {
         self.config = config;
         self.tf = tf;
         self.structures = structures.to_vec();
-        self.cut(gpu, self.centre())
+        self.cut_again(gpu)
+    }
+
+    /// Cuts every box again where it is, at once.
+    fn cut_again(&mut self, gpu: &Gpu) -> Result<()> {
+        for b in 0..self.boxes.len() {
+            self.cut_box(gpu, b, self.centre_of(b))?;
+        }
+        Ok(())
     }
 
     /// Variance opacity modulation `m` (None: off) in the box from now on: var_s at full
@@ -651,12 +797,19 @@ impl Inset {
         self.remake_images(gpu)
     }
 
-    /// Makes the shown box's var_s and glow images anew (their settings changed).
+    /// Makes the shown boxes' var_s and glow images anew (their settings changed).
     fn remake_images(&mut self, gpu: &Gpu) -> Result<()> {
-        if let Some((crop_lo, dims)) = self.part.as_ref().map(|p| (p.crop_lo, p.crop.dims)) {
+        for b in 0..self.boxes.len() {
+            let Some((crop_lo, dims)) = self.boxes[b]
+                .part
+                .as_ref()
+                .map(|p| (p.crop_lo, p.crop.dims))
+            else {
+                continue;
+            };
             let variance = self.crop_variance(gpu, crop_lo, dims)?;
             let glow = self.crop_glow(gpu, crop_lo, dims)?;
-            if let Some(p) = self.part.as_mut() {
+            if let Some(p) = self.boxes[b].part.as_mut() {
                 (p.variance, p.glow) = (variance, glow);
             }
         }
@@ -715,34 +868,43 @@ impl Inset {
         self.protected = protected.to_vec();
     }
 
-    /// Records, submits and waits for one frame's update of the box ([`Cao::run_frame`]): what
-    /// it did, where a box is shown.
+    /// Records, submits and waits for one frame's update of each box shown ([`Cao::run_frame`]):
+    /// what each did.
     pub fn run_frame(
         &mut self,
         tools: &[Tool],
         (shown, p): (&Volume, &Placement),
         mode: Mode,
-    ) -> Result<Option<FrameMetrics>> {
-        let Some(part) = self.part.as_mut() else {
-            return Ok(None);
-        };
-        let placement = Self::placed(&part.crop, shown, p);
-        if part.ids.is_some() {
-            part.cao.set_protected(&self.protected);
+    ) -> Result<Vec<FrameMetrics>> {
+        let mut done = Vec::new();
+        for part in self.boxes.iter_mut().filter_map(|b| b.part.as_mut()) {
+            let placement = Self::placed(&part.crop, shown, p);
+            if part.ids.is_some() {
+                part.cao.set_protected(&self.protected);
+            }
+            done.push(part.cao.run_frame(tools, &placement, mode)?);
         }
-        Ok(Some(part.cao.run_frame(tools, &placement, mode)?))
+        Ok(done)
     }
 
-    /// The crop on the GPU (the inner box and its margin): its first voxel and its size.
+    /// The first box's crop on the GPU (the inner box and its margin): its first voxel and its
+    /// size.
     pub fn crop_box(&self) -> Option<([usize; 3], [usize; 3])> {
-        self.part.as_ref().map(|p| (p.crop_lo, p.crop.dims))
+        let p = self.boxes[0].part.as_ref()?;
+        Some((p.crop_lo, p.crop.dims))
     }
 
-    /// Makes the box a fifth smaller on each side, cut again where it is; false (and no box)
-    /// where it would be smaller than [`MIN_SIDE`].
+    /// Gives up the last box where there are several (and adds none from now on: together
+    /// they did not fit); with one, makes it a fifth smaller on each side, cut again where it
+    /// is. False (and no box) where it would be smaller than [`MIN_SIDE`].
     pub fn shrink(&mut self, gpu: &Gpu) -> Result<bool> {
-        let centre = self.centre();
-        self.part = None;
+        if self.boxes.len() > 1 {
+            self.boxes.pop();
+            self.most = self.boxes.len();
+            return Ok(true);
+        }
+        let centre = self.centre_of(0);
+        self.boxes[0] = InsetBox::default();
         self.inner = self.inner.map(|n| n * 4 / 5);
         if self.inner.iter().any(|&n| n < MIN_SIDE) {
             return Ok(false);
@@ -751,56 +913,63 @@ impl Inset {
         Ok(true)
     }
 
-    /// The inner box's centre (full-resolution index point; the box shown or being computed), or
-    /// the volume's with neither.
-    fn centre(&self) -> [f64; 3] {
-        let lo = self.part.as_ref().map(|p| p.inner_lo);
-        lo.or(self.build.as_ref().map(|b| b.inner_lo))
+    /// Box `b`'s centre (full-resolution index point; the box shown or being computed), or the
+    /// volume's with neither.
+    fn centre_of(&self, b: usize) -> [f64; 3] {
+        self.lo_of(b)
             .map_or(self.whole.dims.map(|d| d as f64 * 0.5), |lo| {
                 std::array::from_fn(|a| lo[a] as f64 + 0.5 * self.inner[a] as f64)
             })
     }
 
-    /// The box as the ray caster reads it over `shown` placed at `p`.
-    pub fn binding<'a>(&'a self, shown: &Volume, p: &Placement) -> Option<InsetBinding<'a>> {
-        let part = self.part.as_ref()?;
-        let crop = &part.crop;
-        // The crop's texture coordinates from the shown volume's: the same axes, so a scale and
-        // an offset per axis.
-        let m = world_from_tex(crop, &Self::placed(crop, shown, p)).inverse()
-            * world_from_tex(shown, p);
-        let scale = Vec3::new(m.x_axis.x, m.y_axis.y, m.z_axis.z);
-        let offset = m.w_axis.xyz();
-        let inner = |lo: usize, a: usize| (lo - part.crop_lo[a]) as f32 / crop.dims[a] as f32;
-        let lo = Vec3::from_array(std::array::from_fn(|a| inner(part.inner_lo[a], a)));
-        let hi = Vec3::from_array(std::array::from_fn(|a| {
-            inner(part.inner_lo[a] + self.inner[a], a)
-        }));
-        Some(InsetBinding {
-            scalars: &part.scalars,
-            ao: &part.cao.ao,
-            bleeding: part.cao.method().bleeding(),
-            structures: part.ids.as_ref(),
-            variance: part.variance.as_ref(),
-            glow: part.glow.as_ref(),
-            lo: (lo - offset) / scale,
-            hi: (hi - offset) / scale,
-            scale,
-            offset,
-        })
+    /// The boxes shown, as the ray caster reads them over `shown` placed at `p`.
+    pub fn bindings<'a>(&'a self, shown: &Volume, p: &Placement) -> Vec<InsetBinding<'a>> {
+        let binding = |part: &'a Part| {
+            let crop = &part.crop;
+            // The crop's texture coordinates from the shown volume's: the same axes, so a scale
+            // and an offset per axis.
+            let m = world_from_tex(crop, &Self::placed(crop, shown, p)).inverse()
+                * world_from_tex(shown, p);
+            let scale = Vec3::new(m.x_axis.x, m.y_axis.y, m.z_axis.z);
+            let offset = m.w_axis.xyz();
+            let inner = |lo: usize, a: usize| (lo - part.crop_lo[a]) as f32 / crop.dims[a] as f32;
+            let lo = Vec3::from_array(std::array::from_fn(|a| inner(part.inner_lo[a], a)));
+            let hi = Vec3::from_array(std::array::from_fn(|a| {
+                inner(part.inner_lo[a] + self.inner[a], a)
+            }));
+            InsetBinding {
+                scalars: &part.scalars,
+                ao: &part.cao.ao,
+                bleeding: part.cao.method().bleeding(),
+                structures: part.ids.as_ref(),
+                variance: part.variance.as_ref(),
+                glow: part.glow.as_ref(),
+                lo: (lo - offset) / scale,
+                hi: (hi - offset) / scale,
+                scale,
+                offset,
+            }
+        };
+        self.boxes
+            .iter()
+            .filter_map(|b| b.part.as_ref())
+            .map(binding)
+            .collect()
     }
 
-    /// The box's clip tools and maps for this frame ([`Cao::clip_buffers`]): the ray caster's
-    /// shadow test uses them, so that a cut lies where it lies at full resolution (the maps'
-    /// texels follow the dilation radius, which follows the voxel size).
+    /// The clip tools and maps for this frame ([`Cao::clip_buffers`]) of the first box shown:
+    /// the ray caster's shadow test uses them, so that a cut lies where it lies at full
+    /// resolution (the maps are the tools' in their own space, and their texels follow the
+    /// dilation radius, which follows the voxel size: every box's are the same).
     pub fn clip_buffers(&self) -> Option<(&crate::gpu::Buffer, &crate::gpu::Buffer)> {
-        let (tools, maps, _) = self.part.as_ref()?.cao.clip_buffers();
+        let part = self.boxes.iter().find_map(|b| b.part.as_ref())?;
+        let (tools, maps, _) = part.cao.clip_buffers();
         Some((tools, maps))
     }
 
-    /// The box's CAO state, where one is on the GPU.
+    /// The first box's CAO state, where it is on the GPU.
     pub fn cao(&self) -> Option<&Cao> {
-        self.part.as_ref().map(|p| &p.cao)
+        self.boxes[0].part.as_ref().map(|p| &p.cao)
     }
 }
 

@@ -83,7 +83,10 @@ pub fn render_to_dir(
         let [x, y, z] = shown.dims;
         let inset = fl.inset().map_or(String::new(), |i| {
             let [x, y, z] = i.inner_size();
-            format!(", with a {x} x {y} x {z} box at full resolution")
+            match i.boxes() {
+                1 => format!(", with a {x} x {y} x {z} box at full resolution"),
+                n => format!(", with {n} boxes of {x} x {y} x {z} at full resolution"),
+            }
         });
         format!(" (shown downsampled to {x} x {y} x {z}{inset})")
     };

@@ -11,9 +11,9 @@ pub mod text;
 
 use crate::gpu::{pipeline, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
 use crate::shader_constants::{
-    MAX_TOOLS, RAY_AO, RAY_BLEEDING, RAY_CLIPPING, RAY_CLIP_BRICKS, RAY_GLOW, RAY_INSET, RAY_ISO,
-    RAY_JITTER, RAY_LABELS, RAY_LIT, RAY_PREINTEGRATED, RAY_RECORD, RAY_REPROJECT, RAY_SCATTERING,
-    RAY_SH, RAY_SKIP_EMPTY, RAY_TRICUBIC, RAY_VARIANCE,
+    MAX_INSETS, MAX_TOOLS, RAY_AO, RAY_BLEEDING, RAY_CLIPPING, RAY_CLIP_BRICKS, RAY_GLOW,
+    RAY_INSET, RAY_ISO, RAY_JITTER, RAY_LABELS, RAY_LIT, RAY_PREINTEGRATED, RAY_RECORD,
+    RAY_REPROJECT, RAY_SCATTERING, RAY_SH, RAY_SKIP_EMPTY, RAY_TRICUBIC, RAY_VARIANCE,
 };
 use crate::space::View;
 use crate::volume::transfer::TransferFunction;
@@ -1043,6 +1043,11 @@ pub struct StereoImage {
 
 pub use crate::gpu::MAX_FRAMES_IN_FLIGHT;
 
+/// raycast.frag's bindings of each inset box's scalars, structure ids, var_s and glow: a
+/// binding each, not arrays, since a sample's box is not uniform across a draw (one index for
+/// a group of lanes would read another box's images).
+const INSET_BINDINGS: [[u32; 4]; MAX_INSETS] = [[21, 22, 23, 24], [25, 26, 27, 28]];
+
 /// std140 mirror of shaders/include/frame.glsl.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -1067,18 +1072,18 @@ struct FrameUniforms {
     protect: [[u32; 4]; 2],
     light: [f32; 4],
     ao_words: [u32; 4],
-    inset_lo: [f32; 4],
-    inset_hi: [f32; 4],
-    inset_scale: [f32; 4],
-    inset_offset: [f32; 4],
-    inset_words: [u32; 4],
+    inset_lo: [[f32; 4]; MAX_INSETS],
+    inset_hi: [[f32; 4]; MAX_INSETS],
+    inset_scale: [[f32; 4]; MAX_INSETS],
+    inset_offset: [[f32; 4]; MAX_INSETS],
+    inset_words: [[u32; 4]; MAX_INSETS],
 }
-crate::gpu::glsl_layout!(FrameUniforms, 5248,
+crate::gpu::glsl_layout!(FrameUniforms, 5328,
     inv_view_proj: 0, view_proj: 128, tex_from_world: 256, extent_mm: 320, value_map: 336,
     background: 352, viewport: 368, phong: 384, surface: 400, cut_tint: 416, jitter: 432,
     lighting: 448, bleeding: 464, glow: 480, sh_light: 496, tool_reach: 752, structures: 1008,
-    protect: 5104, light: 5136, ao_words: 5152, inset_lo: 5168, inset_hi: 5184,
-    inset_scale: 5200, inset_offset: 5216, inset_words: 5232);
+    protect: 5104, light: 5136, ao_words: 5152, inset_lo: 5168, inset_hi: 5200,
+    inset_scale: 5232, inset_offset: 5264, inset_words: 5296);
 
 /// The ray caster's descriptor writes: the uniforms, the clip tools, maps and brick states
 /// (bindings 0, 4, 5, 20), then the sampled images by binding.
@@ -1171,15 +1176,33 @@ pub struct FrameViews<'a> {
     /// The local-histogram method's bleeding colour E (RGBA8 words), read as V_AO is; None: no
     /// bleeding or scattering.
     pub bleeding: Option<&'a Buffer>,
-    /// A part of the volume at full resolution, where the rest is shown downsampled.
-    pub inset: Option<InsetBinding<'a>>,
+    /// Parts of the volume at full resolution (at most [`MAX_INSETS`]), where the rest is shown
+    /// downsampled.
+    pub insets: &'a [InsetBinding<'a>],
     /// The point the eyes fixate (world, [`fixation`]), which a foveated frame centres on;
     /// None: each eye's lens centre ([`fovea_centre`]).
     pub gaze: Option<Vec3>,
 }
 
-/// The full-resolution inset of a downsampled volume ([`crate::app::inset`]): its scalars and
-/// V_AO, and where it lies in the shown volume's texture coordinates.
+impl<'a> FrameViews<'a> {
+    /// Both `views` of the volume at `model`, unclipped and unlit: no tools, no SH, no AO, no
+    /// insets, no gaze (set the fields that apply).
+    pub fn new(views: &'a [View; 2], model: Mat4) -> FrameViews<'a> {
+        FrameViews {
+            views,
+            model,
+            clip: None,
+            sh: None,
+            ao: None,
+            bleeding: None,
+            insets: &[],
+            gaze: None,
+        }
+    }
+}
+
+/// One full-resolution box of a downsampled volume's inset ([`crate::app::inset`]): its
+/// scalars and V_AO, and where it lies in the shown volume's texture coordinates.
 #[derive(Clone, Copy)]
 pub struct InsetBinding<'a> {
     /// Its scalars, stored as the shown volume's are ([`scalar_image`]).
@@ -1324,7 +1347,7 @@ impl Renderer {
             let sampled = Some(vk::DescriptorType::COMBINED_IMAGE_SAMPLER);
             let storage = Some(vk::DescriptorType::STORAGE_BUFFER);
             // No bindings 2 and 11: the ray caster reads V_AO and E by address (FrameViews).
-            let mut bindings = [sampled; 25];
+            let mut bindings = [sampled; 29];
             bindings[0] = Some(vk::DescriptorType::UNIFORM_BUFFER);
             for b in [4, 5, 20] {
                 bindings[b] = storage;
@@ -1447,7 +1470,7 @@ impl Renderer {
             (clip.is_some_and(|c| c.count > 0), RAY_CLIPPING),
             (glow, RAY_GLOW),
             (settings.clip_bricks, RAY_CLIP_BRICKS),
-            (frame.inset.is_some(), RAY_INSET),
+            (!frame.insets.is_empty(), RAY_INSET),
             (settings.use_ao && frame.ao.is_some(), RAY_AO),
             (
                 frame.bleeding.is_some() && settings.bleeding > 0.0,
@@ -1500,10 +1523,19 @@ impl Renderer {
         };
         let [ox, oy] = blue_noise::RIGHT_EYE_OFFSET;
         let vp = views.map(|v| v.view_proj());
-        let [inset_lo, inset_hi, inset_scale, inset_offset] =
-            frame.inset.map_or([[0.0; 4]; 4], |i| {
-                [i.lo, i.hi, i.scale, i.offset].map(|v| v.extend(0.0).to_array())
-            });
+        assert!(
+            frame.insets.len() <= MAX_INSETS,
+            "at most {MAX_INSETS} insets"
+        );
+        // Per box slot: [lo, hi, scale, offset] and its words; an absent box has lo = hi = 0.
+        let box_of = |s: usize| frame.insets.get(s);
+        let [inset_lo, inset_hi, inset_scale, inset_offset] = [0, 1, 2, 3].map(|k| {
+            std::array::from_fn(|s| {
+                box_of(s).map_or([0.0; 4], |i| {
+                    [i.lo, i.hi, i.scale, i.offset][k].extend(0.0).to_array()
+                })
+            })
+        });
         let u = FrameUniforms {
             inv_view_proj: vp.map(|m| m.inverse().to_cols_array()),
             view_proj: vp.map(|m| m.to_cols_array()),
@@ -1624,14 +1656,11 @@ impl Renderer {
             inset_hi,
             inset_scale,
             inset_offset,
-            inset_words: {
-                let [a, e] = [
-                    frame.inset.map(|i| i.ao),
-                    frame.inset.and_then(|i| i.bleeding),
-                ]
-                .map(|b| b.map_or(0, |b| b.address));
+            inset_words: std::array::from_fn(|s| {
+                let [a, e] = [box_of(s).map(|i| i.ao), box_of(s).and_then(|i| i.bleeding)]
+                    .map(|b| b.map_or(0, |b| b.address));
                 [a as u32, (a >> 32) as u32, e as u32, (e >> 32) as u32]
-            },
+            }),
         };
         self.uniforms[slot].write(0, bytemuck::bytes_of(&u))?;
         let uniforms = &self.uniforms[slot];
@@ -1642,7 +1671,7 @@ impl Renderer {
         let ubo = [uniforms
             .descriptor()
             .range(std::mem::size_of::<FrameUniforms>() as u64)];
-        let img = |(binding, view)| {
+        let img = |(binding, view): (u32, vk::ImageView)| {
             [vk::DescriptorImageInfo::default()
                 .sampler(if binding == 19 {
                     self.nearest
@@ -1682,17 +1711,18 @@ impl Renderer {
         // The sampled images by binding (raycast.frag): var_s and E, where absent, are a bound
         // image standing in, unread (lighting.w = 0, bleeding.x = 0); so are the coarse images
         // but in a foveated eye's full pass.
-        // The inset's image where it has one, else the shown volume's, else a stand-in (unread).
-        let inset_or = |of: fn(InsetBinding) -> Option<&Image>, shown: Option<&Image>| {
+        // Box s's image where it has one, else the shown volume's, else a stand-in (unread).
+        let inset_or = |s: usize, of: fn(InsetBinding) -> Option<&Image>, shown: Option<&Image>| {
             frame
-                .inset
-                .and_then(of)
+                .insets
+                .get(s)
+                .and_then(|&i| of(i))
                 .or(shown)
                 .unwrap_or(&tex.scalars)
                 .view
         };
         let sampled_views = |coarse: (vk::ImageView, vk::ImageView)| {
-            [
+            let fixed = [
                 (1, tex.scalars.view),
                 (3, tex.lut.view),
                 (6, sh_views[0]),
@@ -1708,21 +1738,23 @@ impl Renderer {
                 (17, tex.glow.as_ref().unwrap_or(&tex.scalars).view),
                 (18, coarse.0),
                 (19, coarse.1),
-                (21, frame.inset.map_or(tex.scalars.view, |i| i.scalars.view)),
-                (
-                    22,
-                    frame
-                        .inset
-                        .and_then(|i| i.structures)
-                        .map_or(tex.structures.view, |s| s.view),
-                ),
-                (23, inset_or(|i| i.variance, tex.variance.as_ref())),
-                (24, inset_or(|i| i.glow, tex.glow.as_ref())),
-            ]
+            ];
+            let boxes = INSET_BINDINGS.iter().enumerate().flat_map(|(s, b)| {
+                [
+                    (b[0], inset_or(s, |b| Some(b.scalars), None)),
+                    (b[1], inset_or(s, |b| b.structures, Some(&tex.structures))),
+                    (b[2], inset_or(s, |b| b.variance, tex.variance.as_ref())),
+                    (b[3], inset_or(s, |b| b.glow, tex.glow.as_ref())),
+                ]
+            });
+            fixed.into_iter().chain(boxes).collect::<Vec<_>>()
         };
         let plain = sampled_views((self.no_coarse.view, self.no_coarse.view));
         let full = sampled_views(coarse_views);
-        let (plain_infos, full_infos) = (plain.map(img), full.map(img));
+        let (plain_infos, full_infos): (Vec<_>, Vec<_>) = (
+            plain.iter().map(|&v| img(v)).collect(),
+            full.iter().map(|&v| img(v)).collect(),
+        );
         let clip_tools = [clip.map_or(&self.no_clip, |c| c.tools).descriptor()];
         let clip_maps = [clip.map_or(&self.no_clip, |c| c.maps).descriptor()];
         let clip_bricks = [clip.map_or(&self.no_clip, |c| c.bricks).descriptor()];

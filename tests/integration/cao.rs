@@ -73,14 +73,10 @@ fn render(
     let views = default_stereo_views(vol, placement, 0.064);
     let model = world_from_tex(vol, placement);
     let frame = FrameViews {
-        views: &views,
-        model,
         clip: Some(clip),
-        sh: None,
         ao: Some(&cao.ao),
         bleeding: cao.method().bleeding(),
-        inset: None,
-        gaze: None,
+        ..FrameViews::new(&views, model)
     };
     hr.render(&tex, &frame, (64, 64), &RenderSettings::default())
         .unwrap()

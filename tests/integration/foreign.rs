@@ -205,16 +205,7 @@ fn render(vol: &Volume, tf: &TransferFunction, size: u32) -> StereoImage {
     let tex = VolumeTextures::new(&gpu, vol, tf).unwrap();
     let placement = Placement::default();
     let views = default_stereo_views(vol, &placement, 0.064);
-    let frame = FrameViews {
-        views: &views,
-        model: world_from_tex(vol, &placement),
-        clip: None,
-        sh: None,
-        ao: None,
-        bleeding: None,
-        inset: None,
-        gaze: None,
-    };
+    let frame = FrameViews::new(&views, world_from_tex(vol, &placement));
     let settings = RenderSettings {
         use_ao: false,
         ..RenderSettings::default()

@@ -125,35 +125,57 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         FrameInput::head_views(head, 0.064, fov)
     };
     let (looking, away) = (eyes(0.0), eyes(std::f32::consts::PI));
-    let near_corner = inset.wants_cut(
+    // Where the one box there is goes (None: it stays).
+    let first = |cuts: Vec<(usize, [f64; 3])>| {
+        assert!(cuts.len() <= 1, "{cuts:?}: one place, one box");
+        cuts.first().map(|&(b, c)| {
+            assert_eq!(b, 0, "{cuts:?}");
+            c
+        })
+    };
+    let near_corner = first(inset.wants_cuts(
         (&[held(Vec3::splat(0.07))], &looking, None),
         &vol,
         &placement,
-    );
+    ));
     let centre = near_corner.expect("a held tool inside the volume moves the box");
     assert!(
         centre.iter().all(|&c| !(12.0..=36.0).contains(&c)),
         "{centre:?}"
     );
-    // Two hands far apart (more than the box): the box goes around the first, not between them.
+    // Two hands far apart (more than the box): the box goes around the first, not between them,
+    // and a second box is asked for around the other.
     let apart = [held(Vec3::splat(0.07)), held(Vec3::splat(-0.07))];
-    let two = inset.wants_cut((&apart, &looking, None), &vol, &placement);
-    assert_eq!(two, near_corner, "two tools far apart");
-    let outside = inset.wants_cut(
+    let two = inset.wants_cuts((&apart, &looking, None), &vol, &placement);
+    assert_eq!(two.len(), 2, "two tools far apart: {two:?}");
+    assert_eq!(two[0], (0, centre), "two tools far apart");
+    assert_eq!(two[1].0, 1, "{two:?}: a new box");
+    // On the other side of the volume's centre on every axis, as far out.
+    let opposite = |c: [f64; 3]| (0..3).all(|a| (c[a] - 24.0) * (centre[a] - 24.0) < -144.0);
+    assert!(
+        opposite(two[1].1),
+        "{two:?}: the second box is around the other tool"
+    );
+    // Two hands close together (within half the box): one box around both, on the first's
+    // side.
+    let close = [held(Vec3::splat(0.07)), held(Vec3::splat(0.06))];
+    let one = first(inset.wants_cuts((&close, &looking, None), &vol, &placement));
+    let same_side = |c: [f64; 3]| (0..3).all(|a| (c[a] - 24.0) * (centre[a] - 24.0) > 100.0);
+    assert!(one.is_some_and(same_side), "{one:?}");
+    let outside = first(inset.wants_cuts(
         (&[held(Vec3::new(0.4, 0.0, 0.0))], &away, None),
         &vol,
         &placement,
-    );
+    ));
     assert_eq!(outside, None);
     // With no tool inside, the box goes where the eyes' centres meet the head: a voxel the TF
     // shows, on the centre ray, off the volume's centre by more than a quarter of the box.
-    let gaze = inset
-        .wants_cut(
-            (&[held(Vec3::new(0.4, 0.0, 0.0))], &looking, None),
-            &vol,
-            &placement,
-        )
-        .expect("the eyes' centres move the box");
+    let gaze = first(inset.wants_cuts(
+        (&[held(Vec3::new(0.4, 0.0, 0.0))], &looking, None),
+        &vol,
+        &placement,
+    ))
+    .expect("the eyes' centres move the box");
     let dims = vol.dims.map(|d| d as f32);
     let tex = Vec3::from_array(std::array::from_fn(|a| gaze[a] as f32 / dims[a]));
     let world = cao_xr::space::world_from_tex(&vol, &placement).transform_point3(tex);
@@ -170,7 +192,7 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         (0..3).any(|a| (gaze[a] - 24.0).abs() > 4.0),
         "{gaze:?} is the box's centre"
     );
-    let blind = inset.wants_cut((&[], &away, None), &vol, &placement);
+    let blind = first(inset.wants_cuts((&[], &away, None), &vol, &placement));
     assert_eq!(blind, None, "eyes turned away leave the box");
     // A tracked gaze, from the same eyes 4 cm lower towards the head's centre: the box goes
     // where it meets the head, on the gaze ray and not on the centre ray.
@@ -179,8 +201,7 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         position: from,
         orientation: Quat::from_rotation_arc(Vec3::NEG_Z, (placement.center - from).normalize()),
     };
-    let followed = inset
-        .wants_cut((&[], &away, Some(look)), &vol, &placement)
+    let followed = first(inset.wants_cuts((&[], &away, Some(look)), &vol, &placement))
         .expect("the gaze moves the box");
     let tex = Vec3::from_array(std::array::from_fn(|a| followed[a] as f32 / dims[a]));
     let world = cao_xr::space::world_from_tex(&vol, &placement).transform_point3(tex);
@@ -194,6 +215,50 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
         (world - ray).cross(Vec3::Z).length() > 0.02,
         "{followed:?} is on the centre ray"
     );
+    // A tool cutting near a corner while the tracked gaze meets the head elsewhere: the box
+    // goes to the tool, and a second box is asked for where the eyes look.
+    let mut cutting = held(Vec3::splat(0.07));
+    cutting.active = true;
+    let both = inset.wants_cuts((&[cutting], &away, Some(look)), &vol, &placement);
+    assert_eq!(both, vec![(0, centre), (1, followed)]);
+    // A 16^3 box is too small to split: the one box goes to the tool.
+    let mut small = inset;
+    small.make_cuts(&gpu, &both, false).unwrap();
+    assert_eq!(small.boxes(), 1);
+    let inside = |b: Option<([usize; 3], [usize; 3])>, c: [f64; 3]| {
+        let (lo, hi) = b.expect("a box shown");
+        (0..3).all(|a| (lo[a] as f64) <= c[a] && c[a] < hi[a] as f64)
+    };
+    assert!(inside(small.inner_box(), centre));
+    drop(small);
+    // A larger one, asked for by two hands far apart, is split in two, each of about half its
+    // crop, one around each hand, both shown to the ray caster.
+    let mut large = Inset::around(
+        &gpu,
+        vol.clone(),
+        (AoConfig::new(AoMethod::Lao, lao_params), tf.clone()),
+        ([28, 28, 28], [24.0; 3]),
+    )
+    .unwrap();
+    let (_, crop) = large.crop_box().unwrap();
+    let both = large.wants_cuts((&apart, &away, None), &vol, &placement);
+    assert_eq!(both.len(), 2, "{both:?}");
+    large.make_cuts(&gpu, &both, false).unwrap();
+    assert_eq!(large.boxes(), 2, "{}", large.describe());
+    let side = large.inner_size();
+    assert!(side.iter().all(|&n| (16..28).contains(&n)), "{side:?}");
+    for (b, &(_, c)) in both.iter().enumerate() {
+        assert!(inside(large.inner_box_of(b), c), "box {b}: {both:?}");
+    }
+    let voxels = |dims: [usize; 3]| dims.iter().product::<usize>();
+    assert!(
+        2 * voxels(large.crop_box().unwrap().1) <= voxels(crop),
+        "two crops hold what one did"
+    );
+    assert_eq!(large.bindings(&vol, &placement).len(), 2);
+    // Asked for nothing new, they stay.
+    let again = large.wants_cuts((&apart, &away, None), &vol, &placement);
+    assert_eq!(again, vec![], "{}", large.describe());
     common::assert_no_validation_messages(&gpu);
 }
 
@@ -393,7 +458,11 @@ fn computed_over_frames(
         angle_down: -0.5,
     };
     let eyes = FrameInput::head_views(head, 0.064, fov);
-    let wanted = |inset: &Inset| inset.wants_cut((&[held], &eyes, None), vol, &placement);
+    let wanted = |inset: &Inset| {
+        let cuts = inset.wants_cuts((&[held], &eyes, None), vol, &placement);
+        assert!(cuts.iter().all(|&(b, _)| b == 0), "{cuts:?}");
+        cuts.first().map(|&(_, c)| c)
+    };
     let there = wanted(&inset).expect("the held tool moves the box");
     let at_once = Inset::around(gpu, vol.clone(), config, (inner, there)).unwrap();
     let (_, crop) = at_once.crop_box().unwrap();
@@ -404,7 +473,7 @@ fn computed_over_frames(
     let mut refined = 0;
     while inset.refining().is_some() {
         assert!(
-            inset.cao().is_none() && inset.binding(vol, &placement).is_none(),
+            inset.cao().is_none() && inset.bindings(vol, &placement).is_empty(),
             "{method:?}, frame {refined}: the old box is gone and the new one not shown yet"
         );
         assert_eq!(
@@ -802,4 +871,67 @@ fn where_no_inset_fits_the_picture_is_the_finest_downsample_alone() {
     render(&without, "0");
     let png = |d: &std::path::Path| std::fs::read(d.join("stereo.png")).unwrap();
     assert!(png(&with) == png(&without), "the pictures differ: {told}");
+}
+
+/// Two boxes shown at once: the ray caster reads the second box's images, V_AO and place as it
+/// reads the first's. The same two boxes in either order give the same picture bit for bit
+/// (each holds the whole volume's AO and scalars, so where they overlap either is right), and
+/// the second box changes the picture the first alone gives.
+#[test]
+fn a_second_box_is_read_as_the_first() {
+    use cao_xr::app::HeadlessRenderer;
+    use cao_xr::render::{FrameViews, RenderSettings, VolumeTextures};
+    use cao_xr::space::{default_stereo_views, world_from_tex, DEFAULT_IPD};
+    let gpu = common::gpu();
+    let (vol, tf, lao_params) = small_head();
+    let config = AoConfig::new(AoMethod::Lao, lao_params);
+    let placement = Placement::default();
+    let coarse = Arc::new(vol.downsample(2));
+    let lao = LaoGpu::new(&gpu).unwrap();
+    let coarse_cao = whole_cao(&gpu, &lao, &coarse, (&tf, &config));
+    let mut inset = Inset::around(
+        &gpu,
+        vol.clone(),
+        (config, tf.clone()),
+        ([28, 28, 28], [24.0; 3]),
+    )
+    .unwrap();
+    // Two boxes on either side of the head's front.
+    inset
+        .make_cuts(
+            &gpu,
+            &[(0, [12.0, 24.0, 14.0]), (1, [36.0, 24.0, 34.0])],
+            false,
+        )
+        .unwrap();
+    assert_eq!(inset.boxes(), 2, "{}", inset.describe());
+    let mut tex = VolumeTextures::new(&gpu, &coarse, &tf).unwrap();
+    tex.show_as(&vol, &tf).unwrap();
+    let boxes = inset.bindings(&coarse, &placement);
+    assert_eq!(boxes.len(), 2);
+    let views = default_stereo_views(&coarse, &placement, DEFAULT_IPD);
+    let mut hr = HeadlessRenderer::new(&gpu).unwrap();
+    let mut picture = |insets: &[cao_xr::render::InsetBinding]| {
+        let frame = FrameViews {
+            ao: Some(&coarse_cao.ao),
+            insets,
+            ..FrameViews::new(&views, world_from_tex(&coarse, &placement))
+        };
+        hr.render(&tex, &frame, (96, 96), &RenderSettings::default())
+            .unwrap()
+            .rgba
+    };
+    let both = picture(&boxes);
+    let swapped = picture(&[boxes[1], boxes[0]]);
+    let first = picture(&boxes[..1]);
+    let differ =
+        |a: &[Vec<u8>; 2], b: &[Vec<u8>; 2]| a[0].iter().zip(&b[0]).filter(|(x, y)| x != y).count();
+    assert_eq!(differ(&both, &swapped), 0, "the order of the boxes matters");
+    assert!(
+        differ(&both, &first) > 100,
+        "the second box changes {} bytes",
+        differ(&both, &first)
+    );
+    drop((tex, hr));
+    common::assert_no_validation_messages(&gpu);
 }

@@ -49,16 +49,7 @@ fn render(gpu: &Gpu, overlays: &[Vec<OverlayItem>]) -> Vec<StereoImage> {
     let mut overlay = OverlayRenderer::new(gpu).unwrap();
     let target = StereoTarget::new(gpu, W, W).unwrap();
     let v = views();
-    let frame = FrameViews {
-        views: &v,
-        model: world_from_tex(&vol, &Placement::default()),
-        clip: None,
-        sh: None,
-        ao: None,
-        bleeding: None,
-        inset: None,
-        gaze: None,
-    };
+    let frame = FrameViews::new(&v, world_from_tex(&vol, &Placement::default()));
     let settings = RenderSettings::default();
     tex.prepare(&settings).unwrap();
     let images = overlays

@@ -37,16 +37,7 @@ fn render(vol: &Volume, settings: &RenderSettings) -> (StereoImage, [View; 2]) {
     let tex = VolumeTextures::new(&gpu, vol, &tf).unwrap();
     let placement = Placement::default();
     let v = views(&placement);
-    let frame = cao_xr::render::FrameViews {
-        views: &v,
-        model: cao_xr::space::world_from_tex(vol, &placement),
-        clip: None,
-        sh: None,
-        ao: None,
-        bleeding: None,
-        inset: None,
-        gaze: None,
-    };
+    let frame = cao_xr::render::FrameViews::new(&v, cao_xr::space::world_from_tex(vol, &placement));
     let img = hr.render(&tex, &frame, (W, W), settings).unwrap();
     drop((tex, hr));
     common::assert_no_validation_messages(&gpu);
@@ -133,16 +124,8 @@ fn head_128(n: u32, settings: [&RenderSettings; 2]) -> ([View; 2], [StereoImage;
     let tex = VolumeTextures::new(&gpu, &vol, &tf).unwrap();
     let placement = Placement::default();
     let v = cao_xr::space::default_stereo_views(&vol, &placement, cao_xr::space::DEFAULT_IPD);
-    let frame = cao_xr::render::FrameViews {
-        views: &v,
-        model: cao_xr::space::world_from_tex(&vol, &placement),
-        clip: None,
-        sh: None,
-        ao: None,
-        bleeding: None,
-        inset: None,
-        gaze: None,
-    };
+    let frame =
+        cao_xr::render::FrameViews::new(&v, cao_xr::space::world_from_tex(&vol, &placement));
     let pictures = settings.map(|s| hr.render(&tex, &frame, (n, n), s).unwrap());
     drop((tex, hr));
     common::assert_no_validation_messages(&gpu);

@@ -352,16 +352,7 @@ fn constant_environment_lights_with_albedo_times_light() {
     let placement = Placement::default();
     let views = default_stereo_views(&vol, &placement, 0.064);
     let model = world_from_tex(&vol, &placement);
-    let mut frame = FrameViews {
-        views: &views,
-        model,
-        clip: None,
-        sh: None,
-        ao: None,
-        bleeding: None,
-        inset: None,
-        gaze: None,
-    };
+    let mut frame = FrameViews::new(&views, model);
     // Albedo alone: ambient 1, no diffuse or specular term, no AO; point samples, so that
     // the two renders' colours go through the same arithmetic.
     let black = RenderSettings {
