@@ -521,7 +521,7 @@ impl FrameLoop {
         let mut step = inset
             .make_cuts(&self.gpu, &cuts, self.progressive_inset)
             .and_then(|_| inset.refine(&self.gpu, self.tf_samples_per_frame));
-        if step.is_ok() && (!cuts.is_empty() || computing && inset.refining().is_none()) {
+        if step.is_ok() && (!cuts.cuts.is_empty() || computing && inset.refining().is_none()) {
             eprintln!("volume {}: {}", shown.name, inset.describe());
         }
         let metrics = loop {

@@ -55,6 +55,22 @@ pub const BUILD_FRAMES: usize = 8;
 /// Tries at smaller sizes where an inset does not fit after all.
 const FIT_TRIES: usize = 4;
 
+/// Frames in a row with one place for boxes after which two boxes merge back into one of the
+/// size one box had (a second of a headset's frames: a hand that leaves for a moment keeps its
+/// box).
+pub const MERGE_FRAMES: usize = 90;
+
+/// Where the boxes belong this frame, and which to cut ([`Inset::wants_cuts`], for
+/// [`Inset::make_cuts`]).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Cuts {
+    /// The places boxes belong (full-resolution index points), the first first.
+    pub places: Vec<[f64; 3]>,
+    /// The boxes to cut and where (box, full-resolution index point); a box past the last asks
+    /// for more boxes.
+    pub cuts: Vec<(usize, [f64; 3])>,
+}
+
 /// The full-resolution volume, and the part of it on the GPU.
 pub struct Inset {
     whole: Arc<Volume>,
@@ -81,6 +97,10 @@ pub struct Inset {
     boxes: Vec<InsetBox>,
     /// How many boxes the inset may show ([`INSET_ENV`]).
     most: usize,
+    /// The inner size of one box alone (what boxes merge back to), and the frames in a row
+    /// that had one place for several boxes.
+    single: [usize; 3],
+    alone: usize,
 }
 
 /// One box: shown, being computed, or neither (none fitted after a shrink, or not cut yet).
@@ -172,6 +192,7 @@ impl Inset {
             let before = gpu.memory_in_use();
             gpu.reset_memory_peak();
             inset.inner = want;
+            inset.single = want;
             match inset.cut(gpu, centre) {
                 Ok(()) => {
                     let voxels = inset.crop_voxels(want);
@@ -182,6 +203,7 @@ impl Inset {
                     // Back to the box that fitted.
                     Some(s) => {
                         inset.inner = s;
+                        inset.single = s;
                         inset.cut(gpu, centre)?;
                         break;
                     }
@@ -262,6 +284,8 @@ impl Inset {
             inner,
             boxes: vec![InsetBox::default()],
             most: Self::most_boxes().max(1),
+            single: inner,
+            alone: 0,
         })
     }
 
@@ -423,14 +447,23 @@ impl Inset {
     /// index point it goes around), at once or, `progressive`, over the next frames. A box past
     /// the last asks for more boxes: all boxes are then made as much smaller as keeps them
     /// within the memory the boxes there hold, and cut again (where they are unless moved);
-    /// where they would be smaller than [`MIN_SIDE`], no box is added.
-    pub fn make_cuts(
-        &mut self,
-        gpu: &Gpu,
-        cuts: &[(usize, [f64; 3])],
-        progressive: bool,
-    ) -> Result<()> {
-        let mut cuts = cuts.to_vec();
+    /// where they would be smaller than [`MIN_SIDE`], no box is added. After [`MERGE_FRAMES`]
+    /// frames in a row with one place (or none) and several boxes, none being computed, they
+    /// merge back into one box of the size one box had, cut around that place (or where the
+    /// first box is).
+    pub fn make_cuts(&mut self, gpu: &Gpu, cuts: &Cuts, progressive: bool) -> Result<()> {
+        let several = self.boxes.len() > 1 && cuts.places.len() <= 1;
+        self.alone = if several { self.alone + 1 } else { 0 };
+        let mut cuts = if self.alone >= MERGE_FRAMES && self.refining().is_none() {
+            self.alone = 0;
+            let at = cuts.places.first().copied().unwrap_or(self.centre_of(0));
+            self.boxes.clear();
+            self.boxes.push(InsetBox::default());
+            self.inner = self.single;
+            vec![(0, at)]
+        } else {
+            cuts.cuts.clone()
+        };
         let boxes = cuts.iter().map(|&(b, _)| b + 1).max().unwrap_or(0);
         if boxes > self.boxes.len() {
             let held = self.boxes.len() as f64 * self.crop_voxels(self.inner);
@@ -596,11 +629,11 @@ impl Inset {
         (tools, views, gaze): (&[Tool], &[View; 2], Option<Pose>),
         shown: &Volume,
         p: &Placement,
-    ) -> Vec<(usize, [f64; 3])> {
-        let foci = self.foci((tools, views, gaze), shown, p);
+    ) -> Cuts {
+        let places = self.foci((tools, views, gaze), shown, p);
         let mut kept = vec![false; self.boxes.len()];
         let mut left = Vec::new();
-        for f in foci {
+        for &f in &places {
             let want = self.inner_lo(f);
             let near = |lo: [usize; 3]| {
                 (0..3).all(|a| (want[a] as f64 - lo[a] as f64).abs() <= 0.25 * self.inner[a] as f64)
@@ -613,7 +646,10 @@ impl Inset {
         let computing = self.refining().is_some();
         let free = (0..self.boxes.len()).filter(|&b| !kept[b] && self.boxes[b].build.is_none());
         let new = (self.boxes.len()..self.most).filter(|_| !computing);
-        free.chain(new).zip(left).collect()
+        Cuts {
+            cuts: free.chain(new).zip(left).collect(),
+            places,
+        }
     }
 
     /// Where box `b` is (its inner box's first voxel), shown or being computed.
@@ -906,6 +942,7 @@ impl Inset {
         let centre = self.centre_of(0);
         self.boxes[0] = InsetBox::default();
         self.inner = self.inner.map(|n| n * 4 / 5);
+        self.single = self.inner;
         if self.inner.iter().any(|&n| n < MIN_SIDE) {
             return Ok(false);
         }

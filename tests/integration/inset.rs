@@ -11,7 +11,7 @@ use cao_xr::ao::cao::Mode;
 use cao_xr::ao::filtered::{Estimator, FilterInput, FilterParams};
 use cao_xr::ao::histogram::HistParams;
 use cao_xr::ao::{AoConfig, AoMethod, LaoGpu, LaoParams};
-use cao_xr::app::inset::{Inset, BUILD_FRAMES};
+use cao_xr::app::inset::{Cuts, Inset, BUILD_FRAMES, MERGE_FRAMES};
 use cao_xr::app::precompute;
 use cao_xr::clip::Shape;
 use cao_xr::input::FrameInput;
@@ -126,7 +126,8 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     };
     let (looking, away) = (eyes(0.0), eyes(std::f32::consts::PI));
     // Where the one box there is goes (None: it stays).
-    let first = |cuts: Vec<(usize, [f64; 3])>| {
+    let first = |cuts: Cuts| {
+        let cuts = cuts.cuts;
         assert!(cuts.len() <= 1, "{cuts:?}: one place, one box");
         cuts.first().map(|&(b, c)| {
             assert_eq!(b, 0, "{cuts:?}");
@@ -146,7 +147,9 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     // Two hands far apart (more than the box): the box goes around the first, not between them,
     // and a second box is asked for around the other.
     let apart = [held(Vec3::splat(0.07)), held(Vec3::splat(-0.07))];
-    let two = inset.wants_cuts((&apart, &looking, None), &vol, &placement);
+    let two = inset
+        .wants_cuts((&apart, &looking, None), &vol, &placement)
+        .cuts;
     assert_eq!(two.len(), 2, "two tools far apart: {two:?}");
     assert_eq!(two[0], (0, centre), "two tools far apart");
     assert_eq!(two[1].0, 1, "{two:?}: a new box");
@@ -220,7 +223,7 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     let mut cutting = held(Vec3::splat(0.07));
     cutting.active = true;
     let both = inset.wants_cuts((&[cutting], &away, Some(look)), &vol, &placement);
-    assert_eq!(both, vec![(0, centre), (1, followed)]);
+    assert_eq!(both.cuts, vec![(0, centre), (1, followed)]);
     // A 16^3 box is too small to split: the one box goes to the tool.
     let mut small = inset;
     small.make_cuts(&gpu, &both, false).unwrap();
@@ -242,12 +245,12 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     .unwrap();
     let (_, crop) = large.crop_box().unwrap();
     let both = large.wants_cuts((&apart, &away, None), &vol, &placement);
-    assert_eq!(both.len(), 2, "{both:?}");
+    assert_eq!(both.cuts.len(), 2, "{both:?}");
     large.make_cuts(&gpu, &both, false).unwrap();
     assert_eq!(large.boxes(), 2, "{}", large.describe());
     let side = large.inner_size();
     assert!(side.iter().all(|&n| (16..28).contains(&n)), "{side:?}");
-    for (b, &(_, c)) in both.iter().enumerate() {
+    for (b, &(_, c)) in both.cuts.iter().enumerate() {
         assert!(inside(large.inner_box_of(b), c), "box {b}: {both:?}");
     }
     let voxels = |dims: [usize; 3]| dims.iter().product::<usize>();
@@ -258,7 +261,18 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     assert_eq!(large.bindings(&vol, &placement).len(), 2);
     // Asked for nothing new, they stay.
     let again = large.wants_cuts((&apart, &away, None), &vol, &placement);
-    assert_eq!(again, vec![], "{}", large.describe());
+    assert_eq!(again.cuts, vec![], "{}", large.describe());
+    // One hand gone: after MERGE_FRAMES frames with one place the two merge back into one box
+    // of the first size, around that place.
+    let one_hand = large.wants_cuts((&apart[..1], &away, None), &vol, &placement);
+    assert_eq!(one_hand.cuts, vec![], "the first box is around the hand");
+    for frame in 1..=MERGE_FRAMES {
+        assert_eq!(large.boxes(), 2, "frame {frame}");
+        large.make_cuts(&gpu, &one_hand, false).unwrap();
+    }
+    assert_eq!(large.boxes(), 1);
+    assert_eq!(large.inner_size(), [28; 3]);
+    assert!(inside(large.inner_box(), one_hand.places[0]));
     common::assert_no_validation_messages(&gpu);
 }
 
@@ -459,7 +473,9 @@ fn computed_over_frames(
     };
     let eyes = FrameInput::head_views(head, 0.064, fov);
     let wanted = |inset: &Inset| {
-        let cuts = inset.wants_cuts((&[held], &eyes, None), vol, &placement);
+        let cuts = inset
+            .wants_cuts((&[held], &eyes, None), vol, &placement)
+            .cuts;
         assert!(cuts.iter().all(|&(b, _)| b == 0), "{cuts:?}");
         cuts.first().map(|&(_, c)| c)
     };
@@ -900,7 +916,10 @@ fn a_second_box_is_read_as_the_first() {
     inset
         .make_cuts(
             &gpu,
-            &[(0, [12.0, 24.0, 14.0]), (1, [36.0, 24.0, 34.0])],
+            &Cuts {
+                places: vec![[12.0, 24.0, 14.0], [36.0, 24.0, 34.0]],
+                cuts: vec![(0, [12.0, 24.0, 14.0]), (1, [36.0, 24.0, 34.0])],
+            },
             false,
         )
         .unwrap();
