@@ -662,8 +662,9 @@ impl Inset {
     /// The places (full-resolution index points) boxes belong, the first first, at most as many
     /// as may be shown: the groups of the cutting tools (each the mean of the largest group of
     /// them within half the inner box of one of them on every axis, among groups as large the
-    /// first tool's; then the same of the rest), else of the tools the hands hold inside the
-    /// volume; then where the tracked gaze meets what is shown; with no tool there, where the
+    /// first tool's; then the same of the rest), then those of the tools the hands hold inside
+    /// the volume (about to cut); then where the tracked gaze meets what is shown; with no tool
+    /// there, where the
     /// gaze, or without one the eyes' lens centres, meets it (`Inset::gaze_point`). A place a
     /// box around an earlier one holds (within half a box) is left out.
     fn foci(
@@ -677,12 +678,14 @@ impl Inset {
         let tex = |t: &Tool| tex_from_world.transform_point3(t.pose.position);
         let inside = |t: &Vec3| t.cmpge(Vec3::ZERO).all() && t.cmple(Vec3::ONE).all();
         let cutting: Vec<Vec3> = tools.iter().filter(|t| t.cuts()).map(tex).collect();
-        let points = if cutting.is_empty() {
-            tools.iter().map(tex).filter(inside).collect()
-        } else {
-            cutting
-        };
-        let mut foci = self.tool_groups(&points);
+        let held: Vec<Vec3> = tools
+            .iter()
+            .filter(|t| !t.cuts())
+            .map(tex)
+            .filter(inside)
+            .collect();
+        let mut foci = self.tool_groups(&cutting);
+        foci.extend(self.tool_groups(&held));
         let look = match gaze {
             Some(g) => Some((g.position, g.orientation * Vec3::NEG_Z)),
             None if foci.is_empty() => Some(centre_ray(views)),

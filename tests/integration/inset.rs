@@ -224,6 +224,13 @@ fn the_insets_ao_inside_its_box_is_the_whole_volumes_bit_for_bit_every_frame() {
     cutting.active = true;
     let both = inset.wants_cuts((&[cutting], &away, Some(look)), &vol, &placement);
     assert_eq!(both.cuts, vec![(0, centre), (1, followed)]);
+    // A tool cutting and the other hand's tool held far from it inside the volume (about to
+    // cut): the box goes to the cutting one, a second to the held one (before the gaze).
+    let cut_and_hold = [held(Vec3::splat(-0.07)), cutting];
+    let hands = inset.wants_cuts((&cut_and_hold, &away, Some(look)), &vol, &placement);
+    assert_eq!(hands.cuts.len(), 2, "{hands:?}");
+    assert_eq!(hands.cuts[0], (0, centre), "{hands:?}");
+    assert!(opposite(hands.cuts[1].1), "{hands:?}");
     // A 16^3 box is too small to split: the one box goes to the tool.
     let mut small = inset;
     small.make_cuts(&gpu, &both, false).unwrap();
