@@ -697,8 +697,7 @@ impl Inset {
                 tex_from_world.transform_vector3(dir),
             ));
         }
-        let dims = Vec3::from_array(whole.dims.map(|d| d as f32));
-        let half = Vec3::from_array(self.inner.map(|n| n as f32)) * 0.5 / dims;
+        let half = self.half_box();
         let mut distinct: Vec<Vec3> = Vec::new();
         for f in foci {
             if !distinct.iter().any(|d| (f - *d).abs().cmple(half).all()) {
@@ -712,13 +711,19 @@ impl Inset {
             .collect()
     }
 
+    /// Half the inner box, in texture coordinates: points closer than this on every axis fit in
+    /// one box.
+    fn half_box(&self) -> Vec3 {
+        let dims = Vec3::from_array(self.whole.dims.map(|d| d as f32));
+        Vec3::from_array(self.inner.map(|n| n as f32)) * 0.5 / dims
+    }
+
     /// The groups of tools at `points` (texture coordinates), the largest first: each the mean
     /// of the largest group of those left within half the inner box of one of them on every
     /// axis (among groups as large, the first tool's): two hands carving far apart get a box
     /// each, not one between them around neither.
     fn tool_groups(&self, points: &[Vec3]) -> Vec<Vec3> {
-        let dims = Vec3::from_array(self.whole.dims.map(|d| d as f32));
-        let half = Vec3::from_array(self.inner.map(|n| n as f32)) * 0.5 / dims;
+        let half = self.half_box();
         let mut left = points.to_vec();
         let mut means = Vec::new();
         while !left.is_empty() {
