@@ -38,6 +38,7 @@ layout(set = 0, binding = 9) uniform sampler3D sh3;
 layout(set = 0, binding = 10) uniform sampler3D variance;
 layout(set = 0, binding = 23) uniform sampler3D inset_variance_0;
 layout(set = 0, binding = 27) uniform sampler3D inset_variance_1;
+layout(set = 0, binding = 31) uniform sampler3D inset_variance_2;
 // Pre-integrated TF: premultiplied colour and opacity of a step from front to back value.
 layout(set = 0, binding = 12) uniform sampler2D preint;
 // Blue-noise thresholds in (0, 1), tiled over the screen (src/render/blue_noise.rs).
@@ -51,7 +52,7 @@ layout(set = 0, binding = 15) uniform sampler2D preint_at;
 layout(set = 0, binding = 16) uniform sampler3D structure_ids;
 // The safety margins' glow intensity (R8 unorm; src/render/mod.rs margin_glow), when GLOW.
 layout(set = 0, binding = 17) uniform sampler3D glow;
-// Per box of the full-resolution inset (the volume is shown downsampled around them; flag
+// Per box of the inset (the volume is shown downsampled around them, each box finer; flag
 // RAY_INSET): its scalars, its structure ids (as structure_ids, when LABELS) and its glow from
 // the full-resolution margins (when GLOW). A box is chosen per sample, so each box's images
 // have their own bindings (src/render/mod.rs INSET_BINDINGS), picked by a branch: an array
@@ -62,8 +63,11 @@ layout(set = 0, binding = 22) uniform sampler3D inset_structure_ids_0;
 layout(set = 0, binding = 26) uniform sampler3D inset_structure_ids_1;
 layout(set = 0, binding = 24) uniform sampler3D inset_glow_0;
 layout(set = 0, binding = 28) uniform sampler3D inset_glow_1;
-#if MAX_INSETS != 2
-#error "the inset_* functions pick one of two boxes"
+layout(set = 0, binding = 29) uniform sampler3D inset_scalars_2;
+layout(set = 0, binding = 30) uniform sampler3D inset_structure_ids_2;
+layout(set = 0, binding = 32) uniform sampler3D inset_glow_2;
+#if MAX_INSETS != 3
+#error "the inset_* functions pick one of three boxes"
 #endif
 
 #define CLIP_SET 0
@@ -143,10 +147,11 @@ float level_scalar(sampler3D level, vec3 t) {
     return flag(RAY_TRICUBIC) ? scalar_tricubic(level, t) : texture(level, t).r;
 }
 
-// The full-resolution box texture point t lies in (frame.inset_lo/hi; the first where boxes
-// overlap: each holds the whole volume's AO there), or -1. In a box the scalars and V_AO are
-// its own: the volume at full resolution, cropped with a margin of the AO's reach so that its
-// AO there is the whole volume's (docs/design.md, "The inset").
+// The box texture point t lies in (frame.inset_lo/hi; the first where boxes overlap, and the
+// finest come first: each holds its level's whole AO there), or -1. In a box the scalars and
+// V_AO are its own: the volume at full resolution (or, in a middle level's box, at half),
+// cropped with a margin of the AO's reach so that its AO there is that level's whole volume's
+// (docs/design.md, "The inset").
 int inset_at(vec3 t) {
     if (!flag(RAY_INSET)) return -1;
     [[unroll]] for (int s = 0; s < MAX_INSETS; s++) {
@@ -168,23 +173,29 @@ vec3 inset_tex(int s, vec3 t) {
 
 // Box s's voxels per axis.
 ivec3 inset_size(int s) {
-    return s == 0 ? textureSize(inset_scalars_0, 0) : textureSize(inset_scalars_1, 0);
+    return s == 0 ? textureSize(inset_scalars_0, 0)
+         : s == 1 ? textureSize(inset_scalars_1, 0)
+                  : textureSize(inset_scalars_2, 0);
 }
 
 // Box s's glow and var_s at texture point t (of the shown volume).
 float inset_glow_at(int s, vec3 t) {
-    return s == 0 ? texture(inset_glow_0, inset_tex(0, t)).r : texture(inset_glow_1, inset_tex(1, t)).r;
+    return s == 0 ? texture(inset_glow_0, inset_tex(0, t)).r
+         : s == 1 ? texture(inset_glow_1, inset_tex(1, t)).r
+                  : texture(inset_glow_2, inset_tex(2, t)).r;
 }
 
 float inset_variance_at(int s, vec3 t) {
     return s == 0 ? texture(inset_variance_0, inset_tex(0, t)).r
-                  : texture(inset_variance_1, inset_tex(1, t)).r;
+         : s == 1 ? texture(inset_variance_1, inset_tex(1, t)).r
+                  : texture(inset_variance_2, inset_tex(2, t)).r;
 }
 
 float scalar_at(vec3 t) {
     int s = inset_at(t);
     if (s == 0) return level_scalar(inset_scalars_0, inset_tex(0, t));
     if (s == 1) return level_scalar(inset_scalars_1, inset_tex(1, t));
+    if (s == 2) return level_scalar(inset_scalars_2, inset_tex(2, t));
     return level_scalar(scalars, t);
 }
 
@@ -291,6 +302,7 @@ uint structure_texel(sampler3D ids, ivec3 q, ivec3 n) {
 uint box_structure_texel(int s, ivec3 q, ivec3 n) {
     if (s == 0) return structure_texel(inset_structure_ids_0, q, n);
     if (s == 1) return structure_texel(inset_structure_ids_1, q, n);
+    if (s == 2) return structure_texel(inset_structure_ids_2, q, n);
     return structure_texel(structure_ids, q, n);
 }
 
@@ -298,6 +310,7 @@ uint box_structure_texel(int s, ivec3 q, ivec3 n) {
 ivec3 box_structure_size(int s) {
     if (s == 0) return textureSize(inset_structure_ids_0, 0);
     if (s == 1) return textureSize(inset_structure_ids_1, 0);
+    if (s == 2) return textureSize(inset_structure_ids_2, 0);
     return textureSize(structure_ids, 0);
 }
 
@@ -391,7 +404,8 @@ vec3 gradient_mm(vec3 t) {
     if (s < 0) return level_gradient_mm(scalars, t, frame.extent_mm.xyz);
     vec3 mm = frame.extent_mm.xyz / frame.inset_scale[s].xyz;
     return s == 0 ? level_gradient_mm(inset_scalars_0, inset_tex(0, t), mm)
-                  : level_gradient_mm(inset_scalars_1, inset_tex(1, t), mm);
+         : s == 1 ? level_gradient_mm(inset_scalars_1, inset_tex(1, t), mm)
+                  : level_gradient_mm(inset_scalars_2, inset_tex(2, t), mm);
 }
 
 vec3 sh_dot(vec4 v, int first) {

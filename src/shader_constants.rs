@@ -42,9 +42,9 @@ pub const CLIP_BRICK_OPEN: u32 = 0;
 pub const CLIP_BRICK_CUT: u32 = 255;
 /// At most this many tools clip at once.
 pub const MAX_TOOLS: usize = 8;
-/// At most this many full-resolution boxes in a downsampled volume (`app::inset`; raycast.frag
-/// picks a box's images by a two-way branch).
-pub const MAX_INSETS: usize = 2;
+/// At most this many boxes in a downsampled volume, over its levels (`app::inset`: two at full
+/// resolution, one at half; raycast.frag picks a box's images by a three-way branch).
+pub const MAX_INSETS: usize = 3;
 /// Minor (tube) radius of the unit torus (major radius 1, around local Z).
 pub const TORUS_MINOR: f32 = 0.35;
 /// `ClipTool.offsets.w`: which built-in shape a tool is, for its exact surface normal on cut

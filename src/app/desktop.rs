@@ -191,7 +191,15 @@ impl App {
                     1 => String::new(),
                     n => format!("{n} x "),
                 };
-                format!(" | inset {n}{x}x{y}x{z}{now}")
+                // A middle level's box: "/ 96x96x60 by 2".
+                let mid: String = self.fl.insets()[1..]
+                    .iter()
+                    .map(|m| {
+                        let [x, y, z] = m.inner_size();
+                        format!(" / {x}x{y}x{z} {}", m.level())
+                    })
+                    .collect();
+                format!(" | inset {n}{x}x{y}x{z}{mid}{now}")
             });
             w.set_title(&format!(
                 "cao-xr | {:.1} fps | AO {} {:.1} ms{sh} | {:.2} % recomputed | carving {} | {:?} | {tf}{step}{inset}{margin}",

@@ -190,8 +190,9 @@ pub struct FrameLoop {
     budget: Option<BudgetState>,
     /// Points and rulers drawn with the overlay (`--markups`).
     pub markups: Markups,
-    /// A downsampled volume's full-resolution box around the tools ([`Inset`]).
-    inset: Option<Inset>,
+    /// A downsampled volume's boxes around the tools ([`Inset`]), a level each, the finest
+    /// first: at full resolution, then (where the rest is shown coarser than by 2) at half.
+    insets: Vec<Inset>,
     /// Where the box moves, its new AO is computed over the next frames, a slab each (of
     /// [`FrameLoop::tf_samples_per_frame`], at least an eighth of the box: [`Inset::refine`]),
     /// while the downsampled volume shows there
@@ -276,6 +277,10 @@ const FIT_TRIES: usize = 4;
 /// smaller ones show the rest of the volume coarser, at most [`INSET_COARSER`] times.
 const INSET_SHARE: f64 = 0.25;
 const INSET_COARSER: usize = 2;
+/// The middle level's downsampling factor, and how much larger (share of the side) than the
+/// full-resolution box its box must be to be worth the rest of the volume shown coarser.
+const MIDDLE_LEVEL: usize = 2;
+const MIDDLE_GAIN: f64 = 1.5;
 
 /// `loaded` and after them the marks a session placed ([`crate::scene::Scene::marks`]) as
 /// markups in patient space, named as 3D Slicer names new ones: points "F-1", "F-2", ...,
@@ -397,7 +402,7 @@ impl FrameLoop {
                     Ok((fl, per_voxel))
                 };
                 let inset = |fl: &mut FrameLoop, per_voxel| {
-                    fl.add_inset(vol.clone(), built.config, (m.available, per_voxel))
+                    fl.add_inset(vol.clone(), built.config, (m.available, per_voxel), None)
                 };
                 // The downsample with the largest box (share of the side), the finest first.
                 let mut n = coarse.downsampled_by();
@@ -420,6 +425,37 @@ impl FrameLoop {
                     if best.1 > 0.0 {
                         inset(&mut fl, per_voxel)?;
                     }
+                }
+                // A middle level: where the rest is shown by 3 or coarser, showing it one step
+                // coarser still frees room for a box at half resolution around the full one
+                // (the same size), worth it where that box is half as large again.
+                let n = best.0;
+                let full = fl.inset().map(|i| (i.inner_size(), i.share()));
+                let middle = Inset::middle_wanted() && (3..MAX_DOWNSAMPLE).contains(&n);
+                if let Some((inner, share)) = full.filter(|_| middle) {
+                    drop(fl);
+                    let (mut next, per_voxel) = at(n + 1)?;
+                    let mid = if next.add_inset(vol.clone(), built.config, (0, 0.0), Some(inner))?
+                        > 0.0
+                    {
+                        let half = Arc::new(vol.downsample(MIDDLE_LEVEL));
+                        next.add_level(half, built.config, (m.available, per_voxel), None)?
+                    } else {
+                        0.0
+                    };
+                    fl = if mid >= MIDDLE_GAIN * share {
+                        next
+                    } else {
+                        eprintln!(
+                            "volume {}: the box at half resolution is too small; back to the \
+                             volume downsampled by {n}",
+                            vol.name
+                        );
+                        drop(next);
+                        let (mut back, per_voxel) = at(n)?;
+                        inset(&mut back, per_voxel)?;
+                        back
+                    };
                 }
                 fl.measure_margins_in(&vol)?;
                 Ok(fl)
@@ -444,8 +480,13 @@ impl FrameLoop {
         if !fields.is_empty() {
             self.margins = Arc::new(fields);
             self.margin_grid = Some(whole.clone_geometry());
-            if let Some(inset) = self.inset.as_mut() {
-                inset.set_margins(&self.gpu, self.margins.clone())?;
+            for (level, inset) in self.insets.iter_mut().enumerate() {
+                // A coarser level's boxes glow from its own grid's fields.
+                let fields = match level {
+                    0 => self.margins.clone(),
+                    _ => Arc::new(inset.own_margin_fields()),
+                };
+                inset.set_margins(&self.gpu, fields)?;
             }
         }
         Ok(())
@@ -459,35 +500,68 @@ impl FrameLoop {
     }
 
     /// Shows the box around the tools at full resolution from `whole` ([`Inset`]), within
-    /// `available` bytes of GPU memory at about `per_voxel` bytes per voxel; told on stderr.
-    /// Returns the box's least share of the volume's side (0: none fits).
+    /// `available` bytes of GPU memory at about `per_voxel` bytes per voxel, or of `inner`
+    /// voxels where given; told on stderr. Returns the box's least share of the volume's side
+    /// (0: none fits).
     fn add_inset(
         &mut self,
         whole: Arc<Volume>,
         config: AoConfig,
         (available, per_voxel): (u64, f64),
+        inner: Option<[usize; 3]>,
     ) -> Result<f64> {
         self.tex.show_as(&whole, self.tfs.shown())?;
         // The first frame's pre-integrated table for the new step, as the set-up made one.
         self.tex.prepare(&self.settings)?;
+        self.insets.clear();
+        let share = self.add_level(whole, config, (available, per_voxel), inner)?;
+        if share == 0.0 {
+            self.drop_inset()?;
+        }
+        Ok(share)
+    }
+
+    /// Adds a level of boxes from `whole` (the full-resolution volume, or a finer downsample
+    /// than the one shown) after the finer ones, as [`FrameLoop::add_inset`] does; told on
+    /// stderr. Returns its boxes' least share of the volume's side (0: none fits, none added).
+    fn add_level(
+        &mut self,
+        whole: Arc<Volume>,
+        config: AoConfig,
+        (available, per_voxel): (u64, f64),
+        inner: Option<[usize; 3]>,
+    ) -> Result<f64> {
         let (method, tf) = self.tfs.shown_ao();
         let config = AoConfig { method, ..config };
         let name = whole.name.clone();
         let frames = self.frame_reserve();
-        self.inset = Inset::new(
-            &self.gpu,
-            whole,
-            (config, tf),
-            (available, per_voxel, frames),
-        )?;
-        match &self.inset {
-            Some(i) => {
+        let gpu = &self.gpu;
+        let inset = match inner {
+            Some(inner) => {
+                let centre = whole.dims.map(|d| d as f64 * 0.5);
+                match Inset::around(gpu, whole, (config, tf), (inner, centre)) {
+                    Err(AppError::Gpu(GpuError::OutOfMemory(_))) => None,
+                    r => Some(r?),
+                }
+            }
+            None => Inset::new(gpu, whole, (config, tf), (available, per_voxel, frames))?,
+        };
+        match inset {
+            Some(mut i) => {
+                if !self.insets.is_empty() {
+                    i.keep_one();
+                }
                 eprintln!("volume {name}: {}", i.describe());
-                Ok(i.share())
+                let share = i.share();
+                self.insets.push(i);
+                Ok(share)
             }
             None => {
-                eprintln!("volume {name}: no full-resolution inset fits beside it");
-                self.drop_inset()?;
+                let what = match self.insets.is_empty() {
+                    true => "full-resolution inset".to_string(),
+                    false => format!("inset downsampled by {MIDDLE_LEVEL}"),
+                };
+                eprintln!("volume {name}: no {what} fits beside it");
                 Ok(0.0)
             }
         }
@@ -498,65 +572,85 @@ impl FrameLoop {
     /// on its own. Where the update runs out of GPU memory (the tools' boxes grow what a frame
     /// holds) the box is made smaller, or given up.
     fn update_inset(&mut self, views: &[View; 2], gaze: Option<Pose>) -> Result<()> {
-        let Some(inset) = self.inset.as_mut() else {
-            return Ok(());
-        };
         let (method, tf) = self.tfs.shown_ao();
-        let config = AoConfig {
-            method,
-            ..inset.config()
-        };
         let (tools, placement) = (&self.scene.tools, &self.scene.volume);
         let shown = &*self.volume;
         // The structures as the shown volume's AO has them, and as the tools guard them now.
         let structures = self.tfs.shown_structures();
-        if !inset.computes(&config, &tf, structures) {
-            inset.set_shown(&self.gpu, (config, tf), structures)?;
-        }
-        inset.set_protected(&self.scene.protected);
-        // Cut again where the boxes should go (at once, or over the next frames), then the next
-        // slab of each box being computed, then this frame's update of the boxes shown.
-        let cuts = inset.wants_cuts((tools, views, gaze), shown, placement);
-        let computing = inset.refining().is_some();
-        let mut step = inset
-            .make_cuts(&self.gpu, &cuts, self.progressive_inset)
-            .and_then(|_| inset.refine(&self.gpu, self.tf_samples_per_frame));
-        if step.is_ok() && (!cuts.cuts.is_empty() || computing && inset.refining().is_none()) {
-            eprintln!("volume {}: {}", shown.name, inset.describe());
-        }
-        let metrics = loop {
-            match step.and_then(|_| inset.run_frame(tools, (shown, placement), self.mode)) {
-                Err(AppError::Gpu(GpuError::OutOfMemory(m))) => {
-                    if !inset.shrink(&self.gpu)? {
-                        eprintln!("volume {}: the inset is given up: {m}", shown.name);
-                        return self.drop_inset();
-                    }
-                    eprintln!("volume {}: {} ({m})", shown.name, inset.describe());
-                    step = Ok(());
-                }
-                r => break r?,
+        let mut stats = InsetStats::default();
+        let mut level = 0;
+        while let Some(inset) = self.insets.get_mut(level) {
+            let config = AoConfig {
+                method,
+                ..inset.config()
+            };
+            if !inset.computes(&config, &tf, structures) {
+                inset.set_shown(&self.gpu, (config, tf.clone()), structures)?;
             }
-        };
-        self.inset_stats = Some(InsetStats {
-            ao_ms: metrics.iter().map(|m| m.gpu_ms()).sum(),
-            computing: inset.refining(),
-        });
+            inset.set_protected(&self.scene.protected);
+            // Cut again where the boxes should go (at once, or over the next frames), then the
+            // next slab of each box being computed, then this frame's update of the boxes shown.
+            let cuts = inset.wants_cuts((tools, views, gaze), shown, placement);
+            let computing = inset.refining().is_some();
+            let mut step = inset
+                .make_cuts(&self.gpu, &cuts, self.progressive_inset)
+                .and_then(|_| inset.refine(&self.gpu, self.tf_samples_per_frame));
+            if step.is_ok() && (!cuts.cuts.is_empty() || computing && inset.refining().is_none()) {
+                eprintln!("volume {}: {}", shown.name, inset.describe());
+            }
+            let metrics = loop {
+                match step.and_then(|_| inset.run_frame(tools, (shown, placement), self.mode)) {
+                    Err(AppError::Gpu(GpuError::OutOfMemory(m))) => {
+                        if !inset.shrink(&self.gpu)? {
+                            let (name, level) = (&shown.name, inset.level());
+                            eprintln!("volume {name}: the inset is given up ({level}): {m}");
+                            break None;
+                        }
+                        eprintln!("volume {}: {} ({m})", shown.name, inset.describe());
+                        step = Ok(());
+                    }
+                    r => break Some(r?),
+                }
+            };
+            let Some(metrics) = metrics else {
+                // This level is given up; the others stay (a box at half resolution around the
+                // tools is still finer than the rest).
+                self.insets.remove(level);
+                continue;
+            };
+            stats.ao_ms += metrics.iter().map(|m| m.gpu_ms()).sum::<f64>();
+            stats.computing = match (stats.computing, inset.refining()) {
+                (Some(a), Some(b)) => Some(a.min(b)),
+                (a, b) => a.or(b),
+            };
+            level += 1;
+        }
+        if self.insets.is_empty() {
+            return self.drop_inset();
+        }
+        self.inset_stats = Some(stats);
         Ok(())
     }
 
     /// No inset: the downsampled volume alone, sampled as itself again (its step, its value
     /// range), with the pre-integrated table the next frame reads.
     fn drop_inset(&mut self) -> Result<()> {
-        self.inset = None;
+        self.insets.clear();
         let shown = self.volume.clone();
         self.tex.show_as(&shown, self.tfs.shown())?;
         self.tex.prepare(&self.settings)?;
         Ok(())
     }
 
-    /// The full-resolution box around the tools of a downsampled volume, if it has one.
+    /// The finest boxes around the tools of a downsampled volume (at full resolution, unless
+    /// they were given up), if it has any.
     pub fn inset(&self) -> Option<&Inset> {
-        self.inset.as_ref()
+        self.insets.first()
+    }
+
+    /// The levels of boxes around the tools, the finest (full resolution) first.
+    pub fn insets(&self) -> &[Inset] {
+        &self.insets
     }
 
     fn build(
@@ -664,7 +758,7 @@ impl FrameLoop {
             margin_grid: None,
             budget: None,
             markups: Markups::default(),
-            inset: None,
+            insets: Vec::new(),
             progressive_inset: false,
             inset_stats: None,
             volume: vol,
@@ -723,7 +817,7 @@ impl FrameLoop {
     pub fn set_variance(&mut self, m: Option<VarianceModulation>) -> Result<()> {
         let var = m.map(|m| variance_volume(&self.volume, m.radius_mm));
         self.tex.set_variance(&self.gpu, var.as_deref())?;
-        if let Some(inset) = self.inset.as_mut() {
+        for inset in &mut self.insets {
             inset.set_variance(&self.gpu, m)?;
         }
         self.settings.variance_max = m.map_or(0.0, |m| m.max as f32);
@@ -960,7 +1054,7 @@ impl FrameLoop {
             }
             self.settings.foveation = foveation;
         }
-        if self.inset.is_some() {
+        if !self.insets.is_empty() {
             // The inset's box and V_AO, which the frame in flight reads, change now.
             if retired.is_none() {
                 retired = self.retire()?;
@@ -1089,7 +1183,7 @@ impl FrameLoop {
             tfs,
             lighting,
             markups,
-            inset,
+            insets,
             inset_stats,
             ..
         } = self;
@@ -1135,13 +1229,14 @@ impl FrameLoop {
             let sh = lighting.as_mut().map(|l| l.record_frame(gpu, cmd, cao));
             timer.mark(cmd, PASS_SH);
             let (tools, maps, bricks) = cao.clip_buffers();
-            let (tools, maps) = inset
-                .as_ref()
-                .and_then(|i| i.clip_buffers())
+            let (tools, maps) = insets
+                .iter()
+                .find_map(|i| i.clip_buffers())
                 .unwrap_or((tools, maps));
-            let insets = inset
-                .as_ref()
-                .map_or_else(Vec::new, |i| i.bindings(volume, &scene.volume));
+            let boxes: Vec<_> = insets
+                .iter()
+                .flat_map(|i| i.bindings(volume, &scene.volume))
+                .collect();
             let frame = FrameViews {
                 views: &input.views,
                 model,
@@ -1155,7 +1250,7 @@ impl FrameLoop {
                 sh: lighting.as_ref().map(|l| l.binding()),
                 ao: Some(&cao.ao),
                 bleeding: cao.method().bleeding(),
-                insets: &insets,
+                insets: &boxes,
                 gaze: input
                     .gaze
                     .map(|g| crate::render::fixation(&g, scene.volume.center)),

@@ -28,9 +28,17 @@ use crate::volume::Volume;
 use glam::{Vec3, Vec4Swizzles};
 use std::sync::Arc;
 
-/// How many full-resolution boxes the inset may show, at most [`MAX_INSETS`] (the default): "0"
+/// How many full-resolution boxes the inset may show, at most [`FULL_BOXES`] (the default): "0"
 /// turns it off (to compare with the downsampled volume alone), "1" keeps one box.
 pub const INSET_ENV: &str = "CAO_XR_INSET";
+
+/// "0" shows no middle level (a box at half resolution around the full-resolution ones, where
+/// the rest is shown by 3 or coarser), to compare with the two levels alone.
+pub const MIDDLE_ENV: &str = "CAO_XR_INSET_MIDDLE";
+
+/// The full-resolution boxes at most: the ray caster's box slots ([`MAX_INSETS`]) less one for
+/// a middle level's box.
+pub const FULL_BOXES: usize = MAX_INSETS - 1;
 
 /// Smallest side (voxels) of an inset worth showing.
 pub const MIN_SIDE: usize = 16;
@@ -151,12 +159,33 @@ impl Inset {
         Self::most_boxes() > 0
     }
 
-    /// How many boxes may be shown ([`INSET_ENV`]: a count up to [`MAX_INSETS`], the default).
+    /// How many boxes may be shown ([`INSET_ENV`]: a count up to [`FULL_BOXES`], the default).
     fn most_boxes() -> usize {
         std::env::var(INSET_ENV)
             .ok()
             .and_then(|v| v.trim().parse::<usize>().ok())
-            .map_or(MAX_INSETS, |n| n.min(MAX_INSETS))
+            .map_or(FULL_BOXES, |n| n.min(FULL_BOXES))
+    }
+
+    /// Whether a middle level is wanted ([`MIDDLE_ENV`]).
+    pub fn middle_wanted() -> bool {
+        !std::env::var(MIDDLE_ENV).is_ok_and(|v| v.trim() == "0")
+    }
+
+    /// Shows at most one box from now on (a middle level's: one around the first place).
+    pub fn keep_one(&mut self) {
+        self.most = 1;
+        self.boxes.truncate(1);
+    }
+
+    /// The safety margins' distance fields in this inset's own grid (a middle level's; the
+    /// full-resolution level takes the frame loop's).
+    pub fn own_margin_fields(&self) -> Vec<MarginField> {
+        let whole = &*self.whole;
+        whole
+            .labels
+            .as_deref()
+            .map_or_else(Vec::new, |l| l.margin_fields(whole.dims, whole.spacing))
     }
 
     /// The largest inset beside what the GPU holds now that fits `available` bytes in all,
@@ -573,7 +602,26 @@ impl Inset {
             })
             .collect();
         let at = at.join(" and");
-        format!("inset {x} x {y} x {z}{at} (+ margin {mx} x {my} x {mz}) at full resolution")
+        let level = self.level();
+        format!("inset {x} x {y} x {z}{at} (+ margin {mx} x {my} x {mz}) {level}")
+    }
+
+    /// "at full resolution", or a middle level's "downsampled by 2".
+    pub fn level(&self) -> String {
+        match self.whole.downsampled_by() {
+            1 => "at full resolution".to_string(),
+            n => format!("downsampled by {n}"),
+        }
+    }
+
+    /// "a 64 x 64 x 40 box at full resolution", or "2 boxes of 64 x 64 x 40 ...".
+    pub fn summary(&self) -> String {
+        let [x, y, z] = self.inner;
+        let level = self.level();
+        match self.boxes.len() {
+            1 => format!("a {x} x {y} x {z} box {level}"),
+            n => format!("{n} boxes of {x} x {y} x {z} {level}"),
+        }
     }
 
     /// The inner boxes' size (full-resolution voxels).

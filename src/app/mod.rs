@@ -81,13 +81,11 @@ pub fn render_to_dir(
         String::new()
     } else {
         let [x, y, z] = shown.dims;
-        let inset = fl.inset().map_or(String::new(), |i| {
-            let [x, y, z] = i.inner_size();
-            match i.boxes() {
-                1 => format!(", with a {x} x {y} x {z} box at full resolution"),
-                n => format!(", with {n} boxes of {x} x {y} x {z} at full resolution"),
-            }
-        });
+        let levels: Vec<String> = fl.insets().iter().map(|i| i.summary()).collect();
+        let inset = match levels.is_empty() {
+            true => String::new(),
+            false => format!(", with {}", levels.join(" and ")),
+        };
         format!(" (shown downsampled to {x} x {y} x {z}{inset})")
     };
     println!(

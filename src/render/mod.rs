@@ -1046,7 +1046,8 @@ pub use crate::gpu::MAX_FRAMES_IN_FLIGHT;
 /// raycast.frag's bindings of each inset box's scalars, structure ids, var_s and glow: a
 /// binding each, not arrays, since a sample's box is not uniform across a draw (one index for
 /// a group of lanes would read another box's images).
-const INSET_BINDINGS: [[u32; 4]; MAX_INSETS] = [[21, 22, 23, 24], [25, 26, 27, 28]];
+const INSET_BINDINGS: [[u32; 4]; MAX_INSETS] =
+    [[21, 22, 23, 24], [25, 26, 27, 28], [29, 30, 31, 32]];
 
 /// std140 mirror of shaders/include/frame.glsl.
 #[repr(C)]
@@ -1078,12 +1079,12 @@ struct FrameUniforms {
     inset_offset: [[f32; 4]; MAX_INSETS],
     inset_words: [[u32; 4]; MAX_INSETS],
 }
-crate::gpu::glsl_layout!(FrameUniforms, 5328,
+crate::gpu::glsl_layout!(FrameUniforms, 5408,
     inv_view_proj: 0, view_proj: 128, tex_from_world: 256, extent_mm: 320, value_map: 336,
     background: 352, viewport: 368, phong: 384, surface: 400, cut_tint: 416, jitter: 432,
     lighting: 448, bleeding: 464, glow: 480, sh_light: 496, tool_reach: 752, structures: 1008,
-    protect: 5104, light: 5136, ao_words: 5152, inset_lo: 5168, inset_hi: 5200,
-    inset_scale: 5232, inset_offset: 5264, inset_words: 5296);
+    protect: 5104, light: 5136, ao_words: 5152, inset_lo: 5168, inset_hi: 5216,
+    inset_scale: 5264, inset_offset: 5312, inset_words: 5360);
 
 /// The ray caster's descriptor writes: the uniforms, the clip tools, maps and brick states
 /// (bindings 0, 4, 5, 20), then the sampled images by binding.
@@ -1347,7 +1348,7 @@ impl Renderer {
             let sampled = Some(vk::DescriptorType::COMBINED_IMAGE_SAMPLER);
             let storage = Some(vk::DescriptorType::STORAGE_BUFFER);
             // No bindings 2 and 11: the ray caster reads V_AO and E by address (FrameViews).
-            let mut bindings = [sampled; 29];
+            let mut bindings = [sampled; 1 + INSET_BINDINGS[MAX_INSETS - 1][3] as usize];
             bindings[0] = Some(vk::DescriptorType::UNIFORM_BUFFER);
             for b in [4, 5, 20] {
                 bindings[b] = storage;

@@ -864,7 +864,7 @@ fn the_inset_follows_a_moving_tool_through_a_transfer_function_switch() {
 fn where_no_inset_fits_the_picture_is_the_finest_downsample_alone() {
     // Under 7 MiB the filters' wide margin leaves a frame with the sphere no room for a box
     // beside the volume downsampled by 5 (the set-up finds none, or the first frame gives it
-    // up): the volume is shown exactly as without insets.
+    // up): with two levels the volume is shown exactly as without insets.
     let dir = common::scratch("inset", "none");
     let render = |out: &std::path::Path, inset: &str| {
         let args = [
@@ -879,7 +879,12 @@ fn where_no_inset_fits_the_picture_is_the_finest_downsample_alone() {
             "--out",
             out.to_str().unwrap(),
         ];
-        let env = [("CAO_XR_GPU_BUDGET_MB", "7"), ("CAO_XR_INSET", inset)];
+        // (Two levels: a middle one would stay where the full-resolution box is given up.)
+        let env = [
+            ("CAO_XR_GPU_BUDGET_MB", "7"),
+            ("CAO_XR_INSET", inset),
+            ("CAO_XR_INSET_MIDDLE", "0"),
+        ];
         let run = common::run_cao(&args, &env);
         let stderr = String::from_utf8_lossy(&run.stderr).into_owned();
         assert!(run.status.success(), "{stderr}");
@@ -960,4 +965,111 @@ fn a_second_box_is_read_as_the_first() {
     );
     drop((tex, hr));
     common::assert_no_validation_messages(&gpu);
+}
+
+/// A middle level's box (from the volume downsampled by 2) in the third slot: read exactly as
+/// a box in the first slot is (two empty boxes before it change nothing, bit for bit), and
+/// under the full-resolution boxes where they overlap (each level shows: the picture with all
+/// three is neither the full boxes' alone nor the middle box's alone).
+#[test]
+fn a_middle_levels_box_is_read_in_the_third_slot_under_the_full_ones() {
+    use cao_xr::app::HeadlessRenderer;
+    use cao_xr::render::{FrameViews, InsetBinding, RenderSettings, VolumeTextures};
+    use cao_xr::space::{default_stereo_views, world_from_tex, DEFAULT_IPD};
+    let gpu = common::gpu();
+    let (vol, tf, lao_params) = small_head();
+    let config = AoConfig::new(AoMethod::Lao, lao_params);
+    let placement = Placement::default();
+    let coarse = Arc::new(vol.downsample(4));
+    let lao = LaoGpu::new(&gpu).unwrap();
+    let coarse_cao = whole_cao(&gpu, &lao, &coarse, (&tf, &config));
+    let centre = vol.dims.map(|d| d as f64 * 0.5);
+    let full = Inset::around(&gpu, vol.clone(), (config, tf.clone()), ([16; 3], centre)).unwrap();
+    let half = Arc::new(vol.downsample(2));
+    let half_centre = half.dims.map(|d| d as f64 * 0.5);
+    let middle = Inset::around(&gpu, half, (config, tf.clone()), ([18; 3], half_centre)).unwrap();
+    assert!(
+        middle.describe().contains("downsampled by 2"),
+        "{}",
+        middle.describe()
+    );
+    let mut tex = VolumeTextures::new(&gpu, &coarse, &tf).unwrap();
+    tex.show_as(&vol, &tf).unwrap();
+    let (f, m) = (
+        full.bindings(&coarse, &placement)[0],
+        middle.bindings(&coarse, &placement)[0],
+    );
+    let empty = InsetBinding { hi: f.lo, ..f };
+    let views = default_stereo_views(&coarse, &placement, DEFAULT_IPD);
+    let mut hr = HeadlessRenderer::new(&gpu).unwrap();
+    let mut picture = |insets: &[InsetBinding]| {
+        let frame = FrameViews {
+            ao: Some(&coarse_cao.ao),
+            insets,
+            ..FrameViews::new(&views, world_from_tex(&coarse, &placement))
+        };
+        hr.render(&tex, &frame, (96, 96), &RenderSettings::default())
+            .unwrap()
+            .rgba
+    };
+    let differ =
+        |a: &[Vec<u8>; 2], b: &[Vec<u8>; 2]| a[0].iter().zip(&b[0]).filter(|(x, y)| x != y).count();
+    let alone = picture(&[m]);
+    assert_eq!(
+        differ(&alone, &picture(&[empty, empty, m])),
+        0,
+        "the third slot is read otherwise than the first"
+    );
+    let all = picture(&[f, empty, m]);
+    let (fine, none) = (picture(&[f]), picture(&[]));
+    assert!(
+        differ(&alone, &none) > 100,
+        "the middle box changes nothing"
+    );
+    assert!(
+        differ(&all, &alone) > 100,
+        "the full box is not read over the middle one"
+    );
+    assert!(
+        differ(&all, &fine) > 100,
+        "the middle box is not read around the full one"
+    );
+    drop((tex, hr));
+    common::assert_no_validation_messages(&gpu);
+}
+
+/// Two spheres carving far apart under a third of the whole volume's GPU peak: the volume is
+/// shown downsampled by 3 or more with a box at full resolution around each sphere and, around
+/// them, a box at half resolution (the rest one step coarser for it); the picture is nearer the
+/// full-resolution one than with the two levels alone (`CAO_XR_INSET_MIDDLE=0`) and than the
+/// finest downsample alone.
+#[test]
+fn a_middle_level_brings_the_picture_nearer_the_full_one() {
+    let dir = common::scratch("inset", "middle");
+    let spheres = ["--tool", "sphere:25:45,-30,45"];
+    let render = |out: &std::path::Path, env: &[(&str, &str)]| {
+        render_through("sphere:25:-45,30,45", out, &spheres, env)
+    };
+    let full = dir.join("full");
+    let third = (peak_of(&render(&full, &[])) / 3).to_string();
+    let budget = ("CAO_XR_GPU_BUDGET_MB", third.as_str());
+    let (three, two, alone) = (dir.join("three"), dir.join("two"), dir.join("alone"));
+    let told = render(&three, &[budget]);
+    let boxes = told
+        .lines()
+        .find(|l| l.starts_with("GPU memory held after the frame"))
+        .unwrap_or_else(|| panic!("{told}"));
+    assert!(
+        boxes.contains("2 boxes of") && boxes.contains("box downsampled by 2"),
+        "{told}"
+    );
+    render(&two, &[budget, ("CAO_XR_INSET_MIDDLE", "0")]);
+    render(&alone, &[budget, ("CAO_XR_INSET", "0")]);
+    let pic = |d: &std::path::Path| d.join("left.png");
+    let [with, without, finest] = [&three, &two, &alone].map(|d| psnr(&pic(&full), &pic(d)));
+    assert!(
+        with > without + 2.0 && with > finest,
+        "PSNR with the middle level {with} dB, without {without} dB, the finest downsample alone \
+         {finest} dB"
+    );
 }
