@@ -98,7 +98,7 @@ impl FrameStats {
 pub struct InsetStats {
     /// GPU ms of the boxes' CAO updates (0 while they are computed).
     pub ao_ms: f64,
-    /// How far the box being computed has come (0 to 1), while one is.
+    /// How far the finest level's box being computed has come (0 to 1), while one is.
     pub computing: Option<f32>,
 }
 
@@ -599,30 +599,37 @@ impl FrameLoop {
                 eprintln!("volume {}: {}", shown.name, inset.describe());
             }
             let metrics = loop {
-                match step.and_then(|_| inset.run_frame(tools, (shown, placement), self.mode)) {
+                let run = |i: &mut Inset| i.run_frame(tools, (shown, placement), self.mode);
+                match step.and_then(|_| run(&mut self.insets[level])) {
                     Err(AppError::Gpu(GpuError::OutOfMemory(m))) => {
-                        if !inset.shrink(&self.gpu)? {
-                            let (name, level) = (&shown.name, inset.level());
-                            eprintln!("volume {name}: the inset is given up ({level}): {m}");
-                            break None;
+                        // The coarsest level yields first: a middle box shrinks (or goes) so
+                        // that the full-resolution boxes keep their size.
+                        let last = self.insets.len() - 1;
+                        let coarsest = &mut self.insets[last];
+                        if coarsest.shrink(&self.gpu)? {
+                            eprintln!("volume {}: {} ({m})", shown.name, coarsest.describe());
+                        } else {
+                            let (name, which) = (&shown.name, coarsest.level());
+                            eprintln!("volume {name}: the inset is given up ({which}): {m}");
+                            self.insets.remove(last);
+                            if last == level {
+                                break None;
+                            }
                         }
-                        eprintln!("volume {}: {} ({m})", shown.name, inset.describe());
                         step = Ok(());
                     }
                     r => break Some(r?),
                 }
             };
-            let Some(metrics) = metrics else {
-                // This level is given up; the others stay (a box at half resolution around the
-                // tools is still finer than the rest).
-                self.insets.remove(level);
-                continue;
-            };
+            // A level given up goes; the others stay.
+            let Some(metrics) = metrics else { continue };
+            let inset = &self.insets[level];
             stats.ao_ms += metrics.iter().map(|m| m.gpu_ms()).sum::<f64>();
-            stats.computing = match (stats.computing, inset.refining()) {
-                (Some(a), Some(b)) => Some(a.min(b)),
-                (a, b) => a.or(b),
-            };
+            // The progress told is the finest level's (a middle box being computed shows
+            // the rest's voxels meanwhile, as the finer boxes go on).
+            if level == 0 {
+                stats.computing = inset.refining();
+            }
             level += 1;
         }
         if self.insets.is_empty() {

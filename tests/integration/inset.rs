@@ -1073,3 +1073,44 @@ fn a_middle_level_brings_the_picture_nearer_the_full_one() {
          {finest} dB"
     );
 }
+
+/// A frame that runs out of GPU memory with three levels makes the middle box smaller (or gives
+/// it up) first: the full-resolution box keeps its size. A sphere sweeping through a transfer
+/// function switch on `phantom:160` under 14 MiB (shown downsampled by 4, a 52³ box at full
+/// resolution and a 60³ one at half) runs out in a frame that cuts the boxes again.
+#[test]
+fn a_frame_out_of_memory_shrinks_the_middle_box_first() {
+    let dir = common::scratch("inset", "yield");
+    let script = dir.join("tf.jsonl");
+    let s = script.to_str().unwrap();
+    common::run_cao_ok(&["script", "tf-switch", "--frames", "24", "--out", s]);
+    let out = dir.join("replay");
+    let args = [
+        "replay",
+        s,
+        "phantom:160",
+        "--size",
+        "96x64",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let run = common::run_cao(&args, &[("CAO_XR_GPU_BUDGET_MB", "14")]);
+    let told = String::from_utf8_lossy(&run.stderr).into_owned();
+    assert!(run.status.success(), "{told}");
+    let short = |l: &&str| l.starts_with("volume ") && l.contains("(out of GPU memory");
+    let shrunk: Vec<&str> = told.lines().filter(short).collect();
+    assert!(
+        !shrunk.is_empty() && shrunk.iter().all(|l| l.contains("downsampled by 2")),
+        "the middle box did not yield first: {told}"
+    );
+    // Every full-resolution box the frames tell (past the set-up's tries) has one size.
+    let sizes: std::collections::BTreeSet<Vec<&str>> = told
+        .lines()
+        .filter(|l| l.starts_with("volume phantom-160-ds") && l.contains(" at full resolution"))
+        .filter_map(|l| Some(l.split(" inset ").nth(1)?.split(' ').take(5).collect()))
+        .collect();
+    assert!(
+        sizes.len() == 1 && !told.contains("given up (at full resolution)"),
+        "the full-resolution box was made smaller ({sizes:?}): {told}"
+    );
+}
