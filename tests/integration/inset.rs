@@ -901,29 +901,84 @@ fn where_no_inset_fits_the_picture_is_the_finest_downsample_alone() {
     assert!(png(&with) == png(&without), "the pictures differ: {told}");
 }
 
+/// The small head shown downsampled by `by` with its own LAO, drawn by the ray caster with
+/// boxes bound over it ([`BoxScene::picture`]); the tests of the box slots share it.
+struct BoxScene {
+    vol: Arc<cao_xr::volume::Volume>,
+    tf: TransferFunction,
+    config: AoConfig,
+    placement: Placement,
+    coarse: Arc<cao_xr::volume::Volume>,
+    coarse_cao: cao_xr::ao::cao::Cao,
+    tex: cao_xr::render::VolumeTextures,
+    hr: cao_xr::app::HeadlessRenderer,
+}
+
+impl BoxScene {
+    fn new(gpu: &cao_xr::gpu::Gpu, by: usize) -> BoxScene {
+        let (vol, tf, lao_params) = small_head();
+        let config = AoConfig::new(AoMethod::Lao, lao_params);
+        let coarse = Arc::new(vol.downsample(by));
+        let lao = LaoGpu::new(gpu).unwrap();
+        let coarse_cao = whole_cao(gpu, &lao, &coarse, (&tf, &config));
+        let mut tex = cao_xr::render::VolumeTextures::new(gpu, &coarse, &tf).unwrap();
+        tex.show_as(&vol, &tf).unwrap();
+        BoxScene {
+            vol,
+            tf,
+            config,
+            placement: Placement::default(),
+            coarse,
+            coarse_cao,
+            tex,
+            hr: cao_xr::app::HeadlessRenderer::new(gpu).unwrap(),
+        }
+    }
+
+    /// An inset of `inner` voxels from `whole` (the head, or a downsample of it) around
+    /// `centre`.
+    fn inset(
+        &self,
+        gpu: &cao_xr::gpu::Gpu,
+        whole: Arc<cao_xr::volume::Volume>,
+        (inner, centre): ([usize; 3], [f64; 3]),
+    ) -> Inset {
+        let shown = (self.config, self.tf.clone());
+        Inset::around(gpu, whole, shown, (inner, centre)).unwrap()
+    }
+
+    /// Both eyes' pictures (96 x 96) with `insets` bound, in that order.
+    fn picture(&mut self, insets: &[cao_xr::render::InsetBinding]) -> [Vec<u8>; 2] {
+        use cao_xr::render::{FrameViews, RenderSettings};
+        use cao_xr::space::{default_stereo_views, world_from_tex, DEFAULT_IPD};
+        let views = default_stereo_views(&self.coarse, &self.placement, DEFAULT_IPD);
+        let frame = FrameViews {
+            ao: Some(&self.coarse_cao.ao),
+            insets,
+            ..FrameViews::new(&views, world_from_tex(&self.coarse, &self.placement))
+        };
+        let settings = RenderSettings::default();
+        self.hr
+            .render(&self.tex, &frame, (96, 96), &settings)
+            .unwrap()
+            .rgba
+    }
+}
+
+/// The bytes the left eyes of two pictures differ in.
+fn bytes_differing(a: &[Vec<u8>; 2], b: &[Vec<u8>; 2]) -> usize {
+    a[0].iter().zip(&b[0]).filter(|(x, y)| x != y).count()
+}
+
 /// Two boxes shown at once: the ray caster reads the second box's images, V_AO and place as it
 /// reads the first's. The same two boxes in either order give the same picture bit for bit
 /// (each holds the whole volume's AO and scalars, so where they overlap either is right), and
 /// the second box changes the picture the first alone gives.
 #[test]
 fn a_second_box_is_read_as_the_first() {
-    use cao_xr::app::HeadlessRenderer;
-    use cao_xr::render::{FrameViews, RenderSettings, VolumeTextures};
-    use cao_xr::space::{default_stereo_views, world_from_tex, DEFAULT_IPD};
     let gpu = common::gpu();
-    let (vol, tf, lao_params) = small_head();
-    let config = AoConfig::new(AoMethod::Lao, lao_params);
-    let placement = Placement::default();
-    let coarse = Arc::new(vol.downsample(2));
-    let lao = LaoGpu::new(&gpu).unwrap();
-    let coarse_cao = whole_cao(&gpu, &lao, &coarse, (&tf, &config));
-    let mut inset = Inset::around(
-        &gpu,
-        vol.clone(),
-        (config, tf.clone()),
-        ([28, 28, 28], [24.0; 3]),
-    )
-    .unwrap();
+    let mut scene = BoxScene::new(&gpu, 2);
+    let mut inset = scene.inset(&gpu, scene.vol.clone(), ([28, 28, 28], [24.0; 3]));
     // Two boxes on either side of the head's front.
     inset
         .make_cuts(
@@ -936,34 +991,20 @@ fn a_second_box_is_read_as_the_first() {
         )
         .unwrap();
     assert_eq!(inset.boxes(), 2, "{}", inset.describe());
-    let mut tex = VolumeTextures::new(&gpu, &coarse, &tf).unwrap();
-    tex.show_as(&vol, &tf).unwrap();
-    let boxes = inset.bindings(&coarse, &placement);
+    let boxes = inset.bindings(&scene.coarse, &scene.placement);
     assert_eq!(boxes.len(), 2);
-    let views = default_stereo_views(&coarse, &placement, DEFAULT_IPD);
-    let mut hr = HeadlessRenderer::new(&gpu).unwrap();
-    let mut picture = |insets: &[cao_xr::render::InsetBinding]| {
-        let frame = FrameViews {
-            ao: Some(&coarse_cao.ao),
-            insets,
-            ..FrameViews::new(&views, world_from_tex(&coarse, &placement))
-        };
-        hr.render(&tex, &frame, (96, 96), &RenderSettings::default())
-            .unwrap()
-            .rgba
-    };
-    let both = picture(&boxes);
-    let swapped = picture(&[boxes[1], boxes[0]]);
-    let first = picture(&boxes[..1]);
-    let differ =
-        |a: &[Vec<u8>; 2], b: &[Vec<u8>; 2]| a[0].iter().zip(&b[0]).filter(|(x, y)| x != y).count();
-    assert_eq!(differ(&both, &swapped), 0, "the order of the boxes matters");
-    assert!(
-        differ(&both, &first) > 100,
-        "the second box changes {} bytes",
-        differ(&both, &first)
+    let both = scene.picture(&boxes);
+    let swapped = scene.picture(&[boxes[1], boxes[0]]);
+    let first = scene.picture(&boxes[..1]);
+    assert_eq!(
+        bytes_differing(&both, &swapped),
+        0,
+        "the order of the boxes matters"
     );
-    drop((tex, hr));
+    let changed = bytes_differing(&both, &first);
+    assert!(changed > 100, "the second box changes {changed} bytes");
+    drop(boxes);
+    drop((inset, scene));
     common::assert_no_validation_messages(&gpu);
 }
 
@@ -973,68 +1014,43 @@ fn a_second_box_is_read_as_the_first() {
 /// three is neither the full boxes' alone nor the middle box's alone).
 #[test]
 fn a_middle_levels_box_is_read_in_the_third_slot_under_the_full_ones() {
-    use cao_xr::app::HeadlessRenderer;
-    use cao_xr::render::{FrameViews, InsetBinding, RenderSettings, VolumeTextures};
-    use cao_xr::space::{default_stereo_views, world_from_tex, DEFAULT_IPD};
     let gpu = common::gpu();
-    let (vol, tf, lao_params) = small_head();
-    let config = AoConfig::new(AoMethod::Lao, lao_params);
-    let placement = Placement::default();
-    let coarse = Arc::new(vol.downsample(4));
-    let lao = LaoGpu::new(&gpu).unwrap();
-    let coarse_cao = whole_cao(&gpu, &lao, &coarse, (&tf, &config));
-    let centre = vol.dims.map(|d| d as f64 * 0.5);
-    let full = Inset::around(&gpu, vol.clone(), (config, tf.clone()), ([16; 3], centre)).unwrap();
-    let half = Arc::new(vol.downsample(2));
-    let half_centre = half.dims.map(|d| d as f64 * 0.5);
-    let middle = Inset::around(&gpu, half, (config, tf.clone()), ([18; 3], half_centre)).unwrap();
+    let mut scene = BoxScene::new(&gpu, 4);
+    let centre = |v: &cao_xr::volume::Volume| v.dims.map(|d| d as f64 * 0.5);
+    let full = scene.inset(&gpu, scene.vol.clone(), ([16; 3], centre(&scene.vol)));
+    let half = Arc::new(scene.vol.downsample(2));
+    let middle = scene.inset(&gpu, half.clone(), ([18; 3], centre(&half)));
     assert!(
         middle.describe().contains("downsampled by 2"),
         "{}",
         middle.describe()
     );
-    let mut tex = VolumeTextures::new(&gpu, &coarse, &tf).unwrap();
-    tex.show_as(&vol, &tf).unwrap();
     let (f, m) = (
-        full.bindings(&coarse, &placement)[0],
-        middle.bindings(&coarse, &placement)[0],
+        full.bindings(&scene.coarse, &scene.placement)[0],
+        middle.bindings(&scene.coarse, &scene.placement)[0],
     );
-    let empty = InsetBinding { hi: f.lo, ..f };
-    let views = default_stereo_views(&coarse, &placement, DEFAULT_IPD);
-    let mut hr = HeadlessRenderer::new(&gpu).unwrap();
-    let mut picture = |insets: &[InsetBinding]| {
-        let frame = FrameViews {
-            ao: Some(&coarse_cao.ao),
-            insets,
-            ..FrameViews::new(&views, world_from_tex(&coarse, &placement))
-        };
-        hr.render(&tex, &frame, (96, 96), &RenderSettings::default())
-            .unwrap()
-            .rgba
-    };
-    let differ =
-        |a: &[Vec<u8>; 2], b: &[Vec<u8>; 2]| a[0].iter().zip(&b[0]).filter(|(x, y)| x != y).count();
-    let alone = picture(&[m]);
+    let empty = cao_xr::render::InsetBinding { hi: f.lo, ..f };
+    let alone = scene.picture(&[m]);
     assert_eq!(
-        differ(&alone, &picture(&[empty, empty, m])),
+        bytes_differing(&alone, &scene.picture(&[empty, empty, m])),
         0,
         "the third slot is read otherwise than the first"
     );
-    let all = picture(&[f, empty, m]);
-    let (fine, none) = (picture(&[f]), picture(&[]));
+    let all = scene.picture(&[f, empty, m]);
+    let (fine, none) = (scene.picture(&[f]), scene.picture(&[]));
     assert!(
-        differ(&alone, &none) > 100,
+        bytes_differing(&alone, &none) > 100,
         "the middle box changes nothing"
     );
     assert!(
-        differ(&all, &alone) > 100,
+        bytes_differing(&all, &alone) > 100,
         "the full box is not read over the middle one"
     );
     assert!(
-        differ(&all, &fine) > 100,
+        bytes_differing(&all, &fine) > 100,
         "the middle box is not read around the full one"
     );
-    drop((tex, hr));
+    drop((full, middle, scene));
     common::assert_no_validation_messages(&gpu);
 }
 
