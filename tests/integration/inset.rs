@@ -807,9 +807,10 @@ fn variance_modulation_in_the_box_is_the_full_resolutions() {
     assert_full_in_box(shares, 0.5);
 }
 
-#[test]
-fn the_inset_follows_a_moving_tool_through_a_transfer_function_switch() {
-    let dir = common::scratch("inset", "replay");
+/// `replay` of a sphere sweeping left to right through a transfer function switch (`script
+/// tf-switch --frames 24`) on `phantom:160` at 96 x 64 under 14 MiB, into `dir`: what it told
+/// on stderr, and its output folder.
+fn replay_sweep(dir: &std::path::Path) -> (String, std::path::PathBuf) {
     let script = dir.join("tf-switch.jsonl");
     let script_arg = script.to_str().unwrap();
     common::run_cao_ok(&["script", "tf-switch", "--frames", "24", "--out", script_arg]);
@@ -824,8 +825,15 @@ fn the_inset_follows_a_moving_tool_through_a_transfer_function_switch() {
         out.to_str().unwrap(),
     ];
     let run = common::run_cao(&args, &[("CAO_XR_GPU_BUDGET_MB", "14")]);
-    let stderr = String::from_utf8_lossy(&run.stderr);
+    let stderr = String::from_utf8_lossy(&run.stderr).into_owned();
     assert!(run.status.success(), "{stderr}");
+    (stderr, out)
+}
+
+#[test]
+fn the_inset_follows_a_moving_tool_through_a_transfer_function_switch() {
+    let dir = common::scratch("inset", "replay");
+    let (stderr, out) = replay_sweep(&dir);
     // The sphere sweeps from left to right: the box is cut again where it goes, further right
     // each time.
     let firsts: Vec<usize> = stderr
@@ -1097,22 +1105,7 @@ fn a_middle_level_brings_the_picture_nearer_the_full_one() {
 #[test]
 fn a_frame_out_of_memory_shrinks_the_middle_box_first() {
     let dir = common::scratch("inset", "yield");
-    let script = dir.join("tf.jsonl");
-    let s = script.to_str().unwrap();
-    common::run_cao_ok(&["script", "tf-switch", "--frames", "24", "--out", s]);
-    let out = dir.join("replay");
-    let args = [
-        "replay",
-        s,
-        "phantom:160",
-        "--size",
-        "96x64",
-        "--out",
-        out.to_str().unwrap(),
-    ];
-    let run = common::run_cao(&args, &[("CAO_XR_GPU_BUDGET_MB", "14")]);
-    let told = String::from_utf8_lossy(&run.stderr).into_owned();
-    assert!(run.status.success(), "{told}");
+    let (told, _) = replay_sweep(&dir);
     let short = |l: &&str| l.starts_with("volume ") && l.contains("(out of GPU memory");
     let shrunk: Vec<&str> = told.lines().filter(short).collect();
     assert!(
