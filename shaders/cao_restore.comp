@@ -47,6 +47,9 @@ layout(push_constant) uniform Push {
 #define clipped_f pc.clipped_f_buf.clipped_f
 
 #include "staged.glsl"
+#define AO_WORDS ao
+#define AO_TABLE_BINDING 7
+#include "ao_pool.glsl"
 
 void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
@@ -63,5 +66,5 @@ void main() {
         clipped[c] = away ? uint16_t(0) : opacity[o];
     }
     mask_set(i, away ? 0u : 2u);
-    ao[i] = away ? uint16_t(AO_OPEN) : pao[o];
+    ao_store(v, i, pc.dims.xyz, away ? AO_OPEN : uint(pao[o]));
 }

@@ -47,6 +47,9 @@ layout(push_constant) uniform Push {
 #include "opacity.glsl"
 #include "lao.glsl"
 #include "staged.glsl"
+#define AO_WORDS ao
+#define AO_TABLE_BINDING 6
+#include "ao_pool.glsl"
 
 void main() {
     ivec3 v = ivec3(gl_GlobalInvocationID) + pc.box_min.xyz;
@@ -54,13 +57,13 @@ void main() {
     int i = v.x + pc.dims.x * (v.y + pc.dims.y * v.z);
     uint category = mask_get(i);
     if (category == 0u) {
-        ao[i] = uint16_t(AO_OPEN);
+        ao_store(v, i, pc.dims.xyz, AO_OPEN);
     } else if (category == 2u && pc.naive == 0u) {
-        ao[i] = pao[staged_index(v)];
+        ao_store(v, i, pc.dims.xyz, uint(pao[staged_index(v)]));
     } else {
         // The clear mask comes from the unclipped O; clipping only lowers opacity, so it stays
         // exact for O_c.
         bool clear = ((clear_bits[i >> 5] >> (i & 31)) & 1u) != 0u;
-        ao[i] = uint16_t(clear ? AO_OPEN : unorm16_word(lao_voxel(lao_base(v))));
+        ao_store(v, i, pc.dims.xyz, clear ? AO_OPEN : unorm16_word(lao_voxel(lao_base(v))));
     }
 }

@@ -42,6 +42,9 @@ layout(push_constant) uniform Push {
 #include "mask.glsl"
 #define pre pc.pre_buf.pre
 #include "staged.glsl"
+#define AO_WORDS ao
+#define AO_TABLE_BINDING 5
+#include "ao_pool.glsl"
 
 float d_at(ivec3 p) {
     if (any(lessThan(p, ivec3(0))) || any(greaterThanEqual(p, pc.dims.xyz))) return 0.0;
@@ -110,10 +113,10 @@ void main() {
     int mode = pc.box_min.w % 4;
     uint category = mode == 0 ? 1u : mask_get(i);
     if (category == 0u) {
-        ao[i] = uint16_t(AO_OPEN);
+        ao_store(v, i, pc.dims.xyz, AO_OPEN);
     } else if (category == 2u && mode == 1) {
-        ao[i] = pre[staged_index(v)];
+        ao_store(v, i, pc.dims.xyz, uint(pre[staged_index(v)]));
     } else {
-        ao[i] = uint16_t(unorm16_word(openness(v, d_at(v))));
+        ao_store(v, i, pc.dims.xyz, unorm16_word(openness(v, d_at(v))));
     }
 }

@@ -62,6 +62,9 @@ layout(push_constant) uniform Push {
 #define out_a pc.out_a_buf.out_a
 #define out_e pc.out_e_buf.out_e
 #define ids pc.ids_buf.ids
+#define AO_WORDS out_a
+#define AO_TABLE_BINDING 13
+#include "ao_pool.glsl"
 
 void direct(ivec3 v, out float a, out vec3 e) {
     float occ = 0.0;
@@ -120,7 +123,7 @@ void main() {
     if (mode == 4) {
         // V_PAO from the front hemisphere's cluster, with hemispheres (its E is the cluster's,
         // read where it is restored).
-        out_a[i] = uint16_t(unorm16_word(clusters[uint(ids[i])].a));
+        ao_store(v, i, pc.dims.xyz, unorm16_word(clusters[uint(ids[i])].a));
         return;
     }
     if (mode == 5) {
@@ -129,16 +132,16 @@ void main() {
     }
     uint category = mode == 0 ? 1u : mask_get(i);
     if (mode == 3 || (mode == 1 && category == 2u)) {
-        out_a[i] = pre_a[staged_index(v)];
+        ao_store(v, i, pc.dims.xyz, uint(pre_a[staged_index(v)]));
         out_e[i] = precomputed_e(i, clustered);
     } else if (category == 0u) {
-        out_a[i] = uint16_t(AO_OPEN);
+        ao_store(v, i, pc.dims.xyz, AO_OPEN);
         out_e[i] = packUnorm4x8(vec4(0.0, 0.0, 0.0, 1.0));
     } else {
         float a;
         vec3 e;
         direct(v, a, e);
-        out_a[i] = uint16_t(unorm16_word(a));
+        ao_store(v, i, pc.dims.xyz, unorm16_word(a));
         out_e[i] = packUnorm4x8(vec4(e, 1.0));
     }
 }

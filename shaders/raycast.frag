@@ -19,11 +19,14 @@
 #extension GL_EXT_buffer_reference_uvec2 : require
 #include "frame.glsl"
 #include "unorm16.glsl"
+#include "ao_pool.glsl"
 // The scalars as stored (src/render/mod.rs scalar_storage: integers as unorm texels); value_map
 // and the gradient threshold surface.x are in those units.
 layout(set = 0, binding = 1) uniform sampler3D scalars;
 // V_AO itself, by address (no copy into an image, no size limit): the method's 16-bit words.
 layout(buffer_reference, std430, buffer_reference_align = 2) readonly buffer AoWords { uint16_t ao_words[]; };
+// V_AO's brick table (src/ao/pool.rs, ao_pool.glsl), with RAY_AO_BRICKS.
+layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer AoTableRef { uint t[]; };
 // The local-histogram method's bleeding colour E (rgb), RGBA8 words by address; read when
 // bleeding.x = W > 0 or bleeding.y > 0.
 layout(buffer_reference, std430, buffer_reference_align = 4) readonly buffer BleedingWords { uint e_words[]; };
@@ -202,8 +205,9 @@ float scalar_at(vec3 t) {
 // The method's volumes the ray caster reads where they lie (V_AO, E: no image, no copy, no size
 // limit but the buffer's), trilinear between voxel centres and clamped to the edge as a linear
 // sampler reads an image: the eight corners around texture coordinates t, as the first
-// voxel's index v, the offsets d (0 on an axis where v is the last voxel) and the weights f.
-struct Corners { uint v; uvec3 d; vec3 f; };
+// voxel's index v (i in 3D), the offsets d (0 on an axis where v is the last voxel) and the
+// weights f.
+struct Corners { uint v; uvec3 d; vec3 f; ivec3 i; };
 
 Corners corners_at(ivec3 n, vec3 t) {
     vec3 x = clamp(t * vec3(n) - 0.5, vec3(0.0), vec3(n - 1));
@@ -213,7 +217,16 @@ Corners corners_at(ivec3 n, vec3 t) {
     c.d = uvec3(i.x + 1 < n.x ? 1u : 0u, i.y + 1 < n.y ? uint(n.x) : 0u,
                 i.z + 1 < n.z ? uint(n.x * n.y) : 0u);
     c.v = uint(i.x) + uint(n.x) * (uint(i.y) + uint(n.y) * uint(i.z));
+    c.i = i;
     return c;
+}
+
+// Voxel v's AO from V_AO's words `b` stored in bricks through `table` (a volume of n voxels).
+float brick_word(AoWords b, AoTableRef table, ivec3 n, ivec3 v) {
+    uint slot = table.t[ao_brick(v, n)];
+    int at = ao_pool_index(slot == AO_NONE ? 0u : slot, v);
+    uint w = uint(b.ao_words[at]);
+    return unorm16_value(slot == AO_NONE ? AO_OPEN : w);
 }
 
 #define TRILINEAR(c, read) \
@@ -227,8 +240,24 @@ Corners corners_at(ivec3 n, vec3 t) {
 float ambient_at(vec3 t) {
     int s = inset_at(t);
     AoWords b = AoWords(s >= 0 ? frame.inset_words[s].xy : frame.ao_words.xy);
-    Corners c = s >= 0 ? corners_at(inset_size(s), inset_tex(s, t))
-                       : corners_at(textureSize(scalars, 0), t);
+    ivec3 n = s >= 0 ? inset_size(s) : textureSize(scalars, 0);
+    Corners c = corners_at(n, s >= 0 ? inset_tex(s, t) : t);
+    if ((FLAGS & RAY_AO_BRICKS) != 0u) {
+        // Stored in bricks (src/ao/pool.rs): each corner's word through its brick's slot, 1
+        // where the brick is not stored (AO_OPEN: no word is read).
+        uvec4 tables = frame.ao_tables[(s + 1) >> 1];
+        AoTableRef table = AoTableRef(((s + 1) & 1) == 0 ? tables.xy : tables.zw);
+        ivec3 v0 = c.i, v1 = min(c.i + 1, n - 1);
+#define AO_BRICK_READ(k) brick_word(b, table, n, ivec3((k & 1) != 0 ? v1.x : v0.x, \
+                                                       (k & 2) != 0 ? v1.y : v0.y, \
+                                                       (k & 4) != 0 ? v1.z : v0.z))
+        return mix(mix(mix(AO_BRICK_READ(0), AO_BRICK_READ(1), c.f.x),
+                       mix(AO_BRICK_READ(2), AO_BRICK_READ(3), c.f.x), c.f.y),
+                   mix(mix(AO_BRICK_READ(4), AO_BRICK_READ(5), c.f.x),
+                       mix(AO_BRICK_READ(6), AO_BRICK_READ(7), c.f.x), c.f.y),
+                   c.f.z);
+#undef AO_BRICK_READ
+    }
 #define AO_READ(i) unorm16_value(uint(b.ao_words[i]))
     return TRILINEAR(c, AO_READ);
 #undef AO_READ

@@ -33,6 +33,14 @@ pub const SAME_AS_FRONT: u32 = u32::MAX;
 /// Bricks of 2^HIST_BRICK_SHIFT voxels per axis for the local histograms' clear bricks
 /// (src/ao/histogram.rs clear_bricks).
 pub const HIST_BRICK_SHIFT: u32 = 3;
+/// V_AO is stored in bricks of 2^AO_BRICK_SHIFT voxels per axis, only those where some voxel's
+/// AO can differ from 1 (src/ao/pool.rs).
+pub const AO_BRICK_SHIFT: u32 = 3;
+/// A brick table's entry for a brick V_AO does not store: every voxel of it has AO 1.
+pub const AO_NONE: u32 = u32::MAX;
+/// A brick table whose first word is this stands for V_AO stored whole, x fastest (a
+/// precompute's V_PAO).
+pub const AO_WHOLE: u32 = u32::MAX - 1;
 /// Bricks of 2^RAY_BRICK_SHIFT voxels per axis for the ray caster's exact empty-space skipping
 /// (src/render/empty_space.rs).
 pub const RAY_BRICK_SHIFT: u32 = 3;
@@ -83,6 +91,8 @@ pub const RAY_LIT: u32 = 1 << 15;
 /// eye reads with RAY_REPROJECT (docs/design.md, "The second eye").
 pub const RAY_RECORD: u32 = 1 << 16;
 pub const RAY_REPROJECT: u32 = 1 << 17;
+/// V_AO (and every inset's) is stored in bricks through a table (src/ao/pool.rs).
+pub const RAY_AO_BRICKS: u32 = 1 << 18;
 /// A first-eye pixel shows an opaque surface where its opacity went from 5 % to opaque within a
 /// depth over which the two eyes' parallax stays below this many pixels (deeper, what it
 /// composited lies differently behind the surface for the other eye).

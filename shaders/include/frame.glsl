@@ -37,4 +37,7 @@ layout(std140, set = 0, binding = 0) uniform Frame {
     vec4 inset_offset[MAX_INSETS];
     uvec4 inset_words[MAX_INSETS]; // xy: its V_AO's address (16-bit unorm words, as ao_words);
                                    // zw: its bleeding colour E's (as ao_words.zw), 0 where none
+    // With RAY_AO_BRICKS, the brick tables' addresses (src/ao/pool.rs): V_AO's, then each
+    // box's, two to a uvec4 (xy, zw).
+    uvec4 ao_tables[(MAX_INSETS + 2) / 2];
 } frame;

@@ -12,6 +12,7 @@ use super::histogram_gpu::HistogramGpu;
 use super::lao::LaoLayout;
 use super::method::MethodBuffers;
 pub use super::method::MethodGpu;
+use super::pool::{reach_voxels, AoPool};
 use super::voxel_box::{dispatch_box, merge_boxes, VoxelBox};
 use crate::clip::bricks::{self, BrickTool};
 use crate::clip::margin::{self, MarginHit};
@@ -117,8 +118,13 @@ pub struct Cao {
     /// V_PAO's 16-bit words, held on the host like O: a frame's passes read it only in the
     /// boxes they restore or update, staged with O ([`Cao::stage`]).
     pao: Vec<u8>,
-    /// V_AO: this frame's ambient occlusion.
-    pub ao: Buffer,
+    /// V_AO: this frame's ambient occlusion, in the bricks where it can differ from 1.
+    pub ao: AoPool,
+    /// O, V_PAO or the method changed since V_AO's bricks were chosen: the next whole restore
+    /// chooses them anew ([`Cao::choose_bricks`]).
+    bricks_stale: bool,
+    /// Every brick of V_AO is stored, none left out ([`Cao::keep_every_brick`]).
+    every_brick: bool,
     /// What the host writes or reads back per frame, one set per frame in flight, so the next
     /// frame is recorded while the GPU still runs this one; [`Cao::record_frame`] takes the
     /// next slot.
@@ -237,7 +243,7 @@ impl Cao {
                 env!("OUT_DIR"),
                 "/cao_restore.comp.spv"
             ))),
-            &[Reach::Address; 7],
+            &[[Reach::Address; 7].as_slice(), &[Reach::Descriptor]].concat(),
             std::mem::size_of::<ClipPush>() as u32,
             &[],
         )?;
@@ -266,7 +272,10 @@ impl Cao {
         let storage = vk::BufferUsageFlags::STORAGE_BUFFER
             | vk::BufferUsageFlags::TRANSFER_SRC
             | vk::BufferUsageFlags::TRANSFER_DST;
-        let ao = super::stored::buffer(gpu, dims, "cao-ao")?;
+        let reach = reach_voxels(method.reach_mm(spacing), spacing);
+        let kept = super::pool::needed(dims, &opacity, es, &pao_words, reach);
+        let (ao, staging) = gpu.submit_and_wait(|cmd| AoPool::new(gpu, dims, &kept, cmd))??;
+        drop(staging);
         // Two bits per voxel (shaders/include/mask.glsl), in whole words.
         let mask = Buffer::new(
             gpu,
@@ -293,6 +302,8 @@ impl Cao {
             mask,
             pao: pao_words,
             ao,
+            bricks_stale: false,
+            every_brick: false,
             slots,
             slot: 0,
             map_builder: ClipMapGpu::new(gpu)?,
@@ -316,17 +327,17 @@ impl Cao {
             protect_bits: vol.labels.as_deref().map_or([0; 8], |l| l.protected_bits()),
         };
         match pao {
-            // No method yet: V_AO = V_PAO = 1, copied; O_c and the mask are first read after
-            // the first switch, whose whole restore writes them (a restore of a large volume
-            // takes seconds on a CPU device, and the first picture waits for it).
-            // SAFETY: `cmd` is recording (submit_and_wait); `ao` and `pao` are stored volumes
-            // of `dims` voxels (stored::buffer: TRANSFER_SRC/DST; `pao` the caller's), so the
-            // copy of `ao.size` bytes stays inside both, and both outlive the waited submission.
-            Some(pao) => cao.gpu.submit_and_wait(|cmd| unsafe {
-                let region = vk::BufferCopy::default().size(cao.ao.size);
+            // No method yet: V_AO = V_PAO = 1 (no brick is stored but where the pool keeps
+            // them all: every word all ones); O_c and the mask are first read after the first
+            // switch, whose whole restore writes them (a restore of a large volume takes
+            // seconds on a CPU device, and the first picture waits for it).
+            // SAFETY: `cmd` is recording (submit_and_wait); the pool's words were made with
+            // TRANSFER_DST (AoPool::new) in whole 4-byte words, so a WHOLE_SIZE fill stays
+            // inside, and the pool outlives the waited submission.
+            Some(_) => cao.gpu.submit_and_wait(|cmd| unsafe {
                 cao.gpu
                     .device
-                    .cmd_copy_buffer(cmd, pao.raw, cao.ao.raw, &[region]);
+                    .cmd_fill_buffer(cmd, cao.ao.words.raw, 0, vk::WHOLE_SIZE, u32::MAX);
             })?,
             // Start unclipped: O_c = O (inside a zero border), V_AO = V_PAO everywhere (and
             // the local histograms' bleeding volume its precomputed one).
@@ -358,10 +369,13 @@ impl Cao {
         let slices = ((slab_bytes / per_slice) as usize).clamp(1, nz.max(1));
         let clipped = self.background_clipped;
         let gpu = self.gpu.clone();
-        let mut made = Ok(None);
-        gpu.submit_and_wait(|cmd| made = self.make_whole(cmd))?;
-        // No submitted work reads the old O_c (this method's contract).
-        drop(made?);
+        let (mut made, mut chosen) = (Ok(None), Ok(None));
+        gpu.submit_and_wait(|cmd| {
+            made = self.make_whole(cmd);
+            chosen = self.choose_bricks(cmd);
+        })?;
+        // No submitted work reads the old O_c or V_AO (this method's contract).
+        drop((made?, chosen?));
         let mut staged = None;
         for z0 in (0..nz).step_by(slices) {
             let b = VoxelBox {
@@ -376,7 +390,8 @@ impl Cao {
                     density_stride: self.clipped_stride(),
                     mask: &self.mask,
                     pre_a: &s.pao,
-                    out_a: &self.ao,
+                    out_a: &self.ao.words,
+                    ao_table: &self.ao.table,
                 };
                 self.method.record_restore(cmd, &bufs, &[b], &at, clipped);
             })?;
@@ -407,7 +422,34 @@ impl Cao {
         self.opacity = opacity.read_back()?;
         self.pao = pao.read_back()?;
         self.prev_boxes = vec![VoxelBox::whole(self.dims)];
+        self.bricks_stale = true;
         Ok(())
+    }
+
+    /// Where O, V_PAO or the method changed: V_AO's bricks chosen anew for them (the next
+    /// restore, a whole one, fills them), the table copied in by `cmd`. Returns the old V_AO,
+    /// which frames in flight may still read, and the table's staging, which `cmd` reads.
+    fn choose_bricks(&mut self, cmd: vk::CommandBuffer) -> Result<Option<(AoPool, Buffer)>> {
+        if !std::mem::take(&mut self.bricks_stale) {
+            return Ok(None);
+        }
+        let kept = if self.every_brick {
+            vec![true; super::pool::bricks(self.dims).iter().product()]
+        } else {
+            let reach = reach_voxels(self.reach_mm(), self.spacing);
+            let es = self.method.density_bytes();
+            super::pool::needed(self.dims, &self.opacity, es, &self.pao, reach)
+        };
+        let (new, staging) = AoPool::new(&self.gpu, self.dims, &kept, cmd)?;
+        Ok(Some((std::mem::replace(&mut self.ao, new), staging)))
+    }
+
+    /// Stores every brick of V_AO from now on, none left out (what leaving bricks out must
+    /// equal), restoring the whole volume into them. Call it as [`Cao::restore_whole`].
+    pub fn keep_every_brick(&mut self) -> Result<()> {
+        self.every_brick = true;
+        self.bricks_stale = true;
+        self.restore_whole()
     }
 
     /// Where voxel v of O_c lies: [`Cao::clipped`] at \[0] + v.x + \[1] v.y + \[2] v.z, inside LAO's
@@ -564,8 +606,9 @@ impl Cao {
         // The next frame's whole restore fills it, or its windows.
         (self.clipped, self.clipped_slices) = initial_clipped(&self.gpu, self.dims, &method)?;
         // The next frame restores the whole volume from the new method's values (its bleeding
-        // volume included).
+        // volume included), into V_AO's bricks for the new method's reach.
         self.prev_boxes = vec![VoxelBox::whole(self.dims)];
+        self.bricks_stale = true;
         Ok(std::mem::replace(&mut self.method, method))
     }
 
@@ -838,9 +881,10 @@ impl Cao {
                 &self.clipped,
                 &self.mask,
                 pao,
-                &self.ao,
+                &self.ao.words,
                 o,
                 &self.clipped,
+                &self.ao.table,
             ];
             self.restore.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.restore, cmd, b);
@@ -901,6 +945,8 @@ impl Cao {
         if retired.is_some() && mode == Mode::Contextual {
             restore = vec![VoxelBox::whole(self.dims)];
         }
+        // Chosen anew after a change of O or method, whose whole restore this frame records.
+        let retired_ao = self.choose_bricks(cmd)?;
         if self.windowed() {
             let slices = self.window_of(&boxes);
             let bytes = self.window_bytes(slices);
@@ -937,7 +983,7 @@ impl Cao {
         }
         let slot = &mut self.slots[self.slot];
         // What frames in flight may still read goes when this slot's frame has finished.
-        slot.retired = retired;
+        slot.retired = (retired, retired_ao);
         // SAFETY: `cmd` is recording outside a render pass (this method's contract); `counts` (16
         // bytes, TRANSFER_DST) is this frame slot's, whose last frame has finished; `protect` was
         // made from the same 8 words with TRANSFER_DST, and 32 bytes is a valid inline update.
@@ -965,7 +1011,8 @@ impl Cao {
             density_stride: self.clipped_stride(),
             mask: &self.mask,
             pre_a: pao,
-            out_a: &self.ao,
+            out_a: &self.ao.words,
+            ao_table: &self.ao.table,
         };
         // The method's own restore (the local histograms' bleeding colour of last frame's
         // boxes, restored like V_AO).
@@ -1179,8 +1226,8 @@ struct FrameSlot {
     staged: Option<Staged>,
     /// This frame's O_c background over its window's slices ([`Cao::windowed`]).
     window: Option<Buffer>,
-    /// An O_c this frame replaced, which earlier frames still in flight may read.
-    retired: Option<Buffer>,
+    /// An O_c and a V_AO this frame replaced, which earlier frames still in flight may read.
+    retired: (Option<Buffer>, Option<(AoPool, Buffer)>),
     timer: GpuTimer,
 }
 
@@ -1236,7 +1283,7 @@ impl FrameSlot {
             )?,
             staged: None,
             window: None,
-            retired: None,
+            retired: (None, None),
             timer: GpuTimer::new(gpu, 8)?,
         })
     }

@@ -107,6 +107,8 @@ pub struct FilterGpu {
     pub dims: [usize; 3],
     pub spacing: [f64; 3],
     pub params: FilterParams,
+    /// The one-word brick table its precompute writes V_PAO whole through.
+    whole: Buffer,
 }
 
 impl FilterGpu {
@@ -130,7 +132,13 @@ impl FilterGpu {
         Ok(FilterGpu {
             gpu: gpu.clone(),
             boxes: ComputePipeline::with_addresses(gpu, spv_box, &[Reach::Address; 3], 64, &[])?,
-            estimate: ComputePipeline::with_addresses(gpu, spv_ao, &[Reach::Address; 5], 80, &[])?,
+            estimate: ComputePipeline::with_addresses(
+                gpu,
+                spv_ao,
+                &[[Reach::Address; 5].as_slice(), &[Reach::Descriptor]].concat(),
+                80,
+                &[],
+            )?,
             pass_a: scratch("filter-stats-a")?,
             pass_b: scratch("filter-stats-b")?,
             chunk,
@@ -138,6 +146,7 @@ impl FilterGpu {
             dims,
             spacing,
             params,
+            whole: super::pool::whole_table(gpu)?,
         })
     }
 
@@ -198,7 +207,7 @@ impl FilterGpu {
 
     /// Records the openness of every voxel of the unclipped `density` into `out` (V_PAO).
     pub fn record_precompute(&self, cmd: vk::CommandBuffer, density: &Buffer, out: &Buffer) {
-        let bufs = MethodBuffers::precompute(density, self.dims, out);
+        let bufs = MethodBuffers::precompute(density, self.dims, (out, &self.whole));
         self.dispatch(cmd, &bufs, (&[VoxelBox::whole(self.dims)], &[0]), Pass::All);
     }
 
@@ -318,6 +327,7 @@ impl FilterGpu {
                 bufs.out_a,
                 bufs.mask,
                 bufs.pre_a,
+                bufs.ao_table,
             ];
             self.estimate.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.estimate, cmd, b);

@@ -107,6 +107,8 @@ pub struct HistogramGpu {
     split: Buffer,
     /// The clear bricks of the last TF ([`hist::clear_bricks`]; none before one), mapped.
     clear: Buffer,
+    /// The one-word brick table its precompute writes V_PAO whole through.
+    whole: Buffer,
     /// E of the unclipped volume without clusters (with them a stand-in: a voxel's is its
     /// cluster's), and this frame's E (RGBA8 per voxel).
     pub pre_e: Buffer,
@@ -343,6 +345,7 @@ impl HistogramGpu {
                     Reach::Descriptor,
                     Reach::Descriptor,
                     Reach::Descriptor,
+                    Reach::Descriptor,
                 ],
                 64,
                 &[],
@@ -376,6 +379,7 @@ impl HistogramGpu {
                 MemoryLocation::CpuToGpu,
                 "hist-clear-bricks",
             )?,
+            whole: super::pool::whole_table(gpu)?,
             timing: ClusterTiming::default(),
             nb,
             shades,
@@ -847,7 +851,7 @@ impl HistogramGpu {
         } else {
             Pass::Direct
         };
-        let bufs = MethodBuffers::precompute(q, self.dims, pre_a);
+        let bufs = MethodBuffers::precompute(q, self.dims, (pre_a, &self.whole));
         let mut slab = VoxelBox::whole(self.dims);
         (slab.min[2], slab.max[2]) = (z.start as i32, z.end as i32);
         self.dispatch(cmd, &bufs, &self.pre_e, (&[slab], &[0]), mode);
@@ -872,7 +876,7 @@ impl HistogramGpu {
             "hist-e",
         )?;
         // The pass reads no density, mask or V_PAO: `out` stands in for them.
-        let bufs = MethodBuffers::precompute(&out, self.dims, &out);
+        let bufs = MethodBuffers::precompute(&out, self.dims, (&out, &self.whole));
         let all = [VoxelBox::whole(self.dims)];
         self.gpu.submit_and_wait(|cmd| {
             self.dispatch(cmd, &bufs, &out, (&all, &[0]), Pass::PrecomputedE)
@@ -952,6 +956,7 @@ impl HistogramGpu {
                 &self.cluster_table,
                 &self.split,
                 &self.clear,
+                bufs.ao_table,
             ];
             self.sums.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box(&self.sums, cmd, bx);

@@ -722,6 +722,7 @@ impl LaoMethod {
                 &self.skip.clear,
                 bufs.mask,
                 bufs.pre_a,
+                bufs.ao_table,
             ];
             self.update.bind(cmd, &bufs, bytemuck::bytes_of(&push));
             dispatch_box_in(&self.update, cmd, b, LAO_GROUP);
@@ -741,6 +742,7 @@ fn update_pipeline(gpu: &Gpu) -> Result<ComputePipeline> {
             Reach::Address,
             Reach::Address,
             Reach::Address,
+            Reach::Descriptor,
         ],
         std::mem::size_of::<UpdatePush>() as u32,
         &[],

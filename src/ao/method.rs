@@ -35,17 +35,26 @@ pub struct MethodBuffers<'a> {
     pub pre_a: &'a Buffer,
     /// Where the pass writes its AO: V_AO, or V_PAO for a precompute.
     pub out_a: &'a Buffer,
+    /// How `out_a` is laid out: V_AO's brick table ([`super::pool::AoPool`]), or a precompute's
+    /// one-word table of a volume stored whole ([`super::pool::whole_table`]).
+    pub ao_table: &'a Buffer,
 }
 
 impl<'a> MethodBuffers<'a> {
-    /// A precompute's roles: `density` read, `out` written, nothing else read.
-    pub fn precompute(density: &'a Buffer, dims: [usize; 3], out: &'a Buffer) -> MethodBuffers<'a> {
+    /// A precompute's roles: `density` read, `out` written whole (`whole`:
+    /// [`super::pool::whole_table`]), nothing else read.
+    pub fn precompute(
+        density: &'a Buffer,
+        dims: [usize; 3],
+        (out, whole): (&'a Buffer, &'a Buffer),
+    ) -> MethodBuffers<'a> {
         MethodBuffers {
             density,
             density_stride: LaoLayout::unpadded_stride(dims),
             mask: density,
             pre_a: out,
             out_a: out,
+            ao_table: whole,
         }
     }
 }

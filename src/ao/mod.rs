@@ -8,6 +8,7 @@ pub mod histogram;
 pub mod histogram_gpu;
 pub mod lao;
 pub mod method;
+pub mod pool;
 pub mod progressive;
 pub mod sh;
 pub mod stored;

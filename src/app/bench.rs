@@ -318,8 +318,7 @@ pub fn bench_cao(
 /// The first difference between the CAO and the naive V_AO, as an error naming the frame and
 /// voxel.
 fn verify_frame(cao: &Cao, naive: &Cao, vol: &Volume, what: &str) -> Result<()> {
-    let n = vol.voxel_count();
-    let (a, b) = (stored::read(&cao.ao, n)?, stored::read(&naive.ao, n)?);
+    let (a, b) = (cao.ao.read()?, naive.ao.read()?);
     match a
         .iter()
         .zip(&b)

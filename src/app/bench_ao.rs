@@ -60,7 +60,7 @@ fn pictures(
             };
             let views = default_stereo_views(vol, &placement, DEFAULT_IPD);
             let frame = FrameViews {
-                ao: Some(ao),
+                ao: Some(ao.into()),
                 ..FrameViews::new(&views, world_from_tex(vol, &placement))
             };
             let size = (VIEW_SIZE, VIEW_SIZE);

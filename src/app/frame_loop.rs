@@ -1255,7 +1255,7 @@ impl FrameLoop {
                     reach: &cao.reach_boxes,
                 }),
                 sh: lighting.as_ref().map(|l| l.binding()),
-                ao: Some(&cao.ao),
+                ao: Some((&cao.ao).into()),
                 bleeding: cao.method().bleeding(),
                 insets: &boxes,
                 gaze: input

@@ -1032,7 +1032,7 @@ impl Inset {
             }));
             InsetBinding {
                 scalars: &part.scalars,
-                ao: &part.cao.ao,
+                ao: (&part.cao.ao).into(),
                 bleeding: part.cao.method().bleeding(),
                 structures: part.ids.as_ref(),
                 variance: part.variance.as_ref(),

@@ -11,8 +11,8 @@ pub mod text;
 
 use crate::gpu::{pipeline, Buffer, Gpu, GpuError, Image, ImageDesc, Result};
 use crate::shader_constants::{
-    MAX_INSETS, MAX_TOOLS, RAY_AO, RAY_BLEEDING, RAY_CLIPPING, RAY_CLIP_BRICKS, RAY_GLOW,
-    RAY_INSET, RAY_ISO, RAY_JITTER, RAY_LABELS, RAY_LIT, RAY_PREINTEGRATED, RAY_RECORD,
+    MAX_INSETS, MAX_TOOLS, RAY_AO, RAY_AO_BRICKS, RAY_BLEEDING, RAY_CLIPPING, RAY_CLIP_BRICKS,
+    RAY_GLOW, RAY_INSET, RAY_ISO, RAY_JITTER, RAY_LABELS, RAY_LIT, RAY_PREINTEGRATED, RAY_RECORD,
     RAY_REPROJECT, RAY_SCATTERING, RAY_SH, RAY_SKIP_EMPTY, RAY_TRICUBIC, RAY_VARIANCE,
 };
 use crate::space::View;
@@ -1078,13 +1078,17 @@ struct FrameUniforms {
     inset_scale: [[f32; 4]; MAX_INSETS],
     inset_offset: [[f32; 4]; MAX_INSETS],
     inset_words: [[u32; 4]; MAX_INSETS],
+    ao_tables: [[u32; 4]; AO_TABLE_VECS],
 }
-crate::gpu::glsl_layout!(FrameUniforms, 5408,
+/// uvec4s of the brick tables' addresses: V_AO's, then each inset box's, two to a uvec4.
+const AO_TABLE_VECS: usize = (MAX_INSETS + 2) / 2;
+crate::gpu::glsl_layout!(FrameUniforms, 5440,
     inv_view_proj: 0, view_proj: 128, tex_from_world: 256, extent_mm: 320, value_map: 336,
     background: 352, viewport: 368, phong: 384, surface: 400, cut_tint: 416, jitter: 432,
     lighting: 448, bleeding: 464, glow: 480, sh_light: 496, tool_reach: 752, structures: 1008,
     protect: 5104, light: 5136, ao_words: 5152, inset_lo: 5168, inset_hi: 5216,
-    inset_scale: 5264, inset_offset: 5312, inset_words: 5360);
+    inset_scale: 5264, inset_offset: 5312, inset_words: 5360,
+    ao_tables: 5408);
 
 /// The ray caster's descriptor writes: the uniforms, the clip tools, maps and brick states
 /// (bindings 0, 4, 5, 20), then the sampled images by binding.
@@ -1173,7 +1177,7 @@ pub struct FrameViews<'a> {
     pub sh: Option<ShBinding<'a>>,
     /// V_AO, the method's 16-bit words ([`crate::ao::stored`]), which the ray caster reads by
     /// address, filtering them itself; None: no AO (as `use_ao = false`).
-    pub ao: Option<&'a Buffer>,
+    pub ao: Option<AoWords<'a>>,
     /// The local-histogram method's bleeding colour E (RGBA8 words), read as V_AO is; None: no
     /// bleeding or scattering.
     pub bleeding: Option<&'a Buffer>,
@@ -1202,14 +1206,48 @@ impl<'a> FrameViews<'a> {
     }
 }
 
+/// V_AO as the ray caster reads it: its 16-bit words, stored whole (x fastest) or in bricks
+/// through a table ([`crate::ao::pool`]).
+#[derive(Clone, Copy)]
+pub struct AoWords<'a> {
+    pub words: &'a Buffer,
+    pub table: Option<&'a Buffer>,
+}
+
+impl<'a> From<&'a Buffer> for AoWords<'a> {
+    /// A V_AO stored whole (a precompute's V_PAO).
+    fn from(words: &'a Buffer) -> AoWords<'a> {
+        AoWords { words, table: None }
+    }
+}
+
+impl<'a> From<&'a crate::ao::pool::AoPool> for AoWords<'a> {
+    /// A CAO state's V_AO, in bricks.
+    fn from(pool: &'a crate::ao::pool::AoPool) -> AoWords<'a> {
+        AoWords {
+            words: &pool.words,
+            table: Some(&pool.table),
+        }
+    }
+}
+
+/// The addresses of `ao`'s words and table (0 where absent), as uvec2 halves.
+fn ao_addresses(ao: Option<AoWords>) -> ([u32; 2], [u32; 2]) {
+    let split = |a: u64| [a as u32, (a >> 32) as u32];
+    (
+        split(ao.map_or(0, |a| a.words.address)),
+        split(ao.and_then(|a| a.table).map_or(0, |t| t.address)),
+    )
+}
+
 /// One full-resolution box of a downsampled volume's inset ([`crate::app::inset`]): its
 /// scalars and V_AO, and where it lies in the shown volume's texture coordinates.
 #[derive(Clone, Copy)]
 pub struct InsetBinding<'a> {
     /// Its scalars, stored as the shown volume's are ([`scalar_image`]).
     pub scalars: &'a Image,
-    /// Its V_AO (16-bit words), read as [`FrameViews::ao`] is.
-    pub ao: &'a Buffer,
+    /// Its V_AO (16-bit words), read as [`FrameViews::ao`] is (stored as that one is).
+    pub ao: AoWords<'a>,
     /// Its bleeding colour E, read as [`FrameViews::bleeding`] is, where its method has one.
     pub bleeding: Option<&'a Buffer>,
     /// Its structure ids ([`id_image`]), where the volume has labels.
@@ -1474,6 +1512,10 @@ impl Renderer {
             (!frame.insets.is_empty(), RAY_INSET),
             (settings.use_ao && frame.ao.is_some(), RAY_AO),
             (
+                settings.use_ao && frame.ao.is_some_and(|a| a.table.is_some()),
+                RAY_AO_BRICKS,
+            ),
+            (
                 frame.bleeding.is_some() && settings.bleeding > 0.0,
                 RAY_BLEEDING,
             ),
@@ -1650,18 +1692,30 @@ impl Renderer {
                 }
             },
             ao_words: {
-                let [a, e] = [frame.ao, frame.bleeding].map(|b| b.map_or(0, |b| b.address));
-                [a as u32, (a >> 32) as u32, e as u32, (e >> 32) as u32]
+                let e = frame.bleeding.map_or(0, |b| b.address);
+                let (a, _) = ao_addresses(frame.ao);
+                [a[0], a[1], e as u32, (e >> 32) as u32]
             },
             inset_lo,
             inset_hi,
             inset_scale,
             inset_offset,
             inset_words: std::array::from_fn(|s| {
-                let [a, e] = [box_of(s).map(|i| i.ao), box_of(s).and_then(|i| i.bleeding)]
-                    .map(|b| b.map_or(0, |b| b.address));
-                [a as u32, (a >> 32) as u32, e as u32, (e >> 32) as u32]
+                let e = box_of(s).and_then(|i| i.bleeding).map_or(0, |b| b.address);
+                let (a, _) = ao_addresses(box_of(s).map(|i| i.ao));
+                [a[0], a[1], e as u32, (e >> 32) as u32]
             }),
+            ao_tables: {
+                let tables: Vec<[u32; 2]> = std::iter::once(frame.ao)
+                    .chain((0..MAX_INSETS).map(|s| box_of(s).map(|i| i.ao)))
+                    .map(|a| ao_addresses(a).1)
+                    .collect();
+                std::array::from_fn(|k| {
+                    let (lo, hi) = (tables[2 * k], tables.get(2 * k + 1).copied());
+                    let hi = hi.unwrap_or([0; 2]);
+                    [lo[0], lo[1], hi[0], hi[1]]
+                })
+            },
         };
         self.uniforms[slot].write(0, bytemuck::bytes_of(&u))?;
         let uniforms = &self.uniforms[slot];

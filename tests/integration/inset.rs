@@ -808,7 +808,7 @@ fn variance_modulation_in_the_box_is_the_full_resolutions() {
 }
 
 /// `replay` of a sphere sweeping left to right through a transfer function switch (`script
-/// tf-switch --frames 24`) on `phantom:160` at 96 x 64 under 14 MiB, into `dir`: what it told
+/// tf-switch --frames 24`) on `phantom:160` at 96 x 64 under 13 MiB, into `dir`: what it told
 /// on stderr, and its output folder.
 fn replay_sweep(dir: &std::path::Path) -> (String, std::path::PathBuf) {
     let script = dir.join("tf-switch.jsonl");
@@ -824,7 +824,7 @@ fn replay_sweep(dir: &std::path::Path) -> (String, std::path::PathBuf) {
         "--out",
         out.to_str().unwrap(),
     ];
-    let run = common::run_cao(&args, &[("CAO_XR_GPU_BUDGET_MB", "14")]);
+    let run = common::run_cao(&args, &[("CAO_XR_GPU_BUDGET_MB", "13")]);
     let stderr = String::from_utf8_lossy(&run.stderr).into_owned();
     assert!(run.status.success(), "{stderr}");
     (stderr, out)
@@ -961,7 +961,7 @@ impl BoxScene {
         use cao_xr::space::{default_stereo_views, world_from_tex, DEFAULT_IPD};
         let views = default_stereo_views(&self.coarse, &self.placement, DEFAULT_IPD);
         let frame = FrameViews {
-            ao: Some(&self.coarse_cao.ao),
+            ao: Some((&self.coarse_cao.ao).into()),
             insets,
             ..FrameViews::new(&views, world_from_tex(&self.coarse, &self.placement))
         };
@@ -1100,8 +1100,8 @@ fn a_middle_level_brings_the_picture_nearer_the_full_one() {
 
 /// A frame that runs out of GPU memory with three levels makes the middle box smaller (or gives
 /// it up) first: the full-resolution box keeps its size. A sphere sweeping through a transfer
-/// function switch on `phantom:160` under 14 MiB (shown downsampled by 4, a 52³ box at full
-/// resolution and a 60³ one at half) runs out in a frame that cuts the boxes again.
+/// function switch on `phantom:160` under 13 MiB (shown downsampled by 4, a 49³ box at full
+/// resolution and a 58³ one at half) runs out in a frame that cuts the boxes again.
 #[test]
 fn a_frame_out_of_memory_shrinks_the_middle_box_first() {
     let dir = common::scratch("inset", "yield");
