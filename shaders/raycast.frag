@@ -221,12 +221,14 @@ Corners corners_at(ivec3 n, vec3 t) {
     return c;
 }
 
-// Voxel v's AO from V_AO's words `b` stored in bricks through `table` (a volume of n voxels).
-float brick_word(AoWords b, AoTableRef table, ivec3 n, ivec3 v) {
+// Voxel v's AO from V_AO's words `b` stored in bricks through `table`, or `whole` (a volume of
+// n voxels).
+float brick_word(AoWords b, AoTableRef table, bool whole, ivec3 n, ivec3 v) {
     uint slot = table.t[ao_brick(v, n)];
-    int at = ao_pool_index(slot == AO_NONE ? 0u : slot, v);
+    bool none = !whole && slot == AO_NONE;
+    int at = whole ? v.x + n.x * (v.y + n.y * v.z) : ao_pool_index(none ? 0u : slot, v);
     uint w = uint(b.ao_words[at]);
-    return unorm16_value(slot == AO_NONE ? AO_OPEN : w);
+    return unorm16_value(none ? AO_OPEN : w);
 }
 
 #define TRILINEAR(c, read) \
@@ -239,16 +241,20 @@ float brick_word(AoWords b, AoTableRef table, ivec3 n, ivec3 v) {
 // V_AO at texture coordinates t (the inset's within it).
 float ambient_at(vec3 t) {
     int s = inset_at(t);
-    AoWords b = AoWords(s >= 0 ? frame.inset_words[s].xy : frame.ao_words.xy);
+    uvec2 words = s >= 0 ? frame.inset_words[s].xy : frame.ao_words.xy;
+    AoWords b = AoWords(words);
     ivec3 n = s >= 0 ? inset_size(s) : textureSize(scalars, 0);
     Corners c = corners_at(n, s >= 0 ? inset_tex(s, t) : t);
     if ((FLAGS & RAY_AO_BRICKS) != 0u) {
         // Stored in bricks (src/ao/pool.rs): each corner's word through its brick's slot, 1
-        // where the brick is not stored (AO_OPEN: no word is read).
+        // where the brick is not stored. A V_AO stored whole has no table (address 0): its
+        // own words stand in for one (read in range, unused).
         uvec4 tables = frame.ao_tables[(s + 1) >> 1];
-        AoTableRef table = AoTableRef(((s + 1) & 1) == 0 ? tables.xy : tables.zw);
+        uvec2 t = ((s + 1) & 1) == 0 ? tables.xy : tables.zw;
+        bool whole = all(equal(t, uvec2(0)));
+        AoTableRef table = AoTableRef(whole ? words : t);
         ivec3 v0 = c.i, v1 = min(c.i + 1, n - 1);
-#define AO_BRICK_READ(k) brick_word(b, table, n, ivec3((k & 1) != 0 ? v1.x : v0.x, \
+#define AO_BRICK_READ(k) brick_word(b, table, whole, n, ivec3((k & 1) != 0 ? v1.x : v0.x, \
                                                        (k & 2) != 0 ? v1.y : v0.y, \
                                                        (k & 4) != 0 ? v1.z : v0.z))
         return mix(mix(mix(AO_BRICK_READ(0), AO_BRICK_READ(1), c.f.x),

@@ -123,7 +123,7 @@ pub struct Cao {
     /// O, V_PAO or the method changed since V_AO's bricks were chosen: the next whole restore
     /// chooses them anew ([`Cao::choose_bricks`]).
     bricks_stale: bool,
-    /// Every brick of V_AO is stored, none left out ([`Cao::keep_every_brick`]).
+    /// Every brick of V_AO is kept (so it is stored whole: [`Cao::keep_every_brick`]).
     every_brick: bool,
     /// What the host writes or reads back per frame, one set per frame in flight, so the next
     /// frame is recorded while the GPU still runs this one; [`Cao::record_frame`] takes the
@@ -444,8 +444,9 @@ impl Cao {
         Ok(Some((std::mem::replace(&mut self.ao, new), staging)))
     }
 
-    /// Stores every brick of V_AO from now on, none left out (what leaving bricks out must
-    /// equal), restoring the whole volume into them. Call it as [`Cao::restore_whole`].
+    /// Keeps every brick of V_AO from now on, none left out, so V_AO is stored whole (what
+    /// leaving bricks out must equal), restoring the whole volume into it. Call it as
+    /// [`Cao::restore_whole`].
     pub fn keep_every_brick(&mut self) -> Result<()> {
         self.every_brick = true;
         self.bricks_stale = true;

@@ -19,6 +19,9 @@ use rayon::prelude::*;
 pub const AO_BRICK: usize = 1 << AO_BRICK_SHIFT;
 const BRICK_VOXELS: usize = AO_BRICK * AO_BRICK * AO_BRICK;
 
+/// The share of bricks kept above which V_AO is stored whole ([`AoPool::new`]).
+pub const KEEP_WHOLE: f64 = 0.75;
+
 /// Bricks per axis of a volume of `dims`.
 pub fn bricks(dims: [usize; 3]) -> [usize; 3] {
     dims.map(|d| d.div_ceil(AO_BRICK).max(1))
@@ -141,8 +144,16 @@ impl AoPool {
         kept: &[bool],
         cmd: vk::CommandBuffer,
     ) -> Result<(AoPool, Buffer)> {
-        let slots = slots(kept);
-        let stored = kept.iter().filter(|&&k| k).count().max(1);
+        let count = kept.iter().filter(|&&k| k).count();
+        // Where more than KEEP_WHOLE of the bricks are kept, V_AO is stored whole: the little
+        // it would save is not worth the ray caster's table reads.
+        let whole = count as f64 > KEEP_WHOLE * kept.len() as f64;
+        let (slots, stored) = if whole {
+            let voxels: usize = dims.iter().product();
+            (vec![AO_WHOLE], voxels.div_ceil(BRICK_VOXELS))
+        } else {
+            (slots(kept), count.max(1))
+        };
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER
             | vk::BufferUsageFlags::TRANSFER_SRC
             | vk::BufferUsageFlags::TRANSFER_DST;
@@ -185,10 +196,18 @@ impl AoPool {
         Ok((pool, staging))
     }
 
+    /// Whether V_AO is stored whole, x fastest (no brick left out), its table [`AO_WHOLE`].
+    pub fn whole(&self) -> bool {
+        self.slots == [AO_WHOLE]
+    }
+
     /// Bricks stored, of all.
     pub fn stored(&self) -> (usize, usize) {
-        let kept = self.slots.iter().filter(|&&s| s != AO_NONE).count();
-        (kept, self.slots.len())
+        let all = bricks(self.dims).iter().product();
+        if self.whole() {
+            return (all, all);
+        }
+        (self.slots.iter().filter(|&&s| s != AO_NONE).count(), all)
     }
 
     /// V_AO read back whole, x fastest, as values in [0, 1] (1 where no brick is stored).
@@ -196,6 +215,9 @@ impl AoPool {
         let bytes = self.words.read_back()?;
         let words: &[u16] = bytemuck::cast_slice(&bytes[..bytes.len() & !1]);
         let [nx, ny, nz] = self.dims;
+        if self.whole() {
+            return super::stored::read(&self.words, nx * ny * nz);
+        }
         Ok((0..nx * ny * nz)
             .into_par_iter()
             .map(|i| {

@@ -1222,11 +1222,11 @@ impl<'a> From<&'a Buffer> for AoWords<'a> {
 }
 
 impl<'a> From<&'a crate::ao::pool::AoPool> for AoWords<'a> {
-    /// A CAO state's V_AO, in bricks.
+    /// A CAO state's V_AO, in bricks (or whole).
     fn from(pool: &'a crate::ao::pool::AoPool) -> AoWords<'a> {
         AoWords {
             words: &pool.words,
-            table: Some(&pool.table),
+            table: (!pool.whole()).then_some(&pool.table),
         }
     }
 }
@@ -1512,7 +1512,11 @@ impl Renderer {
             (!frame.insets.is_empty(), RAY_INSET),
             (settings.use_ao && frame.ao.is_some(), RAY_AO),
             (
-                settings.use_ao && frame.ao.is_some_and(|a| a.table.is_some()),
+                settings.use_ao
+                    && frame.ao.is_some()
+                    && std::iter::once(frame.ao)
+                        .chain(frame.insets.iter().map(|i| Some(i.ao)))
+                        .any(|a| a.is_some_and(|a| a.table.is_some())),
                 RAY_AO_BRICKS,
             ),
             (
