@@ -123,8 +123,9 @@ pub struct Cao {
     /// O, V_PAO or the method changed since V_AO's bricks were chosen: the next whole restore
     /// chooses them anew ([`Cao::choose_bricks`]).
     bricks_stale: bool,
-    /// Every brick of V_AO is kept (so it is stored whole: [`Cao::keep_every_brick`]).
-    every_brick: bool,
+    /// Whether V_AO is stored in bricks (where they save enough): None where GPU memory is
+    /// short ([`super::pool::memory_short`]), else as [`Cao::store_in_bricks`] said.
+    bricks: Option<bool>,
     /// What the host writes or reads back per frame, one set per frame in flight, so the next
     /// frame is recorded while the GPU still runs this one; [`Cao::record_frame`] takes the
     /// next slot.
@@ -274,7 +275,9 @@ impl Cao {
             | vk::BufferUsageFlags::TRANSFER_DST;
         let reach = reach_voxels(method.reach_mm(spacing), spacing);
         let kept = super::pool::needed(dims, &opacity, es, &pao_words, reach);
-        let (ao, staging) = gpu.submit_and_wait(|cmd| AoPool::new(gpu, dims, &kept, cmd))??;
+        let bricks = super::pool::memory_short(gpu, dims, 0);
+        let (ao, staging) =
+            gpu.submit_and_wait(|cmd| AoPool::new(gpu, dims, (&kept, bricks), cmd))??;
         drop(staging);
         // Two bits per voxel (shaders/include/mask.glsl), in whole words.
         let mask = Buffer::new(
@@ -303,7 +306,7 @@ impl Cao {
             pao: pao_words,
             ao,
             bricks_stale: false,
-            every_brick: false,
+            bricks: None,
             slots,
             slot: 0,
             map_builder: ClipMapGpu::new(gpu)?,
@@ -433,22 +436,22 @@ impl Cao {
         if !std::mem::take(&mut self.bricks_stale) {
             return Ok(None);
         }
-        let kept = if self.every_brick {
-            vec![true; super::pool::bricks(self.dims).iter().product()]
-        } else {
-            let reach = reach_voxels(self.reach_mm(), self.spacing);
-            let es = self.method.density_bytes();
-            super::pool::needed(self.dims, &self.opacity, es, &self.pao, reach)
-        };
-        let (new, staging) = AoPool::new(&self.gpu, self.dims, &kept, cmd)?;
+        let reach = reach_voxels(self.reach_mm(), self.spacing);
+        let es = self.method.density_bytes();
+        let kept = super::pool::needed(self.dims, &self.opacity, es, &self.pao, reach);
+        // The old V_AO, still held, goes once the frames that read it have finished.
+        let freed = self.ao.words.size + self.ao.table.size;
+        let short = || super::pool::memory_short(&self.gpu, self.dims, freed);
+        let bricks = self.bricks.unwrap_or_else(short);
+        let (new, staging) = AoPool::new(&self.gpu, self.dims, (&kept, bricks), cmd)?;
         Ok(Some((std::mem::replace(&mut self.ao, new), staging)))
     }
 
-    /// Keeps every brick of V_AO from now on, none left out, so V_AO is stored whole (what
-    /// leaving bricks out must equal), restoring the whole volume into it. Call it as
-    /// [`Cao::restore_whole`].
-    pub fn keep_every_brick(&mut self) -> Result<()> {
-        self.every_brick = true;
+    /// Stores V_AO in bricks from now on (where they leave out a quarter of it), or whole, or
+    /// with None in bricks only where GPU memory is short (the default), restoring the whole
+    /// volume into it. Call it as [`Cao::restore_whole`].
+    pub fn store_in_bricks(&mut self, bricks: Option<bool>) -> Result<()> {
+        self.bricks = bricks;
         self.bricks_stale = true;
         self.restore_whole()
     }

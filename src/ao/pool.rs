@@ -22,6 +22,23 @@ const BRICK_VOXELS: usize = AO_BRICK * AO_BRICK * AO_BRICK;
 /// The share of bricks kept above which V_AO is stored whole ([`AoPool::new`]).
 pub const KEEP_WHOLE: f64 = 0.75;
 
+/// V_AO is stored in bricks by default only where GPU memory is short: where less than this
+/// many times V_AO stored whole is left ([`memory_short`]). The ray caster's table reads cost
+/// about a tenth of its time on lavapipe (docs/benchmarks.md, "V_AO in bricks").
+pub const SHORT_FACTOR: u64 = 4;
+
+/// Whether the GPU has less than [`SHORT_FACTOR`] times a whole V_AO of `dims` left, within the
+/// budget ([`crate::gpu::BUDGET_ENV`]) and the device-local heap, counting `freed` bytes about
+/// to be freed as left.
+pub fn memory_short(gpu: &Gpu, dims: [usize; 3], freed: u64) -> bool {
+    let whole = super::stored::bytes(dims.iter().product::<usize>() as u64);
+    let heap = gpu
+        .device_local_heap_bytes()
+        .saturating_sub(gpu.memory_in_use());
+    let left = gpu.budget_left().map_or(heap, |b| b.min(heap)) + freed;
+    left < SHORT_FACTOR * whole
+}
+
 /// Bricks per axis of a volume of `dims`.
 pub fn bricks(dims: [usize; 3]) -> [usize; 3] {
     dims.map(|d| d.div_ceil(AO_BRICK).max(1))
@@ -134,20 +151,20 @@ pub struct AoPool {
 }
 
 impl AoPool {
-    /// A pool of the bricks `kept` (x fastest) of a volume of `dims`, its words uninitialised.
+    /// A pool of the bricks `kept` (x fastest) of a volume of `dims`, its words uninitialised,
+    /// or V_AO stored whole where `bricks` is false or more than [`KEEP_WHOLE`] of the bricks
+    /// are kept (the little it would save is not worth the ray caster's table reads).
     /// Its table is copied in by `cmd` (recording, outside a render pass; a barrier follows)
     /// from the staging buffer returned beside it, which must outlive that submission: no
     /// submission of its own, so it can be made while a frame is recorded.
     pub fn new(
         gpu: &Gpu,
         dims: [usize; 3],
-        kept: &[bool],
+        (kept, bricks): (&[bool], bool),
         cmd: vk::CommandBuffer,
     ) -> Result<(AoPool, Buffer)> {
         let count = kept.iter().filter(|&&k| k).count();
-        // Where more than KEEP_WHOLE of the bricks are kept, V_AO is stored whole: the little
-        // it would save is not worth the ray caster's table reads.
-        let whole = count as f64 > KEEP_WHOLE * kept.len() as f64;
+        let whole = !bricks || count as f64 > KEEP_WHOLE * kept.len() as f64;
         let (slots, stored) = if whole {
             let voxels: usize = dims.iter().product();
             (vec![AO_WHOLE], voxels.div_ceil(BRICK_VOXELS))
