@@ -123,8 +123,8 @@ pub struct Cao {
     /// O, V_PAO or the method changed since V_AO's bricks were chosen: the next whole restore
     /// chooses them anew ([`Cao::choose_bricks`]).
     bricks_stale: bool,
-    /// Whether V_AO is stored in bricks (where they save enough): None where GPU memory is
-    /// short ([`super::pool::memory_short`]), else as [`Cao::store_in_bricks`] said.
+    /// Whether V_AO is stored in bricks (where they save enough): with None where GPU memory
+    /// is short ([`super::pool::memory_short`]), else as [`Cao::store_in_bricks`] said.
     bricks: Option<bool>,
     /// What the host writes or reads back per frame, one set per frame in flight, so the next
     /// frame is recorded while the GPU still runs this one; [`Cao::record_frame`] takes the
@@ -274,10 +274,10 @@ impl Cao {
             | vk::BufferUsageFlags::TRANSFER_SRC
             | vk::BufferUsageFlags::TRANSFER_DST;
         let reach = reach_voxels(method.reach_mm(spacing), spacing);
-        let kept = super::pool::needed(dims, &opacity, es, &pao_words, reach);
-        let bricks = super::pool::memory_short(gpu, dims, 0);
+        let words = (&opacity[..], es, &pao_words[..]);
+        let kept = super::pool::kept_bricks(gpu, dims, words, reach, (None, 0));
         let (ao, staging) =
-            gpu.submit_and_wait(|cmd| AoPool::new(gpu, dims, (&kept, bricks), cmd))??;
+            gpu.submit_and_wait(|cmd| AoPool::new(gpu, dims, kept.as_deref(), cmd))??;
         drop(staging);
         // Two bits per voxel (shaders/include/mask.glsl), in whole words.
         let mask = Buffer::new(
@@ -437,13 +437,16 @@ impl Cao {
             return Ok(None);
         }
         let reach = reach_voxels(self.reach_mm(), self.spacing);
-        let es = self.method.density_bytes();
-        let kept = super::pool::needed(self.dims, &self.opacity, es, &self.pao, reach);
+        let words = (
+            &self.opacity[..],
+            self.method.density_bytes(),
+            &self.pao[..],
+        );
         // The old V_AO, still held, goes once the frames that read it have finished.
         let freed = self.ao.words.size + self.ao.table.size;
-        let short = || super::pool::memory_short(&self.gpu, self.dims, freed);
-        let bricks = self.bricks.unwrap_or_else(short);
-        let (new, staging) = AoPool::new(&self.gpu, self.dims, (&kept, bricks), cmd)?;
+        let kept =
+            super::pool::kept_bricks(&self.gpu, self.dims, words, reach, (self.bricks, freed));
+        let (new, staging) = AoPool::new(&self.gpu, self.dims, kept.as_deref(), cmd)?;
         Ok(Some((std::mem::replace(&mut self.ao, new), staging)))
     }
 

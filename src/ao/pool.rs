@@ -1,5 +1,6 @@
-//! V_AO in bricks (docs/design.md, "Stored sizes"): a CAO state stores V_AO only in the bricks
-//! of [`AO_BRICK`]³ voxels where some voxel's AO can differ from 1; a CT is mostly air.
+//! V_AO in bricks (docs/design.md, "V_AO in bricks"): where GPU memory is short, a CAO state
+//! stores V_AO only in the bricks of [`AO_BRICK`]³ voxels where some voxel's AO can differ
+//! from 1; a CT is mostly air.
 //!
 //! A brick is left out where every voxel of it has V_PAO 1 and no voxel with O > 0 lies within
 //! the method's reach of it (and the trilinear footprint). Every value a frame can write there
@@ -37,6 +38,21 @@ pub fn memory_short(gpu: &Gpu, dims: [usize; 3], freed: u64) -> bool {
         .saturating_sub(gpu.memory_in_use());
     let left = gpu.budget_left().map_or(heap, |b| b.min(heap)) + freed;
     left < SHORT_FACTOR * whole
+}
+
+/// Which bricks V_AO keeps ([`needed`], from O's words of `es` bytes, V_PAO's and the reach in
+/// voxels), or None to store it whole: as `bricks` says, or where it is None where GPU memory
+/// is short ([`memory_short`], `freed` bytes about to be freed).
+pub fn kept_bricks(
+    gpu: &Gpu,
+    dims: [usize; 3],
+    (opacity, es, pao): (&[u8], usize, &[u8]),
+    reach: [usize; 3],
+    (bricks, freed): (Option<bool>, u64),
+) -> Option<Vec<bool>> {
+    bricks
+        .unwrap_or_else(|| memory_short(gpu, dims, freed))
+        .then(|| needed(dims, opacity, es, pao, reach))
 }
 
 /// Bricks per axis of a volume of `dims`.
@@ -152,24 +168,26 @@ pub struct AoPool {
 
 impl AoPool {
     /// A pool of the bricks `kept` (x fastest) of a volume of `dims`, its words uninitialised,
-    /// or V_AO stored whole where `bricks` is false or more than [`KEEP_WHOLE`] of the bricks
-    /// are kept (the little it would save is not worth the ray caster's table reads).
+    /// or V_AO stored whole where `kept` is None or holds more than [`KEEP_WHOLE`] of the
+    /// bricks (the little it would save is not worth the ray caster's table reads).
     /// Its table is copied in by `cmd` (recording, outside a render pass; a barrier follows)
     /// from the staging buffer returned beside it, which must outlive that submission: no
     /// submission of its own, so it can be made while a frame is recorded.
     pub fn new(
         gpu: &Gpu,
         dims: [usize; 3],
-        (kept, bricks): (&[bool], bool),
+        kept: Option<&[bool]>,
         cmd: vk::CommandBuffer,
     ) -> Result<(AoPool, Buffer)> {
-        let count = kept.iter().filter(|&&k| k).count();
-        let whole = !bricks || count as f64 > KEEP_WHOLE * kept.len() as f64;
-        let (slots, stored) = if whole {
-            let voxels: usize = dims.iter().product();
-            (vec![AO_WHOLE], voxels.div_ceil(BRICK_VOXELS))
-        } else {
-            (slots(kept), count.max(1))
+        let count = |k: &[bool]| k.iter().filter(|&&k| k).count();
+        let (slots, stored) = match kept {
+            Some(k) if count(k) as f64 <= KEEP_WHOLE * k.len() as f64 => {
+                (slots(k), count(k).max(1))
+            }
+            _ => {
+                let voxels: usize = dims.iter().product();
+                (vec![AO_WHOLE], voxels.div_ceil(BRICK_VOXELS))
+            }
         };
         let usage = vk::BufferUsageFlags::STORAGE_BUFFER
             | vk::BufferUsageFlags::TRANSFER_SRC
