@@ -1,14 +1,14 @@
 // V_AO in bricks (src/ao/pool.rs): per brick of 2^AO_BRICK_SHIFT voxels per axis (x fastest)
 // its slot in the pool, or AO_NONE where the brick is not stored (every voxel's AO is 1); a
 // table whose first word is AO_WHOLE stands for V_AO stored whole, x fastest (a precompute's
-// V_PAO). A writer defines AO_TABLE_BINDING and AO_WORDS and stores through ao_store; the ray caster reads
-// the table by address (ao_pool_index).
+// V_PAO). A writer defines AO_TABLE_BINDING and AO_WORDS and stores through ao_store; the ray
+// caster reads the table by address (ao_brick, ao_pool_index).
 #ifndef CAO_XR_AO_POOL
 #define CAO_XR_AO_POOL
 #include "constants.glsl"
 
-// Where voxel v of a volume of `dims` lies in a pool whose table gives `slot` for its brick,
-// or -1 where that brick is not stored.
+// Where voxel v lies in a pool whose table gives `slot` for its brick, or -1 where that brick
+// is not stored.
 int ao_pool_index(uint slot, ivec3 v) {
     if (slot == AO_NONE) return -1;
     ivec3 l = v & ((1 << AO_BRICK_SHIFT) - 1);
